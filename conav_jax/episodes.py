@@ -1,0 +1,433 @@
+"""CoNav episodes: generation into array shards, and loading them back as a padded bank.
+
+scene (scenegen) -> navigation fields -> activity pair (activities) -> human path + motion
+(motion) -> robot start -> arrays. Each scene's episodes come from their own seed, so the same
+dataset seed gives byte-identical shards whatever the number of worker processes. Every file
+is written atomically and the manifest, written last, lists each file's sha256: a directory
+without a manifest, or with a file that does not match it, is an incomplete dataset.
+
+Layout of a dataset directory:
+    manifest.json
+    scenes/<name>.json          the scene (conav_jax.scene format)
+    scenes/<name>.nav.npz       occupancy grid and geodesic fields to every usable object
+    train/shard_00000.npz ...   episode arrays (see EPISODE_ARRAYS)
+    val/shard_00000.npz ...
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from conav_jax import activities as activities_lib
+from conav_jax import motion as motion_lib
+from conav_jax.arrayio import load_npz, save_json, save_npz, sha256_file
+from conav_jax.config import DatasetConfig
+from conav_jax.navigation import (
+    OccupancyGrid,
+    descend,
+    geodesic_field,
+    largest_component,
+    line_of_sight,
+    occupancy_grid,
+    smooth_path,
+)
+from conav_jax.scene import Scene, load_scene
+from conav_jax.scenegen import generate_scene
+
+MANIFEST = "manifest.json"
+DATASET_FORMAT = "conav-episodes"
+DATASET_VERSION = 1
+PHASE_ACTIVITY_A, PHASE_WALK, PHASE_ACTIVITY_B, PHASE_DONE = 0, 1, 2, 3
+MIN_HUMAN_PATH_M = 2.0  # activity B's spot is at least this far (geodesic) from activity A's
+
+# name -> (per-step?, dtype, meaning). Per-step arrays are (N, T, ...), padded past t_end with
+# the last frame (and PHASE_DONE); the others are (N, ...).
+EPISODE_ARRAYS: dict[str, tuple[bool, str, str]] = {
+    "scene_index": (False, "int32", "index into the manifest's scene list"),
+    "activity_a": (False, "int32", "activity id of activity A"),
+    "activity_b": (False, "int32", "activity id of activity B (the intention to infer)"),
+    "object_a": (False, "int32", "category id of object A"),
+    "object_b": (False, "int32", "category id of object B"),
+    "instance_a": (False, "int32", "index of object A in the scene's objects"),
+    "instance_b": (False, "int32", "index of object B in the scene's objects"),
+    "field_a": (False, "int32", "index of the geodesic field to activity A's spot in the scene's nav"),
+    "field_b": (False, "int32", "index of the geodesic field to the goal in the scene's nav"),
+    "goal_xy": (False, "float32", "goal: activity B's standing point (m)"),
+    "robot_start": (False, "float32", "robot start pose (x m, y m, yaw rad)"),
+    "geodesic_start_goal_m": (False, "float32", "shortest robot path length start->goal (m), SPL's l"),
+    "t_walk_start": (False, "int32", "first step of the human's walk"),
+    "t_arrive": (False, "int32", "first step the human stands at the goal"),
+    "t_end": (False, "int32", "last step of activity B (episode end)"),
+    "root_xy": (True, "float32", "human root (pelvis) ground position (m)"),
+    "root_yaw": (True, "float32", "human facing (rad)"),
+    "joints_local": (True, "float16", "22 joints minus (root_x, root_y, 0) (m)"),
+    "phase": (True, "int8", "0 activity A, 1 walk, 2 activity B, 3 after the end"),
+}
+
+
+class DatasetError(ValueError):
+    """A dataset directory that is missing, incomplete or corrupt."""
+
+
+# -- navigation per scene ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SceneNav:
+    """A scene's robot grid and geodesic fields to every usable object's standing point."""
+
+    grid: OccupancyGrid
+    fields: np.ndarray  # (K, ny, nx) float32 metres, inf where unreachable
+    field_object: np.ndarray  # (K,) int32 object index of each field
+    stand_poses: np.ndarray  # (K, 3) float32 standing (x, y, facing yaw) of each field's object
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {
+            "free": self.grid.free,
+            "origin": np.asarray(self.grid.origin, np.float64),
+            "cell_m": np.asarray(self.grid.cell_m, np.float64),
+            "fields": self.fields.astype(np.float16),
+            "field_object": self.field_object,
+            "stand_poses": self.stand_poses,
+        }
+
+    @staticmethod
+    def from_arrays(a: dict[str, np.ndarray]) -> "SceneNav":
+        grid = OccupancyGrid(a["free"].astype(bool), tuple(float(v) for v in a["origin"]), float(a["cell_m"]))
+        return SceneNav(grid, a["fields"].astype(np.float32), a["field_object"], a["stand_poses"])
+
+
+def scene_nav(scene: Scene, cfg: DatasetConfig) -> SceneNav:
+    """Grid for the robot radius; a field for every object whose standing point the robot
+    can reach within the apartment's main free region."""
+    task = cfg.task
+    grid = occupancy_grid(scene, task.robot_radius_m, cfg.nav.cell_m, task.robot_height_m)
+    main = largest_component(grid)
+    fields, objs, poses = [], [], []
+    for i, o in enumerate(scene.objects):
+        pose = o.standing_pose(cfg.scenes.standing_offset_m)
+        cell = grid.to_cell(pose[:2])
+        if not (grid.is_free(pose[:2]) and main[cell]):
+            continue
+        fields.append(geodesic_field(grid, pose[:2]))
+        objs.append(i)
+        poses.append(pose)
+    ny, nx = grid.shape
+    return SceneNav(
+        grid,
+        np.asarray(fields, np.float32).reshape(-1, ny, nx),
+        np.asarray(objs, np.int32),
+        np.asarray(poses, np.float32).reshape(-1, 3),
+    )
+
+
+# -- one scene's episodes ----------------------------------------------------------------------
+
+
+def _robot_start(rng: np.random.Generator, nav: SceneNav, human_xy, field_goal, cfg: DatasetConfig):
+    """A free pose near the human, facing it, with a clear line of sight if one can be found."""
+    task = cfg.task
+    lo, hi = task.robot_start_distance_m
+    fallback = None
+    for attempt in range(200):
+        r = rng.uniform(lo, hi)
+        ang = rng.uniform(-math.pi, math.pi)
+        xy = (human_xy[0] + r * math.cos(ang), human_xy[1] + r * math.sin(ang))
+        cell = nav.grid.to_cell(xy)
+        if not nav.grid.is_free(xy) or not np.isfinite(field_goal[cell]):
+            continue
+        if field_goal[cell] < task.success_radius_m + 1.0:
+            continue
+        yaw = math.atan2(human_xy[1] - xy[1], human_xy[0] - xy[0]) + rng.uniform(-0.25, 0.25)
+        pose = (xy[0], xy[1], math.atan2(math.sin(yaw), math.cos(yaw)))
+        if line_of_sight(nav.grid, xy, human_xy):
+            return pose
+        fallback = fallback or pose
+    return fallback
+
+
+def _episode(rng, scene: Scene, nav: SceneNav, graph, cfg: DatasetConfig):
+    """One episode's arrays (per-step ones unpadded), or None if this draw does not work out."""
+    counts: dict[str, int] = {}
+    for k in nav.field_object:
+        name = scene.objects[k].category
+        counts[name] = counts.get(name, 0) + 1
+    pair = activities_lib.sample_activity_pair(rng, graph, counts)
+    if pair is None:
+        return None
+    act_a, act_b = graph.activity(pair[0]), graph.activity(pair[1])
+    fa_choices = [k for k, o in enumerate(nav.field_object) if scene.objects[o].category == act_a.object]
+    fb_choices = [k for k, o in enumerate(nav.field_object) if scene.objects[o].category == act_b.object]
+    fa = fa_choices[int(rng.integers(len(fa_choices)))]
+    fb = fb_choices[int(rng.integers(len(fb_choices)))]
+    stand_a, stand_b = nav.stand_poses[fa], nav.stand_poses[fb]
+    field_b = nav.fields[fb]
+    if field_b[nav.grid.to_cell(stand_a[:2])] < MIN_HUMAN_PATH_M:
+        return None
+    cells = descend(nav.grid, field_b, stand_a[:2])
+    path = smooth_path(nav.grid, np.concatenate([stand_a[None, :2], cells[1:-1], stand_b[None, :2]]))
+    start = _robot_start(rng, nav, stand_a[:2], field_b, cfg)
+    if start is None:
+        return None
+    hm = motion_lib.compose_episode_motion(
+        rng,
+        (act_a.id, act_a.primitive),
+        (act_b.id, act_b.primitive),
+        tuple(float(v) for v in stand_a),
+        tuple(float(v) for v in stand_b),
+        path,
+        cfg.motion,
+    )
+    root3 = np.concatenate([hm.root_xy, np.zeros((len(hm.root_xy), 1), np.float32)], axis=-1)
+    return {
+        "activity_a": act_a.id,
+        "activity_b": act_b.id,
+        "object_a": act_a.object_index,
+        "object_b": act_b.object_index,
+        "instance_a": int(nav.field_object[fa]),
+        "instance_b": int(nav.field_object[fb]),
+        "field_a": fa,
+        "field_b": fb,
+        "goal_xy": np.asarray(stand_b[:2], np.float32),
+        "robot_start": np.asarray(start, np.float32),
+        "geodesic_start_goal_m": float(field_b[nav.grid.to_cell(start[:2])]),
+        "t_walk_start": hm.t_walk_start,
+        "t_arrive": hm.t_arrive,
+        "t_end": hm.t_end,
+        "root_xy": hm.root_xy.astype(np.float32),
+        "root_yaw": hm.root_yaw.astype(np.float32),
+        "joints_local": (hm.joints - root3[:, None, :]).astype(np.float16),
+        "phase": hm.phase.astype(np.int8),
+    }
+
+
+def _scene_seed(seed: int, scene_index: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([seed, scene_index]))
+
+
+def _build_scene(args):
+    """Worker: generate scene `scene_index` and its `n_episodes` episodes."""
+    cfg, scene_index, name, n_episodes = args
+    rng = _scene_seed(cfg.seed, scene_index)
+    graph = activities_lib.load_activity_graph()
+    for _ in range(20):  # a scene too cramped to host any activity pair is drawn again
+        scene = generate_scene(rng, cfg.scenes, name)
+        nav = scene_nav(scene, cfg)
+        probe = np.random.default_rng(0)
+        if any(_episode(probe, scene, nav, graph, cfg) is not None for _ in range(5)):
+            break
+    else:
+        raise RuntimeError(f"could not generate a usable scene {name}")
+    episodes = []
+    misses = 0
+    while len(episodes) < n_episodes:
+        ep = _episode(rng, scene, nav, graph, cfg)
+        if ep is None:
+            misses += 1
+            if misses > 50 * (n_episodes + 1):
+                raise RuntimeError(f"scene {name}: too few valid episodes ({len(episodes)}/{n_episodes})")
+            continue
+        ep["scene_index"] = scene_index
+        episodes.append(ep)
+    return scene, nav, episodes
+
+
+def _split_counts(total: int, parts: int) -> list[int]:
+    base, extra = divmod(total, parts)
+    return [base + (1 if i < extra else 0) for i in range(parts)]
+
+
+def stack_episodes(episodes: list[dict], t_max: int | None = None) -> dict[str, np.ndarray]:
+    """Stack per-episode dicts into arrays, padding per-step arrays to t_max with the last frame."""
+    lengths = [int(e["t_end"]) + 1 for e in episodes]
+    t_max = t_max or max(lengths)
+    out = {}
+    for name, (per_step, dtype, _) in EPISODE_ARRAYS.items():
+        if not per_step:
+            out[name] = np.asarray([e[name] for e in episodes], dtype)
+            continue
+        rows = []
+        for e, n in zip(episodes, lengths):
+            a = np.asarray(e[name], dtype)
+            pad = np.repeat(a[-1:], t_max - n, axis=0)
+            if name == "phase":
+                pad = np.full_like(pad, PHASE_DONE)
+            rows.append(np.concatenate([a, pad], axis=0))
+        out[name] = np.stack(rows)
+    return out
+
+
+def generate_dataset(
+    cfg: DatasetConfig,
+    out_dir: str | os.PathLike,
+    workers: int = 1,
+    progress: Callable[[Iterable], Iterable] | None = None,
+) -> dict:
+    """Generate the dataset `cfg` describes into `out_dir`; returns the manifest."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if (out / MANIFEST).exists():
+        (out / MANIFEST).unlink()  # the old dataset stops being valid before any file changes
+    splits = {"train": (cfg.train_scenes, cfg.train_episodes), "val": (cfg.val_scenes, cfg.val_episodes)}
+    jobs, split_of = [], []
+    for split, (n_scenes, n_eps) in splits.items():
+        if n_scenes < 1 or n_eps < n_scenes:
+            raise ValueError(f"{split}: need at least one scene and one episode per scene, got {n_scenes}, {n_eps}")
+        for k, n in enumerate(_split_counts(n_eps, n_scenes)):
+            idx = len(jobs)
+            jobs.append((cfg, idx, f"{split}_{k:03d}", n))
+            split_of.append(split)
+    progress = progress or (lambda it: it)
+    if workers > 1:
+        with ProcessPoolExecutor(workers) as pool:
+            results = list(progress(pool.map(_build_scene, jobs)))
+    else:
+        results = list(progress(map(_build_scene, jobs)))
+
+    manifest: dict = {
+        "format": DATASET_FORMAT,
+        "version": DATASET_VERSION,
+        "config": cfg.to_dict(),
+        "scenes": [],
+        "splits": {},
+        "arrays": {k: {"per_step": v[0], "dtype": v[1], "meaning": v[2]} for k, v in EPISODE_ARRAYS.items()},
+    }
+    by_split: dict[str, list[dict]] = {"train": [], "val": []}
+    for (scene, nav, eps), split in zip(results, split_of):
+        scene_file = f"scenes/{scene.name}.json"
+        nav_file = f"scenes/{scene.name}.nav.npz"
+        manifest["scenes"].append(
+            {
+                "name": scene.name,
+                "split": split,
+                "json": scene_file,
+                "nav": nav_file,
+                "sha256_json": save_json(out / scene_file, scene.to_json_dict()),
+                "sha256_nav": save_npz(out / nav_file, nav.to_arrays()),
+            }
+        )
+        by_split[split].extend(eps)
+    for split, eps in by_split.items():
+        shards = []
+        for s0 in range(0, len(eps), cfg.episodes_per_shard):
+            chunk = eps[s0 : s0 + cfg.episodes_per_shard]
+            fname = f"{split}/shard_{s0 // cfg.episodes_per_shard:05d}.npz"
+            digest = save_npz(out / fname, stack_episodes(chunk))
+            shards.append({"file": fname, "episodes": len(chunk), "sha256": digest})
+        lengths = np.asarray([e["t_end"] + 1 for e in eps])
+        manifest["splits"][split] = {
+            "episodes": len(eps),
+            "scenes": [s["name"] for s in manifest["scenes"] if s["split"] == split],
+            "shards": shards,
+            "mean_length_steps": round(float(lengths.mean()), 2),
+            "max_length_steps": int(lengths.max()),
+        }
+    digests = sorted(
+        [s["sha256_json"] for s in manifest["scenes"]]
+        + [s["sha256_nav"] for s in manifest["scenes"]]
+        + [sh["sha256"] for sp in manifest["splits"].values() for sh in sp["shards"]]
+    )
+    manifest["content_hash"] = hashlib.sha256("".join(digests).encode()).hexdigest()
+    save_json(out / MANIFEST, manifest)
+    return manifest
+
+
+# -- loading -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EpisodeSplit:
+    """One split loaded into memory: scenes, their nav data and the stacked episode arrays."""
+
+    name: str
+    manifest: dict
+    scenes: tuple[Scene, ...]  # all scenes of the dataset, indexed by scene_index
+    navs: tuple[SceneNav, ...]
+    episodes: dict[str, np.ndarray]  # EPISODE_ARRAYS, (N, ...) / (N, T_max, ...)
+    config: DatasetConfig
+
+    @property
+    def num_episodes(self) -> int:
+        return int(self.episodes["t_end"].shape[0])
+
+    @property
+    def max_steps(self) -> int:
+        return int(self.episodes["phase"].shape[1])
+
+    def joints(self, i: int) -> np.ndarray:
+        """World joints (T, 22, 3) float32 of episode i."""
+        root = self.episodes["root_xy"][i]
+        j = self.episodes["joints_local"][i].astype(np.float32)
+        j[..., 0] += root[:, None, 0]
+        j[..., 1] += root[:, None, 1]
+        return j
+
+
+def read_manifest(data_dir: str | os.PathLike) -> dict:
+    import json
+
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise DatasetError(f"dataset directory not found: {data_dir}")
+    path = data_dir / MANIFEST
+    if not path.is_file():
+        raise DatasetError(f"{data_dir} has no {MANIFEST}: not a dataset, or its generation did not finish")
+    try:
+        m = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{path}: corrupt manifest ({e})") from e
+    if m.get("format") != DATASET_FORMAT or m.get("version") != DATASET_VERSION:
+        raise DatasetError(f"{path}: not a {DATASET_FORMAT} v{DATASET_VERSION} manifest")
+    return m
+
+
+def load_split(
+    data_dir: str | os.PathLike, split: str, max_episodes: int | None = None, verify: bool = True
+) -> EpisodeSplit:
+    """Load one split; with `verify`, every file read is checked against the manifest's sha256."""
+    data_dir = Path(data_dir)
+    m = read_manifest(data_dir)
+    if split not in m["splits"]:
+        raise DatasetError(f"{data_dir}: no split {split!r}; has {sorted(m['splits'])}")
+
+    def checked(rel: str, digest: str) -> Path:
+        p = data_dir / rel
+        if not p.is_file():
+            raise DatasetError(f"{data_dir}: file {rel} listed in the manifest is missing")
+        if verify and sha256_file(p) != digest:
+            raise DatasetError(f"{data_dir}: file {rel} does not match the manifest (modified or partial)")
+        return p
+
+    scenes, navs = [], []
+    for s in m["scenes"]:
+        scenes.append(load_scene(checked(s["json"], s["sha256_json"])))
+        navs.append(SceneNav.from_arrays(load_npz(checked(s["nav"], s["sha256_nav"]))))
+    chunks = []
+    total = 0
+    for sh in m["splits"][split]["shards"]:
+        if max_episodes is not None and total >= max_episodes:
+            break
+        chunks.append(load_npz(checked(sh["file"], sh["sha256"])))
+        total += sh["episodes"]
+    t_max = max(c["phase"].shape[1] for c in chunks)
+    episodes = {}
+    for name, (per_step, _, _) in EPISODE_ARRAYS.items():
+        parts = []
+        for c in chunks:
+            a = c[name]
+            if per_step and a.shape[1] < t_max:
+                pad = np.repeat(a[:, -1:], t_max - a.shape[1], axis=1)
+                if name == "phase":
+                    pad = np.full_like(pad, PHASE_DONE)
+                a = np.concatenate([a, pad], axis=1)
+            parts.append(a)
+        episodes[name] = np.concatenate(parts, axis=0)[:max_episodes]
+    return EpisodeSplit(split, m, tuple(scenes), tuple(navs), episodes, DatasetConfig.from_dict(m["config"]))

@@ -1,0 +1,352 @@
+"""Scenes: walls and furniture as axis-aligned boxes, the JSON scene format and its validator.
+
+The generator (conav_jax.scenegen) writes this format and the loader reads it back, so
+hand-made or imported scenes (e.g. annotated real apartments) run unchanged. Data flows:
+JSON <-> `Scene` -> navigation grids (conav_jax.navigation) and simulator boxes (envs).
+
+Format (version 1), all lengths in metres, z up, the floor at z = 0:
+
+    {
+      "format": "conav-scene", "version": 1, "name": "apt_0001",
+      "bounds_m": [x_min, y_min, x_max, y_max],          # everything lies inside
+      "wall_height_m": 2.6,
+      "rooms": [{"type": "kitchen", "rect_m": [x0, y0, x1, y1]}, ...],   # types: ROOM_TYPES
+      "walls": [{"center_m": [x, y, z], "half_extents_m": [hx, hy, hz]}, ...],
+      "objects": [{"category": "fridge",                   # one of the 51 categories
+                   "center_m": [x, y, z],                  # box centre
+                   "size_m": [width, depth, height],       # in the object's own frame
+                   "yaw_deg": 90,                          # multiple of 90: where its front faces
+                   "room": 1,                              # index into rooms, or -1
+                   "rgb": [r, g, b]}, ...]                 # optional, 0-255; default: category's
+    }
+
+An object's front faces `yaw_deg` (0 = +x, 90 = +y); a person uses it from its standing point,
+`standing_offset_m` in front of the front face (ceiling objects: straight below), facing it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from conav_jax.categories import (
+    CATEGORY_INDEX,
+    FLOOR_RGB,
+    ROOM_TYPES,
+    WALL_RGB,
+    category,
+)
+
+SCENE_FORMAT = "conav-scene"
+SCENE_VERSION = 1
+# Boxes may touch (a picture flush on a wall, a lamp on a table) but not interpenetrate.
+OVERLAP_TOLERANCE_M = 1e-3
+
+
+@dataclass(frozen=True)
+class Box:
+    """An axis-aligned box: centre and half-extents in metres."""
+
+    center: tuple[float, float, float]
+    half_extents: tuple[float, float, float]
+
+    @property
+    def z_min(self) -> float:
+        return self.center[2] - self.half_extents[2]
+
+    @property
+    def z_max(self) -> float:
+        return self.center[2] + self.half_extents[2]
+
+
+@dataclass(frozen=True)
+class SceneObject:
+    category: str
+    center: tuple[float, float, float]
+    size: tuple[float, float, float]  # (width, depth, height) in the object's frame
+    yaw_deg: int  # multiple of 90; the direction its front faces
+    room: int
+    rgb: tuple[int, int, int]
+
+    @property
+    def category_index(self) -> int:
+        return CATEGORY_INDEX[self.category]
+
+    @property
+    def box(self) -> Box:
+        w, d, h = self.size
+        # Depth runs along the facing direction: +-x for yaw 0/180, +-y for 90/270.
+        if self.yaw_deg % 180 == 0:
+            half = (d / 2, w / 2, h / 2)
+        else:
+            half = (w / 2, d / 2, h / 2)
+        return Box(self.center, half)
+
+    @property
+    def yaw_rad(self) -> float:
+        return math.radians(self.yaw_deg)
+
+    def standing_pose(self, offset_m: float) -> tuple[float, float, float]:
+        """Where a person stands to use this object: (x, y, facing yaw in radians)."""
+        cx, cy, _ = self.center
+        if category(self.category).mount == "ceiling":
+            return (cx, cy, self.yaw_rad)
+        reach = self.size[1] / 2 + offset_m
+        fx, fy = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        facing = math.atan2(-fy, -fx)
+        return (cx + reach * fx, cy + reach * fy, facing)
+
+    def blocks_robot(self, robot_height_m: float) -> bool:
+        """Whether the robot (a cylinder from the floor to robot_height_m) can run into it."""
+        return category(self.category).collides and self.box.z_min < robot_height_m
+
+
+@dataclass(frozen=True)
+class Room:
+    type: str
+    rect: tuple[float, float, float, float]  # x0, y0, x1, y1
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str
+    bounds: tuple[float, float, float, float]  # x_min, y_min, x_max, y_max
+    wall_height: float
+    rooms: tuple[Room, ...]
+    walls: tuple[Box, ...]
+    objects: tuple[SceneObject, ...]
+
+    def category_counts(self) -> dict[str, int]:
+        counts: dict[str, int] = {}
+        for o in self.objects:
+            counts[o.category] = counts.get(o.category, 0) + 1
+        return counts
+
+    # -- JSON -------------------------------------------------------------------------------
+    def to_json_dict(self) -> dict[str, Any]:
+        return {
+            "format": SCENE_FORMAT,
+            "version": SCENE_VERSION,
+            "name": self.name,
+            "bounds_m": [round(v, 4) for v in self.bounds],
+            "wall_height_m": self.wall_height,
+            "rooms": [{"type": r.type, "rect_m": [round(v, 4) for v in r.rect]} for r in self.rooms],
+            "walls": [
+                {"center_m": [round(v, 4) for v in w.center], "half_extents_m": [round(v, 4) for v in w.half_extents]}
+                for w in self.walls
+            ],
+            "objects": [
+                {
+                    "category": o.category,
+                    "center_m": [round(v, 4) for v in o.center],
+                    "size_m": [round(v, 4) for v in o.size],
+                    "yaw_deg": o.yaw_deg,
+                    "room": o.room,
+                    "rgb": list(o.rgb),
+                }
+                for o in self.objects
+            ],
+        }
+
+
+class SceneFormatError(ValueError):
+    """A scene file that does not follow the format; the message names the field."""
+
+
+def _field(d: dict, key: str, where: str) -> Any:
+    if not isinstance(d, dict):
+        raise SceneFormatError(f"{where}: expected an object, got {type(d).__name__}")
+    if key not in d:
+        raise SceneFormatError(f"{where}: missing field {key!r}")
+    return d[key]
+
+
+def _numbers(v: Any, n: int, where: str) -> tuple[float, ...]:
+    if not isinstance(v, (list, tuple)) or len(v) != n:
+        raise SceneFormatError(f"{where}: expected a list of {n} numbers, got {v!r}")
+    out = []
+    for x in v:
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+            raise SceneFormatError(f"{where}: expected finite numbers, got {v!r}")
+        out.append(float(x))
+    return tuple(out)
+
+
+def scene_from_json_dict(d: dict[str, Any], source: str = "scene") -> Scene:
+    """Parse and validate a scene dict; raises SceneFormatError naming the offending field."""
+    fmt = _field(d, "format", source)
+    if fmt != SCENE_FORMAT:
+        raise SceneFormatError(f"{source}: field 'format' must be {SCENE_FORMAT!r}, got {fmt!r}")
+    version = _field(d, "version", source)
+    if version != SCENE_VERSION:
+        raise SceneFormatError(f"{source}: unsupported 'version' {version!r} (this reader knows {SCENE_VERSION})")
+    name = _field(d, "name", source)
+    if not isinstance(name, str) or not name:
+        raise SceneFormatError(f"{source}: field 'name' must be a non-empty string")
+    bounds = _numbers(_field(d, "bounds_m", source), 4, f"{source}.bounds_m")
+    if not (bounds[0] < bounds[2] and bounds[1] < bounds[3]):
+        raise SceneFormatError(f"{source}.bounds_m: need x_min < x_max and y_min < y_max, got {bounds}")
+    wall_height = _numbers([_field(d, "wall_height_m", source)], 1, f"{source}.wall_height_m")[0]
+    if wall_height <= 0:
+        raise SceneFormatError(f"{source}.wall_height_m: must be positive, got {wall_height}")
+
+    rooms_raw = _field(d, "rooms", source)
+    if not isinstance(rooms_raw, list):
+        raise SceneFormatError(f"{source}.rooms: expected a list")
+    rooms = []
+    for i, r in enumerate(rooms_raw):
+        where = f"{source}.rooms[{i}]"
+        rtype = _field(r, "type", where)
+        if rtype not in ROOM_TYPES:
+            raise SceneFormatError(f"{where}.type: unknown room type {rtype!r}; known: {', '.join(ROOM_TYPES)}")
+        rooms.append(Room(rtype, _numbers(_field(r, "rect_m", where), 4, f"{where}.rect_m")))
+
+    walls_raw = _field(d, "walls", source)
+    if not isinstance(walls_raw, list):
+        raise SceneFormatError(f"{source}.walls: expected a list")
+    walls = []
+    for i, w in enumerate(walls_raw):
+        where = f"{source}.walls[{i}]"
+        c = _numbers(_field(w, "center_m", where), 3, f"{where}.center_m")
+        h = _numbers(_field(w, "half_extents_m", where), 3, f"{where}.half_extents_m")
+        if min(h) <= 0:
+            raise SceneFormatError(f"{where}.half_extents_m: must be positive, got {h}")
+        walls.append(Box(c, h))
+
+    objects_raw = _field(d, "objects", source)
+    if not isinstance(objects_raw, list):
+        raise SceneFormatError(f"{source}.objects: expected a list")
+    objects = []
+    for i, o in enumerate(objects_raw):
+        where = f"{source}.objects[{i}]"
+        cat = _field(o, "category", where)
+        if cat not in CATEGORY_INDEX:
+            raise SceneFormatError(f"{where}.category: unknown category {cat!r}")
+        c = _numbers(_field(o, "center_m", where), 3, f"{where}.center_m")
+        size = _numbers(_field(o, "size_m", where), 3, f"{where}.size_m")
+        if min(size) <= 0:
+            raise SceneFormatError(f"{where}.size_m: must be positive, got {size}")
+        yaw = _field(o, "yaw_deg", where)
+        if isinstance(yaw, bool) or not isinstance(yaw, (int, float)) or yaw % 90 != 0:
+            raise SceneFormatError(f"{where}.yaw_deg: must be a multiple of 90, got {yaw!r}")
+        room = o.get("room", -1)
+        if not isinstance(room, int) or not (-1 <= room < len(rooms)):
+            raise SceneFormatError(f"{where}.room: must be -1 or an index into rooms, got {room!r}")
+        rgb = o.get("rgb", list(category(cat).rgb))
+        if (
+            not isinstance(rgb, list)
+            or len(rgb) != 3
+            or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in rgb)
+        ):
+            raise SceneFormatError(f"{where}.rgb: expected three integers 0-255, got {rgb!r}")
+        objects.append(SceneObject(cat, c, size, int(yaw) % 360, room, tuple(rgb)))
+
+    scene = Scene(name, bounds, wall_height, tuple(rooms), tuple(walls), tuple(objects))
+    validate_geometry(scene, source)
+    return scene
+
+
+def _overlap(a: Box, b: Box) -> bool:
+    return all(
+        abs(a.center[k] - b.center[k]) < a.half_extents[k] + b.half_extents[k] - OVERLAP_TOLERANCE_M for k in range(3)
+    )
+
+
+def validate_geometry(scene: Scene, source: str = "scene") -> None:
+    """Reject boxes outside the bounds or below the floor and objects that interpenetrate."""
+    x0, y0, x1, y1 = scene.bounds
+    named = [(f"walls[{i}]", w) for i, w in enumerate(scene.walls)]
+    named += [(f"objects[{i}] ({o.category})", o.box) for i, o in enumerate(scene.objects)]
+    tol = OVERLAP_TOLERANCE_M
+    for name, b in named:
+        (cx, cy, _), (hx, hy, _) = b.center, b.half_extents
+        if cx - hx < x0 - tol or cx + hx > x1 + tol or cy - hy < y0 - tol or cy + hy > y1 + tol:
+            raise SceneFormatError(f"{source}.{name}: footprint lies outside bounds_m {scene.bounds}")
+        if b.z_min < -tol:
+            raise SceneFormatError(f"{source}.{name}: extends below the floor (z_min {b.z_min:.3f} m)")
+    obj_named = named[len(scene.walls):]
+    for i, (na, a) in enumerate(obj_named):
+        for nb, b in named[: len(scene.walls)] + obj_named[:i]:
+            if _overlap(a, b):
+                raise SceneFormatError(f"{source}.{na}: overlaps {nb}")
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Read and validate a scene JSON file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"scene file not found: {path}")
+    try:
+        d = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise SceneFormatError(f"{path}: not valid JSON ({e})") from e
+    return scene_from_json_dict(d, source=str(path))
+
+
+# -- arrays for the simulator and renderers --------------------------------------------------
+
+STRUCTURE_WALL = -1  # category id of wall boxes in the box arrays
+
+
+@dataclass(frozen=True)
+class SceneBoxes:
+    """All boxes of a scene as arrays, walls first then objects.
+
+    center (N, 3), half_extents (N, 3) metres; rgb (N, 3) uint8; category (N,) int32 with
+    STRUCTURE_WALL for walls; blocks_robot (N,) bool; object_index (N,) int32 (-1 for walls).
+    """
+
+    center: np.ndarray
+    half_extents: np.ndarray
+    rgb: np.ndarray
+    category: np.ndarray
+    blocks_robot: np.ndarray
+    object_index: np.ndarray
+
+
+def scene_boxes(scene: Scene, robot_height_m: float) -> SceneBoxes:
+    centers, halves, rgbs, cats, blocks, obj_idx = [], [], [], [], [], []
+    for w in scene.walls:
+        centers.append(w.center)
+        halves.append(w.half_extents)
+        rgbs.append(WALL_RGB)
+        cats.append(STRUCTURE_WALL)
+        blocks.append(True)
+        obj_idx.append(-1)
+    for i, o in enumerate(scene.objects):
+        b = o.box
+        centers.append(b.center)
+        halves.append(b.half_extents)
+        rgbs.append(o.rgb)
+        cats.append(o.category_index)
+        blocks.append(o.blocks_robot(robot_height_m))
+        obj_idx.append(i)
+    return SceneBoxes(
+        center=np.asarray(centers, np.float32).reshape(-1, 3),
+        half_extents=np.asarray(halves, np.float32).reshape(-1, 3),
+        rgb=np.asarray(rgbs, np.uint8).reshape(-1, 3),
+        category=np.asarray(cats, np.int32),
+        blocks_robot=np.asarray(blocks, bool),
+        object_index=np.asarray(obj_idx, np.int32),
+    )
+
+
+__all__ = [
+    "Box",
+    "FLOOR_RGB",
+    "Room",
+    "Scene",
+    "SceneBoxes",
+    "SceneFormatError",
+    "SceneObject",
+    "load_scene",
+    "scene_boxes",
+    "scene_from_json_dict",
+    "validate_geometry",
+]
