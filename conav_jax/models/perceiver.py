@@ -1,0 +1,146 @@
+"""Long-term intention predictor (paper sec. 4.1): a Perceiver over front-view RGB-D frames.
+
+frames `(B, N, h, w, 4)` + valid `mask (B, N)` -> patch tokens (linear patch embedding +
+learned patch position + sinusoidal frame index) -> a learned latent array cross-attends to the
+valid tokens -> latent self-attention blocks -> mean-pooled latent -> activity (107) and object
+(51) logits. `lowest_entropy_average` is the paper's inference-time smoothing of predictions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from conav_jax import nn
+
+Params = dict
+
+
+@dataclass(frozen=True)
+class PerceiverConfig:
+    """Sizes of the intention Perceiver. Defaults are CPU-test sized; scale up for training."""
+
+    image_hw: tuple[int, int] = (32, 32)  # front-view frame (h, w) in pixels
+    channels: int = 4  # RGB in [0, 1] + depth in metres
+    patch_size: int = 8  # square patches; must divide h and w
+    max_depth_m: float = 10.0  # depth is divided by this and clipped to [0, 1]
+    dim: int = 64  # token and latent width
+    num_latents: int = 16
+    num_heads: int = 4  # head width = dim // num_heads
+    num_blocks: int = 2  # latent self-attention blocks after the cross-attention
+    mlp_ratio: int = 2  # MLP hidden width = mlp_ratio * dim
+    num_activities: int = 107
+    num_objects: int = 51
+
+    @property
+    def num_patches(self) -> int:
+        h, w = self.image_hw
+        return (h // self.patch_size) * (w // self.patch_size)
+
+
+class IntentionLogits(NamedTuple):
+    """Unnormalised class scores: `activity (B, num_activities)`, `object (B, num_objects)`."""
+
+    activity: jax.Array
+    object: jax.Array
+
+
+def _block_init(key: jax.Array, config: PerceiverConfig, kv_dim: int) -> Params:
+    """Pre-norm attention + MLP block; `kv_dim` is the width of what the latents attend to."""
+    d = config.dim
+    k_attn, k_mlp = jax.random.split(key)
+    return {
+        "norm_q": nn.norm.init(None, d),
+        "norm_kv": nn.norm.init(None, kv_dim),
+        "attn": nn.attention.init(k_attn, d, kv_dim, config.num_heads, d // config.num_heads),
+        "norm_mlp": nn.norm.init(None, d),
+        "mlp": nn.mlp.init(k_mlp, (d, config.mlp_ratio * d, d)),
+    }
+
+
+def _block_apply(
+    params: Params, latents: jax.Array, kv: jax.Array, key_mask: jax.Array | None
+) -> jax.Array:
+    """`latents (B, L, d)` attend to `kv (B, S, kv_dim)` (masked), then MLP; both residual."""
+    q = nn.norm.apply(params["norm_q"], latents)
+    latents = latents + nn.attention.apply(params["attn"], q, nn.norm.apply(params["norm_kv"], kv), key_mask)
+    return latents + nn.mlp.apply(params["mlp"], nn.norm.apply(params["norm_mlp"], latents))
+
+
+def init(key: jax.Array, config: PerceiverConfig) -> Params:
+    """Parameters for `config`; a stored frame count is not needed (any N works)."""
+    h, w = config.image_hw
+    p, d = config.patch_size, config.dim
+    if h % p or w % p:
+        raise ValueError(f"patch_size {p} must divide the frame size {config.image_hw}")
+    if d % config.num_heads or d % 2:
+        raise ValueError(f"dim {d} must be even and divisible by num_heads {config.num_heads}")
+    keys = jax.random.split(key, 6 + config.num_blocks)
+    return {
+        "patch_embed": nn.linear.init(keys[0], p * p * config.channels, d),
+        "patch_pos": 0.02 * jax.random.normal(keys[1], (config.num_patches, d)),
+        "latents": 0.02 * jax.random.normal(keys[2], (config.num_latents, d)),
+        "cross": _block_init(keys[3], config, d),
+        "blocks": [_block_init(k, config, d) for k in keys[6:]],
+        "norm_out": nn.norm.init(None, d),
+        "activity_head": nn.linear.init(keys[4], d, config.num_activities, scheme="glorot"),
+        "object_head": nn.linear.init(keys[5], d, config.num_objects, scheme="glorot"),
+    }
+
+
+def _patchify(frames: jax.Array, patch: int) -> jax.Array:
+    """`(B, N, h, w, C) -> (B, N, (h/p)(w/p), p*p*C)`, patches in row-major order."""
+    b, n, h, w, c = frames.shape
+    x = frames.reshape(b, n, h // patch, patch, w // patch, patch, c)
+    x = x.transpose(0, 1, 2, 4, 3, 5, 6)
+    return x.reshape(b, n, (h // patch) * (w // patch), patch * patch * c)
+
+
+def apply(
+    params: Params, config: PerceiverConfig, frames: jax.Array, mask: jax.Array
+) -> IntentionLogits:
+    """`frames (B, N, h, w, 4)` float (RGB in [0, 1], depth in metres), `mask (B, N)` bool
+    (True = a real frame) -> logits. Masked frames are ignored exactly, whatever they hold;
+    a sample with no valid frame gets the latents' prior prediction."""
+    b, n = frames.shape[:2]
+    # Padding may hold anything (even NaN); zero it so 0-weight attention stays exactly 0.
+    frames = jnp.where(mask[:, :, None, None, None], frames, 0.0)
+    rgb, depth = frames[..., :3], frames[..., 3:]
+    frames = jnp.concatenate([rgb, jnp.clip(depth / config.max_depth_m, 0.0, 1.0)], axis=-1)
+
+    tokens = nn.linear.apply(params["patch_embed"], _patchify(frames, config.patch_size))
+    time = nn.embedding.sinusoidal(jnp.arange(n), config.dim)  # (N, d), frame index
+    tokens = tokens + params["patch_pos"] + time[:, None, :]
+    tokens = tokens.reshape(b, n * config.num_patches, config.dim)
+    token_mask = jnp.repeat(mask, config.num_patches, axis=1)
+
+    latents = jnp.broadcast_to(params["latents"], (b, *params["latents"].shape))
+    latents = _block_apply(params["cross"], latents, tokens, token_mask)
+    for block in params["blocks"]:
+        latents = _block_apply(block, latents, latents, None)
+    pooled = jnp.mean(nn.norm.apply(params["norm_out"], latents), axis=1)
+    return IntentionLogits(
+        activity=nn.linear.apply(params["activity_head"], pooled),
+        object=nn.linear.apply(params["object_head"], pooled),
+    )
+
+
+def lowest_entropy_average(prob_history: jax.Array, valid: jax.Array, k: int = 5) -> jax.Array:
+    """The paper's inference smoothing: mean of the `k` lowest-entropy valid predictions.
+
+    `prob_history (B, T, C)` probabilities, `valid (B, T)` bool -> `(B, C)`. With fewer than `k`
+    valid steps, the mean of those; with none, the uniform distribution. Ties go to earlier steps.
+    """
+    p, valid = jnp.asarray(prob_history), jnp.asarray(valid)
+    c = p.shape[-1]
+    entropy = -jnp.sum(jnp.where(p > 0, p * jnp.log(jnp.where(p > 0, p, 1.0)), 0.0), axis=-1)
+    score = jnp.where(valid, -entropy, -jnp.inf)  # top_k of -entropy = lowest entropy
+    _, idx = jax.lax.top_k(score, min(k, p.shape[1]))
+    chosen = jnp.take_along_axis(p, idx[..., None], axis=1)  # (B, k, C)
+    weight = jnp.take_along_axis(valid, idx, axis=1).astype(p.dtype)[..., None]
+    count = jnp.sum(weight, axis=1)
+    mean = jnp.sum(chosen * weight, axis=1) / jnp.maximum(count, 1.0)
+    return jnp.where(count > 0, mean, 1.0 / c)

@@ -1,0 +1,135 @@
+"""conav_jax.checkpoints: bit-exact round trips, named errors for mismatches, and atomic saves."""
+
+import os
+import zipfile
+
+import jax
+import numpy as np
+import pytest
+
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.optim import AdamState, adam
+
+CONFIG = {"model": {"hidden": 8, "image_hw": (16, 64)}, "lr": 1e-3, "name": "tiny"}
+
+
+@pytest.fixture(scope="module")
+def trained():
+    """Params of mixed dtypes and an optimizer state after two real updates (non-zero moments)."""
+    rng = np.random.default_rng(0)
+    normal = lambda *shape: rng.normal(size=shape).astype(np.float32)
+    params = {
+        "encoder": {"w": normal(3, 4), "b": np.zeros(4, np.float32)},
+        "layers": [{"w": normal(4, 2)}, {"w": normal(2)}],
+        "table": np.arange(6, dtype=np.int32).reshape(2, 3),
+    }
+    float_params = {k: v for k, v in params.items() if k != "table"}
+    opt = adam(1e-2)
+    state, update = opt.init(float_params), jax.jit(opt.update)
+    for _ in range(2):
+        grads = jax.tree_util.tree_map(lambda p: np.sin(np.asarray(p)) + 0.1, float_params)
+        float_params, state = update(grads, state, float_params)
+    return {**float_params, "table": params["table"]}, state
+
+
+def _assert_trees_bit_identical(a, b):
+    assert jax.tree_util.tree_structure(a) == jax.tree_util.tree_structure(b)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.dtype == y.dtype and x.shape == y.shape
+        assert x.tobytes() == y.tobytes()
+
+
+def test_round_trip_is_bit_identical_with_and_without_templates(tmp_path, trained):
+    params, state = trained
+    path = save_checkpoint(tmp_path / "ckpt_00000002.npz", params=params, opt_state=state,
+                           config=CONFIG, step=2, extra={"best_fasr": 0.25})
+    plain = load_checkpoint(path)
+    assert isinstance(plain.opt_state, AdamState)  # rebuilt from the saved structure
+    state_like = jax.eval_shape(lambda: state)  # ShapeDtypeStructs are enough
+    templated = load_checkpoint(path, config=CONFIG, params_like=params, opt_state_like=state_like)
+    for ckpt in (plain, templated):
+        _assert_trees_bit_identical(ckpt.params, params)
+        _assert_trees_bit_identical(ckpt.opt_state, state)
+        assert ckpt.step == 2 and ckpt.extra == {"best_fasr": 0.25}
+        assert ckpt.config["model"]["image_hw"] == [16, 64]
+
+
+def test_file_is_a_plain_npz_with_json_metadata(tmp_path, trained):
+    params, state = trained
+    path = save_checkpoint(tmp_path / "c.npz", params=params, opt_state=state, config=CONFIG, step=7)
+    with np.load(path) as npz:
+        np.testing.assert_array_equal(npz["params/encoder/w"], params["encoder"]["w"])
+        assert "opt_state/mu/layers/1/w" in npz.files
+    assert b'"step": 7' in zipfile.ZipFile(path).read("meta.json")
+
+
+def test_config_mismatch_names_the_dotted_key(tmp_path, trained):
+    params, state = trained
+    path = save_checkpoint(tmp_path / "c.npz", params=params, opt_state=state, config=CONFIG, step=1)
+    wrong = {**CONFIG, "model": {"hidden": 16, "image_hw": (16, 64)}}
+    with pytest.raises(ValueError, match=r"model\.hidden: saved 8 vs expected 16"):
+        load_checkpoint(path, config=wrong)
+    with pytest.raises(ValueError, match=r"extra_flag"):
+        load_checkpoint(path, config={**CONFIG, "extra_flag": True})
+
+
+def test_shape_and_structure_mismatches_name_the_key_path(tmp_path, trained):
+    params, state = trained
+    path = save_checkpoint(tmp_path / "c.npz", params=params, opt_state=state, config=CONFIG, step=1)
+    bigger = {**params, "encoder": {**params["encoder"], "w": np.zeros((3, 5), np.float32)}}
+    with pytest.raises(ValueError, match=r"params/encoder/w: saved float32\[3, 4\] vs expected float32\[3, 5"):
+        load_checkpoint(path, params_like=bigger)
+    with pytest.raises(ValueError, match=r"params/table: saved int32.* vs expected float32"):
+        load_checkpoint(path, params_like={**params, "table": params["table"].astype(np.float32)})
+    with pytest.raises(ValueError, match=r"params/head/w: expected by the template, missing"):
+        load_checkpoint(path, params_like={**params, "head": {"w": np.zeros(2, np.float32)}})
+
+
+def test_interrupted_save_leaves_the_previous_checkpoint_loadable(tmp_path, trained, monkeypatch):
+    params, state = trained
+    path = checkpoint_path(tmp_path, 5)
+    save_checkpoint(path, params=params, opt_state=state, config=CONFIG, step=5)
+
+    def crash(src, dst):
+        raise OSError("simulated crash before the rename")
+
+    monkeypatch.setattr(os, "replace", crash)
+    zeros = jax.tree_util.tree_map(np.zeros_like, params)
+    with pytest.raises(OSError, match="simulated crash"):
+        save_checkpoint(path, params=zeros, opt_state=state, config=CONFIG, step=6)
+    monkeypatch.undo()
+
+    assert os.listdir(tmp_path) == [path.name]  # the temp file is gone too
+    ckpt = load_checkpoint(path, config=CONFIG)
+    assert ckpt.step == 5
+    _assert_trees_bit_identical(ckpt.params, params)
+
+
+def test_missing_file_raises_file_not_found_with_the_path(tmp_path):
+    missing = tmp_path / "nope" / "ckpt_00000001.npz"
+    with pytest.raises(FileNotFoundError, match="nope"):
+        load_checkpoint(missing)
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated"])
+def test_corrupt_file_raises_value_error(tmp_path, trained, damage):
+    params, state = trained
+    path = save_checkpoint(tmp_path / "c.npz", params=params, opt_state=state, config=CONFIG, step=1)
+    data = path.read_bytes()
+    path.write_bytes(b"not a checkpoint" if damage == "garbage" else data[: len(data) // 2])
+    with pytest.raises(ValueError, match="corrupt checkpoint"):
+        load_checkpoint(path)
+
+
+def test_latest_checkpoint_picks_the_highest_step(tmp_path, trained):
+    params, state = trained
+    assert latest_checkpoint(tmp_path) is None
+    assert latest_checkpoint(tmp_path / "missing") is None
+    for step in (3, 12, 7):
+        path = checkpoint_path(tmp_path, step)
+        save_checkpoint(path, params=params, opt_state=state, config=CONFIG, step=step)
+    (tmp_path / ".ckpt_00000099.npz.tmp-1-abcd").write_bytes(b"half")  # an interrupted save
+    (tmp_path / "notes.txt").write_text("hi")
+    assert latest_checkpoint(tmp_path) == tmp_path / "ckpt_00000012.npz"
+    assert load_checkpoint(latest_checkpoint(tmp_path)).step == 12

@@ -1,0 +1,241 @@
+"""Layers of conav_jax.nn: gradients against central finite differences (float64), attention
+masking, the LSTM scan against a Python loop, and shapes of the rest."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conav_jax import nn
+
+# Tiny shapes on a 2-core CPU: LLVM's optimisation passes cost far more compile time than
+# they save at run time (3x faster compiles), so the tests' jits skip them.
+jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
+
+# Inputs come from numpy (each new shape drawn with jax.random costs a compile) and params are
+# drawn once, under one jit, and shared.
+RNG = np.random.default_rng(0)
+KEY = jax.random.PRNGKey(0)
+
+
+def _normal(*shape):
+    return RNG.normal(size=shape).astype(np.float32)
+
+
+def _to64(tree):
+    return jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), tree)
+
+
+def _assert_grad_matches_finite_differences(loss, args, seed=0, eps=1e-6, directions=3):
+    """Directional derivatives of `loss(*args)` along random directions: autodiff vs central
+    differences `(f(x + eps v) - f(x - eps v)) / 2 eps`, all args differentiated at once."""
+    # Jitted: one compile per loss instead of one per eager op.
+    grads = jit(jax.grad(loss, argnums=tuple(range(len(args)))))(*args)
+    loss = jit(loss)
+    assert loss(*args).dtype == jnp.float64  # float32 rounding would swamp the differences
+    rng = np.random.default_rng(seed)
+    for _ in range(directions):
+        v = jax.tree_util.tree_map(lambda x: rng.normal(size=np.shape(x)), args)
+        shift = lambda s: jax.tree_util.tree_map(lambda x, d: x + s * d, args, v)
+        numeric = (loss(*shift(eps)) - loss(*shift(-eps))) / (2 * eps)
+        analytic = sum(
+            jnp.vdot(g, d) for g, d in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(v))
+        )
+        np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-8)
+
+
+def _weighted_sum(y, seed=1):
+    # A fixed random weighting, so every output element matters to the scalar loss.
+    w = np.random.default_rng(seed).normal(size=y.shape)
+    return jnp.sum(jnp.sin(y) * w)
+
+
+@pytest.fixture(scope="module")
+def layers():
+    """One set of float32 layer params shared by every test."""
+    init = lambda key: {
+        "linear": nn.linear.init(key, 3, 4, scheme="glorot"),
+        "conv": nn.conv.init(key, 2, 3, 3),
+        "attention": nn.attention.init(key, 8, 6, num_heads=2, head_dim=4),
+        "lstm": nn.lstm.init(key, 3, 5),
+        "mlp": nn.mlp.init(key, (3, 16, 2)),
+        "embedding": nn.embedding.init(key, 10, 6),
+    }
+    return jit(init)(KEY)
+
+
+def test_linear_gradient_matches_finite_differences(layers):
+    with jax.enable_x64(True):
+        loss = lambda p, x: _weighted_sum(nn.linear.apply(p, x))
+        _assert_grad_matches_finite_differences(loss, _to64((layers["linear"], _normal(2, 5, 3))))
+
+
+@pytest.mark.parametrize("stride,padding", [(1, "SAME"), (2, "VALID")])
+def test_conv2d_gradient_matches_finite_differences(layers, stride, padding):
+    with jax.enable_x64(True):
+        loss = lambda p, x: _weighted_sum(nn.conv.apply(p, x, stride=stride, padding=padding))
+        _assert_grad_matches_finite_differences(loss, _to64((layers["conv"], _normal(2, 5, 6, 2))))
+
+
+def test_layer_norm_gradient_matches_finite_differences():
+    with jax.enable_x64(True):
+        params = {"scale": _normal(4), "bias": _normal(4)}
+        loss = lambda p, x: _weighted_sum(nn.norm.apply(p, x))
+        _assert_grad_matches_finite_differences(loss, _to64((params, _normal(3, 4))))
+
+
+def test_attention_gradient_matches_finite_differences_with_a_mask(layers):
+    mask = np.array([[True, True, False, True, False], [False] * 5])  # 2nd row fully masked
+    with jax.enable_x64(True):
+        loss = lambda p, q, kv: _weighted_sum(nn.attention.apply(p, q, kv, mask))
+        args = _to64((layers["attention"], _normal(2, 3, 8), _normal(2, 5, 6)))
+        _assert_grad_matches_finite_differences(loss, args)
+
+
+def test_lstm_scan_gradient_matches_finite_differences(layers):
+    resets = np.zeros((4, 2), bool)
+    resets[2, 0] = True
+
+    def loss(p, carry, xs):
+        final, hs = nn.lstm.lstm_scan(p, carry, xs, resets)
+        return _weighted_sum(hs) + jnp.sum(final.c)
+
+    with jax.enable_x64(True):
+        carry = nn.lstm.LSTMState(_normal(2, 5), _normal(2, 5))
+        _assert_grad_matches_finite_differences(loss, _to64((layers["lstm"], carry, _normal(4, 2, 3))))
+
+
+def test_conv2d_matches_explicit_sum(layers):
+    params = layers["conv"]
+    x = _normal(1, 4, 5, 2)
+    y = nn.conv.apply(params, x, stride=1, padding="VALID")
+    w, xn = np.asarray(params["w"]), x[0]
+    expected = np.zeros((2, 3, 3))
+    for i in range(2):
+        for j in range(3):
+            expected[i, j] = np.einsum("hwc,hwco->o", xn[i : i + 3, j : j + 3], w)
+    np.testing.assert_allclose(y[0], expected + np.asarray(params["b"]), rtol=1e-5, atol=1e-5)
+
+
+def test_conv2d_output_sizes_and_leading_dims(layers):
+    params = layers["conv"]
+    x = np.zeros((2, 3, 16, 64, 2), np.float32)
+
+    def shape(padding):
+        return jax.eval_shape(lambda p, x: nn.conv.apply(p, x, stride=2, padding=padding), params, x).shape
+
+    assert shape("SAME") == (2, 3, 8, 32, 3)
+    assert shape("VALID") == (2, 3, 7, 31, 3)
+
+
+def test_layer_norm_gives_zero_mean_unit_variance():
+    x = _normal(3, 16) * 5 + 2
+    y = jit(nn.norm.apply)(nn.norm.init(None, 16), x)
+    np.testing.assert_allclose(y.mean(-1), 0, atol=1e-5)
+    np.testing.assert_allclose(y.var(-1), 1, atol=1e-3)
+
+
+ATTEND = jit(nn.attention.apply)
+
+
+@pytest.fixture(scope="module")
+def attention_case(layers):
+    params = layers["attention"]
+    q, kv = _normal(2, 3, 8), _normal(2, 5, 6)
+    mask = np.array([[True, False, True, True, False], [True, True, False, False, False]])
+    return params, q, kv, mask
+
+
+def test_attention_ignores_masked_keys_exactly(attention_case):
+    params, q, kv, mask = attention_case
+    garbage = np.where(mask[..., None], kv, 1e3 * _normal(*kv.shape))
+    out = ATTEND(params, q, kv, mask)
+    np.testing.assert_array_equal(out, ATTEND(params, q, garbage, mask))
+    # ...and equals attending to the valid keys alone.
+    alone = nn.attention.apply(params, q[1:], kv[1:, :2])
+    np.testing.assert_allclose(out[1:], alone, rtol=1e-5, atol=1e-6)
+
+
+def test_attention_without_mask_equals_all_true_mask(attention_case):
+    params, q, kv, _ = attention_case
+    np.testing.assert_allclose(
+        nn.attention.apply(params, q, kv), ATTEND(params, q, kv, np.ones(kv.shape[:2], bool)), rtol=1e-5
+    )
+
+
+def test_fully_masked_attention_row_gives_finite_zeros_and_gradients(attention_case):
+    params, q, kv, _ = attention_case
+    mask = np.zeros(kv.shape[:2], bool)
+    out = ATTEND(params, q, kv, mask)
+    np.testing.assert_array_equal(out, np.zeros_like(out))
+    grads = jit(jax.grad(lambda p: jnp.sum(nn.attention.apply(p, q, kv, mask))))(params)
+    assert all(np.isfinite(g).all() for g in jax.tree_util.tree_leaves(grads))
+
+
+def test_self_attention_keeps_shape():
+    params = jax.eval_shape(lambda: nn.attention.init(KEY, 8, 8, num_heads=4, head_dim=2))
+    x = jax.ShapeDtypeStruct((2, 7, 8), jnp.float32)
+    assert jax.eval_shape(lambda p, x: nn.attention.apply(p, x, x), params, x).shape == (2, 7, 8)
+
+
+SCAN = jit(nn.lstm.lstm_scan)
+
+
+@pytest.fixture(scope="module")
+def lstm_case(layers):
+    params = layers["lstm"]
+    carry = nn.lstm.LSTMState(_normal(2, 5), _normal(2, 5))
+    return params, _normal(6, 2, 3), carry
+
+
+def test_lstm_scan_equals_python_loop_over_the_cell(lstm_case):
+    params, xs, carry = lstm_case
+    final, hs = SCAN(params, carry, xs)
+    cell = jit(nn.lstm.apply)
+    c, loop_hs = carry, []
+    for x in xs:
+        c, h = cell(params, c, x)
+        loop_hs.append(h)
+    np.testing.assert_allclose(hs, np.stack(loop_hs), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(final.c, c.c, rtol=1e-5, atol=1e-6)
+
+
+def test_lstm_scan_reset_zeroes_the_carry_before_that_step(lstm_case):
+    params, xs, carry = lstm_case
+    resets = np.zeros((6, 2), bool)
+    resets[3, 0] = True
+    _, hs = SCAN(params, carry, xs, resets)
+    _, untouched = SCAN(params, carry, xs, np.zeros_like(resets))
+    # Sample 0 from step 3 on is a fresh sequence from a zero carry; the rest is untouched.
+    zero = nn.lstm.LSTMState(np.zeros((2, 5), np.float32), np.zeros((2, 5), np.float32))
+    _, fresh = SCAN(params, zero, np.concatenate([xs[3:], xs[:3]]), np.zeros_like(resets))
+    np.testing.assert_allclose(hs[3:, 0], fresh[:3, 0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(hs[:, 1], untouched[:, 1], rtol=1e-6)
+    np.testing.assert_allclose(hs[:3], untouched[:3], rtol=1e-6)
+
+
+def test_mlp_maps_sizes_and_stays_linear_at_the_output(layers):
+    params = layers["mlp"]
+    x = np.ones((4, 5, 3), np.float32)
+    out = jit(nn.mlp.apply)(params, np.concatenate([x, -100 * x]))
+    assert out.shape == (8, 5, 2)
+    assert out.min() < 0  # no activation after the last layer
+
+
+def test_embedding_looks_up_rows_and_sinusoidal_is_bounded(layers):
+    params = layers["embedding"]
+    ids = np.array([[0, 9], [3, 3]])
+    np.testing.assert_array_equal(nn.embedding.apply(params, ids), np.asarray(params["table"])[ids])
+    pe = np.asarray(jit(nn.embedding.sinusoidal, static_argnums=1)(np.arange(50), 16))
+    assert pe.shape == (50, 16) and np.abs(pe).max() <= 1.0
+    np.testing.assert_allclose(pe[0], np.r_[np.zeros(8), np.ones(8)])
+    assert len({tuple(np.round(r, 4)) for r in pe}) == 50  # positions distinguishable
+
+
+def test_float64_checks_do_not_leak_x64_into_other_tests():
+    # Runs after the float64 gradient tests above in this file.
+    assert jnp.zeros(1).dtype == jnp.float32
+    assert jnp.asarray(1.0).dtype == jnp.float32
+    assert jax.eval_shape(lambda: nn.linear.init(KEY, 3, 4))["w"].dtype == jnp.float32

@@ -1,0 +1,104 @@
+"""conav_jax.models.perceiver: masked frames change nothing, a tiny batch can be memorised,
+and the lowest-entropy averaging picks, averages and falls back as the paper describes."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conav_jax.models import perceiver
+from conav_jax.models.perceiver import PerceiverConfig
+from conav_jax.optim import adam
+
+# Tiny shapes on a 2-core CPU: LLVM's optimisation passes cost far more compile time than
+# they save at run time (3x faster compiles), so the tests' jits skip them.
+jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
+
+CONFIG = PerceiverConfig(image_hw=(16, 16), patch_size=8, dim=32, num_latents=8, num_heads=2, num_blocks=1)
+APPLY = jit(perceiver.apply, static_argnums=1)
+LOWEST_ENTROPY_AVERAGE = jit(perceiver.lowest_entropy_average, static_argnames="k")
+B, N = 4, 3
+
+
+@pytest.fixture(scope="module")
+def params():
+    return jit(perceiver.init, static_argnums=1)(jax.random.PRNGKey(0), CONFIG)
+
+
+@pytest.fixture(scope="module")
+def batch():
+    rng = np.random.default_rng(0)
+    frames = rng.uniform(size=(B, N, 16, 16, 4)).astype(np.float32)
+    frames[..., 3] *= 8.0  # depth in metres
+    mask = np.array([[1, 1, 1], [1, 1, 0], [1, 0, 0], [0, 1, 1]], bool)
+    return frames, mask
+
+
+def test_outputs_have_one_logit_per_activity_and_object(params, batch):
+    out = APPLY(params, CONFIG, *batch)
+    assert out.activity.shape == (B, 107) and out.object.shape == (B, 51)
+
+
+def test_padded_frames_change_nothing_even_if_they_hold_nan(params, batch):
+    frames, mask = batch
+    out = APPLY(params, CONFIG, frames, mask)
+    scrambled = np.where(mask[..., None, None, None], frames, np.float32(np.nan))
+    scrambled[2, 1] = 123.0  # and a masked frame with large finite values
+    again = APPLY(params, CONFIG, scrambled, mask)
+    np.testing.assert_array_equal(out.activity, again.activity)
+    np.testing.assert_array_equal(out.object, again.object)
+
+
+def test_sample_without_valid_frames_gives_finite_prior_logits(params, batch):
+    frames, _ = batch
+    out = APPLY(params, CONFIG, frames, np.zeros((B, N), bool))
+    assert np.isfinite(out.activity).all()
+    np.testing.assert_allclose(out.activity[0], out.activity[3], rtol=1e-6)  # same for every sample
+
+
+def test_overfits_a_tiny_batch(params, batch):
+    frames, mask = batch
+    act = jnp.array([3, 50, 106, 7])
+    obj = jnp.array([0, 50, 20, 20])
+    opt = adam(3e-3)
+
+    def loss_fn(p):
+        out = perceiver.apply(p, CONFIG, frames, mask)
+        ce = lambda logits, y: -jnp.mean(jnp.take_along_axis(jax.nn.log_softmax(logits), y[:, None], 1))
+        return ce(out.activity, act) + ce(out.object, obj)
+
+    @jit
+    def train(p):
+        def step(carry, _):
+            p, s = carry
+            loss, g = jax.value_and_grad(loss_fn)(p)
+            p, s = opt.update(g, s, p)
+            return (p, s), loss
+
+        (p, _), losses = jax.lax.scan(step, (p, opt.init(p)), None, length=200)
+        return losses, loss_fn(p)
+
+    losses, final = train(params)
+    assert losses[0] > 5.0  # ~ log(107) + log(51) at init
+    assert final < 0.05
+
+
+def test_lowest_entropy_average_takes_the_k_most_confident_valid_predictions():
+    sharp = lambda i: np.eye(4)[i] * 0.97 + 0.01
+    flat = np.full(4, 0.25)
+    history = np.stack([flat, sharp(0), sharp(1), flat, sharp(2), sharp(3), sharp(0)])[None]
+    valid = np.array([[True, True, True, True, True, False, True]])
+    out = LOWEST_ENTROPY_AVERAGE(history.astype(np.float32), valid, k=4)
+    # The 4 sharp valid ones (steps 1, 2, 4, 6); the invalid sharp step 5 is ignored.
+    np.testing.assert_allclose(out[0], np.mean([sharp(0), sharp(1), sharp(2), sharp(0)], 0), rtol=1e-6)
+
+
+def test_lowest_entropy_average_with_few_or_no_valid_steps():
+    history = np.stack([np.eye(3)[0] * 0.9 + 0.05, np.eye(3)[1] * 0.6 + 0.2, np.full(3, 1 / 3)])
+    history = np.stack([history, history])  # (2, 3, 3)
+    valid = np.array([[True, True, False], [False, False, False]])
+    out = LOWEST_ENTROPY_AVERAGE(history.astype(np.float32), valid, k=5)
+    np.testing.assert_allclose(out[0], history[0, :2].mean(0), rtol=1e-6)  # fewer than k: those
+    np.testing.assert_allclose(out[1], np.full(3, 1 / 3), rtol=1e-6)  # none: uniform
