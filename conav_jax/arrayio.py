@@ -44,7 +44,9 @@ def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
         for name in sorted(arrays):
-            arr = np.ascontiguousarray(arrays[name])
+            arr = np.asarray(arrays[name])
+            if not arr.flags.c_contiguous:  # (np.ascontiguousarray would turn 0-d into 1-d)
+                arr = arr.copy(order="C")
             if arr.dtype == object:
                 raise TypeError(f"array {name!r} has dtype object; only numeric arrays are stored")
             entry = io.BytesIO()

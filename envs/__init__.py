@@ -1,1 +1,14 @@
-"""envs: the MJX CoNav simulator (brax Env) and its sensors. Imports conav_jax only."""
+"""envs: the MJX CoNav simulator (a brax Env) and its sensors. Imports conav_jax only.
+
+Importing the package registers the environment with brax as 'conav', so
+`brax.envs.get_environment('conav', data_dir=..., split=...)` builds it.
+"""
+
+from brax import envs as _brax_envs
+
+from envs.config import EnvConfig, PhysicsConfig, RewardConfig, SensorConfig
+from envs.conav_env import ConavEnv
+
+_brax_envs.register_environment("conav", ConavEnv)
+
+__all__ = ["ConavEnv", "EnvConfig", "PhysicsConfig", "RewardConfig", "SensorConfig"]

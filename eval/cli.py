@@ -20,6 +20,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"conav_jax {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     add_generate(sub)
+    bench = sub.add_parser("bench", help="throughput benchmarks (run them on the GPU machine)")
+    bench_sub = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
+    from envs.bench import add_bench_sim
+
+    add_bench_sim(bench_sub)
     return parser
 
 

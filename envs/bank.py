@@ -1,0 +1,157 @@
+"""The episode bank: a dataset split as stacked device arrays the jitted env indexes into.
+
+Scenes differ in how many boxes they have; the bank pads every scene to common slot counts
+(blocking boxes, which the robot collides with, and visual-only boxes such as carpets and
+ceiling lamps). Padding slots sit below the floor with a tiny size and are masked out of the
+fast caster, so they cost a few collision tests per step but change nothing. Grouping batches
+by scene would avoid that cost; padding keeps one compiled step for any mix of scenes.
+Geodesic fields are padded to the largest grid and extended into blocked cells near free space.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from conav_jax.activities import NUM_ACTIVITIES
+from conav_jax.categories import FLOOR_RGB, NUM_CATEGORIES
+from conav_jax.episodes import EpisodeSplit
+from conav_jax.planning import fill_blocked
+from conav_jax.scene import scene_boxes
+
+PAD_Z_M = -10.0  # padding boxes live here, below the floor
+
+
+@dataclass(frozen=True)
+class EpisodeBank:
+    """Device arrays. S scenes, N episodes, T steps, Gc blocking and Gv visual box slots."""
+
+    # per scene
+    col_lo: jax.Array  # (S, Gc, 3) blocking box min corners (m)
+    col_hi: jax.Array  # (S, Gc, 3)
+    col_valid: jax.Array  # (S, Gc) bool
+    col_rgb: jax.Array  # (S, Gc, 3) float in [0, 1]
+    vis_lo: jax.Array  # (S, Gv, 3) visual-only boxes
+    vis_hi: jax.Array
+    vis_valid: jax.Array
+    vis_rgb: jax.Array
+    fields: jax.Array  # (S, K, ny, nx) float16 geodesic metres to each usable object
+    field_origin: jax.Array  # (S, 2) grid origin (m)
+    # per episode
+    scene_index: jax.Array  # (N,)
+    activity_b: jax.Array
+    object_b: jax.Array
+    field_a: jax.Array
+    field_b: jax.Array
+    goal_xy: jax.Array  # (N, 2)
+    robot_start: jax.Array  # (N, 3)
+    geodesic_start_goal_m: jax.Array  # (N,)
+    t_arrive: jax.Array
+    t_end: jax.Array
+    root_xy: jax.Array  # (N, T, 2)
+    root_yaw: jax.Array  # (N, T)
+    joints_local: jax.Array  # (N, T, 22, 3) float16
+    phase: jax.Array  # (N, T) int8
+    cell_m: float = 0.1
+
+    @property
+    def num_episodes(self) -> int:
+        return int(self.t_end.shape[0])
+
+    @property
+    def max_steps(self) -> int:
+        return int(self.phase.shape[1])
+
+    @property
+    def col_slots(self) -> int:
+        return int(self.col_lo.shape[1])
+
+    @property
+    def vis_slots(self) -> int:
+        return int(self.vis_lo.shape[1])
+
+
+# `cell_m` is a static python float, not an array leaf.
+jax.tree_util.register_dataclass(
+    EpisodeBank,
+    data_fields=[f for f in EpisodeBank.__dataclass_fields__ if f != "cell_m"],
+    meta_fields=["cell_m"],
+)
+
+
+def _pad_boxes(boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray]], slots: int):
+    lo = np.zeros((len(boxes), slots, 3), np.float32)
+    hi = np.zeros((len(boxes), slots, 3), np.float32)
+    rgb = np.zeros((len(boxes), slots, 3), np.float32)
+    valid = np.zeros((len(boxes), slots), bool)
+    lo[..., 2] = PAD_Z_M - 0.01
+    hi[..., 2] = PAD_Z_M + 0.01
+    lo[..., :2] = -0.01
+    hi[..., :2] = 0.01
+    for s, (c, h, col) in enumerate(boxes):
+        n = len(c)
+        lo[s, :n], hi[s, :n], rgb[s, :n], valid[s, :n] = c - h, c + h, col, True
+    return lo, hi, rgb, valid
+
+
+def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int = 1) -> EpisodeBank:
+    """Stack a loaded split (all of the dataset's scenes, this split's episodes) for the device."""
+    robot_h = split.config.task.robot_height_m
+    col, vis = [], []
+    for scene in split.scenes:
+        b = scene_boxes(scene, robot_h)
+        rgb = b.rgb.astype(np.float32) / 255.0
+        m = b.blocks_robot
+        col.append((b.center[m], b.half_extents[m], rgb[m]))
+        vis.append((b.center[~m], b.half_extents[~m], rgb[~m]))
+    gc = max(min_col_slots, max(len(c[0]) for c in col))
+    gv = max(min_vis_slots, max(len(v[0]) for v in vis))
+    col_lo, col_hi, col_rgb, col_valid = _pad_boxes(col, gc)
+    vis_lo, vis_hi, vis_rgb, vis_valid = _pad_boxes(vis, gv)
+
+    cell = float(split.navs[0].grid.cell_m)
+    k = max(1, max(n.fields.shape[0] for n in split.navs))
+    ny = max(n.grid.shape[0] for n in split.navs)
+    nx = max(n.grid.shape[1] for n in split.navs)
+    fields = np.full((len(split.navs), k, ny, nx), np.inf, np.float16)
+    origin = np.zeros((len(split.navs), 2), np.float32)
+    for s, nav in enumerate(split.navs):
+        gy, gx = nav.grid.shape
+        for j in range(nav.fields.shape[0]):
+            fields[s, j, :gy, :gx] = fill_blocked(nav.fields[j], nav.grid.free, cell)
+        origin[s] = nav.grid.origin
+    e = split.episodes
+    return EpisodeBank(
+        col_lo=jnp.asarray(col_lo),
+        col_hi=jnp.asarray(col_hi),
+        col_valid=jnp.asarray(col_valid),
+        col_rgb=jnp.asarray(col_rgb),
+        vis_lo=jnp.asarray(vis_lo),
+        vis_hi=jnp.asarray(vis_hi),
+        vis_valid=jnp.asarray(vis_valid),
+        vis_rgb=jnp.asarray(vis_rgb),
+        fields=jnp.asarray(fields),
+        field_origin=jnp.asarray(origin),
+        scene_index=jnp.asarray(e["scene_index"]),
+        activity_b=jnp.asarray(e["activity_b"]),
+        object_b=jnp.asarray(e["object_b"]),
+        field_a=jnp.asarray(e["field_a"]),
+        field_b=jnp.asarray(e["field_b"]),
+        goal_xy=jnp.asarray(e["goal_xy"]),
+        robot_start=jnp.asarray(e["robot_start"]),
+        geodesic_start_goal_m=jnp.asarray(e["geodesic_start_goal_m"]),
+        t_arrive=jnp.asarray(e["t_arrive"]),
+        t_end=jnp.asarray(e["t_end"]),
+        root_xy=jnp.asarray(e["root_xy"]),
+        root_yaw=jnp.asarray(e["root_yaw"]),
+        joints_local=jnp.asarray(e["joints_local"]),
+        phase=jnp.asarray(e["phase"]),
+        cell_m=cell,
+    )
+
+
+FLOOR_RGB_F = np.asarray(FLOOR_RGB, np.float32) / 255.0
+__all__ = ["EpisodeBank", "build_bank", "NUM_ACTIVITIES", "NUM_CATEGORIES", "FLOOR_RGB_F", "PAD_Z_M"]

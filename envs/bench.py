@@ -1,0 +1,117 @@
+"""`conav bench sim`: env steps per second of step + sensors, compile time and memory.
+
+A batch of episodes is reset and stepped with random actions inside one jitted `lax.scan`;
+after a compile-and-warm-up call, the median of repeated timed calls (block_until_ready around
+each) gives steps/s = batch * steps / seconds. Prints the device, batch and resolution.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"resolution must look like 112x448, got {text!r}") from None
+    return h, w
+
+
+def add_bench_sim(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("sim", help="simulator throughput: env steps/s with sensors")
+    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
+    p.add_argument("--split", default="val")
+    p.add_argument("--batch", type=int, nargs="+", default=[1024])
+    p.add_argument("--resolution", type=parse_resolution, nargs="+", default=[(112, 448)])
+    p.add_argument("--sensor", choices=["fast", "reference", "both"], default="fast")
+    p.add_argument("--steps", type=int, default=20, help="env steps per timed call")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--chunk", type=int, default=None, help="fast caster batch chunk")
+    p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
+    p.set_defaults(func=run_bench_sim)
+
+
+def _memory_bytes() -> int | None:
+    stats = jax.devices()[0].memory_stats() or {}
+    return stats.get("peak_bytes_in_use")
+
+
+def bench_sim(env, batch: int, steps: int, repeats: int) -> dict:
+    """Time `steps` env steps of `batch` episodes; returns a dict of figures."""
+    n = env.num_episodes
+    reset = jax.vmap(env.reset_to_episode)
+    step = jax.vmap(env.step)
+
+    @jax.jit
+    def run(key):
+        keys = jax.random.split(key, batch)
+        state = reset(keys, jnp.arange(batch) % n)
+
+        def body(state, k):
+            a = jax.random.uniform(k, (batch, 2), minval=-1.0, maxval=1.0)
+            state = step(state, a)
+            return state, state.reward.sum()
+
+        state, r = jax.lax.scan(body, state, jax.random.split(key, steps))
+        return r.sum() + state.obs["rgbd"][:, 0, 0, 3].sum()
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(run(jax.random.PRNGKey(0)))
+    compile_s = time.perf_counter() - t0
+    times = []
+    for r in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(run(jax.random.PRNGKey(r + 1)))
+        times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    return {
+        "device": jax.devices()[0].device_kind,
+        "batch": batch,
+        "steps_per_call": steps,
+        "compile_and_first_call_s": round(compile_s, 2),
+        "median_call_s": round(med, 4),
+        "env_steps_per_s": round(batch * steps / med, 1),
+        "peak_bytes_in_use": _memory_bytes(),
+    }
+
+
+def run_bench_sim(args: argparse.Namespace) -> int:
+    from envs import ConavEnv, EnvConfig, SensorConfig
+
+    data = args.data
+    tmp = None
+    if data is None:
+        from conav_jax.episodes import generate_dataset
+        from conav_jax.presets import preset
+
+        tmp = tempfile.TemporaryDirectory()
+        data = tmp.name
+        generate_dataset(preset("tiny"), data)
+    kinds = ["fast", "reference"] if args.sensor == "both" else [args.sensor]
+    for (h, w) in args.resolution:
+        for kind in kinds:
+            extra = {} if args.chunk is None else {"chunk": args.chunk}
+            cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra))
+            env = ConavEnv(data, args.split, cfg)
+            for batch in args.batch:
+                res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats)}
+                if args.json:
+                    print(json.dumps(res), flush=True)
+                else:
+                    print(
+                        f"{res['device']} sensor={kind} res={h}x{w} batch={batch}: "
+                        f"{res['env_steps_per_s']:,.0f} env steps/s (median of {args.repeats}), "
+                        f"compile {res['compile_and_first_call_s']} s, peak mem {res['peak_bytes_in_use']}",
+                        flush=True,
+                    )
+    if tmp is not None:
+        tmp.cleanup()
+    return 0

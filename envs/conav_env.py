@@ -1,0 +1,318 @@
+"""The CoNav environment: a brax `Env` over MuJoCo MJX with a replayed humanoid.
+
+`reset(rng)` draws an episode from the bank, `reset_to_episode(rng, index)` starts a given one
+(evaluation visits every episode exactly once this way), `step(state, action)` applies
+`(v_lin, v_ang)` in [-1, 1] for one control step. Everything that changes within an episode
+lives in the MJX data (`pipeline_state`): the robot's joints, the humanoid's mocap poses, and the
+step index and metric accumulators in `userdata` (layout: envs.mjcf.USERDATA_FIELDS). That is
+what lets brax's AutoResetWrapper, which restores only `pipeline_state` and `obs`, restart an
+episode correctly. `State.info["episode"]` is the bank index.
+
+It subclasses `brax.envs.base.Env` rather than `PipelineEnv`: PipelineEnv holds one fixed
+`sys` and steps it with brax's pipeline, while each CoNav episode needs its own scene geometry
+in the MJX model and mocap poses set between substeps.
+
+After an episode ends (the robot reached the goal, or the human finished activity B) further
+steps leave the state unchanged, so a fixed-length `lax.scan` over a batch of episodes of
+different lengths reads every episode's result at its end.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.base import Env, State
+from mujoco import mjx
+
+from conav_jax.activities import NUM_ACTIVITIES
+from conav_jax.categories import NUM_CATEGORIES
+from conav_jax.config import TaskConfig
+from conav_jax.episodes import EpisodeSplit, load_split
+from conav_jax.planning import field_value
+from envs import contact
+from envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
+from envs.config import EnvConfig
+from envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_poses, quat_z_to
+from envs.mjcf import UD, GeomLayout, build_model, robot_body_id
+from envs.panorama import colourise, fast_depth_ids, front_view, reference_depth_ids
+
+ROBOT_RGB = np.array([0.3, 0.3, 0.32], np.float32)
+
+
+def wrap_angle(a: jax.Array) -> jax.Array:
+    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
+
+
+def to_frame(xy: jax.Array, origin_xy: jax.Array, yaw: jax.Array) -> jax.Array:
+    """Points (..., 2) expressed in the frame at origin_xy rotated by yaw."""
+    c, s = jnp.cos(yaw), jnp.sin(yaw)
+    d = xy - origin_xy
+    return jnp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
+
+
+class ConavEnv(Env):
+    """CoNav as a brax environment. Constants (bank, model, config) are fields; state is in State.
+
+    Args:
+      data_dir: a dataset written by `conav generate` (or pass `episodes=` already loaded).
+      split: "train" or "val".
+      config: sensors, physics and reward (envs.config.EnvConfig).
+      max_episodes: load at most this many episodes of the split.
+    """
+
+    def __init__(
+        self,
+        data_dir: str | None = None,
+        split: str = "train",
+        config: EnvConfig | None = None,
+        *,
+        episodes: EpisodeSplit | None = None,
+        max_episodes: int | None = None,
+    ):
+        if episodes is None:
+            if data_dir is None:
+                raise ValueError("ConavEnv needs data_dir (a generated dataset) or episodes=")
+            episodes = load_split(data_dir, split, max_episodes=max_episodes)
+        self.config = config or EnvConfig()
+        self.task: TaskConfig = episodes.config.task
+        self.split = episodes
+        self.bank: EpisodeBank = build_bank(episodes)
+        self.layout = GeomLayout(self.bank.col_slots, self.bank.vis_slots)
+        self.mj_model, self.mjx_model = build_model(self.layout, self.task, self.config.physics)
+        self._data0 = mjx.make_data(self.mjx_model)
+        self._robot_body = robot_body_id(self.mj_model)
+        substeps = self.task.control_dt_s / self.config.physics.timestep_s
+        if abs(substeps - round(substeps)) > 1e-6:
+            raise ValueError("control_dt_s must be a whole number of physics timesteps")
+        self._substeps = int(round(substeps))
+        lay = self.layout
+        self._box_ids = jnp.arange(lay.col_start, lay.robot, dtype=jnp.int32)
+        self._cap_ids = jnp.arange(lay.human_start, lay.ngeom, dtype=jnp.int32)
+        self._cap_r = jnp.asarray(CAPSULE_RADII)
+        self._static_rgb = (FLOOR_RGB_F, ROBOT_RGB, capsule_colours())
+
+    # -- brax Env interface ------------------------------------------------------------------
+    @property
+    def observation_size(self):
+        obs = jax.eval_shape(self.reset, jax.random.PRNGKey(0)).obs
+        return {k: v.shape for k, v in obs.items()}
+
+    @property
+    def action_size(self) -> int:
+        return 2
+
+    @property
+    def backend(self) -> str:
+        return "mjx"
+
+    @property
+    def num_episodes(self) -> int:
+        return self.bank.num_episodes
+
+    def reset(self, rng: jax.Array) -> State:
+        """Start a random episode of the bank."""
+        rng, key = jax.random.split(rng)
+        episode = jax.random.randint(key, (), 0, self.bank.num_episodes)
+        return self.reset_to_episode(rng, episode)
+
+    def reset_to_episode(self, rng: jax.Array, episode: jax.Array) -> State:
+        """Start episode `episode` (an index into the bank) at its first step."""
+        del rng  # the episode fixes everything; kept for the brax signature's sake
+        b = self.bank
+        episode = jnp.asarray(episode, jnp.int32)
+        m = self._episode_model(episode)
+        start = b.robot_start[episode]
+        d = self._data0.replace(qpos=start, qvel=jnp.zeros(3))
+        d = self._pose_human(d, episode, jnp.int32(0))
+        geo = self._goal_distance(episode, start[:2])
+        ud = jnp.zeros(len(UD)).at[UD["t_reach"]].set(-1.0).at[UD["prev_geodesic_m"]].set(geo)
+        d = mjx.forward(m, d.replace(userdata=ud))
+        obs = self._observe(m, d, episode)
+        return State(
+            pipeline_state=d,
+            obs=obs,
+            reward=jnp.zeros(()),
+            done=jnp.zeros(()),
+            metrics=self._metrics(d, episode),
+            info={"episode": episode},
+        )
+
+    def step(self, state: State, action: jax.Array) -> State:
+        """One control step; actions with a NaN act as zero and are counted in metrics."""
+        action = jnp.asarray(action)
+        if action.shape != (2,):
+            raise ValueError(f"action must have shape (2,) = (v_lin, v_ang) per environment, got {action.shape}")
+        episode = state.info["episode"]
+        b, task = self.bank, self.task
+        d0 = state.pipeline_state
+        ud0 = d0.userdata
+        is_nan = jnp.any(jnp.isnan(action))
+        a = jnp.clip(jnp.where(is_nan, 0.0, action), -1.0, 1.0)
+        v, w = a[0] * task.v_max_mps, a[1] * task.w_max_radps
+        t = ud0[UD["t"]].astype(jnp.int32) + 1
+
+        m = self._episode_model(episode)
+        d = self._pose_human(d0, episode, t)
+
+        def substep(d, _):
+            yaw = d.qpos[2]
+            d = d.replace(ctrl=jnp.stack([v * jnp.cos(yaw), v * jnp.sin(yaw), w]))
+            return mjx.step(m, d), None
+
+        d, _ = jax.lax.scan(substep, d, None, length=self._substeps)
+
+        xy = d.qpos[:2]
+        human_touch, wall_touch = self._contacts(episode, xy, t)
+        dist_goal = jnp.linalg.norm(xy - b.goal_xy[episode])
+        reached_before = ud0[UD["reached"]] > 0
+        reached = reached_before | (dist_goal <= task.success_radius_m)
+        first_reach = reached & ~reached_before
+        step_len = jnp.linalg.norm(xy - d0.qpos[:2])
+        geo = self._goal_distance(episode, xy)
+        prev_geo = ud0[UD["prev_geodesic_m"]]
+        ud = ud0
+        ud = ud.at[UD["t"]].set(t.astype(jnp.float32))
+        ud = ud.at[UD["reached"]].set(reached.astype(jnp.float32))
+        ud = ud.at[UD["t_reach"]].set(jnp.where(first_reach, t.astype(jnp.float32), ud0[UD["t_reach"]]))
+        ud = ud.at[UD["collided"]].max(human_touch.astype(jnp.float32))
+        # A touch at the step the robot arrives does not count as "before t_reach".
+        ud = ud.at[UD["collided_before_reach"]].max((human_touch & ~reached).astype(jnp.float32))
+        ud = ud.at[UD["path_length_m"]].add(jnp.where(reached_before, 0.0, step_len))
+        ud = ud.at[UD["prev_geodesic_m"]].set(geo)
+        ud = ud.at[UD["human_contact_steps"]].add(human_touch.astype(jnp.float32))
+        ud = ud.at[UD["wall_contact_steps"]].add(wall_touch.astype(jnp.float32))
+        ud = ud.at[UD["nan_actions"]].add(is_nan.astype(jnp.float32))
+        done = reached | (t >= b.t_end[episode])
+        ud = ud.at[UD["done"]].set(done.astype(jnp.float32))
+        d = d.replace(userdata=ud)
+
+        r = self.config.reward
+        progress = jnp.where(jnp.isfinite(geo) & jnp.isfinite(prev_geo), prev_geo - geo, 0.0)
+        reward = (
+            r.progress_scale * progress
+            + jnp.where(first_reach & (t <= b.t_arrive[episode]), r.reach_first_bonus, 0.0)
+            + jnp.where(first_reach & (t > b.t_arrive[episode]), r.reach_late_bonus, 0.0)
+            - r.human_contact_penalty * human_touch
+            - r.wall_contact_penalty * wall_touch
+            - r.time_cost
+        )
+        obs = self._observe(m, d, episode)
+        new = state.replace(
+            pipeline_state=d,
+            obs=obs,
+            reward=reward.astype(jnp.float32),
+            done=done.astype(jnp.float32),
+            metrics=self._metrics(d, episode),
+        )
+        # An ended episode stays as it ended (zero reward, still done).
+        ended = ud0[UD["done"]] > 0
+        frozen = state.replace(reward=jnp.zeros(()), done=jnp.ones(()))
+        return jax.tree.map(lambda old, nw: jnp.where(ended, old, nw), frozen, new)
+
+    # -- pieces --------------------------------------------------------------------------------
+    def _episode_model(self, episode: jax.Array) -> mjx.Model:
+        """The shared MJX model with this episode's scene boxes in the box slots."""
+        b, lay = self.bank, self.layout
+        s = b.scene_index[episode]
+        lo = jnp.concatenate([b.col_lo[s], b.vis_lo[s]])
+        hi = jnp.concatenate([b.col_hi[s], b.vis_hi[s]])
+        pos, size = (lo + hi) / 2.0, (hi - lo) / 2.0
+        sl = slice(lay.col_start, lay.robot)
+        mm = self.mjx_model
+        return mm.replace(
+            geom_pos=mm.geom_pos.at[sl].set(pos),
+            geom_size=mm.geom_size.at[sl].set(size),
+            geom_rbound=mm.geom_rbound.at[sl].set(jnp.linalg.norm(size, axis=-1)),
+            geom_aabb=mm.geom_aabb.at[sl].set(jnp.concatenate([jnp.zeros_like(size), size], axis=-1)),
+        )
+
+    def human_joints(self, episode: jax.Array, t: jax.Array) -> jax.Array:
+        """World joints (22, 3) of the humanoid at step t (clamped to the episode's arrays)."""
+        b = self.bank
+        t = jnp.clip(t, 0, b.max_steps - 1)
+        root = b.root_xy[episode, t]
+        return b.joints_local[episode, t].astype(jnp.float32) + jnp.append(root, 0.0)
+
+    def _pose_human(self, d: mjx.Data, episode: jax.Array, t: jax.Array) -> mjx.Data:
+        centre, axis, _ = capsule_poses(self.human_joints(episode, t))
+        return d.replace(mocap_pos=centre, mocap_quat=quat_z_to(axis))
+
+    def _goal_distance(self, episode: jax.Array, xy: jax.Array) -> jax.Array:
+        b = self.bank
+        s = b.scene_index[episode]
+        return field_value(b.fields[s, b.field_b[episode]], b.field_origin[s], b.cell_m, xy)
+
+    def _contacts(self, episode: jax.Array, xy: jax.Array, t: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(touching the human, touching a wall or furniture) for the robot at xy."""
+        b, task, tol = self.bank, self.task, self.config.physics.contact_tolerance_m
+        s = b.scene_index[episode]
+        _, _, ends = capsule_poses(self.human_joints(episode, t))
+        human = contact.robot_touches_capsules(
+            xy, task.robot_radius_m, task.robot_height_m, ends[0], ends[1], self._cap_r, tol
+        )
+        wall = contact.robot_touches_boxes(xy, task.robot_radius_m, b.col_lo[s], b.col_hi[s], b.col_valid[s], tol)
+        return human, wall
+
+    def _geom_rgb(self, episode: jax.Array) -> jax.Array:
+        b = self.bank
+        s = b.scene_index[episode]
+        floor, robot, human = self._static_rgb
+        return jnp.concatenate([jnp.asarray(floor)[None], b.col_rgb[s], b.vis_rgb[s], jnp.asarray(robot)[None], jnp.asarray(human)])
+
+    def panorama(self, m: mjx.Model, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(depth (H, W) metres, geom ids (H, W)) from the configured sensor."""
+        cfg, b = self.config.sensor, self.bank
+        cam = jnp.array([d.qpos[0], d.qpos[1], self.task.camera_height_m])
+        yaw = d.qpos[2]
+        if cfg.kind == "reference":
+            return reference_depth_ids(cfg, m, mjx.kinematics(m, d), cam, yaw, self._robot_body)
+        s = b.scene_index[episode]
+        t = d.userdata[UD["t"]].astype(jnp.int32)
+        _, _, ends = capsule_poses(self.human_joints(episode, t))
+        return fast_depth_ids(
+            cfg,
+            cam,
+            yaw,
+            jnp.concatenate([b.col_lo[s], b.vis_lo[s]]),
+            jnp.concatenate([b.col_hi[s], b.vis_hi[s]]),
+            self._box_ids,
+            jnp.concatenate([b.col_valid[s], b.vis_valid[s]]),
+            ends[0],
+            ends[1],
+            self._cap_r,
+            self._cap_ids,
+            self.layout.floor,
+        )
+
+    def _observe(self, m: mjx.Model, d: mjx.Data, episode: jax.Array) -> dict[str, jax.Array]:
+        b, cfg = self.bank, self.config
+        xy, yaw = d.qpos[:2], d.qpos[2]
+        t = d.userdata[UD["t"]].astype(jnp.int32)
+        depth, ids = self.panorama(m, d, episode)
+        rgbd = colourise(depth, ids, self._geom_rgb(episode))
+        start = b.robot_start[episode]
+        gps = to_frame(xy, start[:2], start[2])
+        past = jnp.clip(t - jnp.arange(cfg.human_history_steps - 1, -1, -1), 0, b.max_steps - 1)
+        obs = {
+            "rgbd": rgbd,
+            "front": front_view(rgbd),
+            "gps_compass": jnp.concatenate([gps, wrap_angle(yaw - start[2])[None]]),
+            "human_pos": to_frame(b.root_xy[episode, jnp.minimum(t, b.max_steps - 1)], xy, yaw),
+            "human_history": to_frame(b.root_xy[episode, past], xy, yaw),
+        }
+        if cfg.intention_obs:
+            future = jnp.clip(t + 1 + jnp.arange(cfg.future_steps), 0, b.max_steps - 1)
+            obs["activity_probs"] = jax.nn.one_hot(b.activity_b[episode], NUM_ACTIVITIES)
+            obs["object_probs"] = jax.nn.one_hot(b.object_b[episode], NUM_CATEGORIES)
+            obs["future_traj"] = to_frame(b.root_xy[episode, future], xy, yaw)
+        return obs
+
+    def _metrics(self, d: mjx.Data, episode: jax.Array) -> dict[str, jax.Array]:
+        """Per-episode accumulators plus the episode constants the metrics need (all scalars)."""
+        ud, b = d.userdata, self.bank
+        out = {name: ud[i] for name, i in UD.items() if name != "prev_geodesic_m"}
+        out["t_arrive"] = b.t_arrive[episode].astype(jnp.float32)
+        out["t_end"] = b.t_end[episode].astype(jnp.float32)
+        out["geodesic_start_goal_m"] = b.geodesic_start_goal_m[episode]
+        return out

@@ -1,0 +1,81 @@
+"""Simulator configuration: physics, sensors and the RL reward, with documented defaults.
+
+Task numbers (radius, speeds, success radius, control step) come from conav_jax.config.TaskConfig
+of the dataset being simulated; nothing here repeats them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Panoramic RGB-D camera at the robot's camera height.
+
+    Equirectangular: column j looks at azimuth yaw + pi - 2 pi (j + 0.5) / W (the image centre
+    faces forward, the robot's left is on the image's left); rows span a vertical field of view
+    of 2 pi H / W (square pixels; 90 degrees at 112x448), row 0 at the top.
+    """
+
+    height: int = 112
+    width: int = 448
+    max_depth_m: float = 10.0  # farther hits and no hit read as max_depth and sky colour
+    kind: str = "fast"  # "fast" (our column caster) or "reference" (mujoco.mjx.ray per pixel)
+    # Batch chunk for the fast caster: bounds its per-pixel x per-geom intermediate memory.
+    chunk: int = 512
+
+    def __post_init__(self):
+        if self.kind not in ("fast", "reference"):
+            raise ValueError(f"sensor kind must be 'fast' or 'reference', got {self.kind!r}")
+        if self.height < 4 or self.width < 8 or self.width % 8:
+            raise ValueError(f"panorama must be at least 4x8 with width a multiple of 8, got {self.height}x{self.width}")
+
+
+@dataclass(frozen=True)
+class PhysicsConfig:
+    """The robot in MJX: a capsule on x/y slide joints and a yaw hinge, velocity-servoed."""
+
+    # MJX step; control_dt / timestep substeps per env step. MuJoCo stiffens contacts at most to
+    # a time constant of 2 timesteps: at 0.02 s a robot hitting a wall at 1 m/s sinks 34 mm into
+    # it, at 0.01 s only 2 mm.
+    timestep_s: float = 0.01
+    robot_mass_kg: float = 20.0
+    # Velocity servo gains and force limits: reaches a commanded speed within ~2 substeps and
+    # cannot push through a wall (the contact wins against at most this force).
+    kv_linear: float = 2000.0
+    kv_angular: float = 200.0
+    force_limit_n: float = 1000.0
+    torque_limit_nm: float = 200.0
+    contact_tolerance_m: float = 0.005  # analytic contact counts when gaps are below this
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Dense reward for RL (imitation ignores it). Per step:
+    progress_scale * (geodesic distance to goal before - after)      [metres of progress]
+    + reach_first_bonus  once, if the robot reaches the goal before the human arrives
+    + reach_late_bonus   once, if it reaches after the human arrived but before activity B ends
+    - human_contact_penalty per step touching the human
+    - wall_contact_penalty  per step touching a wall or furniture
+    - time_cost             every step
+    """
+
+    progress_scale: float = 1.0
+    reach_first_bonus: float = 10.0
+    reach_late_bonus: float = 4.0
+    human_contact_penalty: float = 1.0
+    wall_contact_penalty: float = 0.05
+    time_cost: float = 0.01
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    human_history_steps: int = 8  # past human positions in the observation (trajectory predictor)
+    future_steps: int = 5  # ground-truth future human positions (the short-term intention)
+    # Ground-truth intention observations (activity/object one-hots, future trajectory), as the
+    # paper feeds them during training; agents replace them with predictions at evaluation.
+    intention_obs: bool = True

@@ -1,0 +1,193 @@
+"""Panoramic RGB-D sensors: a fast caster of our own and the `mujoco.mjx.ray` reference.
+
+Both cast the same rays (SensorConfig's equirectangular layout) and return depth (metres along
+the ray, max_depth where nothing is hit) and the MJX geom id hit (-1 for none), from which RGB
+is a colour lookup. The fast caster uses the scene's structure: every box is axis-aligned, so
+per image column the ray is a 2-D ray and each box a 2-D slab interval; per row the box's z
+range turns into a second interval along the same horizontal distance; their intersection
+gives the exact hit. The floor is analytic per row; capsules (the humanoid) are tested per ray.
+The nearest hit and its id are found together by one min-reduction over packed integer keys.
+Data flow: robot pose + scene boxes + human capsules -> (depth, geom id) -> rgbd.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mujoco import mjx
+
+from envs.config import SensorConfig
+
+_EPS = 1e-9
+# Packed key = quantised depth (upper 24 bits) | geom id (lower 8 bits); min over keys gives
+# the nearest hit and its id in one simple reduction XLA can fuse with the intersection math.
+_ID_BITS = 8
+_MAX_GEOMS = (1 << _ID_BITS) - 1  # id 255 means "no hit"
+_DEPTH_BITS = 24
+SKY_RGB = np.array([0.62, 0.72, 0.85], np.float32)
+
+
+def ray_angles(cfg: SensorConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(azimuth offsets from the robot's yaw (W,), elevations (H,)) in radians."""
+    j = np.arange(cfg.width, dtype=np.float64)
+    azimuth = np.pi - 2.0 * np.pi * (j + 0.5) / cfg.width
+    vfov = 2.0 * np.pi * cfg.height / cfg.width
+    i = np.arange(cfg.height, dtype=np.float64)
+    elevation = vfov / 2.0 - vfov * (i + 0.5) / cfg.height
+    return azimuth.astype(np.float32), elevation.astype(np.float32)
+
+
+def ray_directions(cfg: SensorConfig, yaw: jax.Array) -> jax.Array:
+    """Unit ray directions (H, W, 3) in the world frame for a robot facing `yaw`."""
+    az, el = ray_angles(cfg)
+    a = yaw + jnp.asarray(az)
+    e = jnp.asarray(el)
+    ce = jnp.cos(e)[:, None]
+    return jnp.stack(
+        [ce * jnp.cos(a)[None, :], ce * jnp.sin(a)[None, :], jnp.broadcast_to(jnp.sin(e)[:, None], (cfg.height, cfg.width))],
+        axis=-1,
+    )
+
+
+def _scale(cfg: SensorConfig) -> float:
+    return float((1 << _DEPTH_BITS) - 2) / cfg.max_depth_m
+
+
+def _pack(depth: jax.Array, ids: jax.Array, cfg: SensorConfig) -> jax.Array:
+    """uint32 keys; depths at or beyond max_depth (and misses) become the 'no hit' key."""
+    q = jnp.floor(jnp.clip(depth, 0.0, cfg.max_depth_m) * _scale(cfg)).astype(jnp.uint32)
+    hit = depth < cfg.max_depth_m
+    key = (q << _ID_BITS) | ids.astype(jnp.uint32)
+    return jnp.where(hit, key, jnp.uint32(0xFFFFFFFF))
+
+
+def _unpack(key: jax.Array, cfg: SensorConfig) -> tuple[jax.Array, jax.Array]:
+    miss = key == jnp.uint32(0xFFFFFFFF)
+    ids = (key & jnp.uint32(_MAX_GEOMS)).astype(jnp.int32)
+    # The centre of the quantisation bin: error at most half a bin (~0.3 micrometres at 10 m).
+    depth = ((key >> _ID_BITS).astype(jnp.float32) + 0.5) / _scale(cfg)
+    return jnp.where(miss, cfg.max_depth_m, depth), jnp.where(miss, -1, ids)
+
+
+def _box_keys(cfg, cam, yaw, box_lo, box_hi, box_ids, box_valid):
+    """Nearest box hit key per pixel (H, W): a 2-D slab test per column, z interval per row."""
+    az, el = ray_angles(cfg)
+    a = yaw + jnp.asarray(az)  # (W,)
+    dx, dy = jnp.cos(a), jnp.sin(a)
+    safe = lambda v: jnp.where(jnp.abs(v) < _EPS, jnp.where(v < 0, -_EPS, _EPS), v)
+    inv_x, inv_y = 1.0 / safe(dx), 1.0 / safe(dy)
+    # (G, W) horizontal distances of the slab entries / exits.
+    tx1 = (box_lo[:, None, 0] - cam[0]) * inv_x[None]
+    tx2 = (box_hi[:, None, 0] - cam[0]) * inv_x[None]
+    ty1 = (box_lo[:, None, 1] - cam[1]) * inv_y[None]
+    ty2 = (box_hi[:, None, 1] - cam[1]) * inv_y[None]
+    t_in = jnp.maximum(jnp.minimum(tx1, tx2), jnp.minimum(ty1, ty2))
+    t_out = jnp.minimum(jnp.maximum(tx1, tx2), jnp.maximum(ty1, ty2))
+    # (G, H) horizontal distance interval where the row's ray is within the box's z range.
+    tan_e = jnp.tan(jnp.asarray(el))
+    tan_e = jnp.where(jnp.abs(tan_e) < _EPS, _EPS, tan_e)
+    tz1 = (box_lo[:, None, 2] - cam[2]) / tan_e[None]
+    tz2 = (box_hi[:, None, 2] - cam[2]) / tan_e[None]
+    z_in, z_out = jnp.minimum(tz1, tz2), jnp.maximum(tz1, tz2)
+    inv_cos = (1.0 / jnp.cos(jnp.asarray(el)))[None, :, None]
+    enter = jnp.maximum(jnp.maximum(t_in[:, None, :], z_in[:, :, None]), 0.0)  # (G, H, W)
+    leave = jnp.minimum(t_out[:, None, :], z_out[:, :, None])
+    hit = (enter <= leave) & box_valid[:, None, None]
+    depth = jnp.where(hit, enter * inv_cos, jnp.inf)
+    keys = _pack(depth, jnp.broadcast_to(box_ids[:, None, None], depth.shape), cfg)
+    return jnp.min(keys, axis=0)
+
+
+def _capsule_depth(origin, dirs, p0, p1, radius):
+    """Distance along unit rays (H, W, 3) to a capsule p0-p1 of `radius`; inf if missed.
+
+    Closed form: the ray against the infinite cylinder, accepted where the hit lies between
+    the end caps, else against the nearer end-cap sphere."""
+    ba = p1 - p0
+    oa = origin - p0
+    baba = jnp.dot(ba, ba, precision=jax.lax.Precision.HIGHEST)
+    bard = jnp.einsum("hwk,k->hw", dirs, ba, precision=jax.lax.Precision.HIGHEST)
+    baoa = jnp.dot(ba, oa, precision=jax.lax.Precision.HIGHEST)
+    rdoa = jnp.einsum("hwk,k->hw", dirs, oa, precision=jax.lax.Precision.HIGHEST)
+    oaoa = jnp.dot(oa, oa, precision=jax.lax.Precision.HIGHEST)
+    a = baba - bard * bard
+    b = baba * rdoa - baoa * bard
+    c = baba * oaoa - baoa * baoa - radius * radius * baba
+    h = b * b - a * c
+    a_safe = jnp.where(jnp.abs(a) < _EPS, _EPS, a)
+    t_body = (-b - jnp.sqrt(jnp.maximum(h, 0.0))) / a_safe
+    y = baoa + t_body * bard
+    body_ok = (h >= 0) & (jnp.abs(a) >= _EPS) & (y > 0) & (y < baba) & (t_body > 0)
+    # End caps: the sphere at p0 if the body hit falls before it, else at p1.
+    cap_center_offset = jnp.where(y <= 0, 0.0, 1.0)[..., None]
+    oc = origin - (p0 + cap_center_offset * ba)  # (H, W, 3)
+    bc = jnp.sum(dirs * oc, axis=-1)
+    cc = jnp.sum(oc * oc, axis=-1) - radius * radius
+    hc = bc * bc - cc
+    t_cap = -bc - jnp.sqrt(jnp.maximum(hc, 0.0))
+    cap_ok = (hc >= 0) & (t_cap > 0)
+    return jnp.where(body_ok, t_body, jnp.where(cap_ok, t_cap, jnp.inf))
+
+
+def _capsule_keys(cfg, cam, dirs, cap_p0, cap_p1, cap_r, cap_ids):
+    depth = jax.vmap(_capsule_depth, in_axes=(None, None, 0, 0, 0))(cam, dirs, cap_p0, cap_p1, cap_r)
+    keys = _pack(depth, jnp.broadcast_to(cap_ids[:, None, None], depth.shape), cfg)
+    return jnp.min(keys, axis=0)
+
+
+def _floor_keys(cfg, cam, floor_id):
+    _, el = ray_angles(cfg)
+    sin_e = jnp.asarray(np.sin(el))
+    depth = jnp.where(sin_e < -_EPS, -cam[2] / jnp.where(sin_e < -_EPS, sin_e, -1.0), jnp.inf)  # (H,)
+    depth = jnp.broadcast_to(depth[:, None], (cfg.height, cfg.width))
+    return _pack(depth, jnp.full(depth.shape, floor_id, jnp.int32), cfg)
+
+
+def fast_depth_ids(
+    cfg: SensorConfig,
+    cam: jax.Array,
+    yaw: jax.Array,
+    box_lo: jax.Array,
+    box_hi: jax.Array,
+    box_ids: jax.Array,
+    box_valid: jax.Array,
+    cap_p0: jax.Array,
+    cap_p1: jax.Array,
+    cap_r: jax.Array,
+    cap_ids: jax.Array,
+    floor_id: int,
+) -> tuple[jax.Array, jax.Array]:
+    """Depth (H, W) metres and geom ids (H, W) for one camera at `cam` (3,) facing `yaw`.
+
+    box_lo/box_hi (G, 3) corners of axis-aligned boxes, box_ids (G,) their geom ids, box_valid
+    (G,) which are real; capsules cap_p0/cap_p1 (C, 3) segment ends and cap_r (C,) radii."""
+    dirs = ray_directions(cfg, yaw)
+    keys = jnp.minimum(_box_keys(cfg, cam, yaw, box_lo, box_hi, box_ids, box_valid), _floor_keys(cfg, cam, floor_id))
+    if cap_p0.shape[0]:
+        keys = jnp.minimum(keys, _capsule_keys(cfg, cam, dirs, cap_p0, cap_p1, cap_r, cap_ids))
+    return _unpack(keys, cfg)
+
+
+def reference_depth_ids(
+    cfg: SensorConfig, m: mjx.Model, d: mjx.Data, cam: jax.Array, yaw: jax.Array, exclude_body: int
+) -> tuple[jax.Array, jax.Array]:
+    """The same panorama from `mujoco.mjx.ray`, one ray per pixel (slow; the ground truth)."""
+    dirs = ray_directions(cfg, yaw).reshape(-1, 3)
+    dist, geom = jax.vmap(lambda v: mjx.ray(m, d, cam, v, bodyexclude=exclude_body))(dirs)
+    hit = (geom >= 0) & (dist >= 0) & (dist < cfg.max_depth_m)
+    depth = jnp.where(hit, dist, cfg.max_depth_m).reshape(cfg.height, cfg.width)
+    ids = jnp.where(hit, geom, -1).reshape(cfg.height, cfg.width)
+    return depth, ids
+
+
+def colourise(depth: jax.Array, ids: jax.Array, geom_rgb: jax.Array) -> jax.Array:
+    """RGB-D (H, W, 4): the hit geom's colour (sky where nothing is hit) and depth in metres."""
+    rgb = jnp.where((ids >= 0)[..., None], geom_rgb[jnp.maximum(ids, 0)], jnp.asarray(SKY_RGB))
+    return jnp.concatenate([rgb, depth[..., None]], axis=-1)
+
+
+def front_view(rgbd: jax.Array) -> jax.Array:
+    """The forward quarter of a panorama (..., H, W/4, 4): the intention predictor's view."""
+    w = rgbd.shape[-2]
+    return rgbd[..., 3 * w // 8 : 5 * w // 8, :]

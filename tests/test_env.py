@@ -1,0 +1,131 @@
+"""The MJX environment: physics, contacts, metrics, sensors' parity, batching, brax wrappers."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from envs import ConavEnv, EnvConfig, SensorConfig
+from envs.mjcf import UD
+from envs.metrics import summarize
+from worlds import goal_of, make_split
+
+SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32))
+
+
+@pytest.fixture(scope="module")
+def hall():
+    """Episodes in the hand-built hall: 0 faces the east wall 1 m away; 1 faces the human;
+    2 starts 2 m west of the goal (x = 8.5) facing it; 3 starts far from the goal."""
+    split = make_split(
+        [(8.0, 0.9, -np.pi / 2), (2.0, 2.0, np.pi), (6.5, 2.0, 0.0), (1.6, 3.3, 0.0)],
+        t_arrive=20,
+        t_end=40,
+    )
+    env = ConavEnv(episodes=split, config=SMALL)
+    return env, jax.jit(env.reset_to_episode), jax.jit(env.step)
+
+
+def _run(env_fns, episode, actions, teleport=None):
+    env, reset, step = env_fns
+    s = reset(jax.random.PRNGKey(0), episode)
+    states = [s]
+    for k, a in enumerate(actions):
+        if teleport is not None and k == teleport[0]:
+            d = s.pipeline_state
+            s = s.replace(pipeline_state=d.replace(qpos=d.qpos.at[:2].set(jnp.asarray(teleport[1]))))
+        s = step(s, jnp.asarray(a, jnp.float32))
+        states.append(s)
+    return states
+
+
+def test_robot_stops_at_wall(hall):
+    # Episode 0: 0.8 m from the south wall's face (y = 0.1), driving south at full speed.
+    states = _run(hall, 0, [(1.0, 0.0)] * 20)
+    ys = np.array([float(s.pipeline_state.qpos[1]) for s in states])
+    assert ys[3] < 0.65  # it moved (0.3 m in 3 steps, less the servo spin-up)
+    assert ys.min() > 0.1 + 0.3 - 0.005  # face of the wall + radius, less 5 mm of soft contact
+    assert abs(ys[-1] - ys[-5]) < 0.005  # and stays stopped
+    assert float(states[-1].metrics["wall_contact_steps"]) > 5
+
+
+def test_touching_the_human_is_counted_and_robot_does_not_pass_through(hall):
+    # Episode 1: human at the fridge stand (x~1.3), robot at x=2 facing it (-x), driving on.
+    states = _run(hall, 1, [(1.0, 0.0)] * 8)
+    m = states[-1].metrics
+    assert float(m["collided"]) == 1.0 and float(m["human_contact_steps"]) >= 1
+    human_x = float(hall[0].bank.root_xy[1, 0, 0])
+    assert float(states[-1].pipeline_state.qpos[0]) > human_x  # pushed back, not through
+
+
+@pytest.mark.parametrize(
+    "teleport_step, fasr, rasr, t_reach",
+    [(5, 1.0, 1.0, 6), (25, 0.0, 1.0, 26), (None, 0.0, 0.0, -1)],
+)
+def test_metrics_of_a_robot_teleported_onto_the_goal(hall, teleport_step, fasr, rasr, t_reach):
+    env = hall[0]
+    # 0.8 m short of the goal: inside the success radius, clear of the human standing there.
+    goal = np.asarray(goal_of(env.split)) - np.array([0.8, 0.0])
+    tele = None if teleport_step is None else (teleport_step, goal)
+    states = _run(hall, 3, [(0.0, 0.0)] * 41, teleport=tele)
+    m = {k: np.asarray(v)[None] for k, v in states[-1].metrics.items()}
+    assert float(m["t_reach"][0]) == t_reach
+    s = summarize(m)
+    assert s["FASR"] == 100 * fasr and s["RASR"] == 100 * rasr
+    if teleport_step is not None:
+        # the odometer never sees a teleport: the path is only the standing robot's drift,
+        # shorter than the geodesic, so the SPL weight is 1
+        l = float(m["geodesic_start_goal_m"][0])
+        p = float(m["path_length_m"][0])
+        assert p < 0.05 and l > 5.0
+        assert s["FASPL"] == pytest.approx(100 * fasr) and s["RASPL"] == pytest.approx(100 * rasr)
+        assert s["AS"] == t_reach
+        assert float(states[-1].done) == 1.0
+    else:
+        assert s["AS"] == 40 and float(states[-1].done) == 1.0  # ended at t_end
+
+
+def test_ended_episode_stays_frozen(hall):
+    states = _run(hall, 3, [(0.0, 0.0)] * 45)
+    a, b = states[41], states[45]
+    for x, y in zip(jax.tree.leaves(a.pipeline_state), jax.tree.leaves(b.pipeline_state)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert float(b.reward) == 0.0
+
+
+def test_reward_is_geodesic_progress_plus_bonus(hall):
+    env = hall[0]
+    cfg = env.config.reward
+    # Episode 2: 2 m west of the goal facing it; drive straight at 1 m/s: 0.1 m per step.
+    states = _run(hall, 2, [(1.0, 0.0)] * 14)
+    r = np.array([float(s.reward) for s in states[1:]])
+    reach_step = int(states[-1].metrics["t_reach"])
+    assert 10 <= reach_step <= 12  # 1 m to cover, plus the servo's spin-up
+    for k in range(1, reach_step - 1):  # steady cruising steps: progress ~0.1 m minus time cost
+        assert r[k] == pytest.approx(0.1 * cfg.progress_scale - cfg.time_cost, abs=0.02)
+    assert r[reach_step - 1] > cfg.reach_first_bonus * 0.9  # before t_arrive = 20: first-arrival bonus
+
+
+def test_nan_action_acts_as_zero_and_is_counted(hall):
+    states = _run(hall, 3, [(np.nan, 0.5)] * 3)
+    s0, s3 = states[0], states[-1]
+    np.testing.assert_allclose(np.asarray(s3.pipeline_state.qpos), np.asarray(s0.pipeline_state.qpos), atol=1e-6)
+    assert float(s3.metrics["nan_actions"]) == 3.0
+
+
+def test_bad_action_shape_is_rejected(hall):
+    env, reset, _ = hall
+    s = reset(jax.random.PRNGKey(0), 0)
+    with pytest.raises(ValueError, match=r"action must have shape \(2,\)"):
+        env.step(s, jnp.zeros(3))
+
+
+def test_gps_compass_and_human_position_frames(hall):
+    env, reset, step = hall
+    s = reset(jax.random.PRNGKey(0), 1)  # robot at (2, 2) facing -x; human ~ (1.3, 2)
+    np.testing.assert_allclose(np.asarray(s.obs["gps_compass"]), [0, 0, 0], atol=1e-5)
+    hp = np.asarray(s.obs["human_pos"])
+    assert hp[0] > 0.4 and abs(hp[1]) < 0.05  # the human is straight ahead
+    s = step(s, jnp.array([-0.5, 0.0]))  # backwards 0.05 m: +x in the world, -x in the start frame
+    assert float(s.obs["gps_compass"][0]) == pytest.approx(-0.05, abs=0.01)
+
