@@ -40,6 +40,8 @@ class EpisodeBank:
     vis_rgb: jax.Array
     fields: jax.Array  # (S, K, ny, nx) float16 geodesic metres to each usable object
     field_origin: jax.Array  # (S, 2) grid origin (m)
+    field_category: jax.Array  # (S, K) category id of each field's object, -1 for padding
+    field_stand: jax.Array  # (S, K, 3) standing pose (x, y, facing yaw) of each field's object
     # per episode
     scene_index: jax.Array  # (N,)
     activity_b: jax.Array
@@ -118,10 +120,14 @@ def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int =
     nx = max(n.grid.shape[1] for n in split.navs)
     fields = np.full((len(split.navs), k, ny, nx), np.inf, np.float16)
     origin = np.zeros((len(split.navs), 2), np.float32)
-    for s, nav in enumerate(split.navs):
+    field_cat = np.full((len(split.navs), k), -1, np.int32)
+    field_stand = np.zeros((len(split.navs), k, 3), np.float32)
+    for s, (scene, nav) in enumerate(zip(split.scenes, split.navs)):
         gy, gx = nav.grid.shape
         for j in range(nav.fields.shape[0]):
             fields[s, j, :gy, :gx] = fill_blocked(nav.fields[j], nav.grid.free, cell)
+            field_cat[s, j] = scene.objects[int(nav.field_object[j])].category_index
+            field_stand[s, j] = nav.stand_poses[j]
         origin[s] = nav.grid.origin
     e = split.episodes
     return EpisodeBank(
@@ -135,6 +141,8 @@ def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int =
         vis_rgb=jnp.asarray(vis_rgb),
         fields=jnp.asarray(fields),
         field_origin=jnp.asarray(origin),
+        field_category=jnp.asarray(field_cat),
+        field_stand=jnp.asarray(field_stand),
         scene_index=jnp.asarray(e["scene_index"]),
         activity_b=jnp.asarray(e["activity_b"]),
         object_b=jnp.asarray(e["object_b"]),

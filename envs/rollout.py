@@ -1,0 +1,100 @@
+"""Batched rollouts: any agent through the env, `lax.scan` over time, `vmap` over episodes.
+
+An `Agent` acts for ONE environment (the rollout vmaps it): `init(key, episode) -> carry` and
+`act(state, carry, key) -> (action (2,), carry)`, where `state` is the env's brax State, so an
+agent reads `state.obs` and, if it is privileged (an oracle baseline, the expert), the env's
+constants through a closure and `state.pipeline_state` / `state.info`. Learned agents close over
+their parameters. This module is what evaluation sweeps, DAgger and validation during training
+all run on.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.base import State
+
+from envs.conav_env import ConavEnv
+
+
+class Agent(NamedTuple):
+    name: str
+    init: Callable[[jax.Array, jax.Array], Any]  # (key, episode index) -> carry
+    act: Callable[[State, Any, jax.Array], tuple[jax.Array, Any]]  # (state, carry, key) -> (action, carry)
+
+
+class Trace(NamedTuple):
+    """Per-step records of a rollout, (B, T, ...)."""
+
+    robot_pose: jax.Array  # (x, y, yaw) world
+    action: jax.Array  # the agent's action in [-1, 1]
+    reward: jax.Array
+    done: jax.Array
+
+
+def make_rollout(env: ConavEnv, agent: Agent, num_steps: int, record: bool = False):
+    """A jitted function (key, episodes (B,)) -> (final metrics dict of (B,), Trace | None).
+
+    Runs `num_steps` steps; episodes that end earlier stay frozen (the env's contract), so
+    the final metrics are each episode's result at its end."""
+
+    def one(key, episode):
+        k_init, k_run = jax.random.split(key)
+        state = env.reset_to_episode(k_init, episode)
+        carry = agent.init(k_init, episode)
+
+        def body(c, k):
+            state, carry = c
+            action, carry = agent.act(state, carry, k)
+            state = env.step(state, action)
+            out = None
+            if record:
+                out = Trace(state.pipeline_state.qpos, action, state.reward, state.done)
+            return (state, carry), out
+
+        (state, _), trace = jax.lax.scan(body, (state, carry), jax.random.split(k_run, num_steps))
+        return state.metrics, trace
+
+    @jax.jit
+    def run(key, episodes):
+        keys = jax.random.split(key, episodes.shape[0])
+        return jax.vmap(one)(keys, episodes)
+
+    return run
+
+
+def evaluate(
+    env: ConavEnv,
+    agent: Agent,
+    episodes: np.ndarray | None = None,
+    batch: int = 256,
+    seed: int = 0,
+    progress: Callable | None = None,
+) -> dict[str, np.ndarray]:
+    """Final metrics of every given episode (default: all of the bank, each exactly once).
+
+    Episodes run in batches of `batch`; the last batch is padded by repeating its last episode
+    (results of the padding are dropped), so one compiled function serves every batch."""
+    episodes = np.arange(env.num_episodes) if episodes is None else np.asarray(episodes)
+    if episodes.ndim != 1 or len(episodes) == 0:
+        raise ValueError("episodes must be a non-empty 1-D array of episode indices")
+    if episodes.min() < 0 or episodes.max() >= env.num_episodes:
+        raise ValueError(f"episode indices must be in [0, {env.num_episodes})")
+    batch = min(batch, len(episodes))
+    run = make_rollout(env, agent, num_steps=env.bank.max_steps)
+    key = jax.random.PRNGKey(seed)
+    chunks = []
+    starts = range(0, len(episodes), batch)
+    for s0 in progress(starts) if progress else starts:
+        idx = episodes[s0 : s0 + batch]
+        n = len(idx)
+        if n < batch:
+            idx = np.concatenate([idx, np.full(batch - n, idx[-1])])
+        metrics, _ = run(jax.random.fold_in(key, s0), jnp.asarray(idx, jnp.int32))
+        chunks.append({k: np.asarray(v)[:n] for k, v in metrics.items()})
+    out = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    out["episode"] = episodes
+    return out
