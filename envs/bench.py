@@ -34,7 +34,7 @@ def add_bench_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor", choices=["fast", "reference", "both"], default="fast")
     p.add_argument("--steps", type=int, default=20, help="env steps per timed call")
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--chunk", type=int, default=None, help="fast caster batch chunk")
+    p.add_argument("--geoms-per-pass", type=int, default=None, help="fast caster geoms per pass")
     p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
     p.set_defaults(func=run_bench_sim)
 
@@ -98,7 +98,7 @@ def run_bench_sim(args: argparse.Namespace) -> int:
     kinds = ["fast", "reference"] if args.sensor == "both" else [args.sensor]
     for (h, w) in args.resolution:
         for kind in kinds:
-            extra = {} if args.chunk is None else {"chunk": args.chunk}
+            extra = {} if args.geoms_per_pass is None else {"geoms_per_pass": args.geoms_per_pass}
             cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra))
             env = ConavEnv(data, args.split, cfg)
             for batch in args.batch:

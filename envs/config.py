@@ -22,12 +22,15 @@ class SensorConfig:
     width: int = 448
     max_depth_m: float = 10.0  # farther hits and no hit read as max_depth and sky colour
     kind: str = "fast"  # "fast" (our column caster) or "reference" (mujoco.mjx.ray per pixel)
-    # Batch chunk for the fast caster: bounds its per-pixel x per-geom intermediate memory.
-    chunk: int = 512
+    # The fast caster tests this many geoms per pass and keeps a running nearest hit across
+    # passes: memory per env is geoms_per_pass x H x W keys instead of all geoms x H x W.
+    geoms_per_pass: int = 8
 
     def __post_init__(self):
         if self.kind not in ("fast", "reference"):
             raise ValueError(f"sensor kind must be 'fast' or 'reference', got {self.kind!r}")
+        if self.geoms_per_pass < 1:
+            raise ValueError(f"geoms_per_pass must be at least 1, got {self.geoms_per_pass}")
         if self.height < 4 or self.width < 8 or self.width % 8:
             raise ValueError(f"panorama must be at least 4x8 with width a multiple of 8, got {self.height}x{self.width}")
 

@@ -6,7 +6,8 @@ is a colour lookup. The fast caster uses the scene's structure: every box is axi
 per image column the ray is a 2-D ray and each box a 2-D slab interval; per row the box's z
 range turns into a second interval along the same horizontal distance; their intersection
 gives the exact hit. The floor is analytic per row; capsules (the humanoid) are tested per ray.
-The nearest hit and its id are found together by one min-reduction over packed integer keys.
+The nearest hit and its id are found together by a min over packed integer keys, kept as a
+running min over passes of a few geoms each so memory does not grow with the geom count.
 Data flow: robot pose + scene boxes + human capsules -> (depth, geom id) -> rgbd.
 """
 
@@ -70,33 +71,57 @@ def _unpack(key: jax.Array, cfg: SensorConfig) -> tuple[jax.Array, jax.Array]:
     return jnp.where(miss, cfg.max_depth_m, depth), jnp.where(miss, -1, ids)
 
 
-def _box_keys(cfg, cam, yaw, box_lo, box_hi, box_ids, box_valid):
-    """Nearest box hit key per pixel (H, W): a 2-D slab test per column, z interval per row."""
+def _in_passes(cfg: SensorConfig, init: jax.Array, per_geom: tuple, keys_fn) -> jax.Array:
+    """Running min of keys over geoms, `geoms_per_pass` at a time (lax.scan over passes).
+
+    per_geom: arrays with a leading geom axis G; padded to a multiple of the pass size with
+    copies of geom 0 (harmless: a duplicate cannot change a min)."""
+    p = cfg.geoms_per_pass
+    g = per_geom[0].shape[0]
+    n = -(-g // p)
+    pad = n * p - g
+    grouped = tuple(
+        jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]).reshape((n, p) + a.shape[1:]) for a in per_geom
+    )
+
+    def body(keys, group):
+        return jnp.minimum(keys, jnp.min(keys_fn(*group), axis=0)), None
+
+    keys, _ = jax.lax.scan(body, init, grouped)
+    return keys
+
+
+def _box_keys(cfg, cam, yaw, box_lo, box_hi, box_ids, box_valid, init):
+    """Nearest box hit keys (H, W) merged into `init`: a 2-D slab test per column and a z
+    interval per row, per box."""
     az, el = ray_angles(cfg)
     a = yaw + jnp.asarray(az)  # (W,)
     dx, dy = jnp.cos(a), jnp.sin(a)
     safe = lambda v: jnp.where(jnp.abs(v) < _EPS, jnp.where(v < 0, -_EPS, _EPS), v)
     inv_x, inv_y = 1.0 / safe(dx), 1.0 / safe(dy)
-    # (G, W) horizontal distances of the slab entries / exits.
-    tx1 = (box_lo[:, None, 0] - cam[0]) * inv_x[None]
-    tx2 = (box_hi[:, None, 0] - cam[0]) * inv_x[None]
-    ty1 = (box_lo[:, None, 1] - cam[1]) * inv_y[None]
-    ty2 = (box_hi[:, None, 1] - cam[1]) * inv_y[None]
-    t_in = jnp.maximum(jnp.minimum(tx1, tx2), jnp.minimum(ty1, ty2))
-    t_out = jnp.minimum(jnp.maximum(tx1, tx2), jnp.maximum(ty1, ty2))
-    # (G, H) horizontal distance interval where the row's ray is within the box's z range.
     tan_e = jnp.tan(jnp.asarray(el))
     tan_e = jnp.where(jnp.abs(tan_e) < _EPS, _EPS, tan_e)
-    tz1 = (box_lo[:, None, 2] - cam[2]) / tan_e[None]
-    tz2 = (box_hi[:, None, 2] - cam[2]) / tan_e[None]
-    z_in, z_out = jnp.minimum(tz1, tz2), jnp.maximum(tz1, tz2)
     inv_cos = (1.0 / jnp.cos(jnp.asarray(el)))[None, :, None]
-    enter = jnp.maximum(jnp.maximum(t_in[:, None, :], z_in[:, :, None]), 0.0)  # (G, H, W)
-    leave = jnp.minimum(t_out[:, None, :], z_out[:, :, None])
-    hit = (enter <= leave) & box_valid[:, None, None]
-    depth = jnp.where(hit, enter * inv_cos, jnp.inf)
-    keys = _pack(depth, jnp.broadcast_to(box_ids[:, None, None], depth.shape), cfg)
-    return jnp.min(keys, axis=0)
+
+    def keys_fn(lo, hi, ids, valid):  # P boxes -> (P, H, W) keys
+        # (P, W) horizontal distances of the 2-D slab entries / exits.
+        tx1 = (lo[:, None, 0] - cam[0]) * inv_x[None]
+        tx2 = (hi[:, None, 0] - cam[0]) * inv_x[None]
+        ty1 = (lo[:, None, 1] - cam[1]) * inv_y[None]
+        ty2 = (hi[:, None, 1] - cam[1]) * inv_y[None]
+        t_in = jnp.maximum(jnp.minimum(tx1, tx2), jnp.minimum(ty1, ty2))
+        t_out = jnp.minimum(jnp.maximum(tx1, tx2), jnp.maximum(ty1, ty2))
+        # (P, H) horizontal distance interval where the row's ray is inside the box's z range.
+        tz1 = (lo[:, None, 2] - cam[2]) / tan_e[None]
+        tz2 = (hi[:, None, 2] - cam[2]) / tan_e[None]
+        z_in, z_out = jnp.minimum(tz1, tz2), jnp.maximum(tz1, tz2)
+        enter = jnp.maximum(jnp.maximum(t_in[:, None, :], z_in[:, :, None]), 0.0)  # (P, H, W)
+        leave = jnp.minimum(t_out[:, None, :], z_out[:, :, None])
+        hit = (enter <= leave) & valid[:, None, None]
+        depth = jnp.where(hit, enter * inv_cos, jnp.inf)
+        return _pack(depth, jnp.broadcast_to(ids[:, None, None], depth.shape), cfg)
+
+    return _in_passes(cfg, init, (box_lo, box_hi, box_ids, box_valid), keys_fn)
 
 
 def _capsule_depth(origin, dirs, p0, p1, radius):
@@ -130,10 +155,12 @@ def _capsule_depth(origin, dirs, p0, p1, radius):
     return jnp.where(body_ok, t_body, jnp.where(cap_ok, t_cap, jnp.inf))
 
 
-def _capsule_keys(cfg, cam, dirs, cap_p0, cap_p1, cap_r, cap_ids):
-    depth = jax.vmap(_capsule_depth, in_axes=(None, None, 0, 0, 0))(cam, dirs, cap_p0, cap_p1, cap_r)
-    keys = _pack(depth, jnp.broadcast_to(cap_ids[:, None, None], depth.shape), cfg)
-    return jnp.min(keys, axis=0)
+def _capsule_keys(cfg, cam, dirs, cap_p0, cap_p1, cap_r, cap_ids, init):
+    def keys_fn(p0, p1, r, ids):  # P capsules -> (P, H, W) keys
+        depth = jax.vmap(_capsule_depth, in_axes=(None, None, 0, 0, 0))(cam, dirs, p0, p1, r)
+        return _pack(depth, jnp.broadcast_to(ids[:, None, None], depth.shape), cfg)
+
+    return _in_passes(cfg, init, (cap_p0, cap_p1, cap_r, cap_ids), keys_fn)
 
 
 def _floor_keys(cfg, cam, floor_id):
@@ -162,10 +189,10 @@ def fast_depth_ids(
 
     box_lo/box_hi (G, 3) corners of axis-aligned boxes, box_ids (G,) their geom ids, box_valid
     (G,) which are real; capsules cap_p0/cap_p1 (C, 3) segment ends and cap_r (C,) radii."""
-    dirs = ray_directions(cfg, yaw)
-    keys = jnp.minimum(_box_keys(cfg, cam, yaw, box_lo, box_hi, box_ids, box_valid), _floor_keys(cfg, cam, floor_id))
+    keys = _floor_keys(cfg, cam, floor_id)
+    keys = _box_keys(cfg, cam, yaw, box_lo, box_hi, box_ids, box_valid, keys)
     if cap_p0.shape[0]:
-        keys = jnp.minimum(keys, _capsule_keys(cfg, cam, dirs, cap_p0, cap_p1, cap_r, cap_ids))
+        keys = _capsule_keys(cfg, cam, ray_directions(cfg, yaw), cap_p0, cap_p1, cap_r, cap_ids, keys)
     return _unpack(keys, cfg)
 
 
