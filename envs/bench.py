@@ -35,6 +35,8 @@ def add_bench_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=20, help="env steps per timed call")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--geoms-per-pass", type=int, default=None, help="fast caster geoms per pass")
+    p.add_argument("--what", choices=["step", "sensor"], default="step",
+                   help="step: full env steps (physics, humanoid, sensors); sensor: panoramas only")
     p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
     p.set_defaults(func=run_bench_sim)
 
@@ -44,14 +46,37 @@ def _memory_bytes() -> int | None:
     return stats.get("peak_bytes_in_use")
 
 
-def bench_sim(env, batch: int, steps: int, repeats: int) -> dict:
-    """Time `steps` env steps of `batch` episodes; returns a dict of figures."""
+def _sensor_run(env, batch: int, steps: int):
+    """Panoramas only: `steps` frames of `batch` robots at random yaws in their start poses."""
+    n = env.num_episodes
+    reset = jax.vmap(env.reset_to_episode)
+
+    @jax.jit
+    def run(key):
+        state = reset(jax.random.split(key, batch), jnp.arange(batch) % n)
+        d = state.pipeline_state
+        episodes = state.info["episode"]
+
+        def body(total, k):
+            yaw = jax.random.uniform(k, (batch,), minval=-3.14, maxval=3.14)
+            dd = d.replace(qpos=d.qpos.at[:, 2].set(yaw))
+            depth, _ = jax.vmap(lambda di, e: env.panorama(env._episode_model(e, di.qpos[:2]), di, e))(dd, episodes)
+            return total + depth.mean(), None
+
+        total, _ = jax.lax.scan(body, jnp.zeros(()), jax.random.split(key, steps))
+        return total
+
+    return run
+
+
+def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step") -> dict:
+    """Time `steps` env steps (or panoramas) of `batch` episodes; returns a dict of figures."""
     n = env.num_episodes
     reset = jax.vmap(env.reset_to_episode)
     step = jax.vmap(env.step)
 
     @jax.jit
-    def run(key):
+    def run_steps(key):
         keys = jax.random.split(key, batch)
         state = reset(keys, jnp.arange(batch) % n)
 
@@ -63,6 +88,7 @@ def bench_sim(env, batch: int, steps: int, repeats: int) -> dict:
         state, r = jax.lax.scan(body, state, jax.random.split(key, steps))
         return r.sum() + state.obs["rgbd"][:, 0, 0, 3].sum()
 
+    run = run_steps if what == "step" else _sensor_run(env, batch, steps)
     t0 = time.perf_counter()
     jax.block_until_ready(run(jax.random.PRNGKey(0)))
     compile_s = time.perf_counter() - t0
@@ -78,7 +104,8 @@ def bench_sim(env, batch: int, steps: int, repeats: int) -> dict:
         "steps_per_call": steps,
         "compile_and_first_call_s": round(compile_s, 2),
         "median_call_s": round(med, 4),
-        "env_steps_per_s": round(batch * steps / med, 1),
+        "what": what,
+        ("env_steps_per_s" if what == "step" else "frames_per_s"): round(batch * steps / med, 1),
         "peak_bytes_in_use": _memory_bytes(),
     }
 
@@ -102,13 +129,15 @@ def run_bench_sim(args: argparse.Namespace) -> int:
             cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra))
             env = ConavEnv(data, args.split, cfg)
             for batch in args.batch:
-                res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats)}
+                res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats, args.what)}
                 if args.json:
                     print(json.dumps(res), flush=True)
                 else:
+                    rate = res.get("env_steps_per_s", res.get("frames_per_s"))
+                    unit = "env steps/s" if args.what == "step" else "panoramas/s"
                     print(
                         f"{res['device']} sensor={kind} res={h}x{w} batch={batch}: "
-                        f"{res['env_steps_per_s']:,.0f} env steps/s (median of {args.repeats}), "
+                        f"{rate:,.0f} {unit} (median of {args.repeats}), "
                         f"compile {res['compile_and_first_call_s']} s, peak mem {res['peak_bytes_in_use']}",
                         flush=True,
                     )

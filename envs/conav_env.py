@@ -78,7 +78,8 @@ class ConavEnv(Env):
         self.task: TaskConfig = episodes.config.task
         self.split = episodes
         self.bank: EpisodeBank = build_bank(episodes)
-        self.layout = GeomLayout(self.bank.col_slots, self.bank.vis_slots)
+        slots = min(self.config.physics.collision_slots, self.bank.col_slots)
+        self.layout = GeomLayout(self.bank.col_slots, self.bank.vis_slots, slots)
         self.mj_model, self.mjx_model = build_model(self.layout, self.task, self.config.physics)
         self._data0 = mjx.make_data(self.mjx_model)
         self._robot_body = robot_body_id(self.mj_model)
@@ -87,7 +88,7 @@ class ConavEnv(Env):
             raise ValueError("control_dt_s must be a whole number of physics timesteps")
         self._substeps = int(round(substeps))
         lay = self.layout
-        self._box_ids = jnp.arange(lay.col_start, lay.robot, dtype=jnp.int32)
+        self._box_ids = jnp.arange(lay.col_start, lay.physics_start, dtype=jnp.int32)
         self._cap_ids = jnp.arange(lay.human_start, lay.ngeom, dtype=jnp.int32)
         self._cap_r = jnp.asarray(CAPSULE_RADII)
         self._static_rgb = (FLOOR_RGB_F, ROBOT_RGB, capsule_colours())
@@ -121,8 +122,8 @@ class ConavEnv(Env):
         del rng  # the episode fixes everything; kept for the brax signature's sake
         b = self.bank
         episode = jnp.asarray(episode, jnp.int32)
-        m = self._episode_model(episode)
         start = b.robot_start[episode]
+        m = self._episode_model(episode, start[:2])
         d = self._data0.replace(qpos=start, qvel=jnp.zeros(3))
         d = self._pose_human(d, episode, jnp.int32(0))
         geo = self._goal_distance(episode, start[:2])
@@ -152,7 +153,7 @@ class ConavEnv(Env):
         v, w = a[0] * task.v_max_mps, a[1] * task.w_max_radps
         t = ud0[UD["t"]].astype(jnp.int32) + 1
 
-        m = self._episode_model(episode)
+        m = self._episode_model(episode, d0.qpos[:2])
         d = self._pose_human(d0, episode, t)
 
         def substep(d, _):
@@ -211,14 +212,23 @@ class ConavEnv(Env):
         return jax.tree.map(lambda old, nw: jnp.where(ended, old, nw), frozen, new)
 
     # -- pieces --------------------------------------------------------------------------------
-    def _episode_model(self, episode: jax.Array) -> mjx.Model:
-        """The shared MJX model with this episode's scene boxes in the box slots."""
+    def _episode_model(self, episode: jax.Array, robot_xy: jax.Array, render: bool = False) -> mjx.Model:
+        """The shared MJX model with this episode's blocking boxes nearest `robot_xy` in the
+        physics slots (and, with `render`, every scene box in the render slots)."""
         b, lay = self.bank, self.layout
         s = b.scene_index[episode]
-        lo = jnp.concatenate([b.col_lo[s], b.vis_lo[s]])
-        hi = jnp.concatenate([b.col_hi[s], b.vis_hi[s]])
+        lo, hi = b.col_lo[s], b.col_hi[s]
+        gap = jnp.linalg.norm(jnp.maximum(jnp.maximum(lo[:, :2] - robot_xy, robot_xy - hi[:, :2]), 0.0), axis=-1)
+        _, near = jax.lax.top_k(-jnp.where(b.col_valid[s], gap, jnp.inf), lay.physics_slots)
+        # A padding box picked when a scene has fewer boxes than slots sits below the floor.
+        lo, hi = lo[near], hi[near]
+        start, stop = lay.physics_start, lay.robot
+        if render:
+            lo = jnp.concatenate([b.col_lo[s], b.vis_lo[s], lo])
+            hi = jnp.concatenate([b.col_hi[s], b.vis_hi[s], hi])
+            start = lay.col_start
         pos, size = (lo + hi) / 2.0, (hi - lo) / 2.0
-        sl = slice(lay.col_start, lay.robot)
+        sl = slice(start, stop)
         mm = self.mjx_model
         return mm.replace(
             geom_pos=mm.geom_pos.at[sl].set(pos),
@@ -258,7 +268,10 @@ class ConavEnv(Env):
         b = self.bank
         s = b.scene_index[episode]
         floor, robot, human = self._static_rgb
-        return jnp.concatenate([jnp.asarray(floor)[None], b.col_rgb[s], b.vis_rgb[s], jnp.asarray(robot)[None], jnp.asarray(human)])
+        hidden = jnp.zeros((self.layout.physics_slots, 3))  # physics slots never appear in images
+        return jnp.concatenate(
+            [jnp.asarray(floor)[None], b.col_rgb[s], b.vis_rgb[s], hidden, jnp.asarray(robot)[None], jnp.asarray(human)]
+        )
 
     def panorama(self, m: mjx.Model, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(depth (H, W) metres, geom ids (H, W)) from the configured sensor."""
@@ -266,6 +279,7 @@ class ConavEnv(Env):
         cam = jnp.array([d.qpos[0], d.qpos[1], self.task.camera_height_m])
         yaw = d.qpos[2]
         if cfg.kind == "reference":
+            m = self._episode_model(episode, d.qpos[:2], render=True)
             return reference_depth_ids(cfg, m, mjx.kinematics(m, d), cam, yaw, self._robot_body)
         s = b.scene_index[episode]
         t = d.userdata[UD["t"]].astype(jnp.int32)

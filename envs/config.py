@@ -51,6 +51,12 @@ class PhysicsConfig:
     force_limit_n: float = 1000.0
     torque_limit_nm: float = 200.0
     contact_tolerance_m: float = 0.005  # analytic contact counts when gaps are below this
+    # MJX collides the robot only with the boxes nearest to it: the robot moves at most
+    # v_max * control_dt (0.1 m) per step, so the nearest few are all it can touch.
+    collision_slots: int = 8
+    # Constraint solver budget per substep (MJX defaults to 100 / 50; three dofs need few).
+    solver_iterations: int = 4
+    ls_iterations: int = 8
 
 
 @dataclass(frozen=True)

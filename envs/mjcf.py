@@ -1,12 +1,14 @@
 """The MJCF model of a CoNav world, built once per slot layout and shared by every episode.
 
-Geom order (ids are what the sensors report): the floor (0), `col_slots` blocking boxes,
-`vis_slots` visual-only boxes, the robot capsule, then the humanoid's capsules. Scene boxes are
-placed per episode by replacing `geom_pos` / `geom_size` in the MJX model (batched under vmap);
-the humanoid's capsules are mocap bodies posed every step from the keyframes.
-Collision filtering keeps only robot-vs-static and robot-vs-human pairs:
-    static boxes: contype 1, conaffinity 0   robot: contype 2, conaffinity 1|4
-    humanoid:     contype 4, conaffinity 0   visual boxes, floor: no collisions
+Geom order (ids are what the sensors report): the floor (0), render slots for every scene box
+(`col_slots` blocking then `vis_slots` visual-only; seen only by the mjx.ray reference sensor),
+`physics_slots` collision boxes (geom group 3, invisible to rays), the robot capsule, then the
+humanoid's capsules. Per step the physics slots hold the blocking boxes nearest the robot; the
+render slots hold the whole scene. Both are set by replacing `geom_pos` / `geom_size` in the MJX
+model (batched under vmap); the humanoid's capsules are mocap bodies posed from the keyframes.
+Collision filtering keeps only robot-vs-box and robot-vs-human pairs:
+    physics slots: contype 1, conaffinity 0   robot: contype 2, conaffinity 1|4
+    humanoid:      contype 4, conaffinity 0   render slots, floor: no collisions
 """
 
 from __future__ import annotations
@@ -40,8 +42,9 @@ UD = {name: i for i, name in enumerate(USERDATA_FIELDS)}
 
 @dataclass(frozen=True)
 class GeomLayout:
-    col_slots: int
-    vis_slots: int
+    col_slots: int  # render slots for blocking boxes
+    vis_slots: int  # render slots for visual-only boxes
+    physics_slots: int  # collision boxes near the robot
 
     @property
     def floor(self) -> int:
@@ -56,8 +59,12 @@ class GeomLayout:
         return 1 + self.col_slots
 
     @property
-    def robot(self) -> int:
+    def physics_start(self) -> int:
         return 1 + self.col_slots + self.vis_slots
+
+    @property
+    def robot(self) -> int:
+        return self.physics_start + self.physics_slots
 
     @property
     def human_start(self) -> int:
@@ -68,20 +75,29 @@ class GeomLayout:
         return self.human_start + NUM_CAPSULES
 
 
+PHYSICS_GROUP = 3  # geom group of the collision slots; rays exclude it
+RAY_GEOMGROUP = tuple(0 if g == PHYSICS_GROUP else 1 for g in range(6))
+
+
 def build_mjcf(layout: GeomLayout, task: TaskConfig, physics: PhysicsConfig) -> str:
     r, h = task.robot_radius_m, task.robot_height_m
     pad = f'pos="0 0 {PAD_Z_M}" size=".01 .01 .01"'
     lines = [
         '<mujoco model="conav">',
-        f'  <option timestep="{physics.timestep_s}" integrator="implicitfast" gravity="0 0 0"/>',
+        f'  <option timestep="{physics.timestep_s}" integrator="implicitfast" gravity="0 0 0"'
+        f' iterations="{physics.solver_iterations}" ls_iterations="{physics.ls_iterations}"/>',
         f'  <size nuserdata="{len(USERDATA_FIELDS)}"/>',
         # mjx.ray (mujoco-mjx 3.17) fails on a model without materials.
         '  <asset><material name="flat" rgba="1 1 1 1"/></asset>',
         "  <worldbody>",
         '    <geom name="floor" type="plane" size="500 500 0.1" contype="0" conaffinity="0" material="flat"/>',
     ]
-    lines += [f'    <geom name="col{k}" type="box" {pad} contype="1" conaffinity="0" material="flat"/>' for k in range(layout.col_slots)]
+    lines += [f'    <geom name="col{k}" type="box" {pad} contype="0" conaffinity="0" material="flat"/>' for k in range(layout.col_slots)]
     lines += [f'    <geom name="vis{k}" type="box" {pad} contype="0" conaffinity="0" material="flat"/>' for k in range(layout.vis_slots)]
+    lines += [
+        f'    <geom name="phys{k}" type="box" {pad} contype="1" conaffinity="0" group="{PHYSICS_GROUP}" material="flat"/>'
+        for k in range(layout.physics_slots)
+    ]
     lines += [
         '    <body name="robot">',
         '      <joint name="robot_x" type="slide" axis="1 0 0"/>',

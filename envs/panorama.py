@@ -19,6 +19,7 @@ import numpy as np
 from mujoco import mjx
 
 from envs.config import SensorConfig
+from envs.mjcf import RAY_GEOMGROUP
 
 _EPS = 1e-9
 # Packed key = quantised depth (upper 24 bits) | geom id (lower 8 bits); min over keys gives
@@ -201,7 +202,7 @@ def reference_depth_ids(
 ) -> tuple[jax.Array, jax.Array]:
     """The same panorama from `mujoco.mjx.ray`, one ray per pixel (slow; the ground truth)."""
     dirs = ray_directions(cfg, yaw).reshape(-1, 3)
-    dist, geom = jax.vmap(lambda v: mjx.ray(m, d, cam, v, bodyexclude=exclude_body))(dirs)
+    dist, geom = jax.vmap(lambda v: mjx.ray(m, d, cam, v, geomgroup=RAY_GEOMGROUP, bodyexclude=exclude_body))(dirs)
     hit = (geom >= 0) & (dist >= 0) & (dist < cfg.max_depth_m)
     depth = jnp.where(hit, dist, cfg.max_depth_m).reshape(cfg.height, cfg.width)
     ids = jnp.where(hit, geom, -1).reshape(cfg.height, cfg.width)
