@@ -199,18 +199,20 @@ def line_of_sight(grid: OccupancyGrid, a, b) -> bool:
 
 
 def smooth_path(grid: OccupancyGrid, path_xy: np.ndarray) -> np.ndarray:
-    """Greedy string pulling: keep a waypoint only where the straight line would leave free space."""
+    """String pulling: from each kept waypoint, extend the straight line along the path for as
+    long as it stays in free space; keep the last point it reached. Linear in path length."""
     path_xy = np.asarray(path_xy, np.float64)
     if len(path_xy) <= 2:
         return path_xy
     out = [path_xy[0]]
-    i = 0
-    while i < len(path_xy) - 1:
-        j = len(path_xy) - 1
-        while j > i + 1 and not line_of_sight(grid, path_xy[i], path_xy[j]):
-            j -= 1
+    anchor, j = 0, 1
+    while j < len(path_xy) - 1:
+        if line_of_sight(grid, path_xy[anchor], path_xy[j + 1]):
+            j += 1
+            continue
         out.append(path_xy[j])
-        i = j
+        anchor, j = j, j + 1
+    out.append(path_xy[-1])
     return np.asarray(out)
 
 
