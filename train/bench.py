@@ -1,0 +1,164 @@
+"""`conav bench train`: samples/s of one model's jitted training update on random data.
+
+Random data of the model's training shapes is put on the device -> train.loop's update
+(minibatch gather, value_and_grad, clipping, Adam) scanned `--steps` times in one jitted call
+-> after a compile-and-warm-up call, the median of timed calls gives samples/s. Prints the
+device, batch and resolution.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+
+from envs.bench import parse_resolution
+from train.loop import TrainConfig, make_chunk, make_optimizer, make_update
+
+DEFAULT_BATCH = {"trajectory": 4096, "intention": 256, "policy": 32}
+POLICY_SEQUENCE = 32  # time steps per policy sample (truncated BPTT length)
+
+
+def _trajectory_setup(key, batch: int, resolution):
+    from conav_jax.models import trajectory as model
+    from train.trajectory import trajectory_loss
+
+    config = model.TrajectoryConfig()
+    k_p, k_h, k_f = jax.random.split(key, 3)
+    n = 8 * batch
+    data = {
+        "history": jnp.cumsum(0.1 * jax.random.normal(k_h, (n, config.history, 2)), axis=1),
+        "future": jnp.cumsum(0.1 * jax.random.normal(k_f, (n, config.horizon, 2)), axis=1),
+    }
+    loss = lambda p, b, k: trajectory_loss(p, config, b, k)
+    return model.init(k_p, config), data, loss, {"history": config.history, "horizon": config.horizon}
+
+
+def _intention_setup(key, batch: int, resolution):
+    from conav_jax.models import perceiver
+    from train.intention import IntentionDataConfig, intention_loss
+
+    config = perceiver.PerceiverConfig()
+    frames = IntentionDataConfig.frames
+    k_p, k_x, k_a, k_o = jax.random.split(key, 4)
+    n = 2 * batch  # frames dominate memory: (n, F, h, w, 4) float16
+    data = {
+        "frames": jax.random.uniform(k_x, (n, frames, *config.image_hw, 4), jnp.float16),
+        "num_frames": jnp.full((n,), frames, jnp.int32),
+        "activity": jax.random.randint(k_a, (n,), 0, config.num_activities),
+        "object": jax.random.randint(k_o, (n,), 0, config.num_objects),
+    }
+    loss = lambda p, b, k: intention_loss(p, config, b, k)
+    h, w = config.image_hw
+    return perceiver.init(k_p, config), data, loss, {"resolution": f"{h}x{w}", "frames": frames}
+
+
+def policy_l2_loss(params, config, batch: dict, key):
+    """Imitation loss of the LSTM policy: mean squared action error over `(B, T)` steps."""
+    from conav_jax.models import policy
+
+    del key
+    obs = {k: v for k, v in batch.items() if k != "action"}
+    obs["rgbd"] = obs["rgbd"].astype(jnp.float32)
+    carry = policy.initial_carry(config, batch["action"].shape[0])
+    actions, _, _ = policy.apply_sequence(params, config, obs, carry)
+    return jnp.mean(jnp.sum(jnp.square(actions - batch["action"]), axis=-1)), {}
+
+
+def _policy_setup(key, batch: int, resolution):
+    from conav_jax.models import policy
+
+    config = policy.PolicyConfig(image_hw=resolution)
+    t = POLICY_SEQUENCE
+    ks = jax.random.split(key, 8)
+    n = batch  # sequences of panoramas are large: (n, T, H, W, 4) float16
+    data = {
+        "rgbd": jax.random.uniform(ks[0], (n, t, *resolution, 4), jnp.float16),
+        "gps_compass": jax.random.normal(ks[1], (n, t, 3)),
+        "human_pos": jax.random.normal(ks[2], (n, t, 2)),
+        "activity_probs": jax.nn.softmax(jax.random.normal(ks[3], (n, t, config.num_activities))),
+        "object_probs": jax.nn.softmax(jax.random.normal(ks[4], (n, t, config.num_objects))),
+        "future_traj": jax.random.normal(ks[5], (n, t, config.horizon, 2)),
+        "action": jax.random.uniform(ks[6], (n, t, 2), minval=-1.0, maxval=1.0),
+    }
+    loss = lambda p, b, k: policy_l2_loss(p, config, b, k)
+    h, w = resolution
+    return policy.init(ks[7], config), data, loss, {"resolution": f"{h}x{w}", "sequence": t}
+
+
+SETUPS = {"trajectory": _trajectory_setup, "intention": _intention_setup, "policy": _policy_setup}
+
+
+def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int, repeats: int) -> dict:
+    """Time `steps` updates of `model` at `batch` samples; returns a dict of figures."""
+    if model not in SETUPS:
+        raise ValueError(f"unknown model {model!r}; choose from {sorted(SETUPS)}")
+    if batch <= 0 or steps <= 0 or repeats <= 0:
+        raise ValueError(f"batch, steps and repeats must be > 0, got {batch}, {steps}, {repeats}")
+    params, data, loss, shape_info = SETUPS[model](jax.random.PRNGKey(0), batch, resolution)
+    cfg = TrainConfig(steps=steps * (repeats + 1), batch=batch, warmup_steps=0)
+    optimizer = make_optimizer(cfg)
+    n = jax.tree.leaves(data)[0].shape[0]
+    chunk = jax.jit(make_chunk(make_update(loss, optimizer, cfg, n), batch), static_argnames="length")
+    state = (params, optimizer.init(params))
+
+    def call(state):
+        params, opt_state, _, _, sums = chunk(*state, data, length=steps)
+        jax.block_until_ready(sums)
+        return params, opt_state
+
+    t0 = time.perf_counter()
+    state = call(state)
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        state = call(state)
+        times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    num_params = sum(x.size for x in jax.tree.leaves(params))
+    return {
+        "model": model,
+        "device": jax.devices()[0].device_kind,
+        "batch": batch,
+        **shape_info,
+        "params": int(num_params),
+        "updates_per_call": steps,
+        "compile_and_first_call_s": round(compile_s, 2),
+        "median_call_s": round(med, 4),
+        "samples_per_s": round(batch * steps / med, 1),
+        "updates_per_s": round(steps / med, 2),
+        **({"timesteps_per_s": round(batch * steps * POLICY_SEQUENCE / med, 1)} if model == "policy" else {}),
+    }
+
+
+def add_bench_train(sub: argparse._SubParsersAction) -> None:
+    """Register `conav bench train`."""
+    p = sub.add_parser("train", help="training throughput: samples/s of a model's jitted update")
+    p.add_argument("--model", choices=sorted(SETUPS), required=True)
+    p.add_argument("--batch", type=int, nargs="+", default=None, help=f"samples per update (default {DEFAULT_BATCH})")
+    p.add_argument("--resolution", type=parse_resolution, default=(112, 448), help="policy panorama HxW")
+    p.add_argument("--steps", type=int, default=10, help="updates per timed call")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--json", action="store_true", help="print one JSON line per batch size")
+    p.set_defaults(func=run_bench_train)
+
+
+def run_bench_train(args: argparse.Namespace) -> int:
+    for batch in args.batch or [DEFAULT_BATCH[args.model]]:
+        res = bench_train(args.model, batch, args.resolution, args.steps, args.repeats)
+        if args.json:
+            print(json.dumps(res), flush=True)
+        else:
+            shape = ", ".join(f"{k}={res[k]}" for k in ("resolution", "frames", "sequence", "history") if k in res)
+            print(
+                f"{res['device']} {res['model']} batch={batch} {shape}: {res['samples_per_s']:,.0f} samples/s "
+                f"({res['updates_per_s']:.1f} updates/s, median of {args.repeats}; "
+                f"compile + first call {res['compile_and_first_call_s']} s)",
+                flush=True,
+            )
+    return 0

@@ -1,0 +1,371 @@
+"""Training the long-term intention predictor (paper sec. 4.1), and loading it for agents.
+
+episodes -> the env's sensor renders, from each robot start pose, F front views of the human
+during activity A (one jitted, vmapped call) -> Perceiver trained on a random prefix of the
+frames, cross-entropy on activity B (107) and object B (51) -> val top-1/top-5 against the
+"most frequent B given A" prior and chance -> `load_intention_predictor(run_dir)`: a per-step
+predictor (frame ring buffer + lowest-entropy average of its predictions) for agents' act().
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from conav_jax.episodes import read_manifest
+from conav_jax.models import perceiver
+from conav_jax.models.perceiver import PerceiverConfig
+from envs import ConavEnv, EnvConfig, SensorConfig
+from envs.bench import parse_resolution
+from envs.mjcf import UD
+from envs.panorama import colourise, front_view
+from train.loop import NonFiniteLoss, TrainConfig, TrainResult, add_train_args, load_run, train, train_config_from_args
+
+KIND = "intention"
+
+
+@dataclasses.dataclass(frozen=True)
+class IntentionDataConfig:
+    """How the frame sequences are rendered."""
+
+    # Panorama (H, W) rendered; the front view is H x W/4, resized to the model's input. Rendering
+    # at the agent's env resolution makes training frames pass the predictor's own resize.
+    sensor_hw: tuple[int, int] = (32, 128)
+    frames: int = 16  # F: frames per episode, spread evenly over activity A
+
+    def __post_init__(self):
+        if self.frames < 1:
+            raise ValueError(f"frames must be >= 1, got {self.frames}")
+
+
+# -- dataset -------------------------------------------------------------------------------------
+
+
+def activity_a_steps(t_walk_start: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Steps `(N, F)` spread evenly over each episode's activity A, `[0, t_walk_start)`, and the
+    number of distinct ones `(N,)` (= F unless activity A has fewer steps; the rest repeat
+    the last step and are masked in training)."""
+    length = np.maximum(np.asarray(t_walk_start, np.int64), 1)
+    num = np.minimum(length, frames)
+    pos = np.arange(frames)[None, :]
+    # Even spacing over [0, length - 1] using num points; positions past num repeat the last.
+    steps = np.round(np.minimum(pos, num[:, None] - 1) * (length[:, None] - 1) / np.maximum(num[:, None] - 1, 1))
+    return steps.astype(np.int32), num.astype(np.int32)
+
+
+def make_front_renderer(env: ConavEnv, image_hw: tuple[int, int], chunk: int, compiler_options: dict | None = None):
+    """A jitted `render(episodes (M,), steps (M,)) -> (front (M, h, w, 4) float32,
+    human_pixels (M,) int32)`: the env sensor's front view from the episode's robot start pose
+    with the human posed at that step, resized to `image_hw`, and how many of the sensor's
+    front-view pixels hit the human. Frames are rendered `chunk` at a time, each chunk vmapped."""
+    human_start = env.layout.human_start
+
+    def one(episode, t):
+        # The episode's start state (the unused observation is dead code under jit), with
+        # the clock and the humanoid moved to step t.
+        d = env.reset_to_episode(jax.random.PRNGKey(0), episode).pipeline_state
+        d = d.replace(userdata=d.userdata.at[UD["t"]].set(t.astype(d.userdata.dtype)))
+        d = env._pose_human(d, episode, t)  # mocap poses: what the mjx.ray reference sees
+        depth, ids = env.panorama(env._episode_model(episode, d.qpos[:2]), d, episode)
+        front = front_view(colourise(depth, ids, env._geom_rgb(episode)))
+        if front.shape[:2] != tuple(image_hw):
+            front = jax.image.resize(front, (*image_hw, front.shape[-1]), "linear")
+        return front, jnp.sum(front_view(ids[..., None]) >= human_start, dtype=jnp.int32)
+
+    def render(episodes, steps):
+        return jax.lax.map(lambda x: one(*x), (episodes, steps), batch_size=chunk)
+
+    return jax.jit(render, compiler_options=compiler_options)
+
+
+def render_split(
+    env: ConavEnv,
+    model: PerceiverConfig,
+    data: IntentionDataConfig,
+    chunk: int = 256,
+    compiler_options: dict | None = None,
+) -> dict:
+    """The intention dataset of every episode of `env`'s bank, rendered `chunk` frames at a time:
+    `frames (N, F, h, w, 4)` float16 (RGB in [0, 1], depth m), `num_frames (N,)` int32,
+    `activity (N,)`, `object (N,)` int32 labels (activity B, object B), `activity_a (N,)`, and
+    `human_pixels (N, F)` int32, the sensor's front-view pixels showing the human."""
+    eps = env.split.episodes
+    steps, num = activity_a_steps(eps["t_walk_start"], data.frames)
+    n, f = steps.shape
+    render = make_front_renderer(env, model.image_hw, chunk, compiler_options)
+    front, human = render(jnp.repeat(jnp.arange(n, dtype=jnp.int32), f), jnp.asarray(steps.reshape(-1)))
+    return {
+        # float16 halves device memory; depth keeps ~5 mm at 10 m, plenty at 32x32.
+        "frames": front.reshape(n, f, *front.shape[1:]).astype(jnp.float16),
+        "num_frames": jnp.asarray(num),
+        "activity": jnp.asarray(eps["activity_b"], jnp.int32),
+        "object": jnp.asarray(eps["object_b"], jnp.int32),
+        "activity_a": jnp.asarray(eps["activity_a"], jnp.int32),
+        "human_pixels": human.reshape(n, f),
+    }
+
+
+def make_env(data_dir: str | Path, split: str, data: IntentionDataConfig) -> ConavEnv:
+    """The env of one split with the sensor resolution the frames are rendered at."""
+    h, w = data.sensor_hw
+    return ConavEnv(data_dir, split, EnvConfig(sensor=SensorConfig(height=h, width=w)))
+
+
+# -- baselines and metrics -----------------------------------------------------------------------
+
+
+def prior_scores(given_a: np.ndarray, target_b: np.ndarray, num_a: int, num_b: int) -> np.ndarray:
+    """The "most frequent B given A" baseline as scores `(num_a, num_b)`: counts of B after A
+    in the training labels, ties (and A never seen) broken by B's overall frequency, then by id."""
+    counts = np.zeros((num_a, num_b), np.float64)
+    np.add.at(counts, (np.asarray(given_a), np.asarray(target_b)), 1.0)
+    overall = counts.sum(0)
+    # Tie-breakers strictly smaller than one count: overall frequency, then lower id.
+    tie = overall / (overall.sum() + 1.0) + (num_b - np.arange(num_b)) / (num_b * (overall.sum() + 1.0) ** 2)
+    return counts + tie[None, :]
+
+
+def topk_accuracy(scores: np.ndarray, labels: np.ndarray, k: int) -> float:
+    """Share of rows of `scores (M, C)` whose label is among its k highest scores."""
+    top = np.argsort(-np.asarray(scores), axis=-1, kind="stable")[:, :k]
+    return float(np.mean(np.any(top == np.asarray(labels)[:, None], axis=-1)))
+
+
+def baseline_metrics(train_labels: dict, val_labels: dict, model: PerceiverConfig) -> dict:
+    """Prior and chance top-1/top-5 for activity and object on the val labels."""
+    out = {}
+    for head, num in (("activity", model.num_activities), ("object", model.num_objects)):
+        scores = prior_scores(train_labels["activity_a"], train_labels[head], model.num_activities, num)
+        val_scores = scores[np.asarray(val_labels["activity_a"])]
+        for k in (1, 5):
+            out[f"prior_{head}_top{k}"] = topk_accuracy(val_scores, val_labels[head], k)
+            out[f"chance_{head}_top{k}"] = min(k, num) / num
+    return out
+
+
+# -- training ------------------------------------------------------------------------------------
+
+
+def _cross_entropy(logits: jax.Array, labels: jax.Array) -> jax.Array:
+    logp = jax.nn.log_softmax(logits, axis=-1)
+    return -jnp.mean(jnp.take_along_axis(logp, labels[:, None], axis=-1))
+
+
+def intention_loss(params, config: PerceiverConfig, batch: dict, key: jax.Array):
+    """CE(activity) + CE(object); each sample sees a random prefix of 1..num_frames frames
+    (the paper: the robot may have watched for any time). Aux: both CEs."""
+    frames = batch["frames"].astype(jnp.float32)
+    f = frames.shape[1]
+    seen = jax.random.randint(key, batch["num_frames"].shape, 1, batch["num_frames"] + 1)
+    mask = jnp.arange(f)[None, :] < seen[:, None]
+    logits = perceiver.apply(params, config, frames, mask)
+    ce_a = _cross_entropy(logits.activity, batch["activity"])
+    ce_o = _cross_entropy(logits.object, batch["object"])
+    return ce_a + ce_o, {"ce_activity": ce_a, "ce_object": ce_o}
+
+
+def make_val_fn(
+    config: PerceiverConfig, val: dict, baselines: dict, batch: int = 256, compiler_options: dict | None = None
+):
+    """`val(params) -> dict`: top-1/top-5 of both heads with every frame of activity A seen,
+    plus the (constant) prior and chance figures."""
+    f = val["frames"].shape[1]
+
+    def logits(params, frames, num):
+        mask = jnp.arange(f)[None, :] < num[:, None]
+        out = perceiver.apply(params, config, frames.astype(jnp.float32), mask)
+        return out.activity, out.object
+
+    # The data are arguments: closed over, they would be baked into the compiled program.
+    def all_logits(params, frames, num):
+        return jax.lax.map(lambda x: logits(params, x[0][None], x[1][None]), (frames, num), batch_size=batch)
+
+    all_logits = jax.jit(all_logits, compiler_options=compiler_options)
+
+    def run(params) -> dict:
+        act, obj = (np.asarray(x)[:, 0] for x in all_logits(params, val["frames"], val["num_frames"]))
+        out = {}
+        for head, scores in (("activity", act), ("object", obj)):
+            for k in (1, 5):
+                out[f"{head}_top{k}"] = topk_accuracy(scores, np.asarray(val[head]), k)
+        return {**out, **baselines}
+
+    return run
+
+
+def run_config(model: PerceiverConfig, data: IntentionDataConfig, content_hash: str | None, spacing: float) -> dict:
+    """The checkpoint's config: what a resumed run must share, and what the predictor needs."""
+    return {
+        "kind": KIND,
+        "model": dataclasses.asdict(model),
+        "data": {**dataclasses.asdict(data), "content_hash": content_hash, "frame_spacing_steps": spacing},
+    }
+
+
+def frame_spacing(t_walk_start: np.ndarray, frames: int) -> float:
+    """Median steps between consecutive training frames: the predictor's default stride."""
+    length = np.maximum(np.asarray(t_walk_start), 1)
+    return float(np.median(np.maximum((length - 1) / max(frames - 1, 1), 1.0)))
+
+
+def train_intention(
+    data_dir: str | Path,
+    run_dir: str | Path,
+    cfg: TrainConfig,
+    model: PerceiverConfig = PerceiverConfig(),
+    data: IntentionDataConfig = IntentionDataConfig(),
+    progress: bool = True,
+    compiler_options: dict | None = None,
+) -> TrainResult:
+    """Render both splits, train on train, validate on val."""
+    content_hash = read_manifest(data_dir).get("content_hash")
+    train_env, val_env = make_env(data_dir, "train", data), make_env(data_dir, "val", data)
+    train_d = render_split(train_env, model, data, compiler_options=compiler_options)
+    val_d = render_split(val_env, model, data, compiler_options=compiler_options)
+    baselines = baseline_metrics(train_d, val_d, model)
+    # Share of val frames in which the robot's start pose sees the human: a sanity check
+    # of the data (a predictor cannot read an activity it never sees).
+    baselines["val_frames_with_human"] = float(jnp.mean(val_d["human_pixels"] > 0))
+    spacing = frame_spacing(train_env.split.episodes["t_walk_start"], data.frames)
+    params = perceiver.init(jax.random.PRNGKey(cfg.seed), model)
+    loss = lambda p, b, k: intention_loss(p, model, b, k)
+    samples = {k: train_d[k] for k in ("frames", "num_frames", "activity", "object")}
+    return train(
+        run_dir, loss, params, samples, cfg, run_config(model, data, content_hash, spacing),
+        val_fn=make_val_fn(model, val_d, baselines, compiler_options=compiler_options),
+        progress=progress, compiler_options=compiler_options,
+    )
+
+
+# -- inference -----------------------------------------------------------------------------------
+
+
+class IntentionCarry(NamedTuple):
+    """Per-env state of the predictor (arrays; vmap it for a batch of envs)."""
+
+    frames: jax.Array  # (F, h, w, 4) the last F recorded frames, oldest first
+    num_frames: jax.Array  # int32: frames recorded so far, capped at F
+    activity_history: jax.Array  # (P, num_activities) the last P predictions, oldest first
+    object_history: jax.Array  # (P, num_objects)
+    num_predictions: jax.Array  # int32: predictions recorded so far, capped at P
+    t: jax.Array  # int32: step() calls so far
+
+
+class IntentionPredictor(NamedTuple):
+    """A trained Perceiver with its parameters closed over, for one env (jittable, vmappable).
+
+    `init() -> carry`; `step(carry, front) -> (activity_probs (107,), object_probs (51,),
+    carry)` with `front (H, W/4, 4)` float, the env's `obs["front"]` at any resolution."""
+
+    config: PerceiverConfig
+    frame_stride: int
+    init: Callable[[], IntentionCarry]
+    step: Callable[[IntentionCarry, jax.Array], tuple[jax.Array, jax.Array, IntentionCarry]]
+
+
+def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Append `item` to a ring buffer kept oldest-first: fill slots 0.., then shift left."""
+    size = buffer.shape[0]
+    full = count >= size
+    buffer = jnp.where(full, jnp.roll(buffer, -1, axis=0), buffer)
+    return buffer.at[jnp.minimum(count, size - 1)].set(item), jnp.minimum(count + 1, size)
+
+
+def make_intention_predictor(
+    params, config: PerceiverConfig, frames: int, frame_stride: int = 1, history: int = 16, top_k: int = 5
+) -> IntentionPredictor:
+    """A predictor that records a frame every `frame_stride` calls (training frames were that
+    far apart), keeps the last `frames`, runs the Perceiver on them and returns the mean of
+    the `top_k` lowest-entropy of the last `history` predictions (paper sec. 4.2)."""
+    h, w = config.image_hw
+    f32 = jnp.float32
+
+    def init() -> IntentionCarry:
+        zero = jnp.zeros((), jnp.int32)
+        return IntentionCarry(
+            jnp.zeros((frames, h, w, config.channels), f32), zero,
+            jnp.zeros((history, config.num_activities), f32), jnp.zeros((history, config.num_objects), f32),
+            zero, zero,
+        )
+
+    def step(carry: IntentionCarry, front: jax.Array):
+        if front.ndim != 3 or front.shape[-1] != config.channels:
+            raise ValueError(f"front must be (H, W, {config.channels}), got {front.shape}")
+        record = carry.t % frame_stride == 0
+        frame = front.astype(f32)
+        if frame.shape[:2] != (h, w):
+            frame = jax.image.resize(frame, (h, w, config.channels), "linear")
+        buf, n = _push(carry.frames, carry.num_frames, frame)
+        buf, n = jnp.where(record, buf, carry.frames), jnp.where(record, n, carry.num_frames)
+        mask = jnp.arange(frames) < n
+        logits = perceiver.apply(params, config, buf[None], mask[None])
+        act_p, obj_p = jax.nn.softmax(logits.activity[0]), jax.nn.softmax(logits.object[0])
+        # Only a new frame adds a prediction: repeated steps on the same buffer would
+        # otherwise crowd the history with one prediction.
+        act_h, m = _push(carry.activity_history, carry.num_predictions, act_p)
+        obj_h, _ = _push(carry.object_history, carry.num_predictions, obj_p)
+        act_h = jnp.where(record, act_h, carry.activity_history)
+        obj_h = jnp.where(record, obj_h, carry.object_history)
+        m = jnp.where(record, m, carry.num_predictions)
+        valid = (jnp.arange(history) < m)[None]
+        act = perceiver.lowest_entropy_average(act_h[None], valid, top_k)[0]
+        obj = perceiver.lowest_entropy_average(obj_h[None], valid, top_k)[0]
+        return act, obj, IntentionCarry(buf, n, act_h, obj_h, m, carry.t + 1)
+
+    return IntentionPredictor(config, frame_stride, init, step)
+
+
+def load_intention_predictor(
+    run_dir: str | Path, frame_stride: int | None = None, history: int = 16, top_k: int = 5
+) -> IntentionPredictor:
+    """The latest checkpoint of a `conav train intention` run as a predictor. `frame_stride`
+    defaults to the training frames' median spacing in steps (rounded)."""
+    ckpt = load_run(run_dir, KIND)
+    cfg = dict(ckpt.config["model"])
+    cfg["image_hw"] = tuple(cfg["image_hw"])
+    data = ckpt.config["data"]
+    stride = frame_stride if frame_stride is not None else max(1, int(round(data["frame_spacing_steps"])))
+    return make_intention_predictor(ckpt.params, PerceiverConfig(**cfg), data["frames"], stride, history, top_k)
+
+
+# -- CLI -----------------------------------------------------------------------------------------
+
+
+def add_train_intention(sub: argparse._SubParsersAction) -> None:
+    """Register `conav train intention`."""
+    p = sub.add_parser("intention", help="train the intention (activity/object B) Perceiver")
+    add_train_args(p, TrainConfig(steps=3000, batch=64, lr=3e-4, weight_decay=0.01))
+    p.add_argument("--frames", type=int, default=IntentionDataConfig.frames, help="frames per episode (F)")
+    p.add_argument("--sensor", type=parse_resolution, default=IntentionDataConfig.sensor_hw,
+                   help="panorama HxW rendered, front view H x W/4 (default 32x128)")
+    p.add_argument("--image", type=parse_resolution, default=PerceiverConfig.image_hw,
+                   help="Perceiver input HxW; front views are resized to it (default 32x32)")
+    p.set_defaults(func=run_train_intention)
+
+
+def run_train_intention(args: argparse.Namespace) -> int:
+    data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames)
+    model = PerceiverConfig(image_hw=args.image)
+    try:
+        cfg = train_config_from_args(args)
+        result = train_intention(args.data, args.out, cfg, model, data, progress=not args.no_progress)
+    except NonFiniteLoss as e:
+        print(f"conav train intention: {e}")
+        return 1
+    v = result.val
+    print(f"intention run: {result.run_dir} ({result.step} steps)")
+    for head in ("activity", "object"):
+        print(
+            f"val {head}: top-1 {v[f'{head}_top1']:.3f}, top-5 {v[f'{head}_top5']:.3f} "
+            f"(prior {v[f'prior_{head}_top1']:.3f} / {v[f'prior_{head}_top5']:.3f}, "
+            f"chance {v[f'chance_{head}_top1']:.3f} / {v[f'chance_{head}_top5']:.3f})"
+        )
+    print(f"val frames showing the human: {v['val_frames_with_human']:.1%}")
+    return 0

@@ -1,0 +1,330 @@
+"""A generic, resumable training loop for our `init/apply` models (purejaxrl-style).
+
+data (dict of `(N, ...)` arrays, put on the device once) -> minibatch indices drawn from
+`(seed, step)` -> `loss_fn` -> clipped gradients -> Adam(W) on a warm-up + cosine schedule,
+`log_every` updates per jitted `lax.scan` chunk -> scalars to Python -> log.jsonl, tqdm,
+validation and atomic checkpoints. The batch of update `s` depends only on `(seed, s)`, so a
+run resumed from a checkpoint draws exactly the batches an uninterrupted run would.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.optim import Optimizer, adam, clip_by_global_norm, warmup_cosine
+
+PyTree = Any
+# loss_fn(params, batch, key) -> (scalar loss, dict of scalar metrics to log). `batch` is `data`
+# indexed on its leading axis by `batch` sample indices; `key` is for per-sample randomness.
+LossFn = Callable[[PyTree, dict, jax.Array], tuple[jax.Array, dict]]
+LOG_FILE = "log.jsonl"
+# Fields that only change how often things happen, not the trained weights: they may differ
+# between a run and its resumption.
+CADENCE_FIELDS = ("log_every", "val_every", "ckpt_every")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation and bookkeeping of one training run."""
+
+    steps: int = 2000  # total updates (a resumed run continues up to this count)
+    batch: int = 64  # samples per update, drawn uniformly with replacement
+    lr: float = 1e-3  # peak learning rate
+    warmup_steps: int = 100  # linear warm-up, then cosine decay to 0 at `steps`
+    weight_decay: float = 0.0  # > 0 makes Adam AdamW (decoupled, every leaf)
+    grad_clip: float = 1.0  # global L2 norm limit of the gradient
+    seed: int = 0  # fixes every minibatch and every loss-side random draw
+    log_every: int = 50  # updates per jitted chunk; train scalars are logged after each
+    val_every: int = 500  # updates between validations (and one at the end)
+    ckpt_every: int = 1000  # updates between checkpoints (and one at the end)
+
+    def __post_init__(self):
+        for name in ("steps", "batch", "log_every", "val_every", "ckpt_every"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"TrainConfig.{name} must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.warmup_steps <= self.steps:
+            raise ValueError(f"TrainConfig.warmup_steps must be in [0, steps={self.steps}], got {self.warmup_steps}")
+        if self.lr <= 0 or self.grad_clip <= 0 or self.weight_decay < 0:
+            raise ValueError(
+                f"need lr > 0, grad_clip > 0, weight_decay >= 0; got {self.lr}, {self.grad_clip}, {self.weight_decay}"
+            )
+
+    def optimisation(self) -> dict:
+        """The fields that determine the trained weights (stored in, and checked against, the
+        checkpoint's config)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in CADENCE_FIELDS}
+
+
+class StepInfo(NamedTuple):
+    """What one update reports: `loss` and `grad_norm` (before clipping) scalars, the loss's
+    `aux` metrics, and the batch's sample indices `(batch,)`."""
+
+    loss: jax.Array
+    grad_norm: jax.Array
+    aux: dict
+    indices: jax.Array
+
+
+class NonFiniteLoss(FloatingPointError):
+    """A loss or gradient turned inf/NaN; carries the update step and the batch's indices."""
+
+    def __init__(self, message: str, step: int, indices: list[int]):
+        super().__init__(message)
+        self.step, self.indices = step, indices
+
+
+class TrainResult(NamedTuple):
+    """What `train` returns: the final state and the last validation metrics."""
+
+    params: PyTree
+    opt_state: PyTree
+    step: int  # updates applied
+    val: dict  # the last validation metrics ({} without val_fn)
+    run_dir: Path
+
+
+def make_optimizer(cfg: TrainConfig) -> Optimizer:
+    return adam(warmup_cosine(cfg.lr, cfg.warmup_steps, cfg.steps), weight_decay=cfg.weight_decay)
+
+
+def num_samples(data: PyTree) -> int:
+    """Common leading size N of every array in `data` (a dict, possibly nested); ValueError if
+    they differ or N = 0."""
+    leaves, _ = jax.tree_util.tree_flatten_with_path(data)
+    sizes = {jax.tree_util.keystr(p): int(np.shape(x)[0]) if np.ndim(x) else -1 for p, x in leaves}
+    if not sizes or len(set(sizes.values())) != 1 or min(sizes.values()) <= 0:
+        raise ValueError(f"data arrays need one common, non-zero leading size; got {sizes}")
+    return next(iter(sizes.values()))
+
+
+def make_update(loss_fn: LossFn, optimizer: Optimizer, cfg: TrainConfig, n: int):
+    """`update(params, opt_state, data) -> (params, opt_state, StepInfo)`: one pure training
+    step (its aux gains the learning rate "lr" it used). The step index is `opt_state.step`;
+    minibatch indices and the loss's key derive from `(cfg.seed, step)` alone."""
+    base = jax.random.PRNGKey(cfg.seed)
+    schedule = warmup_cosine(cfg.lr, cfg.warmup_steps, cfg.steps)
+
+    def update(params, opt_state, data):
+        k_idx, k_loss = jax.random.split(jax.random.fold_in(base, opt_state.step))
+        idx = jax.random.randint(k_idx, (cfg.batch,), 0, n)
+        batch = jax.tree.map(lambda x: jnp.take(x, idx, axis=0), data)
+        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch, k_loss)
+        grads, grad_norm = clip_by_global_norm(grads, cfg.grad_clip)
+        lr = schedule(opt_state.step)
+        params, opt_state = optimizer.update(grads, opt_state, params)
+        return params, opt_state, StepInfo(loss, grad_norm, {**aux, "lr": lr}, idx)
+
+    return update
+
+
+def make_chunk(update, batch: int):
+    """`chunk(params, opt_state, data, length) -> (params, opt_state, bad_step, bad_indices,
+    sums)`: `length` updates in one `lax.scan`. The first update whose loss or gradient norm is
+    not finite is not applied, nor is any after it: `bad_step` is its step (-1 if none),
+    `bad_indices` its batch, and the returned state the last good one. `sums` holds the sums
+    of loss, grad norm and aux over the applied updates, and their count `n`."""
+
+    def chunk(params, opt_state, data, length):
+        def body(carry, _):
+            params, opt_state, bad_step, bad_idx = carry
+            new_params, new_opt, info = update(params, opt_state, data)
+            finite = jnp.isfinite(info.loss) & jnp.isfinite(info.grad_norm)
+            ok = finite & (bad_step < 0)
+            first_bad = ~finite & (bad_step < 0)
+            params, opt_state = jax.tree.map(
+                lambda new, old: jnp.where(ok, new, old), (new_params, new_opt), (params, opt_state)
+            )
+            bad_step = jnp.where(first_bad, opt_state.step, bad_step)
+            bad_idx = jnp.where(first_bad, info.indices, bad_idx)
+            scalars = {"loss": info.loss, "grad_norm": info.grad_norm, **info.aux}
+            return (params, opt_state, bad_step, bad_idx), (ok, scalars)
+
+        init = (params, opt_state, jnp.int32(-1), jnp.zeros((batch,), jnp.int32))
+        (params, opt_state, bad_step, bad_idx), (ok, scalars) = jax.lax.scan(body, init, None, length)
+        sums = {k: jnp.sum(jnp.where(ok, v, 0.0)) for k, v in scalars.items()}
+        sums["n"] = jnp.sum(ok)
+        return params, opt_state, bad_step, bad_idx, sums
+
+    return chunk
+
+
+@functools.lru_cache(maxsize=16)
+def _jitted_chunk(loss_fn: LossFn, cfg: TrainConfig, n: int, compiler_options: tuple):
+    """The jitted chunk, shared by runs of one process with the same loss, optimisation and
+    data size (so a resumed or repeated run reuses its compiled code)."""
+    update = make_update(loss_fn, make_optimizer(cfg), cfg, n)
+    options = dict(compiler_options) or None
+    return jax.jit(make_chunk(update, cfg.batch), static_argnames="length", compiler_options=options)
+
+
+def _next_boundary(step: int, cfg: TrainConfig) -> int:
+    """The next step after `step` at which something is logged, validated or saved."""
+    nxt = [(step // e + 1) * e for e in (cfg.log_every, cfg.val_every, cfg.ckpt_every)]
+    return min(*nxt, cfg.steps)
+
+
+def _trim_log(path: Path, step: int) -> None:
+    """Keep only records up to `step`: a resumed run re-logs what came after its checkpoint."""
+    if not path.is_file():
+        return
+    keep = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
+    path.write_text("".join(line + "\n" for line in keep))
+
+
+def _append_log(path: Path, record: dict) -> None:
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def _to_float(x) -> float | None:
+    v = float(x)
+    return v if math.isfinite(v) else None  # JSON has no NaN
+
+
+def train(
+    run_dir: str | Path,
+    loss_fn: LossFn,
+    params: PyTree,
+    data: dict,
+    cfg: TrainConfig,
+    config: dict,
+    val_fn: Callable[[PyTree], dict] | None = None,
+    progress: bool = True,
+    compiler_options: dict | None = None,
+) -> TrainResult:
+    """Train `params` on `data` for `cfg.steps` updates, resuming from `run_dir` if it holds a
+    checkpoint.
+
+    - `config`: JSON-able dict describing the run, with at least "kind" (e.g. "trajectory") and
+      the model config; the checkpoint stores it plus `cfg.optimisation()` under "train". A
+      resumed run must match it exactly, else ValueError naming the first differing key.
+    - `data`: dict (may nest) of arrays sharing the leading size N, numpy or jax; put on the
+      device once. `loss_fn` gets it indexed by `cfg.batch` sample indices.
+    - `val_fn(params) -> dict of floats`, run every `cfg.val_every` updates and at the end.
+    - `compiler_options`: passed to `jax.jit` (tests use a low XLA optimisation level).
+    Raises NonFiniteLoss (naming the step and the batch's sample indices) when a loss or
+    gradient goes inf/NaN; nothing is saved then, so the last checkpoint stays the last good one.
+    """
+    if "kind" not in config:
+        raise ValueError("config needs a 'kind' entry (e.g. 'trajectory', 'intention')")
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    log_path = run_dir / LOG_FILE
+    full_config = {**config, "train": cfg.optimisation()}
+    n = num_samples(data)
+    data = jax.device_put(data)
+    opt_state = make_optimizer(cfg).init(params)
+
+    step = 0
+    found = latest_checkpoint(run_dir)
+    if found is not None:
+        try:
+            ckpt = load_checkpoint(found, config=full_config, params_like=params, opt_state_like=opt_state)
+        except ValueError as e:
+            raise ValueError(f"cannot resume {run_dir}: {e}") from None
+        params, opt_state, step = ckpt.params, ckpt.opt_state, ckpt.step
+        _trim_log(log_path, step)
+    elif log_path.exists():
+        log_path.unlink()  # a log without a checkpoint belongs to no state we can continue
+
+    cadence_free = dataclasses.replace(cfg, **{k: 1 for k in CADENCE_FIELDS})
+    chunk = _jitted_chunk(loss_fn, cadence_free, n, tuple(sorted((compiler_options or {}).items())))
+    val: dict = {}
+
+    def validate(at: int) -> None:
+        nonlocal val
+        val = {k: float(v) for k, v in val_fn(params).items()}
+        _append_log(log_path, {"step": at, "split": "val", **val})
+
+    bar = tqdm(total=cfg.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True)
+    start = time.perf_counter()
+    try:
+        while step < cfg.steps:
+            end = _next_boundary(step, cfg)
+            t0 = time.perf_counter()
+            new_params, new_opt, bad_step, bad_idx, sums = chunk(params, opt_state, data, length=end - step)
+            bad = int(bad_step)  # the one sync per chunk
+            if bad >= 0:
+                indices = [int(i) for i in np.asarray(bad_idx)]
+                _append_log(log_path, {"step": bad, "split": "train", "error": "non-finite loss", "indices": indices})
+                last = latest_checkpoint(run_dir)
+                raise NonFiniteLoss(
+                    f"non-finite loss or gradient at update step {bad} (batch sample indices {indices}); "
+                    f"stopped, last good checkpoint: {last if last is not None else 'none'}",
+                    bad,
+                    indices,
+                )
+            params, opt_state = new_params, new_opt
+            sums = {k: float(v) for k, v in sums.items()}
+            rate = cfg.batch * (end - step) / (time.perf_counter() - t0)
+            step = end
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                count = max(sums.pop("n"), 1.0)
+                record = {k: _to_float(v / count) for k, v in sums.items()}
+                record["samples_per_s"] = round(rate, 1)
+                _append_log(log_path, {"step": step, "split": "train", **record,
+                                       "elapsed_s": round(time.perf_counter() - start, 2)})
+                bar.set_postfix(loss=f"{record['loss']:.4g}", samples_s=f"{rate:.0f}")
+            bar.update(end - bar.n)
+            if val_fn is not None and (step % cfg.val_every == 0 or step == cfg.steps):
+                validate(step)
+            if step % cfg.ckpt_every == 0 or step == cfg.steps:
+                save_checkpoint(
+                    checkpoint_path(run_dir, step), params=params, opt_state=opt_state,
+                    config=full_config, step=step, extra={"val": val},
+                )
+    finally:
+        bar.close()
+    if val_fn is not None and not val:  # resumed at or past the end: still report metrics
+        validate(step)
+    return TrainResult(params, opt_state, step, val, run_dir)
+
+
+def read_log(run_dir: str | Path) -> list[dict]:
+    """The records of `run_dir/log.jsonl`, in order."""
+    path = Path(run_dir) / LOG_FILE
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def load_run(run_dir: str | Path, kind: str):
+    """The latest checkpoint of a run of `kind`; FileNotFoundError / ValueError otherwise."""
+    found = latest_checkpoint(run_dir)
+    if found is None:
+        raise FileNotFoundError(f"no checkpoint in {run_dir}")
+    ckpt = load_checkpoint(found)
+    if ckpt.config.get("kind") != kind:
+        raise ValueError(f"{found} is a {ckpt.config.get('kind')!r} run, expected {kind!r}")
+    return ckpt
+
+
+# -- CLI helpers shared by the `conav train` sub-commands ----------------------------------------
+
+
+def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig) -> None:
+    """The TrainConfig flags shared by the `conav train` sub-commands."""
+    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
+    p.add_argument("--out", required=True, help="run dir: log.jsonl and checkpoints (resumed if present)")
+    for f in dataclasses.fields(TrainConfig):
+        flag = "--" + f.name.replace("_", "-")
+        default = getattr(defaults, f.name)
+        p.add_argument(flag, type=type(default), default=default, help=f"TrainConfig.{f.name} (default {default})")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
+    return TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})

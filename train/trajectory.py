@@ -1,0 +1,201 @@
+"""Training the short-term intention (trajectory) predictor, and loading it for agents.
+
+episodes' `root_xy` -> windows of k past + 5 future positions (mostly while walking, some
+standing), relative to the last past point -> train/loop.py on an L2 loss -> val ADE/FDE (m)
+against constant velocity -> `load_trajectory_predictor(run_dir).predict(history) -> future`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from conav_jax.episodes import PHASE_WALK, load_split, read_manifest
+from conav_jax.models import trajectory as traj_model
+from conav_jax.models.trajectory import TrajectoryConfig
+from train.loop import NonFiniteLoss, TrainConfig, TrainResult, add_train_args, load_run, train, train_config_from_args
+
+KIND = "trajectory"
+
+
+@dataclasses.dataclass(frozen=True)
+class TrajectoryDataConfig:
+    """Which windows of the episodes become samples."""
+
+    standing_fraction: float = 0.2  # standing windows kept, as a fraction of the walking ones
+    max_train_windows: int = 500_000  # random subsample above this (bounds device memory)
+    max_val_windows: int = 20_000  # val ADE/FDE runs over at most this many windows
+    seed: int = 0  # which standing windows / which subsample
+
+
+def trajectory_windows(
+    root_xy: np.ndarray,
+    phase: np.ndarray,
+    t_end: np.ndarray,
+    history: int,
+    horizon: int,
+    standing_fraction: float,
+    max_windows: int,
+    seed: int,
+) -> dict[str, np.ndarray]:
+    """Windows of `history + horizon` consecutive positions lying inside `[0, t_end]`.
+
+    `root_xy (N, T, 2)` m, `phase (N, T)`, `t_end (N,)` -> `{"history": (M, history, 2),
+    "future": (M, horizon, 2)}` float32 metres, both relative to the last history point (so
+    `history[:, -1] == 0`). Every window touching a walking step is kept, plus a random
+    `standing_fraction` of that many windows in which the human stands (activities A/B);
+    above `max_windows` a random subset. Order: by episode, then time.
+    """
+    n, t = phase.shape
+    w = history + horizon
+    if t < w:
+        raise ValueError(f"episodes of {t} steps are shorter than one window ({w} steps)")
+    # Walking steps in [s, s + w) for every window start s, from a cumulative count.
+    walk = np.concatenate([np.zeros((n, 1), np.int32), np.cumsum(phase == PHASE_WALK, axis=1, dtype=np.int32)], 1)
+    starts = np.arange(t - w + 1)
+    walking = (walk[:, starts + w] - walk[:, starts]) > 0  # (N, S)
+    inside = starts[None, :] + w - 1 <= np.asarray(t_end)[:, None]
+    ep_walk, s_walk = np.nonzero(walking & inside)
+    ep_stand, s_stand = np.nonzero(~walking & inside)
+    rng = np.random.default_rng(seed)
+    n_stand = min(len(ep_stand), int(round(standing_fraction * len(ep_walk))))
+    pick = rng.choice(len(ep_stand), n_stand, replace=False)
+    ep = np.concatenate([ep_walk, ep_stand[pick]])
+    s = np.concatenate([s_walk, s_stand[pick]])
+    if len(ep) > max_windows:
+        keep = rng.choice(len(ep), max_windows, replace=False)
+        ep, s = ep[keep], s[keep]
+    if len(ep) == 0:
+        raise ValueError("no window of the episodes lies inside [0, t_end]")
+    order = np.lexsort((s, ep))
+    ep, s = ep[order], s[order]
+    xy = np.asarray(root_xy, np.float32)[ep[:, None], s[:, None] + np.arange(w)]  # (M, w, 2)
+    xy = xy - xy[:, history - 1 : history]
+    return {"history": xy[:, :history], "future": xy[:, history:]}
+
+
+def split_windows(
+    data_dir: str | Path, split: str, model: TrajectoryConfig, data: TrajectoryDataConfig, max_windows: int
+) -> dict[str, np.ndarray]:
+    """`trajectory_windows` of one split of a dataset directory."""
+    eps = load_split(data_dir, split).episodes
+    return trajectory_windows(
+        eps["root_xy"], eps["phase"], eps["t_end"], model.history, model.horizon,
+        data.standing_fraction, max_windows, data.seed,
+    )
+
+
+def trajectory_loss(params, config: TrajectoryConfig, batch: dict, key: jax.Array):
+    """Mean squared position error (m^2) over the horizon; aux: ADE (m)."""
+    del key  # deterministic model, deterministic loss
+    pred = traj_model.apply(params, config, batch["history"])
+    ade, _ = traj_model.ade_fde(pred, batch["future"])
+    return jnp.mean(jnp.sum(jnp.square(pred - batch["future"]), axis=-1)), {"ade_m": jnp.mean(ade)}
+
+
+def make_val_fn(config: TrajectoryConfig, windows: dict, compiler_options: dict | None = None):
+    """`val(params) -> {ade_m, fde_m, cv_ade_m, cv_fde_m}` over `windows`, metres; the
+    constant-velocity figures are computed once."""
+    hist, fut = jnp.asarray(windows["history"]), jnp.asarray(windows["future"])
+    cv_ade, cv_fde = traj_model.ade_fde(traj_model.constant_velocity(hist, config.horizon), fut)
+    baseline = {"cv_ade_m": float(cv_ade.mean()), "cv_fde_m": float(cv_fde.mean())}
+
+    def model_errors(params, hist, fut):
+        ade, fde = traj_model.ade_fde(traj_model.apply(params, config, hist), fut)
+        return ade.mean(), fde.mean()
+
+    model_errors = jax.jit(model_errors, compiler_options=compiler_options)
+
+    def val(params) -> dict:
+        ade, fde = model_errors(params, hist, fut)
+        return {"ade_m": float(ade), "fde_m": float(fde), **baseline}
+
+    return val
+
+
+def run_config(model: TrajectoryConfig, data: TrajectoryDataConfig, content_hash: str | None) -> dict:
+    """The checkpoint's config: what a resumed run must share."""
+    return {
+        "kind": KIND,
+        "model": dataclasses.asdict(model),
+        "data": {**dataclasses.asdict(data), "content_hash": content_hash},
+    }
+
+
+def train_trajectory(
+    data_dir: str | Path,
+    run_dir: str | Path,
+    cfg: TrainConfig,
+    model: TrajectoryConfig = TrajectoryConfig(),
+    data: TrajectoryDataConfig = TrajectoryDataConfig(),
+    progress: bool = True,
+    compiler_options: dict | None = None,
+) -> TrainResult:
+    """Train on the train split's windows, validate on the val split's (see train.loop.train
+    for resuming and errors)."""
+    content_hash = read_manifest(data_dir).get("content_hash")
+    train_w = split_windows(data_dir, "train", model, data, data.max_train_windows)
+    val_w = split_windows(data_dir, "val", model, data, data.max_val_windows)
+    params = traj_model.init(jax.random.PRNGKey(cfg.seed), model)
+    loss = lambda p, b, k: trajectory_loss(p, model, b, k)
+    return train(
+        run_dir, loss, params, train_w, cfg, run_config(model, data, content_hash),
+        val_fn=make_val_fn(model, val_w, compiler_options), progress=progress, compiler_options=compiler_options,
+    )
+
+
+class TrajectoryPredictor(NamedTuple):
+    """A trained trajectory model, params closed over. `predict(history (..., k, 2) m) ->
+    (..., horizon, 2) m` in the same frame (e.g. the robot's); jittable and vmappable."""
+
+    config: TrajectoryConfig
+    predict: Callable[[jax.Array], jax.Array]
+
+
+def load_trajectory_predictor(run_dir: str | Path) -> TrajectoryPredictor:
+    """The latest checkpoint of a `conav train trajectory` run as a predictor."""
+    ckpt = load_run(run_dir, KIND)
+    config = TrajectoryConfig(**ckpt.config["model"])
+    params = ckpt.params
+
+    def predict(history: jax.Array) -> jax.Array:
+        if history.shape[-2:] != (config.history, 2):
+            raise ValueError(f"history must be (..., {config.history}, 2), got {history.shape}")
+        last = history[..., -1:, :]
+        # Trained on histories relative to their last point: predict there, shift back.
+        return traj_model.apply(params, config, history - last) + last
+
+    return TrajectoryPredictor(config, predict)
+
+
+# -- CLI -----------------------------------------------------------------------------------------
+
+
+def add_train_trajectory(sub: argparse._SubParsersAction) -> None:
+    """Register `conav train trajectory`."""
+    p = sub.add_parser("trajectory", help="train the trajectory (short-term intention) predictor")
+    add_train_args(p, TrainConfig(steps=3000, batch=256, lr=2e-3))
+    p.add_argument("--hidden", type=int, default=TrajectoryConfig.hidden, help="LSTM/MLP width")
+    p.set_defaults(func=run_train_trajectory)
+
+
+def run_train_trajectory(args: argparse.Namespace) -> int:
+    model = TrajectoryConfig(hidden=args.hidden)
+    try:
+        cfg = train_config_from_args(args)
+        result = train_trajectory(args.data, args.out, cfg, model, progress=not args.no_progress)
+    except NonFiniteLoss as e:
+        print(f"conav train trajectory: {e}")
+        return 1
+    v = result.val
+    print(f"trajectory run: {result.run_dir} ({result.step} steps)")
+    print(f"val ADE {v['ade_m']:.3f} m, FDE {v['fde_m']:.3f} m "
+          f"(constant velocity: ADE {v['cv_ade_m']:.3f} m, FDE {v['cv_fde_m']:.3f} m)")
+    return 0
