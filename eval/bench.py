@@ -1,0 +1,92 @@
+"""`conav bench eval`: evaluation throughput, val episodes per minute for one agent.
+
+One jitted batched rollout (envs.rollout.make_rollout, full episode length) of `batch` episodes;
+after a compile-and-warm-up call, the median of repeated timed calls (block_until_ready around
+each) gives episodes/min = batch / seconds * 60. Prints the device, batch and resolution.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+
+from envs.bench import parse_resolution
+from eval.agents import AGENTS, check_agent
+
+
+def add_bench_eval(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("eval", help="evaluation throughput: val episodes/min for one agent")
+    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
+    p.add_argument("--split", default="val")
+    p.add_argument("--agent", default="pioneer", help=f"one of {', '.join(AGENTS)}")
+    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    p.add_argument("--batch", type=int, default=256)
+    p.add_argument("--resolution", type=parse_resolution, default=(112, 448))
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--json", action="store_true", help="print one JSON line")
+    p.set_defaults(func=run_bench_eval)
+
+
+def bench_eval(env, agent, batch: int, repeats: int) -> dict:
+    """Time full-length rollouts of `batch` episodes (the split's episodes, cycled)."""
+    import jax
+    import jax.numpy as jnp
+
+    from envs.rollout import make_rollout
+
+    steps = env.bank.max_steps
+    run = make_rollout(env, agent, steps)
+    episodes = jnp.arange(batch, dtype=jnp.int32) % env.num_episodes
+    t0 = time.perf_counter()
+    jax.block_until_ready(run(jax.random.PRNGKey(0), episodes))
+    compile_s = time.perf_counter() - t0
+    times = []
+    for r in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(run(jax.random.PRNGKey(r + 1), episodes))
+        times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    return {
+        "device": jax.devices()[0].device_kind,
+        "batch": batch,
+        "steps_per_episode": steps,
+        "compile_and_first_call_s": round(compile_s, 2),
+        "median_call_s": round(med, 4),
+        "episodes_per_min": round(batch / med * 60.0, 1),
+        "env_steps_per_s": round(batch * steps / med, 1),
+    }
+
+
+def run_bench_eval(args: argparse.Namespace) -> int:
+    check_agent(args.agent, args.checkpoint)
+    if args.batch < 1 or args.repeats < 1:
+        raise ValueError("--batch and --repeats must be at least 1")
+    from envs import ConavEnv, EnvConfig, SensorConfig
+    from eval.agents import make_agent
+
+    tmp, data = None, args.data
+    if data is None:
+        from conav_jax.episodes import generate_dataset
+        from conav_jax.presets import preset
+
+        tmp = tempfile.TemporaryDirectory()
+        data = tmp.name
+        generate_dataset(preset("tiny"), data)
+    h, w = args.resolution
+    env = ConavEnv(data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w)))
+    res = {"agent": args.agent, "resolution": f"{h}x{w}", **bench_eval(env, make_agent(args.agent, env, args.checkpoint), args.batch, args.repeats)}
+    if args.json:
+        print(json.dumps(res), flush=True)
+    else:
+        print(
+            f"{res['device']} agent={args.agent} res={h}x{w} batch={args.batch} ({res['steps_per_episode']} steps/episode): "
+            f"{res['episodes_per_min']:,.1f} episodes/min = {res['env_steps_per_s']:,.0f} env steps/s (median of {args.repeats}), "
+            f"compile {res['compile_and_first_call_s']} s",
+            flush=True,
+        )
+    if tmp is not None:
+        tmp.cleanup()
+    return 0

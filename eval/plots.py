@@ -1,0 +1,113 @@
+"""Evaluation figures (matplotlib, Agg backend, PNG files): success over episode time, episode maps.
+
+Per-episode results (t_reach, t_arrive, ...) -> cumulative success curves per agent against the
+humans' arrival; a scene (conav_jax.scene.Scene) + one episode's arrays + a recorded robot path
+-> a top-down map. Nothing here runs the simulator.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: never needs a display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Circle, Rectangle  # noqa: E402
+
+from conav_jax.categories import CATEGORY_NAMES  # noqa: E402
+from conav_jax.episodes import PHASE_ACTIVITY_A, PHASE_ACTIVITY_B, PHASE_WALK  # noqa: E402
+from conav_jax.scene import STRUCTURE_WALL, Scene, scene_boxes  # noqa: E402
+from envs.metrics import episode_outcomes  # noqa: E402
+
+PHASE_STYLE = {PHASE_ACTIVITY_A: ("activity A", "tab:blue"), PHASE_WALK: ("walk", "tab:orange"), PHASE_ACTIVITY_B: ("activity B", "tab:purple")}
+
+
+def success_over_time(results: Mapping[str, Mapping[str, np.ndarray]], path: str | Path) -> Path:
+    """Share of episodes (%) successfully reached by each step, one curve per agent.
+
+    `results`: title -> the env's final metrics over episodes. A success counts from its
+    t_reach (the RASR rule: reached before the episode ended, no human contact before); the
+    dashed curve is the share of episodes whose human has arrived by then, so an agent's curve
+    above it at step t is ahead of the humans."""
+    path = Path(path)
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    horizon = 1
+    for title, m in results.items():
+        t_reach = np.asarray(m["t_reach"])
+        ok = episode_outcomes(m)["RASR"] > 0.5
+        horizon = max(horizon, int(np.max(m["t_end"])) + 1)
+        steps = np.arange(horizon)
+        curve = 100.0 * ((t_reach[None, :] <= steps[:, None]) & ok[None, :]).mean(axis=1)
+        ax.step(steps, curve, where="post", label=title)
+    first = next(iter(results.values()))
+    steps = np.arange(horizon)
+    arrived = 100.0 * (np.asarray(first["t_arrive"])[None, :] <= steps[:, None]).mean(axis=1)
+    ax.step(steps, arrived, where="post", color="black", linestyle="--", label="human arrived")
+    ax.set_xlabel("episode step (0.1 s)")
+    ax.set_ylabel("episodes (%)")
+    ax.set_ylim(0, 100)
+    ax.set_title("Success by step")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def episode_map(
+    scene: Scene,
+    episode: Mapping[str, np.ndarray],
+    robot_path: np.ndarray,
+    path: str | Path,
+    *,
+    success_radius_m: float,
+    robot_height_m: float,
+    title: str = "",
+) -> Path:
+    """Top-down map of one episode.
+
+    `episode`: that episode's arrays (root_xy (T, 2), phase (T,), goal_xy (2,), robot_start (3,),
+    t_end); `robot_path` (steps, 2+) world x, y of the robot. Draws walls (grey), furniture in its
+    category colours with names, the human's path coloured by phase, the robot's path from its
+    start, the goal and the success circle."""
+    path = Path(path)
+    boxes = scene_boxes(scene, robot_height_m)
+    fig, ax = plt.subplots(figsize=(8.5, 7))
+    # Flat and low things first so taller furniture stays visible on top.
+    for i in np.argsort(boxes.center[:, 2] + boxes.half_extents[:, 2], kind="stable"):
+        (cx, cy, _), (hx, hy, _) = boxes.center[i], boxes.half_extents[i]
+        wall = boxes.category[i] == STRUCTURE_WALL
+        colour = "0.35" if wall else boxes.rgb[i] / 255.0
+        ax.add_patch(Rectangle((cx - hx, cy - hy), 2 * hx, 2 * hy, facecolor=colour, edgecolor="0.2", linewidth=0.4, alpha=1.0 if wall else 0.8))
+        if not wall:
+            ax.text(cx, cy, CATEGORY_NAMES[boxes.category[i]], fontsize=5, ha="center", va="center")
+    t_end = int(episode["t_end"]) + 1
+    human = np.asarray(episode["root_xy"])[:t_end]
+    phase = np.asarray(episode["phase"])[:t_end]
+    for p, (label, colour) in PHASE_STYLE.items():
+        sel = phase == p
+        if sel.any():
+            ax.scatter(human[sel, 0], human[sel, 1], s=4, color=colour, label=f"human: {label}", zorder=3)
+    robot = np.asarray(robot_path)[:, :2]
+    ax.plot(robot[:, 0], robot[:, 1], color="red", linewidth=1.5, label="robot", zorder=4)
+    start = np.asarray(episode["robot_start"])
+    ax.plot(start[0], start[1], "o", color="red", markersize=6, zorder=5)
+    goal = np.asarray(episode["goal_xy"])
+    ax.add_patch(Circle(goal, success_radius_m, fill=False, edgecolor="green", linestyle="--", linewidth=1.2, zorder=4))
+    ax.plot(goal[0], goal[1], "*", color="green", markersize=14, label="goal", zorder=5)
+    x0, y0, x1, y1 = scene.bounds
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title or scene.name, fontsize=9)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

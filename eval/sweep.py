@@ -1,0 +1,366 @@
+"""`conav eval`: every episode of a split for each agent -> per-episode records, metrics, report.
+
+args -> validated plan (data, agents, checkpoints; nothing compiled yet) -> env -> per agent one
+jitted batched rollout (envs.rollout.make_rollout with record=True, so the first episode's
+robot path for its map comes from the same compile) -> episodes_<agent>.csv, metrics.json
+(each metric with a 95% interval), report.md (the paper's Table 2, and Table 3 for ablation
+checkpoints), success_over_time.png and map_<agent>.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import re
+import weakref
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from envs.bench import parse_resolution
+from eval.agents import AGENTS, check_agent
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")  # ablation names become file names
+_INPUT_KEYS = ("use_activity", "use_object", "use_trajectory")
+
+
+@dataclass(frozen=True)
+class EvalPlan:
+    """Everything `conav eval` will do, checked before anything is built or compiled."""
+
+    data: Path
+    split: str
+    content_hash: str
+    agents: tuple[str, ...]
+    checkpoint: str | None
+    learned_kwargs: dict = field(default_factory=dict)  # intention_run / trajectory_run
+    ablations: tuple[tuple[str, str], ...] = ()  # (name, run dir)
+    episodes: int | None = None  # the first N episodes, None for all
+    batch: int = 256
+    seed: int = 0
+    resolution: tuple[int, int] = (112, 448)
+    out: Path = Path("eval_out")
+
+
+def add_eval(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("eval", help="evaluate agents on a split: per-episode records, metrics with CIs, Table 2/3 report")
+    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
+    p.add_argument("--split", default="val")
+    p.add_argument("--agent", required=True, help=f"comma-separated agent names: {', '.join(AGENTS)}")
+    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    p.add_argument("--intention-checkpoint", default=None, help="conav: intention predictor run (default: the policy's own)")
+    p.add_argument("--trajectory-checkpoint", default=None, help="conav: trajectory predictor run (default: the policy's own)")
+    p.add_argument(
+        "--ablation-checkpoints",
+        default=None,
+        help="name=RUN,... conav runs for the Table 3 ablation; the names none, activity, object, "
+        "activity_object, all mark which intention inputs a run uses",
+    )
+    p.add_argument("--episodes", type=int, default=None, help="evaluate only the first N episodes")
+    p.add_argument("--batch", type=int, default=256, help="episodes per jitted call")
+    p.add_argument("--seed", type=int, default=0, help="rollout keys and bootstrap resampling")
+    p.add_argument("--resolution", type=parse_resolution, default=(112, 448), help="panorama HxW (default 112x448)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=run_eval)
+
+
+def _parse_ablations(text: str | None) -> tuple[tuple[str, str], ...]:
+    if not text:
+        return ()
+    out, seen = [], set()
+    for item in text.split(","):
+        name, sep, run = item.strip().partition("=")
+        if not sep or not name or not run:
+            raise ValueError(f"--ablation-checkpoints entries look like name=RUN_DIR, got {item!r}")
+        if not _NAME_RE.match(name):
+            raise ValueError(f"ablation name {name!r} may only hold letters, digits, '_', '.', '-'")
+        if name in seen:
+            raise ValueError(f"ablation name {name!r} is given twice")
+        seen.add(name)
+        out.append((name, run))
+    return tuple(out)
+
+
+def plan_eval(args: argparse.Namespace) -> EvalPlan:
+    """Check every input of `conav eval` (dataset, split, agents, checkpoints, sizes) without
+    building an env or compiling anything; ValueError naming the first problem."""
+    from conav_jax.episodes import read_manifest
+
+    manifest = read_manifest(args.data)
+    if args.split not in manifest["splits"]:
+        raise ValueError(f"{args.data}: no split {args.split!r}; has {sorted(manifest['splits'])}")
+    names = tuple(n.strip() for n in args.agent.split(",") if n.strip())
+    if not names:
+        raise ValueError("--agent needs at least one agent name")
+    if len(set(names)) != len(names):
+        raise ValueError(f"--agent lists an agent twice: {args.agent}")
+    for name in names:
+        check_agent(name, args.checkpoint)
+    learned = {}
+    for key, run in (("intention_run", args.intention_checkpoint), ("trajectory_run", args.trajectory_checkpoint)):
+        if run is not None:
+            if not Path(run).is_dir():
+                raise ValueError(f"{key.replace('_run', '')} checkpoint run directory not found: {run}")
+            learned[key] = run
+    ablations = _parse_ablations(args.ablation_checkpoints)
+    if learned and not ablations and not any(AGENTS[n].takes_predictors for n in names):
+        raise ValueError("--intention-checkpoint / --trajectory-checkpoint only apply to the conav agent and ablations")
+    for _, run in ablations:
+        check_agent("conav", run)
+    if args.episodes is not None and args.episodes < 1:
+        raise ValueError(f"--episodes must be at least 1, got {args.episodes}")
+    if args.batch < 1:
+        raise ValueError(f"--batch must be at least 1, got {args.batch}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a directory")
+    return EvalPlan(
+        data=Path(args.data),
+        split=args.split,
+        content_hash=manifest["content_hash"],
+        agents=names,
+        checkpoint=args.checkpoint,
+        learned_kwargs=learned,
+        ablations=ablations,
+        episodes=args.episodes,
+        batch=args.batch,
+        seed=args.seed,
+        resolution=tuple(args.resolution),
+        out=out,
+    )
+
+
+# -- running -------------------------------------------------------------------------------------
+
+# A process keeps its last env and each agent's compiled rollout: evaluating the same agents on
+# the same data again (tests, notebooks) skips the minute-long compile of the env step.
+_ENV_CACHE: dict[tuple, Any] = {}
+_ROLLOUTS: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary()
+
+
+def load_env(plan: EvalPlan):
+    from envs import ConavEnv, EnvConfig, SensorConfig
+
+    key = (str(plan.data.resolve()), plan.split, plan.content_hash, plan.resolution, plan.episodes)
+    if key not in _ENV_CACHE:
+        _ENV_CACHE.clear()
+        h, w = plan.resolution
+        _ENV_CACHE[key] = ConavEnv(plan.data, plan.split, EnvConfig(sensor=SensorConfig(height=h, width=w)), max_episodes=plan.episodes)
+    return _ENV_CACHE[key]
+
+
+def compiled_rollout(env, name: str, checkpoint: str | None, **kwargs) -> Callable:
+    """The jitted recorded rollout (envs.rollout.make_rollout) of agent `name` over the env's
+    longest episode, built once per env and agent (building loads the agent; nothing compiles
+    until the first call)."""
+    from envs.rollout import make_rollout
+    from eval.agents import make_agent
+
+    per_env = _ROLLOUTS.setdefault(env, {})
+    key = (name, checkpoint, tuple(sorted(kwargs.items())))
+    if key not in per_env:
+        per_env[key] = make_rollout(env, make_agent(name, env, checkpoint, **kwargs), env.bank.max_steps, record=True)
+    return per_env[key]
+
+
+def run_agent(env, run: Callable, episodes: np.ndarray, batch: int, seed: int, progress=None) -> tuple[dict, np.ndarray]:
+    """(final metrics over `episodes`, the first episode's robot poses (steps, 3) up to its end).
+
+    Batches, padding (the last batch repeats its last episode) and keys (PRNGKey(seed) folded
+    with each batch's start) are those of envs.rollout.evaluate, so the numbers match it."""
+    import jax
+    import jax.numpy as jnp
+
+    batch = min(batch, len(episodes))
+    key = jax.random.PRNGKey(seed)
+    chunks, first_path = [], None
+    starts = range(0, len(episodes), batch)
+    for s0 in progress(starts) if progress else starts:
+        idx = episodes[s0 : s0 + batch]
+        n = len(idx)
+        if n < batch:
+            idx = np.concatenate([idx, np.full(batch - n, idx[-1])])
+        metrics, trace = run(jax.random.fold_in(key, s0), jnp.asarray(idx, jnp.int32))
+        chunks.append({k: np.asarray(v)[:n] for k, v in metrics.items()})
+        if first_path is None:
+            done = np.asarray(trace.done[0]) > 0.5
+            end = int(np.argmax(done)) + 1 if done.any() else done.size
+            first_path = np.asarray(trace.robot_pose[0])[:end]
+    out = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    out["episode"] = np.asarray(episodes)
+    return out, first_path
+
+
+def episode_records(split, metrics: dict) -> list[dict]:
+    """One CSV row per episode: identity, human timing, robot outcome (envs.metrics rules)."""
+    from conav_jax.activities import load_activity_graph
+    from conav_jax.categories import CATEGORY_NAMES
+    from envs.metrics import episode_outcomes
+
+    graph = load_activity_graph()
+    e = split.episodes
+    out = episode_outcomes(metrics)
+    rows = []
+    for j, i in enumerate(np.asarray(metrics["episode"])):
+        rows.append(
+            {
+                "episode": int(i),
+                "scene": split.scenes[int(e["scene_index"][i])].name,
+                "activity_a": graph.activity(int(e["activity_a"][i])).name,
+                "activity_b": graph.activity(int(e["activity_b"][i])).name,
+                "object_b": CATEGORY_NAMES[int(e["object_b"][i])],
+                "t_arrive": int(metrics["t_arrive"][j]),
+                "t_end": int(metrics["t_end"][j]),
+                "t_reach": int(metrics["t_reach"][j]),
+                "FASR": int(out["FASR"][j]),
+                "RASR": int(out["RASR"][j]),
+                "FASPL": f"{out['FASPL'][j]:.4f}",
+                "RASPL": f"{out['RASPL'][j]:.4f}",
+                "collided": int(out["CR"][j]),
+                "AS": int(out["AS"][j]),
+            }
+        )
+    return rows
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def ablation_flags(name: str, run: str) -> tuple[bool | None, bool | None, bool | None]:
+    """(activity, object, trajectory) intention inputs of an ablation: from its name when it is
+    one of the policy's ABLATIONS, else from the run's latest checkpoint config, else unknown."""
+    from conav_jax.checkpoints import META_MEMBER, latest_checkpoint
+    from conav_jax.models.policy import ABLATIONS
+
+    if name in ABLATIONS:
+        return ABLATIONS[name]
+    found: dict[str, bool] = {}
+
+    def search(node):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                if k in _INPUT_KEYS and isinstance(v, bool):
+                    found.setdefault(k, v)
+                search(v)
+
+    ckpt = latest_checkpoint(run)
+    if ckpt is not None:
+        try:
+            with zipfile.ZipFile(ckpt) as zf:
+                search(json.loads(zf.read(META_MEMBER)).get("config", {}))
+        except (zipfile.BadZipFile, KeyError, json.JSONDecodeError):
+            pass  # unreadable metadata: the marks stay unknown, the evaluation itself will complain
+    return tuple(found.get(k) for k in _INPUT_KEYS)
+
+
+def _rounded(summary: dict) -> dict:
+    return {m: {k: round(v, 4) for k, v in entry.items()} for m, entry in summary.items()}
+
+
+def _report_md(plan: EvalPlan, n: int, table2: str, table3: str | None, maps: list[tuple[str, str]]) -> str:
+    h, w = plan.resolution
+    lines = [
+        "# CoNav evaluation",
+        "",
+        f"Data `{plan.data}` (content hash {plan.content_hash[:16]}), split `{plan.split}`, {n} episodes; "
+        f"seed {plan.seed}, batch {plan.batch}, panorama {h}x{w}.",
+        "",
+        "## Agents (paper Table 2)",
+        "",
+        table2,
+        "Rates and SPLs in percent, AS in steps (0.1 s). `±` is half the width of the 95% interval: "
+        "Wilson for FASR, RASR and CR, a percentile bootstrap (2000 resamples, the run's seed) for "
+        "FASPL, RASPL and AS; exact bounds in metrics.json.",
+        "",
+    ]
+    if table3 is not None:
+        lines += ["## Ablations of the intention inputs (paper Table 3)", "", table3, "`?`: the run does not say which inputs it uses.", ""]
+    lines += ["## Figures", "", "![success by step](success_over_time.png)", ""]
+    lines += [f"![{title}: first episode]({png})" for title, png in maps]
+    return "\n".join(lines) + "\n"
+
+
+def sweep(plan: EvalPlan, env, progress_factory=None) -> dict:
+    """Evaluate every agent and ablation of `plan` on `env` and write all outputs to plan.out.
+    Returns the metrics.json content."""
+    from eval import plots
+    from eval.report import summarize_with_ci, table2_markdown, table3_markdown
+
+    plan.out.mkdir(parents=True, exist_ok=True)
+    episodes = np.arange(env.num_episodes)
+    runs = [(name, AGENTS[name].title, name, plan.checkpoint if AGENTS[name].needs_checkpoint else None) for name in plan.agents]
+    runs += [(f"ablation_{n}", n, "conav", run) for n, run in plan.ablations]
+    # Build every agent (loading checkpoints) before the first compile, so a bad run fails fast.
+    rollouts = [compiled_rollout(env, name, ckpt, **(plan.learned_kwargs if AGENTS[name].takes_predictors else {})) for _, _, name, ckpt in runs]
+    results, summaries, maps = {}, {}, []
+    for (key, title, _, _), run in zip(runs, rollouts):
+        progress = progress_factory(key) if progress_factory else None
+        metrics, first_path = run_agent(env, run, episodes, plan.batch, plan.seed, progress)
+        results[key] = (title, metrics)
+        summaries[key] = summarize_with_ci(metrics, seed=plan.seed)
+        write_csv(plan.out / f"episodes_{key}.csv", episode_records(env.split, metrics))
+        i = int(episodes[0])
+        ep = {k: env.split.episodes[k][i] for k in ("root_xy", "phase", "goal_xy", "robot_start", "t_end")}
+        start = np.asarray(ep["robot_start"])[None]
+        png = f"map_{key}.png"
+        plots.episode_map(
+            env.split.scenes[int(env.split.episodes["scene_index"][i])],
+            ep,
+            np.concatenate([start, first_path]),
+            plan.out / png,
+            success_radius_m=env.task.success_radius_m,
+            robot_height_m=env.task.robot_height_m,
+            title=f"{title}: episode {i}, t_reach {int(metrics['t_reach'][0])}, human arrives {int(metrics['t_arrive'][0])}",
+        )
+        maps.append((title, png))
+    plots.success_over_time({t: m for t, m in results.values()}, plan.out / "success_over_time.png")
+
+    agent_keys = list(plan.agents)
+    ablation_keys = [f"ablation_{n}" for n, _ in plan.ablations]
+    flags = {f"ablation_{n}": ablation_flags(n, run) for n, run in plan.ablations}
+    table2 = table2_markdown([(results[k][0], summaries[k]) for k in agent_keys])
+    table3 = table3_markdown([(results[k][0], flags[k], summaries[k]) for k in ablation_keys]) if ablation_keys else None
+    h, w = plan.resolution
+    doc = {
+        "data": str(plan.data),
+        "content_hash": plan.content_hash,
+        "split": plan.split,
+        "episodes": int(env.num_episodes),
+        "seed": plan.seed,
+        "batch": plan.batch,
+        "resolution": f"{h}x{w}",
+        "agents": {k: {"title": results[k][0], "metrics": _rounded(summaries[k])} for k in agent_keys},
+        "ablations": {
+            k: {"title": results[k][0], "run": run, "inputs": dict(zip(("activity", "object", "trajectory"), flags[k])), "metrics": _rounded(summaries[k])}
+            for k, (_, run) in zip(ablation_keys, plan.ablations)
+        },
+    }
+    (plan.out / "metrics.json").write_text(json.dumps(doc, indent=1) + "\n")
+    (plan.out / "report.md").write_text(_report_md(plan, env.num_episodes, table2, table3, maps))
+    return doc
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    """`conav eval`: validate everything, then build the env, evaluate and write the outputs."""
+    from tqdm import tqdm
+
+    plan = plan_eval(args)
+    env = load_env(plan)
+    n = env.num_episodes
+    batches = -(-n // min(plan.batch, n))
+
+    def progress(key):
+        return lambda it: tqdm(it, total=batches, desc=f"eval {key}", unit="batch")
+
+    doc = sweep(plan, env, progress)
+    print((plan.out / "report.md").read_text().split("## Figures")[0].rstrip())
+    print(f"wrote {plan.out} ({len(doc['agents'])} agents, {len(doc['ablations'])} ablations, {n} episodes)")
+    return 0

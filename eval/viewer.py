@@ -1,0 +1,253 @@
+"""`conav view`: one episode as a rerun recording (.rrd): scene, humanoid, robot, panorama, intentions.
+
+A jitted rollout of the episode records per step the robot pose, the panorama and the intention
+inputs (the agent's own predictions where its carry exposes them, else the ground truth,
+labelled as such); logging to rerun happens afterwards from those arrays, so rendering never
+slows the step. Everything time-varying shares the "step" timeline (one step = 0.1 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from envs.bench import parse_resolution
+from eval.agents import AGENTS, check_agent
+
+# Carry entries a learned agent may expose (same names and shapes as the env's ground-truth
+# observations): activity probs (107,), object probs (51,), future trajectory (5, 2) robot frame.
+PREDICTION_KEYS = ("activity_probs", "object_probs", "future_traj")
+TOP_K = 5
+
+
+def add_view(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("view", help="record one episode as a rerun .rrd (scene, human, robot, panorama, intentions)")
+    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
+    p.add_argument("--split", default="val")
+    p.add_argument("--episode", type=int, required=True, help="episode index within the split")
+    p.add_argument("--agent", default="pioneer", help=f"who drives the robot: {', '.join(AGENTS)}")
+    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    p.add_argument("--intention-checkpoint", default=None, help="conav: intention predictor run (default: ground truth)")
+    p.add_argument("--trajectory-checkpoint", default=None, help="conav: trajectory predictor run (default: ground truth)")
+    p.add_argument("--resolution", type=parse_resolution, default=(56, 224), help="panorama HxW (default 56x224)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output .rrd file")
+    p.add_argument("--spawn", action="store_true", help="also stream to a spawned rerun viewer")
+    p.set_defaults(func=run_view)
+
+
+def agent_predictions(carry: Any) -> dict[str, Any]:
+    """The PREDICTION_KEYS entries of an agent's carry: a mapping or an object (e.g. a NamedTuple)
+    with those names. Empty for baselines."""
+    if isinstance(carry, Mapping):
+        return {k: carry[k] for k in PREDICTION_KEYS if k in carry}
+    return {k: getattr(carry, k) for k in PREDICTION_KEYS if hasattr(carry, k)}
+
+
+def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """Run one episode jitted to its end (t_end) and return (frames, sources).
+
+    frames: "pose" (T+1, 3), "rgbd" (T+1, H, W, 4), "done" (T+1,), "action" (T+1, 2) (the action
+    taken from that frame), and each intention key available, frame t being the state after t
+    steps. sources: intention key -> "predicted" (from the agent's carry) or "ground_truth"."""
+    import jax
+    import jax.numpy as jnp
+
+    steps = int(env.split.episodes["t_end"][episode])
+    ep = jnp.int32(episode)
+    carry_shape = jax.eval_shape(agent.init, jax.random.PRNGKey(0), ep)
+    predicted = set(agent_predictions(carry_shape))
+    obs_keys = set(jax.eval_shape(env.reset_to_episode, jax.random.PRNGKey(0), ep).obs)
+    sources = {k: "predicted" if k in predicted else "ground_truth" for k in PREDICTION_KEYS if k in predicted or k in obs_keys}
+
+    @jax.jit
+    def run(key):
+        k_init, k_run = jax.random.split(key)
+        state = env.reset_to_episode(k_init, ep)
+
+        def body(c, k):
+            state, carry = c
+            action, carry = agent.act(state, carry, k)
+            preds = agent_predictions(carry)
+            frame = {"pose": state.pipeline_state.qpos, "rgbd": state.obs["rgbd"], "done": state.done, "action": action}
+            for name, src in sources.items():
+                frame[name] = preds[name] if src == "predicted" else state.obs[name]
+            return (env.step(state, action), carry), frame
+
+        _, frames = jax.lax.scan(body, (state, agent.init(k_init, ep)), jax.random.split(k_run, steps + 1))
+        return frames
+
+    frames = jax.tree.map(np.asarray, run(jax.random.PRNGKey(seed)))
+    return frames, sources
+
+
+def _box_mesh(center, half, rgb):
+    import trimesh
+
+    m = trimesh.creation.box(extents=2.0 * np.asarray(half, np.float64))
+    m.apply_translation(np.asarray(center, np.float64))
+    m.visual.vertex_colors = np.append(np.asarray(rgb, np.uint8), 255)
+    return m
+
+
+def _mesh3d(mesh):
+    import rerun as rr
+
+    return rr.Mesh3D(
+        vertex_positions=np.asarray(mesh.vertices, np.float32),
+        triangle_indices=np.asarray(mesh.faces, np.uint32),
+        vertex_normals=np.asarray(mesh.vertex_normals, np.float32),
+        vertex_colors=np.asarray(mesh.visual.vertex_colors, np.uint8),
+    )
+
+
+def _to_world(p_robot: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    x, y = p_robot[..., 0], p_robot[..., 1]
+    return np.stack([c * x - s * y, s * x + c * y], axis=-1) + pose[:2]
+
+
+def log_scene(rec, scene, robot_height_m: float) -> None:
+    """Static geometry: floor, walls (one mesh), furniture (a mesh per object, category colours)
+    and a label point above each object."""
+    import rerun as rr
+    import trimesh
+
+    from conav_jax.categories import CATEGORY_NAMES, FLOOR_RGB, WALL_RGB
+    from conav_jax.scene import STRUCTURE_WALL, scene_boxes
+
+    x0, y0, x1, y1 = scene.bounds
+    rec.log("world/scene/floor", _mesh3d(_box_mesh(((x0 + x1) / 2, (y0 + y1) / 2, -0.01), ((x1 - x0) / 2, (y1 - y0) / 2, 0.01), FLOOR_RGB)), static=True)
+    boxes = scene_boxes(scene, robot_height_m)
+    walls = [_box_mesh(boxes.center[i], boxes.half_extents[i], WALL_RGB) for i in np.flatnonzero(boxes.category == STRUCTURE_WALL)]
+    if walls:
+        rec.log("world/scene/walls", _mesh3d(trimesh.util.concatenate(walls)), static=True)
+    tops, labels = [], []
+    for i in np.flatnonzero(boxes.category != STRUCTURE_WALL):
+        name = CATEGORY_NAMES[boxes.category[i]]
+        rec.log(f"world/scene/furniture/{int(boxes.object_index[i]):03d}_{name}", _mesh3d(_box_mesh(boxes.center[i], boxes.half_extents[i], boxes.rgb[i])), static=True)
+        tops.append(boxes.center[i] + np.array([0.0, 0.0, boxes.half_extents[i][2] + 0.05]))
+        labels.append(name)
+    if tops:
+        rec.log("world/scene/labels", rr.Points3D(np.asarray(tops), radii=0.02, labels=labels, show_labels=True), static=True)
+
+
+def _top_k_text(title: str, probs: np.ndarray, names, source: str) -> str:
+    order = np.argsort(-probs, kind="stable")[:TOP_K]
+    lines = [f"{title} ({source.replace('_', ' ')})", ""] + [f"{r + 1}. {names[i]}: {probs[i]:.2f}" for r, i in enumerate(order)]
+    return "\n".join(lines)
+
+
+def log_episode(rec, env, episode: int, frames: dict[str, np.ndarray], sources: dict[str, str], agent_name: str) -> None:
+    """Everything of one recorded episode on the "step" timeline (plus the static scene)."""
+    import rerun as rr
+
+    from conav_jax.activities import load_activity_graph
+    from conav_jax.categories import CATEGORY_NAMES
+    from conav_jax.skeleton import PARENTS
+
+    split, task = env.split, env.task
+    e = split.episodes
+    scene = split.scenes[int(e["scene_index"][episode])]
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    log_scene(rec, scene, task.robot_height_m)
+
+    goal = np.asarray(e["goal_xy"][episode], np.float64)
+    ring = np.linspace(0.0, 2.0 * np.pi, 65)
+    circle = np.stack([goal[0] + task.success_radius_m * np.cos(ring), goal[1] + task.success_radius_m * np.sin(ring), np.full_like(ring, 0.02)], -1)
+    rec.log("world/goal", rr.Points3D([[goal[0], goal[1], 0.05]], radii=0.08, colors=[[30, 200, 60]], labels=["goal"]), static=True)
+    rec.log("world/goal/success_radius", rr.LineStrips3D([circle], colors=[[30, 200, 60]], radii=0.01), static=True)
+
+    t_end = int(e["t_end"][episode])
+    joints = split.joints(episode)[: t_end + 1]  # (T, 22, 3) world
+    root = np.asarray(e["root_xy"][episode][: t_end + 1])
+    phase = np.asarray(e["phase"][episode][: t_end + 1])
+    phase_rgb = np.array([[40, 110, 220], [240, 150, 30], [150, 60, 200], [120, 120, 120]], np.uint8)
+    rec.log("world/human/path", rr.Points3D(np.c_[root, np.full(len(root), 0.02)], radii=0.015, colors=phase_rgb[np.clip(phase, 0, 3)]), static=True)
+    bones = [(j, p) for j, p in enumerate(PARENTS) if p >= 0]
+
+    r, h = task.robot_radius_m, task.robot_height_m
+    rec.log("world/robot/body", rr.Cylinders3D(lengths=[h], radii=[r], centers=[[0.0, 0.0, h / 2]], colors=[[80, 80, 90]]), static=True)
+    rec.log("world/robot/heading", rr.Arrows3D(origins=[[0.0, 0.0, h]], vectors=[[0.6, 0.0, 0.0]], colors=[[230, 40, 40]]), static=True)
+
+    graph = load_activity_graph()
+    activity_names = [a.name for a in graph.activities]
+    pose = frames["pose"]
+    done = frames["done"] > 0.5
+    ended = int(np.argmax(done)) if done.any() else len(done) - 1  # the frame the episode ended at
+    for t in range(t_end + 1):
+        rec.set_time("step", sequence=t)
+        rec.log("world/human/joints", rr.Points3D(joints[t], radii=0.03, colors=[[220, 80, 60]]))
+        rec.log("world/human/bones", rr.LineStrips3D([[joints[t, j], joints[t, p]] for j, p in bones], radii=0.015, colors=[[220, 80, 60]]))
+        if t > ended:
+            continue  # the robot's episode is over: its pose and sensors stay as they ended
+        x, y, yaw = (float(v) for v in pose[t])
+        rec.log("world/robot", rr.Transform3D(translation=[x, y, 0.0], rotation_axis_angle=rr.RotationAxisAngle(axis=[0.0, 0.0, 1.0], radians=yaw)))
+        rec.log("world/robot_path", rr.LineStrips3D([np.c_[pose[: t + 1, :2], np.full(t + 1, 0.03)]], radii=0.02, colors=[[230, 40, 40]]))
+        rgbd = frames["rgbd"][t]
+        rec.log("camera/rgb", rr.Image((np.clip(rgbd[..., :3], 0.0, 1.0) * 255).astype(np.uint8)))
+        rec.log("camera/depth", rr.DepthImage(rgbd[..., 3].astype(np.float32), meter=1.0))
+        rec.log("metrics/distance_to_goal_m", rr.Scalars(float(np.hypot(x - goal[0], y - goal[1]))))
+        for key, names, title in (("activity_probs", activity_names, "activity B"), ("object_probs", CATEGORY_NAMES, "object B")):
+            if key in sources:
+                probs = np.asarray(frames[key][t], np.float64)
+                path = f"intention/{sources[key]}/{key.split('_')[0]}"
+                rec.log(f"{path}/top5", rr.BarChart(np.sort(probs)[::-1][:TOP_K]))
+                rec.log(f"{path}/text", rr.TextDocument(_top_k_text(title, probs, names, sources[key])))
+        if "future_traj" in sources:
+            future = _to_world(np.asarray(frames["future_traj"][t]), pose[t])
+            strip = np.c_[np.vstack([root[min(t, len(root) - 1)], future]), np.full(len(future) + 1, 0.05)]
+            rec.log(f"world/human/future_traj/{sources['future_traj']}", rr.LineStrips3D([strip], radii=0.02, colors=[[250, 200, 0]], labels=[f"5-step trajectory ({sources['future_traj'].replace('_', ' ')})"]))
+    rec.log("info", rr.TextDocument(f"episode {episode} of {split.name} in {scene.name}; agent {agent_name}; robot episode ended at step {ended}"), static=True)
+
+
+def run_view(args: argparse.Namespace) -> int:
+    """`conav view`: validate, record the episode jitted, then write (and optionally stream) it."""
+    from conav_jax.episodes import read_manifest
+
+    manifest = read_manifest(args.data)
+    if args.split not in manifest["splits"]:
+        raise ValueError(f"{args.data}: no split {args.split!r}; has {sorted(manifest['splits'])}")
+    n = int(manifest["splits"][args.split]["episodes"])
+    if not 0 <= args.episode < n:
+        raise ValueError(f"--episode must be in [0, {n}) for split {args.split!r}, got {args.episode}")
+    spec = check_agent(args.agent, args.checkpoint)
+    predictors = {}
+    for key, run in (("intention_run", args.intention_checkpoint), ("trajectory_run", args.trajectory_checkpoint)):
+        if run is not None:
+            if not spec.takes_predictors:
+                raise ValueError(f"agent {args.agent!r} takes no predictor runs (--{key.replace('_run', '')}-checkpoint)")
+            if not Path(run).is_dir():
+                raise ValueError(f"{key.replace('_run', '')} checkpoint run directory not found: {run}")
+            predictors[key] = run
+    out = Path(args.out)
+    if out.suffix != ".rrd":
+        raise ValueError(f"--out must name a .rrd file, got {out}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    import rerun as rr
+
+    from envs import ConavEnv, EnvConfig, SensorConfig
+    from eval.agents import make_agent
+
+    h, w = args.resolution
+    env = ConavEnv(args.data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w)), max_episodes=args.episode + 1)
+    agent = make_agent(args.agent, env, args.checkpoint, **predictors)
+    frames, sources = record_episode(env, agent, args.episode, args.seed)
+
+    rec = rr.RecordingStream("conav_view", recording_id=f"{args.split}-{args.episode}-{args.agent}")
+    if args.spawn:
+        rr.spawn(connect=False, recording=rec)
+        rec.set_sinks(rr.FileSink(str(out)), rr.GrpcSink())
+    else:
+        rec.save(str(out))
+    log_episode(rec, env, args.episode, frames, sources, args.agent)
+    rec.flush()
+    rec.disconnect()
+    print(f"wrote {out}: episode {args.episode} ({args.split}), agent {args.agent}, {len(frames['pose'])} steps, panorama {h}x{w}; intentions: "
+          + (", ".join(f"{k} {v}" for k, v in sources.items()) or "none"))
+    return 0

@@ -1,0 +1,143 @@
+"""Baseline agents and the agent registry: jitted batches over mixed scenes, behaviour in the hall.
+
+All rollouts share ONE compiled function: every baseline acts at every step and each rollout
+applies its own agent's action, so one compile of the env step covers all four agents.
+"""
+
+import numpy as np
+import pytest
+
+from conav_jax.episodes import EpisodeSplit
+from eval.agents import AGENTS, AgentSpec, BaselineConfig, check_agent, make_agent
+from worlds import ROOM, make_split
+
+BASELINES = ("random", "pioneer", "follower", "objectgoal")
+T_ARRIVE, T_END = 120, 160  # the human walks 7.25 m from step 60 to 120 (1.2 m/s)
+
+# The hall with a partition at x = 5 from the south wall to y = 2.6: the way east is the 1.3 m
+# gap at the north end.
+PARTITION = {**ROOM, "name": "partition", "walls": ROOM["walls"] + [{"center_m": [5, 1.35, 1.25], "half_extents_m": [0.05, 1.25, 1.25]}]}
+
+
+def _via(points, t_walk, t_arrive, t_end):
+    """Human root positions (T, 2): standing at points[0] until t_walk, walking the polyline at
+    constant speed to arrive at t_arrive, then standing at its end."""
+    pts = np.asarray(points, np.float64)
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    s = np.clip((np.arange(t_end + 1) - t_walk) / (t_arrive - t_walk), 0, 1) * seg.sum()
+    cum = np.concatenate([[0], np.cumsum(seg)])
+    return np.stack([np.interp(s, cum, pts[:, 0]), np.interp(s, cum, pts[:, 1])], -1).astype(np.float32)
+
+
+def _two_scene_split() -> EpisodeSplit:
+    starts = [(2.5, 3.0, 0.0), (3.0, 1.0, np.pi / 2)]
+    hall = make_split(starts, t_arrive=T_ARRIVE, t_end=T_END)
+    stand_a, stand_b = hall.navs[0].stand_poses[0, :2], hall.navs[0].stand_poses[1, :2]
+    around = _via([stand_a, (5.0, 3.25), stand_b], T_ARRIVE // 2, T_ARRIVE, T_END)
+    part = make_split([(2.5, 3.0, 0.0), (2.0, 1.0, 0.0)], human_xy=[around, around], t_arrive=T_ARRIVE, t_end=T_END, scene=PARTITION)
+    episodes = {k: np.concatenate([hall.episodes[k], part.episodes[k]]) for k in hall.episodes}
+    episodes["scene_index"] = np.array([0, 0, 1, 1], np.int32)
+    return EpisodeSplit("test", {}, hall.scenes + part.scenes, hall.navs + part.navs, episodes, hall.config)
+
+
+@pytest.fixture(scope="module")
+def runs():
+    """Every baseline on every episode (2 hall + 2 partition): poses (R, T+1, 3), actions
+    (R, T, 2) and final metrics of R = 4 agents x 4 episodes rollouts, agent-major."""
+    import jax
+    import jax.numpy as jnp
+
+    from envs import ConavEnv, EnvConfig, SensorConfig
+
+    env = ConavEnv(episodes=_two_scene_split(), config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
+    agents = [make_agent(name, env) for name in BASELINES]
+
+    def one(episode, which, key):
+        state = env.reset_to_episode(key, episode)
+
+        def body(c, k):
+            state, carries = c
+            outs = [a.act(state, cr, k) for a, cr in zip(agents, carries)]
+            action = jnp.stack([o[0] for o in outs])[which]
+            nxt = env.step(state, action)
+            return (nxt, tuple(o[1] for o in outs)), (nxt.pipeline_state.qpos, action)
+
+        carries = tuple(a.init(key, episode) for a in agents)
+        (state, _), (poses, actions) = jax.lax.scan(body, (state, carries), jax.random.split(key, T_END))
+        start = env.reset_to_episode(key, episode).pipeline_state.qpos
+        return jnp.concatenate([start[None], poses]), actions, state.metrics
+
+    n = env.num_episodes
+    episodes = jnp.tile(jnp.arange(n, dtype=jnp.int32), len(agents))
+    which = jnp.repeat(jnp.arange(len(agents)), n)
+    out = jax.jit(jax.vmap(one))(episodes, which, jax.random.split(jax.random.PRNGKey(0), len(episodes)))
+    poses, actions, metrics = jax.tree.map(np.asarray, out)
+    return env, poses, actions, metrics
+
+
+def _sel(runs, agent, episode):
+    _, poses, actions, metrics = runs
+    r = BASELINES.index(agent) * 4 + episode
+    return poses[r], actions[r], {k: float(v[r]) for k, v in metrics.items()}
+
+
+def test_baselines_run_jitted_over_mixed_scenes_with_bounded_actions(runs):
+    env, poses, actions, _ = runs
+    assert set(np.asarray(env.bank.scene_index).tolist()) == {0, 1}
+    assert np.isfinite(actions).all() and np.isfinite(poses).all()
+    assert (np.abs(actions) <= 1.0).all()
+    rand = actions[: 4]  # the random agent's rollouts
+    assert np.abs(rand).mean() > 0.3 and np.std(rand) > 0.3  # uniform in [-1, 1]: mean |a| = 0.5
+
+
+def test_objectgoal_reaches_the_goal_before_the_human_in_the_hall(runs):
+    _, _, m = _sel(runs, "objectgoal", 0)
+    assert 0 <= m["t_reach"] <= T_ARRIVE and m["collided_before_reach"] == 0.0
+    assert m["wall_contact_steps"] == 0.0
+
+
+def test_objectgoal_goes_round_the_partition(runs):
+    poses, _, m = _sel(runs, "objectgoal", 3)  # starts south-west of the partition
+    assert 0 <= m["t_reach"] <= T_ARRIVE
+    crossing = poses[np.argmax(poses[:, 0] > 5.0), :2]
+    assert crossing[1] > 2.6  # it crossed x = 5 through the gap north of the partition
+
+
+def test_pioneer_waits_for_the_human_then_reaches_the_goal(runs):
+    for episode in range(4):
+        poses, _, m = _sel(runs, "pioneer", episode)
+        # While the human does activity A (until step 60) there is no motion to extrapolate.
+        assert np.abs(poses[:55] - poses[0]).max() < 1e-3
+        # Then it heads for the table; it drives no faster than the human walks, on the same
+        # line, so it arrives after the human and may brush them (it does not avoid people).
+        assert 0 <= m["t_reach"] <= T_END
+
+
+def test_follower_stays_about_a_metre_behind_the_human(runs):
+    env = runs[0]
+    for episode in (0, 2):  # the open hall and round the partition
+        poses, _, m = _sel(runs, "follower", episode)
+        human = np.asarray(env.bank.root_xy[episode])[: T_END + 1]
+        gap = np.linalg.norm(poses[:, :2] - human, axis=1)
+        assert gap[-1] < 1.5  # caught up with the human at the goal
+        assert gap[T_ARRIVE:].min() > BaselineConfig().follow_distance_m - 0.2  # and keeps its distance
+        assert m["collided"] == 0.0  # it backs off when the walking human comes at it
+
+
+def test_unknown_agent_names_the_choices():
+    with pytest.raises(ValueError, match=r"unknown agent 'nope'; choose from random, pioneer"):
+        check_agent("nope")
+
+
+def test_learned_agents_need_an_existing_run_dir(tmp_path):
+    for name in ("conav", "ppo"):
+        with pytest.raises(ValueError, match="needs a trained run|not available yet"):
+            check_agent(name, None)
+        with pytest.raises(ValueError, match="run directory not found|not available yet"):
+            check_agent(name, tmp_path / "missing")
+
+
+def test_an_agent_whose_module_has_not_landed_is_reported_as_not_available(monkeypatch):
+    monkeypatch.setitem(AGENTS, "future", AgentSpec("Future", lambda env, ckpt: None, "train.not_written_yet", True))
+    with pytest.raises(ValueError, match=r"'future' is not available yet: its module train.not_written_yet does not exist"):
+        check_agent("future", ".")

@@ -1,0 +1,198 @@
+"""train.imitation, train.policy and eval.learned in the simulator (the hand-built hall, 8x32
+panoramas): the expert reaches the goal without touching the human, rollouts repeat bit for bit
+for a seed, the policy overfits expert actions, DAgger aggregates the expert's labels of the
+policy's own states, and policy_agent loads a run (rejecting wrong ones) and runs in evaluate."""
+
+import functools
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conav_jax.checkpoints import checkpoint_path, save_checkpoint
+from conav_jax.expert import ExpertConfig, initial_carry
+from conav_jax.models import policy
+from conav_jax.models.policy import PolicyConfig
+from envs import ConavEnv, EnvConfig, SensorConfig
+from envs.metrics import summarize
+from envs.mjcf import UD
+from envs.rollout import evaluate
+from eval.learned import policy_agent
+from train import imitation as im
+from train.loop import TrainConfig, read_log, train
+from train.policy import ImitationConfig, run_config
+from worlds import make_split
+
+# For the small jits. The MJX rollout and the training chunk keep XLA's default: at level 0
+# their run time (a scan of simulator steps, of conv updates) costs more than compiling saves.
+FAST = {"xla_backend_optimization_level": 0}
+SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32))
+PCFG = PolicyConfig(
+    image_hw=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16, intention_dim=8, hidden=32
+)
+T_ARRIVE, T_END = 140, 160  # the human walks from the fridge to the table in steps 70-140
+SEQ, BURN_IN = 16, 8
+
+
+def _head_on_track() -> np.ndarray:
+    """A human walking west along the hall's centre line at 1.1 m/s, from the table to x = 1."""
+    x = np.maximum(8.6 - 0.11 * np.arange(T_END + 1), 1.0)
+    return np.stack([x, np.full_like(x, 2.0)], -1).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def hall():
+    """Episodes: 0 east of the human at the fridge; 1 at the east end, facing back west; 2 with
+    the human walking head-on at the robot. One compiled rollout serves every test."""
+    starts = [(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (2.2, 2.0, 0.0)]
+    default = make_split(starts[:1], t_arrive=T_ARRIVE, t_end=T_END).episodes["root_xy"][0]
+    split = make_split(starts, human_xy=[default, default, _head_on_track()], t_arrive=T_ARRIVE, t_end=T_END)
+    env = ConavEnv(episodes=split, config=SMALL)
+    rollout = jax.jit(im.make_rollout_fn(env, PCFG))
+    return SimpleNamespace(split=split, env=env, rollout=rollout, episodes=jnp.arange(3, dtype=jnp.int32))
+
+
+def _run(hall, params, beta, seed=0):
+    m, recs = hall.rollout(params, jax.random.PRNGKey(seed), hall.episodes, beta)
+    return jax.tree.map(np.asarray, m), jax.tree.map(np.asarray, recs)
+
+
+@pytest.fixture(scope="module")
+def params0():
+    return policy.init(jax.random.PRNGKey(0), PCFG)
+
+
+@pytest.fixture(scope="module")
+def bc(hall, params0):
+    """Behaviour cloning data: the expert acting (beta = 1)."""
+    return _run(hall, params0, 1.0)
+
+
+@pytest.fixture(scope="module")
+def trained(bc, params0, tmp_path_factory):
+    """A policy run dir as `conav train policy` writes it, trained on the BC windows."""
+    run = tmp_path_factory.mktemp("policy_run")
+    windows = im.sequences(bc[1], SEQ, BURN_IN)
+    config = run_config(PCFG, ImitationConfig(resolution=(8, 32), seq_len=SEQ, burn_in=BURN_IN), ExpertConfig(), "test", None, None)
+    cfg = TrainConfig(steps=150, batch=8, lr=3e-3, warmup_steps=10, log_every=25, val_every=1000, ckpt_every=150)
+    result = train(run / "round_0", im.make_loss_fn(PCFG), params0, windows, cfg, {**config, "round": 0}, progress=False)
+    save_checkpoint(checkpoint_path(run, result.step), params=result.params, opt_state=result.opt_state,
+                    config=config, step=result.step, extra={"round": 0, "val": {}, "expert_val": {}})
+    return SimpleNamespace(run=run, params=result.params, windows=windows)
+
+
+def test_expert_in_the_simulator_reaches_the_goal_without_touching_the_human(bc):
+    m, recs = bc
+    assert (m["t_reach"] >= 0).all(), m["t_reach"]
+    assert (m["t_reach"][:2] <= T_ARRIVE).all(), m["t_reach"]  # first to arrive
+    assert (m["collided"] == 0).all() and (m["human_contact_steps"] == 0).all()  # incl. head-on
+    assert summarize(m)["RASR"] == 100.0
+    np.testing.assert_array_equal(recs.action, recs.label)  # beta = 1: the expert drives
+    # Records stop counting at the episode's end (the step after reaching the goal).
+    np.testing.assert_array_equal(recs.valid.sum(1), m["t_reach"])
+
+
+def test_records_hold_compact_observations(bc):
+    _, recs = bc
+    assert recs.obs["rgb"].dtype == np.uint8 and recs.obs["rgb"].shape == (3, T_END + 1, 8, 32, 3)
+    assert recs.obs["depth"].dtype == np.float16 and recs.obs["depth"].shape == (3, T_END + 1, 8, 32)
+    assert set(recs.obs) == {"rgb", "depth", *im.RECORDED_KEYS}
+    np.testing.assert_array_equal(recs.obs["activity_probs"].argmax(-1), 4)  # the hall's activity B
+
+
+def test_rollouts_are_deterministic_for_a_seed(hall, params0):
+    # A mixture draws who acts at each step from the key: same seed, same bytes.
+    mixed = [_run(hall, params0, 0.5, seed=3) for _ in range(2)]
+    for a, b in zip(*(jax.tree.leaves(x) for x in mixed)):
+        assert a.tobytes() == b.tobytes()
+    assert not np.array_equal(mixed[0][1].action, mixed[0][1].label)
+
+
+def test_sequences_are_windows_with_burn_in_masked_after_the_end():
+    e, t = 2, 10
+    valid = np.zeros((e, t), bool)
+    valid[0, :7], valid[1, :3] = True, True
+    steps = np.broadcast_to(np.arange(t, dtype=np.float32)[None, :, None], (e, t, 2))
+    recs = im.StepRecord({"gps_compass": steps[..., :1].repeat(3, -1)}, steps, steps, valid, steps[..., :1])
+    w = im.sequences(recs, seq_len=4, burn_in=2)
+    # Episode 0: windows over steps [-2, 4) and [2, 8); episode 1: only [-2, 4) (the next has no valid step).
+    assert w["label"].shape == (3, 6, 2) and w["obs"]["gps_compass"].shape == (3, 6, 3)
+    np.testing.assert_array_equal(w["label"][1, :, 0], [2, 3, 4, 5, 6, 7])
+    np.testing.assert_array_equal(w["mask"][0], [0, 0, 1, 1, 1, 1])  # burn-in out of the loss
+    np.testing.assert_array_equal(w["mask"][1], [0, 0, 1, 1, 1, 0])  # step 7 is after the end
+    np.testing.assert_array_equal(w["mask"][2], [0, 0, 1, 1, 1, 0])
+    np.testing.assert_array_equal(w["reset"][0], [0, 0, 1, 0, 0, 0])  # the episode starts at step 0
+    assert not w["reset"][1].any()
+
+
+def test_policy_overfits_expert_actions(trained, params0):
+    losses = [r["loss"] for r in read_log(trained.run / "round_0") if r.get("split") == "train"]
+    assert losses[-1] < 0.3 * losses[0], losses
+    loss = jax.jit(im.bc_loss, static_argnums=1, compiler_options=FAST)
+    before, _ = loss(params0, PCFG, trained.windows)
+    after, _ = loss(trained.params, PCFG, trained.windows)
+    assert float(after) < 0.2 * float(before), (float(before), float(after))
+
+
+@functools.partial(jax.jit, static_argnums=0, compiler_options=FAST)
+def _relabel(env, poses):
+    """The pure expert replayed along recorded poses (B, T, 3) of episodes 0..B-1 -> (B, T, 2)."""
+    step = im.make_expert_step(env)
+
+    def one(episode, poses):
+        def body(carry, x):
+            t, pose = x
+            ud = jnp.zeros(len(UD)).at[UD["t"]].set(t)
+            state = SimpleNamespace(info={"episode": episode}, pipeline_state=SimpleNamespace(qpos=pose, userdata=ud))
+            action, carry = step(state, carry)
+            return carry, action
+
+        return jax.lax.scan(body, initial_carry(), (jnp.arange(poses.shape[0], dtype=jnp.float32), poses))[1]
+
+    return jax.vmap(one)(jnp.arange(poses.shape[0]), poses)
+
+
+def test_dagger_aggregates_expert_labels_of_the_policys_states(hall, bc, trained):
+    m, recs = _run(hall, trained.params, 0.0, seed=1)
+    valid = recs.valid
+    # The policy drove (its own actions, not the expert's)...
+    assert np.abs(recs.action - recs.label)[valid].max() > 1e-3
+    # ...and every label is what the expert does in the state the policy reached.
+    relabelled = np.asarray(_relabel(hall.env, jnp.asarray(recs.pose)))
+    np.testing.assert_allclose(relabelled[valid], recs.label[valid], atol=1e-5)
+    new = im.sequences(recs, SEQ, BURN_IN)
+    data = im.concat_sequences([trained.windows, new])
+    n_old, n_new = len(trained.windows["label"]), len(new["label"])
+    assert len(data["label"]) == n_old + n_new and data["obs"]["rgb"].shape[0] == n_old + n_new
+    np.testing.assert_array_equal(data["label"][n_old:], new["label"])
+
+
+def test_policy_agent_runs_in_evaluate(hall, trained):
+    agent = policy_agent(hall.env, trained.run)
+    assert agent.name == "conav"
+    m = evaluate(hall.env, agent, batch=3)
+    assert set(summarize(m)) == {"FASR", "RASR", "FASPL", "RASPL", "CR", "AS"}
+    assert (m["nan_actions"] == 0).all()
+    # The same policy through imitation's own rollout (how training validates) acts alike.
+    ours, _ = _run(hall, trained.params, 0.0, seed=1)
+    np.testing.assert_allclose(m["path_length_m"], ours["path_length_m"], atol=0.05)
+
+
+def test_policy_agent_rejects_wrong_runs_before_compiling(hall, trained, tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        policy_agent(hall.env, tmp_path / "missing")
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        policy_agent(hall.env, tmp_path)
+    other = tmp_path / "trajectory_run"
+    save_checkpoint(checkpoint_path(other, 1), params={"w": np.zeros(2)}, opt_state=None,
+                    config={"kind": "trajectory", "model": {}}, step=1)
+    with pytest.raises(ValueError, match="'trajectory' run"):
+        policy_agent(hall.env, other)
+    wide = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=SensorConfig(height=16, width=64)))
+    with pytest.raises(ValueError, match="8x32 panoramas but the env renders 16x64"):
+        policy_agent(wide, trained.run)
+    blind = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=SMALL.sensor, intention_obs=False))
+    with pytest.raises(ValueError, match="intention_obs=True"):
+        policy_agent(blind, trained.run)

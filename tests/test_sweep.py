@@ -1,0 +1,142 @@
+"""`conav eval` and its report: intervals and tables on hand-built results, the sweep's files,
+determinism, and input errors raised before anything is compiled."""
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from eval import sweep
+from eval.report import bootstrap_interval, summarize_with_ci, table2_markdown, table3_markdown, wilson_interval
+
+
+def _metrics(rows):
+    """Env-style final metrics from (t_reach, t_arrive, t_end, collided_before_reach, collided,
+    geodesic l, path p) per episode."""
+    names = ("t_reach", "t_arrive", "t_end", "collided_before_reach", "collided", "geodesic_start_goal_m", "path_length_m")
+    return {n: np.array([r[i] for r in rows], np.float32) for i, n in enumerate(names)}
+
+
+# First before the human (SPL 5 / 6.25 = 0.8), after the human but in time (SPL 1), never with a touch.
+THREE = _metrics([(10, 20, 40, 0, 0, 5.0, 6.25), (30, 20, 40, 0, 0, 4.0, 4.0), (-1, 20, 50, 0, 1, 3.0, 9.0)])
+
+
+def test_wilson_interval_matches_hand_computed_endpoints():
+    # z = 1.96: 1/3 -> centre (1/3 + z^2/6) / (1 + z^2/3) = 0.42692, half 0.36543
+    assert wilson_interval(1, 3) == pytest.approx((0.06149, 0.79234), abs=1e-4)
+    assert wilson_interval(2, 3) == pytest.approx((0.20766, 0.93851), abs=1e-4)
+    assert wilson_interval(0, 3) == pytest.approx((0.0, 0.56151), abs=1e-4)
+    with pytest.raises(ValueError, match="at least one trial"):
+        wilson_interval(0, 0)
+
+
+def test_metrics_of_three_known_episodes():
+    s = summarize_with_ci(THREE, seed=0)
+    assert s["FASR"]["value"] == pytest.approx(100 / 3)
+    assert s["RASR"]["value"] == pytest.approx(200 / 3)
+    assert s["FASPL"]["value"] == pytest.approx(80 / 3, abs=1e-4)
+    assert s["RASPL"]["value"] == pytest.approx(180 / 3, abs=1e-4)
+    assert s["CR"]["value"] == pytest.approx(100 / 3)
+    assert s["AS"]["value"] == pytest.approx(30.0)  # (10 + 30 + 50) / 3: t_end when never reached
+    assert (s["FASR"]["lo"], s["FASR"]["hi"]) == pytest.approx((6.149, 79.234), abs=1e-2)
+    assert (s["RASR"]["lo"], s["RASR"]["hi"]) == pytest.approx((20.766, 93.851), abs=1e-2)
+    for name in ("FASPL", "RASPL", "AS"):  # bootstrap: seeded, brackets the mean
+        assert s[name]["lo"] <= s[name]["value"] <= s[name]["hi"]
+    assert summarize_with_ci(THREE, seed=0) == s
+
+
+def test_bootstrap_is_seeded_and_degenerate_for_constants():
+    v = np.array([0.0, 0.5, 1.0, 0.25])
+    assert bootstrap_interval(v, seed=3) == bootstrap_interval(v, seed=3)
+    assert bootstrap_interval(np.full(5, 2.0)) == (2.0, 2.0)
+
+
+def test_tables_are_laid_out_like_the_paper():
+    s = summarize_with_ci(THREE, seed=0)
+    t2 = table2_markdown([("Pioneer Agent (Oracle Pathfinder)", s)]).splitlines()
+    assert t2[0] == "| Methods | FASR↑ | RASR↑ | FASPL↑ | RASPL↑ | CR↓ | AS↓ |"
+    half = (79.234 - 6.149) / 2
+    assert t2[2].startswith(f"| Pioneer Agent (Oracle Pathfinder) | 33.3 ± {half:.1f} | 66.7 ± ")
+    assert "| 30.0 ± " in t2[2]
+    t3 = table3_markdown([("none", (False, False, False), s), ("all", (True, True, True), s), ("x", (None, True, None), s)]).splitlines()
+    assert t3[0].startswith("| Exp. | Activity | Object | Trajectory | FASR↑")
+    assert t3[2].startswith("| none | ✗ | ✗ | ✗ | 33.3")
+    assert t3[3].startswith("| all | ✓ | ✓ | ✓ |") and t3[4].startswith("| x | ? | ✓ | ? |")
+
+
+def _args(*argv):
+    p = argparse.ArgumentParser()
+    sweep.add_eval(p.add_subparsers())
+    return p.parse_args(["eval", *argv])
+
+
+@pytest.fixture(scope="module")
+def two_sweeps(tiny_data, tmp_path_factory):
+    """The same sweep twice (same seed) into two directories; 3 episodes in batches of 2, so
+    the second batch is padded."""
+    outs = [tmp_path_factory.mktemp(f"sweep{k}") for k in range(2)]
+    for out in outs:
+        argv = ["--data", str(tiny_data), "--agent", "objectgoal", "--episodes", "3", "--batch", "2", "--resolution", "8x32", "--seed", "1", "--out", str(out)]
+        assert sweep.run_eval(_args(*argv)) == 0
+    return outs
+
+
+def test_sweep_writes_records_metrics_report_and_figures(two_sweeps):
+    out = two_sweeps[0]
+    for name in ("episodes_objectgoal.csv", "metrics.json", "report.md", "success_over_time.png", "map_objectgoal.png"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    rows = (out / "episodes_objectgoal.csv").read_text().splitlines()
+    assert rows[0] == "episode,scene,activity_a,activity_b,object_b,t_arrive,t_end,t_reach,FASR,RASR,FASPL,RASPL,collided,AS"
+    assert len(rows) == 4 and [r.split(",")[0] for r in rows[1:]] == ["0", "1", "2"]
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["episodes"] == 3 and doc["ablations"] == {}
+    m = doc["agents"]["objectgoal"]["metrics"]
+    assert set(m) == {"FASR", "RASR", "FASPL", "RASPL", "CR", "AS"}
+    assert all(e["lo"] <= e["value"] <= e["hi"] for e in m.values())
+    report = (out / "report.md").read_text()
+    assert "| Object-goal Agent (Oracle Goal Object) |" in report and "![success by step](success_over_time.png)" in report
+    assert (out / "map_objectgoal.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_same_seed_gives_identical_metrics_bytes(two_sweeps):
+    a, b = two_sweeps
+    assert (a / "metrics.json").read_bytes() == (b / "metrics.json").read_bytes()
+    assert (a / "episodes_objectgoal.csv").read_bytes() == (b / "episodes_objectgoal.csv").read_bytes()
+
+
+def test_every_agent_is_built_before_the_first_rollout(two_sweeps, tiny_data, tmp_path):
+    # An existing but empty run dir passes the cheap checks; loading it fails, and it must fail
+    # before the agent listed first (objectgoal) is evaluated.
+    (tmp_path / "empty_run").mkdir()
+    out = tmp_path / "o"
+    argv = ["--data", str(tiny_data), "--agent", "objectgoal,conav", "--checkpoint", str(tmp_path / "empty_run")]
+    with pytest.raises((ValueError, FileNotFoundError)):
+        sweep.run_eval(_args(*argv, "--episodes", "3", "--batch", "2", "--resolution", "8x32", "--out", str(out)))
+    assert not (out / "episodes_objectgoal.csv").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--agent", "pioneer,nope"], "unknown agent 'nope'"),
+        (["--agent", "conav"], "needs a trained run"),
+        (["--agent", "conav", "--checkpoint", "/nonexistent/run"], "run directory not found"),
+        (["--agent", "pioneer", "--ablation-checkpoints", "all"], "name=RUN_DIR"),
+        (["--agent", "pioneer", "--ablation-checkpoints", "all=/nonexistent/run"], "run directory not found"),
+        (["--agent", "pioneer", "--split", "test"], "no split 'test'"),
+        (["--agent", "pioneer", "--batch", "0"], "--batch must be at least 1"),
+    ],
+)
+def test_bad_input_fails_before_anything_is_built(tiny_data, tmp_path, monkeypatch, argv, message):
+    def never(*a, **k):
+        raise AssertionError("the env was built before the inputs were checked")
+
+    monkeypatch.setattr(sweep, "load_env", never)
+    with pytest.raises(ValueError, match=message):
+        sweep.run_eval(_args("--data", str(tiny_data), "--out", str(tmp_path / "o"), *argv))
+
+
+def test_missing_dataset_is_a_clear_error(tmp_path):
+    with pytest.raises(ValueError, match="dataset directory not found"):
+        sweep.run_eval(_args("--data", str(tmp_path / "none"), "--agent", "random", "--out", str(tmp_path / "o")))

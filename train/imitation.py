@@ -1,0 +1,355 @@
+"""Imitation learning for the CoNav policy: the expert in the simulator, its data, BC and DAgger.
+
+`make_rollout_fn` runs the env with the expert and the policy side by side (a share `beta` of
+the steps is acted by the expert: 1 for behaviour cloning, 0 for DAgger's own-policy rounds);
+the expert labels every visited state. Records -> `sequences` (fixed-length windows with a
+burn-in, compact uint8/float16 panoramas) -> `bc_loss` (paper's L2 on (v_lin, v_ang)), trained
+by train.loop. train/policy.py drives the rounds; eval/learned.py builds the agent from a run.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from conav_jax.episodes import PHASE_ACTIVITY_A
+from conav_jax.expert import ExpertCarry, ExpertConfig, ExpertMaps, clearance_map, expert_action, initial_carry
+from conav_jax.models import policy
+from conav_jax.models.policy import PolicyConfig
+from conav_jax.nn.lstm import LSTMState
+from envs.conav_env import ConavEnv
+from envs.mjcf import UD
+from envs.rollout import Agent
+
+INTENTION_KEYS = ("activity_probs", "object_probs", "future_traj")
+# What a rollout records per step (besides the panorama, kept as "rgb" uint8 and "depth" f16).
+RECORDED_KEYS = ("gps_compass", "human_pos") + INTENTION_KEYS
+
+
+# -- the expert in the simulator ------------------------------------------------------------------
+
+
+def _clearance_grids(env: ConavEnv) -> jax.Array:
+    """(S, ny, nx) signed wall clearance (m) of every scene, on the bank's field grid."""
+    b = env.bank
+    _, _, ny, nx = b.fields.shape
+    out = np.full((len(env.split.navs), ny, nx), -b.cell_m, np.float32)  # padding reads as blocked
+    for s, nav in enumerate(env.split.navs):
+        gy, gx = nav.grid.shape
+        out[s, :gy, :gx] = clearance_map(nav.grid.free, nav.grid.cell_m)
+    return jnp.asarray(out)
+
+
+def make_expert_step(env: ConavEnv, cfg: ExpertConfig = ExpertConfig()) -> Callable:
+    """`(state, carry) -> (action (2,), carry)`: conav_jax.expert acting on one env's brax State.
+    Privileged: it reads the episode's fields, the human's upcoming positions and phase."""
+    b = env.bank
+    clearance = _clearance_grids(env)
+    look = jnp.asarray(cfg.human_lookahead_steps, jnp.int32)
+
+    def step(state, carry: ExpertCarry):
+        ep = state.info["episode"]
+        s = b.scene_index[ep]
+        t = state.pipeline_state.userdata[UD["t"]].astype(jnp.int32)
+        ts = jnp.clip(t + look, 0, b.max_steps - 1)
+        maps = ExpertMaps(b.fields[s, b.field_b[ep]], b.fields[s, b.field_a[ep]], clearance[s], b.field_origin[s])
+        at_a = b.phase[ep, ts[0]] == PHASE_ACTIVITY_A
+        return expert_action(cfg, maps, b.cell_m, state.pipeline_state.qpos, b.root_xy[ep, ts], at_a, carry)
+
+    return step
+
+
+def expert_agent(env: ConavEnv, cfg: ExpertConfig = ExpertConfig()) -> Agent:
+    """The expert as an envs.rollout.Agent named "expert": the imitation teacher, and the
+    ceiling a learned policy is measured against."""
+    step = make_expert_step(env, cfg)
+    return Agent("expert", lambda key, episode: initial_carry(), lambda state, carry, key: step(state, carry))
+
+
+# -- the policy acting in one env -----------------------------------------------------------------
+
+
+class PolicyCarry(NamedTuple):
+    """The acting policy's memory: its LSTM state ((hidden,) each) and the intention
+    predictor's carry (None without one)."""
+
+    lstm: LSTMState
+    intention: Any
+
+
+class PolicyStep(NamedTuple):
+    """`init() -> PolicyCarry`; `step(params, obs, carry) -> (action (2,), carry)` for one env."""
+
+    init: Callable[[], PolicyCarry]
+    step: Callable[[dict, dict, PolicyCarry], tuple[jax.Array, PolicyCarry]]
+
+
+def policy_inputs(cfg: PolicyConfig) -> tuple[str, ...]:
+    """The observation keys the policy reads: the panorama, pose, human position and the
+    intention inputs its ablation keeps."""
+    on = (cfg.use_activity, cfg.use_object, cfg.use_trajectory)
+    return ("rgbd", "gps_compass", "human_pos") + tuple(k for k, use in zip(INTENTION_KEYS, on) if use)
+
+
+def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None) -> PolicyStep:
+    """The LSTM policy acting for one env. Intention inputs come from the observation (the
+    env's ground truth) unless predictors are given: `intention` (train.intention's
+    IntentionPredictor) replaces activity/object probabilities with its predictions from the
+    front view, `trajectory` (train.trajectory's TrajectoryPredictor) the future trajectory with
+    its prediction from the human's history. Inputs the ablation drops are never computed."""
+    use_intention = intention is not None and (cfg.use_activity or cfg.use_object)
+    use_trajectory = trajectory is not None and cfg.use_trajectory
+    keys = policy_inputs(cfg)
+
+    def init() -> PolicyCarry:
+        lstm = jax.tree.map(lambda x: x[0], policy.initial_carry(cfg, 1))
+        return PolicyCarry(lstm, intention.init() if use_intention else None)
+
+    def step(params, obs: dict, carry: PolicyCarry):
+        inputs = {k: obs[k] for k in keys if k in obs}
+        icarry = carry.intention
+        if use_intention:
+            activity, obj, icarry = intention.step(icarry, obs["front"])
+            inputs.update(activity_probs=activity, object_probs=obj)
+        if use_trajectory:
+            inputs["future_traj"] = trajectory.predict(obs["human_history"])
+        batched = {k: inputs[k][None] for k in keys}
+        lstm = jax.tree.map(lambda x: x[None], carry.lstm)
+        action, _, lstm = policy.apply(params, cfg, batched, lstm)
+        return action[0], PolicyCarry(jax.tree.map(lambda x: x[0], lstm), icarry)
+
+    return PolicyStep(init, step)
+
+
+def check_policy_env(env: ConavEnv, cfg: PolicyConfig, source: str, intention=None, trajectory=None) -> None:
+    """ValueError unless `env` renders the policy's resolution and observes the ground-truth
+    intention inputs the policy reads without a predictor."""
+    hw = (env.config.sensor.height, env.config.sensor.width)
+    if hw != tuple(cfg.image_hw):
+        h, w = cfg.image_hw
+        raise ValueError(
+            f"{source} was trained on {h}x{w} panoramas but the env renders {hw[0]}x{hw[1]}; "
+            f"build the env with SensorConfig(height={h}, width={w})"
+        )
+    ground_truth = [k for k in policy_inputs(cfg) if k in INTENTION_KEYS]
+    if intention is not None:
+        ground_truth = [k for k in ground_truth if k == "future_traj"]
+    if trajectory is not None:
+        ground_truth = [k for k in ground_truth if k != "future_traj"]
+    if ground_truth and not env.config.intention_obs:
+        raise ValueError(
+            f"{source} reads {', '.join(ground_truth)} and no predictor supplies them; build the env "
+            "with EnvConfig(intention_obs=True) or pass the predictor runs"
+        )
+
+
+def policy_agent_from_params(params, cfg: PolicyConfig, intention=None, trajectory=None, name: str = "conav") -> Agent:
+    """An envs.rollout.Agent acting with these policy parameters (closed over)."""
+    pol = make_policy_step(cfg, intention, trajectory)
+    return Agent(name, lambda key, episode: pol.init(), lambda state, carry, key: pol.step(params, state.obs, carry))
+
+
+# -- rollouts and their records ---------------------------------------------------------------
+
+
+class StepRecord(NamedTuple):
+    """One recorded step, fields (B, T, ...) from a rollout. `obs` holds the policy's inputs in
+    compact form: "rgb" (H, W, 3) uint8, "depth" (H, W) float16 metres and RECORDED_KEYS."""
+
+    obs: dict
+    label: jax.Array  # (2,) the expert's action in this state
+    action: jax.Array  # (2,) the action taken (expert's or policy's)
+    valid: jax.Array  # () bool: the episode had not ended before this step
+    pose: jax.Array  # (3,) robot (x, y, yaw) world, before the action
+
+
+def compact_obs(obs: dict) -> dict:
+    """The env's observation -> what a record keeps (uint8 RGB, float16 depth: 2.5 of 16 bytes
+    a pixel). Colours are k/255 per geom, so the uint8 round trip is exact."""
+    rgbd = obs["rgbd"]
+    out = {
+        "rgb": jnp.round(rgbd[..., :3] * 255.0).astype(jnp.uint8),
+        "depth": rgbd[..., 3].astype(jnp.float16),
+    }
+    out.update({k: obs[k].astype(jnp.float32) for k in RECORDED_KEYS})
+    return out
+
+
+def expand_obs(compact: dict) -> dict:
+    """Inverse of `compact_obs` (any leading dims): float32 "rgbd" and the other keys."""
+    rgbd = jnp.concatenate(
+        [compact["rgb"].astype(jnp.float32) / 255.0, compact["depth"].astype(jnp.float32)[..., None]], axis=-1
+    )
+    return {"rgbd": rgbd, **{k: compact[k].astype(jnp.float32) for k in RECORDED_KEYS}}
+
+
+def make_rollout_fn(
+    env: ConavEnv,
+    policy_cfg: PolicyConfig,
+    expert_cfg: ExpertConfig = ExpertConfig(),
+    *,
+    record: bool = True,
+    num_steps: int | None = None,
+    intention=None,
+    trajectory=None,
+):
+    """A pure function `(params, key, episodes (B,) int32, beta ()) -> (metrics, records)`;
+    jit it (once: params and beta are arguments, so every round and every validation reuses
+    the compiled code).
+
+    Each episode runs `num_steps` (default: the bank's longest) control steps with the expert
+    and the policy side by side: at each step the expert's action (its label) is taken with
+    probability `beta`, else the policy's; with `beta >= 1` the policy is not evaluated at all.
+    `metrics`: the env's final per-episode metrics dict of (B,) (envs.metrics). `records`: a
+    StepRecord of (B, T, ...) if `record`, else None (validation needs no observations)."""
+    check_policy_env(env, policy_cfg, "the policy", intention, trajectory)
+    if record and not env.config.intention_obs:
+        raise ValueError("recording imitation data needs the ground-truth intentions: EnvConfig(intention_obs=True)")
+    expert = make_expert_step(env, expert_cfg)
+    pol = make_policy_step(policy_cfg, intention, trajectory)
+    steps = num_steps or env.bank.max_steps
+
+    def one(params, key, episode, beta):
+        k_reset, k_run = jax.random.split(key)
+        state = env.reset_to_episode(k_reset, episode)
+
+        def body(c, k):
+            state, ecarry, pcarry = c
+            label, ecarry = expert(state, ecarry)
+
+            def mixed(pcarry):
+                action, pcarry = pol.step(params, state.obs, pcarry)
+                return jnp.where(jax.random.uniform(k) < beta, label, action), pcarry
+
+            # beta is the same for the whole batch, so under vmap this stays a real branch.
+            action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
+            rec = None
+            if record:
+                rec = StepRecord(compact_obs(state.obs), label, action, state.done < 0.5, state.pipeline_state.qpos)
+            return (env.step(state, action), ecarry, pcarry), rec
+
+        init = (state, initial_carry(), pol.init())
+        (state, _, _), recs = jax.lax.scan(body, init, jax.random.split(k_run, steps))
+        return state.metrics, recs
+
+    def run(params, key, episodes, beta):
+        keys = jax.random.split(key, episodes.shape[0])
+        return jax.vmap(one, in_axes=(None, 0, 0, None))(params, keys, episodes, jnp.asarray(beta, jnp.float32))
+
+    return run
+
+
+def run_batched(
+    rollout, params, key: jax.Array, episodes: np.ndarray, beta: float, batch: int, progress: Callable | None = None
+) -> tuple[dict[str, np.ndarray], StepRecord | None]:
+    """A jitted `make_rollout_fn` over many episodes in batches of `batch` (the last padded by
+    repeating its last episode, padding dropped) -> host (metrics, records) over all of them."""
+    episodes = np.asarray(episodes, np.int32)
+    if episodes.ndim != 1 or len(episodes) == 0:
+        raise ValueError("episodes must be a non-empty 1-D array of episode indices")
+    batch = min(batch, len(episodes))
+    metrics, records = [], []
+    starts = range(0, len(episodes), batch)
+    for s0 in progress(starts) if progress else starts:
+        idx = episodes[s0 : s0 + batch]
+        n = len(idx)
+        idx = np.concatenate([idx, np.full(batch - n, idx[-1], np.int32)])
+        m, r = rollout(params, jax.random.fold_in(key, s0), jnp.asarray(idx), beta)
+        metrics.append({k: np.asarray(v)[:n] for k, v in m.items()})
+        if r is not None:
+            records.append(jax.tree.map(lambda x: np.asarray(x)[:n], r))
+    out = {k: np.concatenate([m[k] for m in metrics]) for k in metrics[0]}
+    out["episode"] = episodes
+    recs = jax.tree.map(lambda *xs: np.concatenate(xs), *records) if records else None
+    return out, recs
+
+
+# -- imitation data ------------------------------------------------------------------------------
+
+
+def sequences(records: StepRecord, seq_len: int, burn_in: int) -> dict[str, np.ndarray]:
+    """Cut episode records (E, T, ...) into training windows of `burn_in + seq_len` steps.
+
+    Window c covers steps [c * seq_len - burn_in, (c + 1) * seq_len) of an episode (before the
+    episode's start: padding). Its last `seq_len` steps are trained on where valid; the burn-in
+    only warms up the LSTM, so a window's loss sees a carry that has run >= burn_in steps (at
+    evaluation it runs the whole episode). Windows with no valid step are dropped.
+    Returns host arrays, leading N windows: "obs" (dict, compact), "label" (N, W, 2),
+    "mask" (N, W) float32 (1 = in the loss) and "reset" (N, W) bool (the episode starts here)."""
+    if seq_len < 1 or burn_in < 0:
+        raise ValueError(f"need seq_len >= 1 and burn_in >= 0, got {seq_len}, {burn_in}")
+    valid = np.asarray(records.valid, bool)
+    e, t = valid.shape
+    chunks = -(-t // seq_len)
+    pad = ((0, 0), (burn_in, chunks * seq_len - t))
+
+    def padded(x):
+        return np.pad(np.asarray(x), pad + ((0, 0),) * (np.ndim(x) - 2))
+
+    reset = np.zeros((e, t), bool)
+    reset[:, 0] = True
+    cols = np.arange(chunks)[:, None] * seq_len + np.arange(burn_in + seq_len)[None]  # (chunks, W)
+    in_loss = np.zeros(burn_in + seq_len, bool)
+    in_loss[burn_in:] = True
+    mask = padded(valid)[:, cols] & in_loss  # (E, chunks, W)
+    keep = mask.any(-1)  # (E, chunks)
+
+    def windows(x):
+        w = padded(x)[:, cols]
+        return w[keep]
+
+    return {
+        "obs": {k: windows(v) for k, v in records.obs.items()},
+        "label": windows(records.label).astype(np.float32),
+        "mask": mask[keep].astype(np.float32),
+        "reset": windows(reset),
+    }
+
+
+def concat_sequences(parts: list[dict]) -> dict:
+    """DAgger's aggregation: the windows of several datasets, one after another."""
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
+
+
+def save_sequences(path, data: dict) -> None:
+    """Write windows to one .npz (keys flattened as "obs/rgb", "label", ...)."""
+    flat = {f"obs/{k}": v for k, v in data["obs"].items()}
+    flat.update({k: v for k, v in data.items() if k != "obs"})
+    np.savez(path, **flat)
+
+
+def load_sequences(path) -> dict:
+    with np.load(path) as z:
+        return {
+            "obs": {k[4:]: z[k] for k in z.files if k.startswith("obs/")},
+            **{k: z[k] for k in z.files if not k.startswith("obs/")},
+        }
+
+
+# -- behaviour cloning ------------------------------------------------------------------------
+
+
+def bc_loss(params, cfg: PolicyConfig, batch: dict) -> tuple[jax.Array, dict]:
+    """The paper's L2 imitation loss, (v_lin - v_lin*)^2 + (v_ang - v_ang*)^2, averaged over
+    the batch's in-loss steps. `batch`: windows as `sequences` returns them, (B, W, ...); the
+    LSTM runs each window from a zero carry (reset at episode starts)."""
+    obs = expand_obs(batch["obs"])
+    carry = policy.initial_carry(cfg, batch["label"].shape[0])
+    actions, _, _ = policy.apply_sequence(params, cfg, obs, carry, batch["reset"])
+    err = jnp.sum(jnp.square(actions - batch["label"]), axis=-1)
+    n = jnp.sum(batch["mask"])
+    loss = jnp.sum(err * batch["mask"]) / jnp.maximum(n, 1.0)
+    return loss, {"steps_in_loss": n}
+
+
+def make_loss_fn(cfg: PolicyConfig):
+    """`bc_loss` in train.loop's shape `(params, batch, key) -> (loss, metrics)`."""
+
+    def loss_fn(params, batch, key):
+        del key  # deterministic loss
+        return bc_loss(params, cfg, batch)
+
+    return loss_fn

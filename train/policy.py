@@ -1,0 +1,310 @@
+"""`conav train policy`: the CoNav LSTM policy imitates the expert (BC, then DAgger rounds).
+
+Round 0 records the expert on the train split; each DAgger round rolls out the current policy,
+the expert labels the states it visits, and the aggregated windows (RUN/data/round_R.npz)
+retrain it with train.loop (one resumable sub-run per round, RUN/round_R/). Validation runs the
+policy in the simulator on the val split. RUN/log.jsonl holds the expert's val metrics (the
+ceiling) and each round's; RUN/ckpt_*.npz the policy after each round, read by eval.learned.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+from train.loop import TrainConfig, add_train_args, train_config_from_args
+
+KIND = "policy"
+LOG_FILE = "log.jsonl"
+
+
+@dataclass(frozen=True)
+class ImitationConfig:
+    """What the policy sees and which data it learns from (TrainConfig: each round's updates)."""
+
+    ablation: str = "all"  # Table 3 row: none | activity | object | activity_object | all
+    resolution: tuple[int, int] = (112, 448)  # panorama (H, W) rendered and fed to the policy
+    episodes: int | None = None  # train-split episodes recorded (None: all)
+    val_episodes: int | None = None  # val-split episodes validated on (None: all)
+    dagger_rounds: int = 0  # rounds after behaviour cloning
+    dagger_steps: int | None = None  # updates per DAgger round (None: TrainConfig.steps)
+    seq_len: int = 32  # steps per training window in the loss (truncated BPTT)
+    burn_in: int = 16  # steps before each window that only warm up the LSTM
+    rollout_batch: int = 64  # episodes per simulator call (recording and validation)
+
+    def __post_init__(self):
+        from conav_jax.models.policy import ABLATIONS
+
+        if self.ablation not in ABLATIONS:
+            raise ValueError(f"unknown ablation {self.ablation!r}; expected one of {sorted(ABLATIONS)}")
+        if self.dagger_rounds < 0 or self.seq_len < 1 or self.burn_in < 0 or self.rollout_batch < 1:
+            raise ValueError("need dagger_rounds >= 0, seq_len >= 1, burn_in >= 0, rollout_batch >= 1")
+        for name in ("episodes", "val_episodes", "dagger_steps"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise ValueError(f"ImitationConfig.{name} must be >= 1 (or None), got {getattr(self, name)}")
+
+
+class PolicyResult(NamedTuple):
+    params: dict
+    val: dict  # the final policy's val metrics (envs.metrics.summarize)
+    expert_val: dict  # the expert's, same episodes
+    run_dir: Path
+
+
+def run_config(model, imitation: ImitationConfig, expert, content_hash: str, intention_run, trajectory_run) -> dict:
+    """The checkpoint's config: "kind", the PolicyConfig as "model" (what train.ppo's
+    --init-from and eval.learned rebuild the network from), the sensor resolution, the data
+    and the predictor runs validation used."""
+    return {
+        "kind": KIND,
+        "model": dataclasses.asdict(model),
+        "sensor_hw": list(imitation.resolution),
+        "imitation": dataclasses.asdict(imitation),
+        "expert": dataclasses.asdict(expert),
+        "data_hash": content_hash,
+        "intention_run": None if intention_run is None else str(intention_run),
+        "trajectory_run": None if trajectory_run is None else str(trajectory_run),
+    }
+
+
+def policy_config_from_dict(d: dict):
+    """PolicyConfig from a checkpoint's JSON "model" (lists back to tuples)."""
+    from conav_jax.models.policy import PolicyConfig
+
+    names = {f.name for f in dataclasses.fields(PolicyConfig)}
+    if set(d) - names:
+        raise ValueError(f"checkpoint model config has unknown PolicyConfig fields {sorted(set(d) - names)}")
+    return PolicyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+def load_policy_run(run_dir: str | Path):
+    """(params, PolicyConfig, config dict) of a policy run's latest checkpoint.
+    FileNotFoundError for a missing run or checkpoint, ValueError for another kind of run or
+    params that do not fit the saved PolicyConfig."""
+    import jax
+
+    from conav_jax.checkpoints import latest_checkpoint, load_checkpoint
+    from conav_jax.models import policy
+    from train.loop import load_run
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"policy run directory not found: {run_dir}")
+    try:
+        ckpt = load_run(run_dir, KIND)
+    except ValueError as e:
+        raise ValueError(f"{e} (the CoNav agent needs a `conav train policy` run)") from None
+    if "model" not in ckpt.config or "sensor_hw" not in ckpt.config:
+        raise ValueError(f"{run_dir}: policy checkpoint without model/sensor config")
+    cfg = policy_config_from_dict(ckpt.config["model"])
+    template = jax.eval_shape(lambda k: policy.init(k, cfg), jax.random.PRNGKey(0))
+    params = load_checkpoint(latest_checkpoint(run_dir), params_like=template).params
+    return params, cfg, ckpt.config
+
+
+def _append_log(path: Path, record: dict) -> None:
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def _trim_log(path: Path, last_round: int) -> None:
+    """Keep the records up to round `last_round` (and the round-less ones): a resumed run
+    re-logs the rounds after its checkpoint."""
+    if path.is_file():
+        keep = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln).get("round", -1) <= last_round]
+        path.write_text("".join(ln + "\n" for ln in keep))
+
+
+def _rates(m: dict) -> str:
+    return f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"
+
+
+def train_policy(
+    data_dir: str | Path,
+    run_dir: str | Path,
+    cfg: TrainConfig,
+    imitation: ImitationConfig = ImitationConfig(),
+    expert=None,
+    intention_run: str | Path | None = None,
+    trajectory_run: str | Path | None = None,
+    progress: bool = True,
+    compiler_options: dict | None = None,
+    log=print,
+) -> PolicyResult:
+    """Imitation-train the policy on `data_dir`'s train split into `run_dir` (resumed if it
+    holds a checkpoint of the same config; ValueError naming the first difference otherwise).
+
+    `cfg` is round 0's optimisation (DAgger rounds: `imitation.dagger_steps` updates each, same
+    settings, warm-started from the previous round). With `intention_run` / `trajectory_run`,
+    validation feeds the policy the predictors' outputs; training always uses ground truth
+    (paper sec. 4.2). `compiler_options` go to every jit (tests lower the XLA level)."""
+    import jax
+    import numpy as np
+
+    from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+    from conav_jax.episodes import read_manifest
+    from conav_jax.expert import ExpertConfig
+    from conav_jax.models import policy
+    from conav_jax.models.policy import PolicyConfig, ablation_config
+    from envs import ConavEnv, EnvConfig, SensorConfig
+    from envs.metrics import summarize
+    from train import imitation as im
+    from train.loop import train
+
+    expert = expert or ExpertConfig()
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "data").mkdir(exist_ok=True)
+    log_path = run_dir / LOG_FILE
+    content_hash = read_manifest(data_dir)["content_hash"]
+    model = ablation_config(PolicyConfig(image_hw=tuple(imitation.resolution)), imitation.ablation)
+    config = run_config(model, imitation, expert, content_hash, intention_run, trajectory_run)
+
+    # Resume: the last finished round's policy, or a fresh one.
+    params = policy.init(jax.random.PRNGKey(cfg.seed), model)
+    done_round, step = -1, 0
+    expert_val: dict = {}
+    found = latest_checkpoint(run_dir)
+    if found is not None:
+        try:
+            ckpt = load_checkpoint(found, config=config, params_like=params)
+        except ValueError as e:
+            raise ValueError(f"cannot resume {run_dir}: {e}") from None
+        params, step = ckpt.params, ckpt.step
+        done_round, expert_val = ckpt.extra["round"], ckpt.extra["expert_val"]
+        _trim_log(log_path, done_round)
+        log(f"resuming {run_dir} after round {done_round} ({step} updates)")
+    elif log_path.exists():
+        log_path.unlink()  # a log without a checkpoint belongs to no state we can continue
+
+    h, w = imitation.resolution
+    env_cfg = EnvConfig(sensor=SensorConfig(height=h, width=w))
+    train_env = ConavEnv(data_dir, "train", env_cfg, max_episodes=imitation.episodes)
+    val_env = ConavEnv(data_dir, "val", env_cfg, max_episodes=imitation.val_episodes)
+    intention = trajectory = None
+    if intention_run is not None:
+        from train.intention import load_intention_predictor
+
+        intention = load_intention_predictor(intention_run)
+    if trajectory_run is not None:
+        from train.trajectory import load_trajectory_predictor
+
+        trajectory = load_trajectory_predictor(trajectory_run)
+    jit = lambda f: jax.jit(f, compiler_options=compiler_options)  # noqa: E731
+    record = jit(im.make_rollout_fn(train_env, model, expert, record=True))
+    validate = jit(im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory))
+    train_eps, val_eps = np.arange(train_env.num_episodes), np.arange(val_env.num_episodes)
+    val_key = jax.random.PRNGKey(cfg.seed + 1)
+
+    def val_metrics(p, beta: float) -> dict:
+        m, _ = im.run_batched(validate, p, val_key, val_eps, beta, imitation.rollout_batch)
+        return summarize(m)
+
+    if not expert_val:
+        t0 = time.perf_counter()
+        expert_val = val_metrics(params, 1.0)
+        _append_log(log_path, {"split": "val", "agent": "expert", "episodes": len(val_eps), **expert_val})
+        log(f"expert (the ceiling) on val, {len(val_eps)} episodes: {_rates(expert_val)}  [{time.perf_counter() - t0:.0f} s]")
+
+    loss_fn = im.make_loss_fn(model)
+    parts, val = [], {}
+    for r in range(imitation.dagger_rounds + 1):
+        path = run_dir / "data" / f"round_{r}.npz"
+        if path.exists():
+            parts.append(im.load_sequences(path))
+        elif r <= done_round:
+            raise FileNotFoundError(f"cannot resume {run_dir}: {path}, the data round {r} trained on, is missing")
+        else:
+            # Round 0: the expert acts (BC); later rounds: the current policy acts (DAgger).
+            beta = 1.0 if r == 0 else 0.0
+            t0 = time.perf_counter()
+            m, recs = im.run_batched(
+                record, params, jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r), train_eps, beta, imitation.rollout_batch
+            )
+            parts.append(im.sequences(recs, imitation.seq_len, imitation.burn_in))
+            im.save_sequences(path, parts[-1])
+            agent = "expert" if r == 0 else "policy"
+            _append_log(log_path, {"round": r, "split": "train", "agent": agent, "episodes": len(train_eps), **summarize(m)})
+            log(f"round {r}: recorded {len(train_eps)} train episodes ({agent} acting: {_rates(summarize(m))}), "
+                f"{len(parts[-1]['label'])} windows  [{time.perf_counter() - t0:.0f} s]")
+        if r <= done_round:
+            continue
+        steps = cfg.steps if r == 0 else (imitation.dagger_steps or cfg.steps)
+        round_cfg = dataclasses.replace(cfg, steps=steps, warmup_steps=min(cfg.warmup_steps, steps))
+        result = train(
+            run_dir / f"round_{r}", loss_fn, params, im.concat_sequences(parts), round_cfg, {**config, "round": r},
+            val_fn=lambda p: val_metrics(p, 0.0), progress=progress, compiler_options=compiler_options,
+        )
+        params, val, step = result.params, result.val, step + steps
+        save_checkpoint(
+            checkpoint_path(run_dir, step), params=params, opt_state=result.opt_state, config=config, step=step,
+            extra={"round": r, "val": val, "expert_val": expert_val},
+        )
+        windows = sum(len(p["label"]) for p in parts)
+        _append_log(log_path, {"round": r, "step": step, "split": "val", "agent": "policy", "windows": windows, **val})
+        log(f"round {r}: {windows} windows, {steps} updates -> policy on val: {_rates(val)}")
+    if not val:  # resumed after the last round
+        val = val_metrics(params, 0.0)
+    return PolicyResult(params, val, expert_val, run_dir)
+
+
+# -- CLI -------------------------------------------------------------------------------------------
+
+
+def _hw(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"expected HxW like 112x448, got {text!r}") from None
+    return h, w
+
+
+def add_train_policy(sub: argparse._SubParsersAction) -> None:
+    """Register `conav train policy`."""
+    from conav_jax.models.policy import ABLATIONS
+
+    p = sub.add_parser("policy", help="imitation-train the CoNav policy from the expert (BC, then DAgger)")
+    add_train_args(p, TrainConfig(steps=2000, batch=16, lr=3e-4, warmup_steps=100, val_every=1000, ckpt_every=500))
+    d = ImitationConfig()
+    p.add_argument("--intention", default=None, help="intention run (conav train intention): validate with its predictions")
+    p.add_argument("--trajectory", default=None, help="trajectory run (conav train trajectory): validate with its predictions")
+    p.add_argument("--ablation", choices=sorted(ABLATIONS), default=d.ablation, help="intention inputs kept (Table 3)")
+    p.add_argument("--dagger-rounds", type=int, default=d.dagger_rounds, help="DAgger rounds after behaviour cloning")
+    p.add_argument("--dagger-steps", type=int, default=None, help="updates per DAgger round (default: --steps)")
+    p.add_argument("--resolution", default="x".join(map(str, d.resolution)), help="panorama HxW")
+    p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
+    p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
+    p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
+    p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
+    p.add_argument("--rollout-batch", type=int, default=d.rollout_batch, help="episodes per simulator call")
+    p.set_defaults(func=run_train_policy)
+
+
+def run_train_policy(args: argparse.Namespace) -> int:
+    imitation = ImitationConfig(
+        ablation=args.ablation, resolution=_hw(args.resolution), episodes=args.episodes,
+        val_episodes=args.val_episodes, dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps,
+        seq_len=args.seq_len, burn_in=args.burn_in, rollout_batch=args.rollout_batch,
+    )
+    for flag, run in (("--intention", args.intention), ("--trajectory", args.trajectory)):
+        if run is not None and not Path(run).is_dir():
+            raise FileNotFoundError(f"{flag} run directory not found: {run}")
+    from train.loop import NonFiniteLoss
+
+    try:
+        result = train_policy(
+            args.data, args.out, train_config_from_args(args), imitation,
+            intention_run=args.intention, trajectory_run=args.trajectory, progress=not args.no_progress,
+        )
+    except NonFiniteLoss as e:
+        print(f"conav train policy: {e}")
+        return 1
+    print(f"policy run: {result.run_dir}")
+    print(f"val expert (ceiling): {_rates(result.expert_val)}")
+    print(f"val policy:           {_rates(result.val)}")
+    return 0

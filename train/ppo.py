@@ -1,0 +1,645 @@
+"""PPO for the CoNav policy on the brax interface (purejaxrl-style, written by us).
+
+wrapped env (VmapWrapper + EpisodeWrapper + AutoResetWrapper) -> `rollout` (lax.scan over time:
+obs, Gaussian actions, log-probs, values, rewards, dones) -> `gae` (reverse scan) -> `update`
+(epochs x minibatches, nested scans, `ppo_loss`) -> one jitted `iteration`, driven by a thin
+Python loop (`train_ppo`) that logs to RUN/log.jsonl, checkpoints and evaluates on val.
+
+Choices, stated once:
+- Policy: conav_jax.models.policy (the paper's CNN + LSTM), so imitation checkpoints start PPO
+  (`init_from`). The feed-forward variant runs the same network from a zero LSTM carry every
+  step (the LSTM cell then is a gated dense layer); the recurrent one carries the LSTM state.
+- Action distribution: a diagonal Gaussian on the action itself, mean = the policy's tanh
+  output, std = exp(params["log_std"]) (state-independent). Log-probs are of the unclipped
+  sample; the env clips it to [-1, 1]. The deterministic agent acts with the mean.
+- Episode variety: brax's AutoResetWrapper restarts each slot on the episode it was first reset
+  to, so every `reset_every` iterations the whole batch is re-reset from fresh keys (new
+  episodes). Long enough that `reset_every * rollout_steps` covers most episodes; the
+  interrupted episodes are bootstrapped from their value like any segment end.
+- Time-limit truncation (EpisodeWrapper) counts as termination; the default episode length is
+  longer than any episode of the bank, so only the env's own ends (goal reached, human done).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import brax.envs
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.wrappers import training as brax_training
+from tqdm import tqdm
+
+import envs  # noqa: F401  (registers 'conav' with brax)
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.models import policy
+from conav_jax.models.policy import PolicyConfig
+from conav_jax.nn.lstm import LSTMState
+from conav_jax.optim import Optimizer, adam, clip_by_global_norm
+from envs import ConavEnv, EnvConfig, SensorConfig
+from envs.metrics import summarize
+from envs.rollout import Agent, evaluate
+
+KIND = "ppo"
+POLICY_KIND = "policy"  # imitation runs (train/policy.py) that --init-from accepts
+LOG_FILE = "log.jsonl"
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """One PPO run. Steps are env (control) steps of 0.1 s; cadences are in iterations, one
+    iteration = `num_envs * rollout_steps` env steps followed by one update."""
+
+    num_envs: int = 64  # B: parallel environments (the explicit batch axis a mesh can shard)
+    rollout_steps: int = 128  # T: steps per env per iteration (truncated-BPTT length too)
+    total_env_steps: int = 5_000_000  # rounded up to whole iterations
+    epochs: int = 4  # passes over each rollout
+    minibatches: int = 4  # per epoch; recurrent: over envs (whole sequences), else over steps
+    gamma: float = 0.99  # discount per 0.1 s step (horizon ~10 s)
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.2  # PPO ratio clip
+    value_coef: float = 0.5
+    entropy_coef: float = 1e-3
+    lr: float = 3e-4  # Adam, constant
+    max_grad_norm: float = 0.5  # global L2 clip of each minibatch gradient
+    normalize_advantages: bool = True  # per minibatch, to zero mean and unit std
+    seed: int = 0
+    recurrent: bool = True  # LSTM carry through time; False: zero carry every step
+    # Panorama (H, W). The rollout buffer holds T * B * H * W * 4 float32 (16 bytes a pixel):
+    # 32x128 at B=64, T=128 is 0.5 GB; the paper's 112x448 is 12x that.
+    resolution: tuple[int, int] = (32, 128)
+    episode_length: int | None = None  # EpisodeWrapper limit; None: longer than every episode
+    reset_every: int = 4  # iterations between re-resets of the batch onto new episodes
+    eval_every: int = 50  # iterations between val evaluations (and one at the end); 0: none
+    ckpt_every: int = 50  # iterations between checkpoints (one is always written at the end)
+    eval_episodes: int | None = None  # first N val episodes; None: all of them
+    eval_batch: int = 256  # episodes per evaluation batch
+
+    def __post_init__(self):
+        positive = ("num_envs", "rollout_steps", "total_env_steps", "epochs", "minibatches", "reset_every", "eval_batch")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ValueError(f"PPOConfig.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("eval_every", "ckpt_every"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"PPOConfig.{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("gamma", "gae_lambda"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"PPOConfig.{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.clip_eps <= 0 or self.lr <= 0 or self.max_grad_norm <= 0:
+            raise ValueError("PPOConfig needs clip_eps, lr and max_grad_norm > 0")
+        if self.value_coef < 0 or self.entropy_coef < 0:
+            raise ValueError("PPOConfig needs value_coef and entropy_coef >= 0")
+        samples = self.num_envs if self.recurrent else self.num_envs * self.rollout_steps
+        if samples % self.minibatches:
+            what = "num_envs" if self.recurrent else "num_envs * rollout_steps"
+            raise ValueError(f"{what} ({samples}) must be divisible by minibatches ({self.minibatches})")
+        if len(self.resolution) != 2:
+            raise ValueError(f"PPOConfig.resolution must be (H, W), got {self.resolution}")
+        if self.episode_length is not None and self.episode_length <= 0:
+            raise ValueError(f"PPOConfig.episode_length must be > 0 or None, got {self.episode_length}")
+        if self.eval_episodes is not None and self.eval_episodes <= 0:
+            raise ValueError(f"PPOConfig.eval_episodes must be > 0 or None, got {self.eval_episodes}")
+
+    @property
+    def steps_per_iteration(self) -> int:
+        return self.num_envs * self.rollout_steps
+
+    @property
+    def num_iterations(self) -> int:
+        return -(-self.total_env_steps // self.steps_per_iteration)
+
+
+# -- the Gaussian policy ---------------------------------------------------------------------------
+
+
+def gaussian_log_prob(action: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
+    """log N(action; mean, diag(exp(log_std)^2)) summed over the last axis: `action, mean
+    (..., 2)`, `log_std (2,)` -> `(...)`."""
+    z = (action - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * jnp.square(z) - log_std - 0.5 * LOG_2PI, axis=-1)
+
+
+def gaussian_entropy(log_std: jax.Array) -> jax.Array:
+    """Entropy (nats) of the diagonal Gaussian, a scalar: sum of log_std + 0.5 log(2 pi e)."""
+    return jnp.sum(log_std + 0.5 * (LOG_2PI + 1.0))
+
+
+def policy_obs(obs: dict, config: PolicyConfig) -> dict:
+    """The observations the policy reads (the rollout stores only these): rgbd, gps_compass,
+    human_pos and the enabled intention inputs."""
+    keys = ["rgbd", "gps_compass", "human_pos"]
+    keys += [k for k, on in (("activity_probs", config.use_activity), ("object_probs", config.use_object),
+                             ("future_traj", config.use_trajectory)) if on]
+    return {k: obs[k] for k in keys}
+
+
+def evaluate_actions(
+    params: dict, policy_config: PolicyConfig, recurrent: bool, mb: dict
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Re-run the policy on stored samples -> `(log_prob, entropy (scalar), value)` shaped like
+    `mb["log_prob"]`.
+
+    Recurrent: `mb` arrays are time-major `(T, b, ...)`, `mb["carry"]` the LSTM carry `(b,
+    hidden)` at the segment start and `mb["first"] (T, b)` the episode starts where it is
+    zeroed, exactly as the rollout did. Feed-forward: arrays are `(n, ...)`, zero carry."""
+    if recurrent:
+        obs = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), mb["obs"])  # (b, T, ...)
+        means, values, _ = policy.apply_sequence(params, policy_config, obs, mb["carry"], mb["first"].T)
+        means, values = jnp.swapaxes(means, 0, 1), values.T
+    else:
+        carry = policy.initial_carry(policy_config, mb["action"].shape[0])
+        means, values, _ = policy.apply(params, policy_config, mb["obs"], carry)
+    log_std = params["log_std"]
+    return gaussian_log_prob(mb["action"], means, log_std), gaussian_entropy(log_std), values
+
+
+# -- rollout ---------------------------------------------------------------------------------------
+
+
+class EnvCarry(NamedTuple):
+    """What passes from one rollout to the next: the wrapped env's batched State, the LSTM
+    carry `(B, hidden)` after the last step, and `first (B,)` bool, True where the current
+    observation starts an episode (the carry is zeroed before acting on it)."""
+
+    env_state: Any
+    carry: LSTMState
+    first: jax.Array
+
+
+class Transition(NamedTuple):
+    """One rollout, time-major `(T, B, ...)`. Step t: the agent saw `obs`, (`first`: an episode
+    started there), drew `action` (unclipped) with `log_prob` and critic `value`, then the env
+    returned `reward` and `done` (the episode ended with this step)."""
+
+    obs: dict
+    first: jax.Array
+    action: jax.Array
+    log_prob: jax.Array
+    value: jax.Array
+    reward: jax.Array
+    done: jax.Array
+
+
+def _act(params, policy_config: PolicyConfig, recurrent: bool, obs: dict, carry: LSTMState, first: jax.Array):
+    """Policy on a batch: -> (mean (B, 2), value (B,), next carry). Feed-forward keeps a zero carry."""
+    if recurrent:
+        return policy.apply(params, policy_config, obs, carry, reset=first)
+    mean, value, _ = policy.apply(params, policy_config, obs, carry)
+    return mean, value, carry
+
+
+def rollout(
+    env, policy_config: PolicyConfig, recurrent: bool, params: dict, start: EnvCarry, key: jax.Array, num_steps: int
+) -> tuple[EnvCarry, Transition, jax.Array, dict]:
+    """`num_steps` steps of the batched, wrapped env by lax.scan.
+
+    -> `(end EnvCarry, Transition (T, B, ...), last_value (B,) for bootstrapping, stats)`;
+    stats sums over the episodes that ended in the rollout: `episodes`, `return` (their
+    summed reward), `reached`, `collided` (counts)."""
+
+    def step(c: EnvCarry, k):
+        obs = policy_obs(c.env_state.obs, policy_config)
+        mean, value, carry = _act(params, policy_config, recurrent, obs, c.carry, c.first)
+        action = mean + jnp.exp(params["log_std"]) * jax.random.normal(k, mean.shape)
+        log_prob = gaussian_log_prob(action, mean, params["log_std"])
+        state = env.step(c.env_state, jnp.clip(action, -1.0, 1.0))
+        done = state.done > 0
+        stats = {
+            "episodes": done.sum(),
+            # The EpisodeWrapper's running sum still holds the whole episode at its last step.
+            "return": jnp.where(done, state.info["episode_metrics"]["sum_reward"], 0.0).sum(),
+            "reached": (done & (state.metrics["reached"] > 0)).sum(),
+            "collided": (done & (state.metrics["collided"] > 0)).sum(),
+        }
+        tr = Transition(obs, c.first, action, log_prob, value, state.reward, state.done)
+        return EnvCarry(state, carry, done), (tr, stats)
+
+    end, (traj, stats) = jax.lax.scan(step, start, jax.random.split(key, num_steps))
+    _, last_value, _ = _act(params, policy_config, recurrent, policy_obs(end.env_state.obs, policy_config),
+                            end.carry, end.first)
+    return end, traj, last_value, jax.tree.map(jnp.sum, stats)
+
+
+# -- advantages, loss, update ----------------------------------------------------------------------
+
+
+def gae(
+    rewards: jax.Array, values: jax.Array, dones: jax.Array, last_value: jax.Array, gamma: float, lam: float
+) -> tuple[jax.Array, jax.Array]:
+    """Generalised advantage estimation by a reverse lax.scan over time.
+
+    `rewards, values, dones (T, B)` (dones[t]: the episode ended with step t, so V(s_{t+1}) is
+    not bootstrapped), `last_value (B,)` = V of the observation after step T-1 ->
+    `(advantages, returns)` each `(T, B)`, returns = advantages + values (the critic target).
+      delta_t = r_t + gamma (1 - d_t) V_{t+1} - V_t,   A_t = delta_t + gamma lam (1 - d_t) A_{t+1}
+    """
+
+    def body(nxt, x):
+        adv_next, value_next = nxt
+        r, v, d = x
+        live = 1.0 - d
+        delta = r + gamma * live * value_next - v
+        adv = delta + gamma * lam * live * adv_next
+        return (adv, v), adv
+
+    init = (jnp.zeros_like(last_value), last_value)
+    _, adv = jax.lax.scan(body, init, (rewards, values, dones.astype(values.dtype)), reverse=True)
+    return adv, adv + values
+
+
+def ppo_loss(
+    log_prob: jax.Array,
+    entropy: jax.Array,
+    value: jax.Array,
+    old_log_prob: jax.Array,
+    advantages: jax.Array,
+    returns: jax.Array,
+    config: PPOConfig,
+) -> tuple[jax.Array, dict]:
+    """The PPO objective on a minibatch (all arrays the same shape, entropy may be a scalar):
+      policy = -mean(min(r A, clip(r, 1 - eps, 1 + eps) A)),  r = exp(log_prob - old_log_prob)
+      value  = 0.5 mean((value - returns)^2)
+      loss   = policy + value_coef * value - entropy_coef * mean(entropy)
+    A is normalised over the minibatch first if `config.normalize_advantages`.
+    -> (loss, {policy_loss, value_loss, entropy, approx_kl, clip_frac})."""
+    adv = advantages
+    if config.normalize_advantages:
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    log_ratio = log_prob - old_log_prob
+    ratio = jnp.exp(log_ratio)
+    clipped = jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps)
+    policy_loss = -jnp.mean(jnp.minimum(ratio * adv, clipped * adv))
+    value_loss = 0.5 * jnp.mean(jnp.square(value - returns))
+    ent = jnp.mean(entropy)
+    loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * ent
+    aux = {
+        "policy_loss": policy_loss,
+        "value_loss": value_loss,
+        "entropy": ent,
+        "approx_kl": jnp.mean(ratio - 1.0 - log_ratio),  # the k3 estimator, >= 0
+        "clip_frac": jnp.mean((jnp.abs(ratio - 1.0) > config.clip_eps).astype(jnp.float32)),
+    }
+    return loss, aux
+
+
+def loss_fn(params: dict, mb: dict, policy_config: PolicyConfig, config: PPOConfig) -> tuple[jax.Array, dict]:
+    """`ppo_loss` of the current params on a minibatch (see `evaluate_actions` for its layout)."""
+    log_prob, entropy, value = evaluate_actions(params, policy_config, config.recurrent, mb)
+    return ppo_loss(log_prob, entropy, value, mb["log_prob"], mb["advantage"], mb["return"], config)
+
+
+def _minibatches(samples: dict, key: jax.Array, config: PPOConfig) -> dict:
+    """Shuffle and split into `(M, ...)` minibatches. Recurrent: over envs, whole sequences
+    kept (`(M, T, B/M, ...)`, carry `(M, B/M, hidden)`); feed-forward: over all T*B steps."""
+    m = config.minibatches
+    if config.recurrent:
+        b = config.num_envs
+        idx = jax.random.permutation(key, b).reshape(m, b // m)
+        carry = samples.pop("carry")
+        out = jax.tree.map(lambda x: jnp.moveaxis(jnp.take(x, idx, axis=1), 1, 0), samples)
+        out["carry"] = jax.tree.map(lambda x: jnp.take(x, idx, axis=0), carry)
+        return out
+    samples = {k: v for k, v in samples.items() if k != "carry"}
+    flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), samples)
+    n = config.steps_per_iteration
+    idx = jax.random.permutation(key, n).reshape(m, n // m)
+    return jax.tree.map(lambda x: jnp.take(x, idx, axis=0), flat)
+
+
+def update(
+    params: dict,
+    opt_state: Any,
+    traj: Transition,
+    start_carry: LSTMState,
+    advantages: jax.Array,
+    returns: jax.Array,
+    key: jax.Array,
+    policy_config: PolicyConfig,
+    config: PPOConfig,
+    optimizer: Optimizer,
+) -> tuple[dict, Any, dict]:
+    """`config.epochs` x `config.minibatches` clipped, Adam steps (nested lax.scans) on one
+    rollout. `start_carry (B, hidden)`: the LSTM carry at the rollout's start (recurrent
+    minibatches re-run the LSTM from it). -> (params, opt_state, mean of each loss metric and
+    of the pre-clip gradient norm over all minibatches)."""
+    samples = {
+        "obs": traj.obs, "first": traj.first, "action": traj.action, "log_prob": traj.log_prob,
+        "advantage": advantages, "return": returns, "carry": start_carry,
+    }
+
+    def minibatch_step(state, mb):
+        params, opt_state = state
+        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, mb, policy_config, config)
+        grads, grad_norm = clip_by_global_norm(grads, config.max_grad_norm)
+        params, opt_state = optimizer.update(grads, opt_state, params)
+        return (params, opt_state), {"loss": loss, "grad_norm": grad_norm, **aux}
+
+    def epoch(state, k):
+        return jax.lax.scan(minibatch_step, state, _minibatches(dict(samples), k, config))
+
+    (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, config.epochs))
+    return params, opt_state, jax.tree.map(jnp.mean, metrics)
+
+
+# -- one training iteration ------------------------------------------------------------------------
+
+
+class Runner(NamedTuple):
+    """Everything one iteration reads and writes (a pytree; `iteration` is an int32 scalar)."""
+
+    params: dict
+    opt_state: Any
+    env: EnvCarry
+    key: jax.Array
+    iteration: jax.Array
+
+
+def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig):
+    """-> `(init_runner(params, key) -> Runner, iteration(runner) -> (runner, metrics))`;
+    `iteration` is to be jitted once: it re-resets the batch onto new episodes if
+    `iteration % reset_every == 0` (always at iteration 0), then rollout, GAE, update.
+    `env` is the wrapped (batched, auto-resetting) brax env.
+
+    The runner from `init_runner` holds a zero placeholder env state of the right shapes
+    (`jax.eval_shape`), as iteration 0 resets anyway; both go through one jitted reset, whose
+    trace jax caches, so the slow MJX trace happens once."""
+    optimizer = adam(config.lr)
+    reset = jax.jit(env.reset)
+    b = config.num_envs
+
+    def fresh(key):
+        return EnvCarry(reset(jax.random.split(key, b)), policy.initial_carry(policy_config, b), jnp.ones((b,), bool))
+
+    def init_runner(params: dict, key: jax.Array) -> Runner:
+        shapes = jax.eval_shape(reset, jax.ShapeDtypeStruct((b, 2), jnp.uint32))
+        placeholder = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        start = EnvCarry(placeholder, policy.initial_carry(policy_config, b), jnp.ones((b,), bool))
+        return Runner(params, optimizer.init(params), start, key, jnp.zeros((), jnp.int32))
+
+    def iteration(runner: Runner):
+        key, k_reset, k_roll, k_update = jax.random.split(runner.key, 4)
+        start = jax.lax.cond(runner.iteration % config.reset_every == 0, fresh, lambda _: runner.env, k_reset)
+        end, traj, last_value, stats = rollout(
+            env, policy_config, config.recurrent, runner.params, start, k_roll, config.rollout_steps
+        )
+        adv, ret = gae(traj.reward, traj.value, traj.done, last_value, config.gamma, config.gae_lambda)
+        params, opt_state, metrics = update(
+            runner.params, runner.opt_state, traj, start.carry, adv, ret, k_update, policy_config, config, optimizer
+        )
+        metrics = {**metrics, **stats, "reward": traj.reward.mean(), "value": traj.value.mean(),
+                   "log_std": params["log_std"].mean()}
+        return Runner(params, opt_state, end, key, runner.iteration + 1), metrics
+
+    return init_runner, iteration
+
+
+# -- agents and checkpoints ------------------------------------------------------------------------
+
+
+def policy_config_from_json(d: dict) -> PolicyConfig:
+    """PolicyConfig from a checkpoint's JSON dict (lists back to tuples); ValueError on unknown keys."""
+    names = {f.name for f in dataclasses.fields(PolicyConfig)}
+    unknown = set(d) - names
+    if unknown:
+        raise ValueError(f"checkpoint model config has unknown PolicyConfig fields {sorted(unknown)}")
+    return PolicyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+def make_ppo_agent(params: dict, policy_config: PolicyConfig, recurrent: bool) -> Agent:
+    """The deterministic agent (mean action) of a PPO policy, acting for one env."""
+
+    def init(key, episode):
+        return policy.initial_carry(policy_config, 1)
+
+    def act(state, carry, key):
+        obs = {k: v[None] for k, v in policy_obs(state.obs, policy_config).items()}
+        mean, _, new_carry = policy.apply(params, policy_config, obs, carry)
+        return mean[0], (new_carry if recurrent else carry)
+
+    return Agent("ppo", init, act)
+
+
+def _check_env(env: ConavEnv, policy_config: PolicyConfig, source: str) -> None:
+    hw = (env.config.sensor.height, env.config.sensor.width)
+    if hw != tuple(policy_config.image_hw):
+        h, w = policy_config.image_hw
+        raise ValueError(f"{source} was trained at {h}x{w} panoramas; the env renders {hw[0]}x{hw[1]} "
+                         f"(build it with SensorConfig(height={h}, width={w}))")
+    uses = policy_config.use_activity or policy_config.use_object or policy_config.use_trajectory
+    if uses and not env.config.intention_obs:
+        raise ValueError(f"{source} reads intention observations; build the env with intention_obs=True")
+
+
+def _load_run(run_dir: str | Path, kind: str, hint: str):
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run directory not found: {run_dir}")
+    found = latest_checkpoint(run_dir)
+    if found is None:
+        raise FileNotFoundError(f"no checkpoint (ckpt_*.npz) in {run_dir}")
+    ckpt = load_checkpoint(found)
+    if ckpt.config.get("kind") != kind:
+        raise ValueError(f"{found} is a {ckpt.config.get('kind')!r} run, expected {kind!r} ({hint})")
+    if "model" not in ckpt.config:
+        raise ValueError(f"{found} holds no model config")
+    policy_config = policy_config_from_json(ckpt.config["model"])
+    template = jax.eval_shape(lambda k: policy.init(k, policy_config), jax.random.PRNGKey(0))
+    return load_checkpoint(found, params_like=template), policy_config
+
+
+def ppo_agent(env: ConavEnv, run_dir: str | Path) -> Agent:
+    """The latest checkpoint of a `conav train rl` run as a deterministic envs.rollout.Agent.
+    FileNotFoundError for a missing run or checkpoint, ValueError for another kind of run or an
+    env it cannot read (resolution, intention observations); all before any compile."""
+    ckpt, policy_config = _load_run(run_dir, KIND, "use the agent of that kind, e.g. --agent conav")
+    _check_env(env, policy_config, f"PPO run {run_dir}")
+    return make_ppo_agent(ckpt.params, policy_config, bool(ckpt.config["ppo"]["recurrent"]))
+
+
+def load_policy_init(run_dir: str | Path) -> tuple[dict, PolicyConfig]:
+    """An imitation run's latest policy (actor and value head, log_std) and its PolicyConfig."""
+    ckpt, policy_config = _load_run(run_dir, POLICY_KIND, "--init-from takes an imitation policy run")
+    return ckpt.params, policy_config
+
+
+# -- the training loop -----------------------------------------------------------------------------
+
+
+class PPOResult(NamedTuple):
+    params: dict
+    policy_config: PolicyConfig
+    env_steps: int
+    val: dict  # the last val metrics (summarize's FASR..AS), {} if none ran
+    run_dir: Path
+
+
+def _append_log(path: Path, record: dict) -> None:
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def _float(x) -> float | None:
+    v = float(x)
+    return v if math.isfinite(v) else None  # JSON has no NaN
+
+
+def train_ppo(
+    data_dir: str | Path,
+    run_dir: str | Path,
+    config: PPOConfig = PPOConfig(),
+    policy_config: PolicyConfig | None = None,
+    init_from: str | Path | None = None,
+    progress: bool = True,
+    compiler_options: dict | None = None,
+) -> PPOResult:
+    """Train a PPO policy on the `train` split of `data_dir`; log, checkpoint and evaluate
+    (val split, through `ppo_agent` on the saved checkpoint) into `run_dir`, which must hold
+    no checkpoint yet.
+
+    `policy_config`: the network (default PolicyConfig at `config.resolution`); with
+    `init_from` (an imitation "policy" run) the network and its weights come from that run.
+    `compiler_options` go to `jax.jit` (tests lower the XLA optimisation level)."""
+    run_dir = Path(run_dir)
+    if latest_checkpoint(run_dir) is not None:
+        raise ValueError(f"{run_dir} already holds a checkpoint; PPO runs do not resume, choose a new --out")
+    hw = tuple(config.resolution)
+    if init_from is not None:
+        params, loaded = load_policy_init(init_from)
+        if policy_config is not None and policy_config != loaded:
+            raise ValueError(f"--init-from {init_from} has its own network config; do not pass policy_config too")
+        policy_config = loaded
+    else:
+        policy_config = policy_config or PolicyConfig(image_hw=hw)
+        params = policy.init(jax.random.PRNGKey(config.seed), policy_config)
+    if tuple(policy_config.image_hw) != hw:
+        src = f"the policy of {init_from}" if init_from is not None else "policy_config"
+        raise ValueError(f"{src} reads {policy_config.image_hw[0]}x{policy_config.image_hw[1]} panoramas but "
+                         f"the PPO resolution is {hw[0]}x{hw[1]}; pass --resolution to match")
+    env_config = EnvConfig(sensor=SensorConfig(height=hw[0], width=hw[1]))
+    env = brax.envs.get_environment("conav", data_dir=str(data_dir), split="train", config=env_config)
+    _check_env(env, policy_config, "the policy")
+    episode_length = config.episode_length or env.bank.max_steps + 1
+    wrapped = brax_training.wrap(env, episode_length=episode_length)
+    val_env = ConavEnv(str(data_dir), "val", env_config) if config.eval_every else None
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    log_path = run_dir / LOG_FILE
+    log_path.unlink(missing_ok=True)  # a log without a checkpoint belongs to no run we can continue
+    run_config = {
+        "kind": KIND,
+        "model": dataclasses.asdict(policy_config),
+        "ppo": dataclasses.asdict(config),
+        "env": {"sensor_hw": list(hw), "episode_length": episode_length, "data_dir": str(data_dir),
+                "init_from": None if init_from is None else str(init_from)},
+    }
+
+    init_runner, iteration = make_iteration(wrapped, policy_config, config)
+    iteration = jax.jit(iteration, compiler_options=compiler_options)
+    runner = init_runner(params, jax.random.PRNGKey(config.seed))
+    n_iter, per_iter = config.num_iterations, config.steps_per_iteration
+    val: dict = {}
+
+    def save(it: int) -> None:
+        save_checkpoint(checkpoint_path(run_dir, it), params=runner.params, opt_state=runner.opt_state,
+                        config=run_config, step=it, extra={"env_steps": it * per_iter, "val": val})
+
+    def validate(it: int) -> None:
+        nonlocal val
+        episodes = None if config.eval_episodes is None else np.arange(min(config.eval_episodes, val_env.num_episodes))
+        agent = ppo_agent(val_env, run_dir)  # the checkpoint just saved, as `conav eval` loads it
+        val = summarize(evaluate(val_env, agent, episodes, batch=config.eval_batch, seed=config.seed))
+        _append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "val", **val})
+
+    bar = tqdm(total=n_iter * per_iter, disable=not progress, unit="step", dynamic_ncols=True)
+    start = time.perf_counter()
+    try:
+        for it in range(1, n_iter + 1):
+            t0 = time.perf_counter()
+            runner, metrics = iteration(runner)
+            metrics = {k: float(v) for k, v in metrics.items()}  # the one sync per iteration
+            seconds = time.perf_counter() - t0
+            episodes = metrics.pop("episodes")
+            record = {k: _float(v) for k, v in metrics.items() if k not in ("return", "reached", "collided")}
+            record.update(
+                episodes=int(episodes),
+                episode_return=_float(metrics["return"] / episodes) if episodes else None,
+                reach_rate=metrics["reached"] / episodes if episodes else None,
+                collision_rate=metrics["collided"] / episodes if episodes else None,
+                steps_per_s=round(per_iter / seconds, 1),
+                elapsed_s=round(time.perf_counter() - start, 2),
+            )
+            _append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "train", **record})
+            if not all(math.isfinite(metrics[k]) for k in ("loss", "grad_norm")):
+                raise FloatingPointError(f"non-finite PPO loss or gradient at iteration {it}; see {log_path}")
+            bar.set_postfix(steps_s=f"{per_iter / seconds:.0f}", reward=f"{metrics['reward']:.4f}")
+            bar.update(per_iter)
+            last = it == n_iter
+            do_eval = val_env is not None and (it % config.eval_every == 0 or last)
+            if do_eval or last or (config.ckpt_every and it % config.ckpt_every == 0):
+                save(it)
+            if do_eval:
+                validate(it)
+                save(it)  # again, now with the val metrics in its extra
+    finally:
+        bar.close()
+    return PPOResult(runner.params, policy_config, n_iter * per_iter, val, run_dir)
+
+
+# -- CLI -------------------------------------------------------------------------------------------
+
+
+def _hw(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW like 32x128, got {text!r}") from None
+    return h, w
+
+
+def add_train_rl(sub: argparse._SubParsersAction) -> None:
+    """Register `conav train rl` (PPO)."""
+    d = PPOConfig()
+    p = sub.add_parser("rl", help="train the policy with PPO in the simulator")
+    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
+    p.add_argument("--out", required=True, help="new run dir: log.jsonl and checkpoints")
+    p.add_argument("--init-from", default=None, metavar="POLICY_RUN",
+                   help="start from an imitation policy run (its network, weights and value head)")
+    p.add_argument("--num-envs", type=int, default=d.num_envs, help=f"parallel envs (default {d.num_envs})")
+    p.add_argument("--steps", type=int, default=d.total_env_steps, help=f"total env steps (default {d.total_env_steps})")
+    p.add_argument("--rollout-steps", type=int, default=d.rollout_steps, help=f"steps per env per iteration (default {d.rollout_steps})")
+    p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr})")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--recurrent", dest="recurrent", action="store_true", default=d.recurrent,
+                      help="LSTM carry through time (default)")
+    mode.add_argument("--feedforward", dest="recurrent", action="store_false", help="zero LSTM carry every step")
+    p.add_argument("--resolution", type=_hw, default=d.resolution, help="panorama HxW (default 32x128)")
+    p.add_argument("--hidden", type=int, default=PolicyConfig.hidden, help="LSTM width of a new network")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--eval-every", type=int, default=d.eval_every, help="iterations between val evaluations (0: none)")
+    p.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="iterations between checkpoints")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_train_rl)
+
+
+def run_train_rl(args: argparse.Namespace) -> int:
+    config = PPOConfig(
+        num_envs=args.num_envs, rollout_steps=args.rollout_steps, total_env_steps=args.steps, lr=args.lr,
+        recurrent=args.recurrent, resolution=tuple(args.resolution), seed=args.seed,
+        eval_every=args.eval_every, ckpt_every=args.ckpt_every,
+    )
+    policy_config = None if args.init_from else PolicyConfig(image_hw=config.resolution, hidden=args.hidden)
+    result = train_ppo(args.data, args.out, config, policy_config, args.init_from, progress=not args.no_progress)
+    print(f"ppo run: {result.run_dir} ({result.env_steps} env steps)")
+    if result.val:
+        print("val " + ", ".join(f"{k} {v:.1f}" for k, v in result.val.items()))
+    return 0
