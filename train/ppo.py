@@ -47,9 +47,9 @@ from conav_jax.optim import Optimizer, adam, clip_by_global_norm
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.metrics import summarize
 from envs.rollout import Agent, evaluate
+from train.policy import load_policy_run, policy_config_from_dict
 
 KIND = "ppo"
-POLICY_KIND = "policy"  # imitation runs (train/policy.py) that --init-from accepts
 LOG_FILE = "log.jsonl"
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -146,8 +146,8 @@ def policy_obs(obs: dict, config: PolicyConfig) -> dict:
 def evaluate_actions(
     params: dict, policy_config: PolicyConfig, recurrent: bool, mb: dict
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Re-run the policy on stored samples -> `(log_prob, entropy (scalar), value)` shaped like
-    `mb["log_prob"]`.
+    """Re-run the policy on stored samples -> `(log_prob, entropy (scalar), value)`, the first
+    and last shaped like `mb["action"]` without its last axis.
 
     Recurrent: `mb` arrays are time-major `(T, b, ...)`, `mb["carry"]` the LSTM carry `(b,
     hidden)` at the segment start and `mb["first"] (T, b)` the episode starts where it is
@@ -406,15 +406,6 @@ def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig):
 # -- agents and checkpoints ------------------------------------------------------------------------
 
 
-def policy_config_from_json(d: dict) -> PolicyConfig:
-    """PolicyConfig from a checkpoint's JSON dict (lists back to tuples); ValueError on unknown keys."""
-    names = {f.name for f in dataclasses.fields(PolicyConfig)}
-    unknown = set(d) - names
-    if unknown:
-        raise ValueError(f"checkpoint model config has unknown PolicyConfig fields {sorted(unknown)}")
-    return PolicyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
-
-
 def make_ppo_agent(params: dict, policy_config: PolicyConfig, recurrent: bool) -> Agent:
     """The deterministic agent (mean action) of a PPO policy, acting for one env."""
 
@@ -440,7 +431,8 @@ def _check_env(env: ConavEnv, policy_config: PolicyConfig, source: str) -> None:
         raise ValueError(f"{source} reads intention observations; build the env with intention_obs=True")
 
 
-def _load_run(run_dir: str | Path, kind: str, hint: str):
+def _load_ppo_run(run_dir: str | Path):
+    """(checkpoint with validated params, PolicyConfig) of a PPO run's latest checkpoint."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run directory not found: {run_dir}")
@@ -448,11 +440,12 @@ def _load_run(run_dir: str | Path, kind: str, hint: str):
     if found is None:
         raise FileNotFoundError(f"no checkpoint (ckpt_*.npz) in {run_dir}")
     ckpt = load_checkpoint(found)
-    if ckpt.config.get("kind") != kind:
-        raise ValueError(f"{found} is a {ckpt.config.get('kind')!r} run, expected {kind!r} ({hint})")
+    if ckpt.config.get("kind") != KIND:
+        raise ValueError(f"{found} is a {ckpt.config.get('kind')!r} run, expected {KIND!r} "
+                         "(use the agent of that kind, e.g. --agent conav for a policy run)")
     if "model" not in ckpt.config:
         raise ValueError(f"{found} holds no model config")
-    policy_config = policy_config_from_json(ckpt.config["model"])
+    policy_config = policy_config_from_dict(ckpt.config["model"])
     template = jax.eval_shape(lambda k: policy.init(k, policy_config), jax.random.PRNGKey(0))
     return load_checkpoint(found, params_like=template), policy_config
 
@@ -461,15 +454,16 @@ def ppo_agent(env: ConavEnv, run_dir: str | Path) -> Agent:
     """The latest checkpoint of a `conav train rl` run as a deterministic envs.rollout.Agent.
     FileNotFoundError for a missing run or checkpoint, ValueError for another kind of run or an
     env it cannot read (resolution, intention observations); all before any compile."""
-    ckpt, policy_config = _load_run(run_dir, KIND, "use the agent of that kind, e.g. --agent conav")
+    ckpt, policy_config = _load_ppo_run(run_dir)
     _check_env(env, policy_config, f"PPO run {run_dir}")
     return make_ppo_agent(ckpt.params, policy_config, bool(ckpt.config["ppo"]["recurrent"]))
 
 
 def load_policy_init(run_dir: str | Path) -> tuple[dict, PolicyConfig]:
-    """An imitation run's latest policy (actor and value head, log_std) and its PolicyConfig."""
-    ckpt, policy_config = _load_run(run_dir, POLICY_KIND, "--init-from takes an imitation policy run")
-    return ckpt.params, policy_config
+    """An imitation run's latest policy (actor, value head, log_std) and its PolicyConfig, read
+    by train.policy, which owns that format. FileNotFoundError / ValueError as it raises them."""
+    params, policy_config, _ = load_policy_run(run_dir)
+    return params, policy_config
 
 
 # -- the training loop -----------------------------------------------------------------------------
@@ -556,7 +550,9 @@ def train_ppo(
     def validate(it: int) -> None:
         nonlocal val
         episodes = None if config.eval_episodes is None else np.arange(min(config.eval_episodes, val_env.num_episodes))
-        agent = ppo_agent(val_env, run_dir)  # the checkpoint just saved, as `conav eval` loads it
+        # The checkpoint just saved, loaded as `conav eval --agent ppo` does. Each call compiles
+        # a new val rollout: the agent closes over its params.
+        agent = ppo_agent(val_env, run_dir)
         val = summarize(evaluate(val_env, agent, episodes, batch=config.eval_batch, seed=config.seed))
         _append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "val", **val})
 
@@ -623,7 +619,8 @@ def add_train_rl(sub: argparse._SubParsersAction) -> None:
                       help="LSTM carry through time (default)")
     mode.add_argument("--feedforward", dest="recurrent", action="store_false", help="zero LSTM carry every step")
     p.add_argument("--resolution", type=_hw, default=d.resolution, help="panorama HxW (default 32x128)")
-    p.add_argument("--hidden", type=int, default=PolicyConfig.hidden, help="LSTM width of a new network")
+    p.add_argument("--hidden", type=int, default=None,
+                   help=f"LSTM width of a new network (default {PolicyConfig.hidden}; not with --init-from)")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--eval-every", type=int, default=d.eval_every, help="iterations between val evaluations (0: none)")
     p.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="iterations between checkpoints")
@@ -637,8 +634,16 @@ def run_train_rl(args: argparse.Namespace) -> int:
         recurrent=args.recurrent, resolution=tuple(args.resolution), seed=args.seed,
         eval_every=args.eval_every, ckpt_every=args.ckpt_every,
     )
-    policy_config = None if args.init_from else PolicyConfig(image_hw=config.resolution, hidden=args.hidden)
-    result = train_ppo(args.data, args.out, config, policy_config, args.init_from, progress=not args.no_progress)
+    if args.init_from and args.hidden is not None:
+        raise ValueError("--hidden sizes a new network; with --init-from the network is the imitation run's")
+    policy_config = None
+    if not args.init_from:
+        policy_config = PolicyConfig(image_hw=config.resolution, hidden=args.hidden or PolicyConfig.hidden)
+    try:
+        result = train_ppo(args.data, args.out, config, policy_config, args.init_from, progress=not args.no_progress)
+    except FloatingPointError as e:
+        print(f"conav train rl: {e}")
+        return 1
     print(f"ppo run: {result.run_dir} ({result.env_steps} env steps)")
     if result.val:
         print("val " + ", ".join(f"{k} {v:.1f}" for k, v in result.val.items()))
