@@ -2,9 +2,9 @@
 
 Round 0 records the expert on the train split; each DAgger round rolls out the current policy,
 the expert labels the states it visits, and the aggregated windows (RUN/data/round_R.npz)
-retrain it with train.loop (one resumable sub-run per round, RUN/round_R/). Validation runs the
-policy in the simulator on the val split. RUN/log.jsonl holds the expert's val metrics (the
-ceiling) and each round's; RUN/ckpt_*.npz the policy after each round, read by eval.learned.
+train it further. Validation runs the policy in the simulator on the val split. RUN/log.jsonl
+holds the expert's val metrics (the ceiling), losses, and validations; RUN/ckpt_*.npz the
+policy (read by eval.learned.policy_agent and train.ppo's --init-from); runs resume.
 """
 
 from __future__ import annotations
@@ -112,16 +112,34 @@ def _append_log(path: Path, record: dict) -> None:
         f.write(json.dumps(record) + "\n")
 
 
-def _trim_log(path: Path, last_round: int) -> None:
-    """Keep the records up to round `last_round` (and the round-less ones): a resumed run
-    re-logs the rounds after its checkpoint."""
+def _trim_log(path: Path, step: int) -> None:
+    """Keep the records up to update `step` (and the step-less ones): a resumed run re-logs
+    what came after its checkpoint."""
     if path.is_file():
-        keep = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln).get("round", -1) <= last_round]
+        keep = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln).get("step", -1) <= step]
         path.write_text("".join(ln + "\n" for ln in keep))
 
 
 def _rates(m: dict) -> str:
     return f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"
+
+
+def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None):
+    """Jitted `(params, opt_state, batch, lr) -> (params, opt_state, loss, grad_norm)`: one Adam(W)
+    step on `bc_loss` with global-norm clipping. The learning rate is an argument, so every
+    round's schedule shares one compiled update."""
+    import jax
+
+    from conav_jax.optim import adam, clip_by_global_norm
+    from train.imitation import bc_loss
+
+    def update(params, opt_state, batch, lr):
+        (loss, _), grads = jax.value_and_grad(bc_loss, has_aux=True)(params, model, batch)
+        grads, grad_norm = clip_by_global_norm(grads, cfg.grad_clip)
+        params, opt_state = adam(lr, weight_decay=cfg.weight_decay).update(grads, opt_state, params)
+        return params, opt_state, loss, grad_norm
+
+    return jax.jit(update, compiler_options=compiler_options)
 
 
 def train_policy(
@@ -136,49 +154,58 @@ def train_policy(
     compiler_options: dict | None = None,
     log=print,
 ) -> PolicyResult:
-    """Imitation-train the policy on `data_dir`'s train split into `run_dir` (resumed if it
-    holds a checkpoint of the same config; ValueError naming the first difference otherwise).
+    """Imitation-train the policy on `data_dir`'s train split into `run_dir` (resumed from its
+    latest checkpoint if it has one of the same config; ValueError naming the first difference
+    otherwise).
 
-    `cfg` is round 0's optimisation (DAgger rounds: `imitation.dagger_steps` updates each, same
-    settings, warm-started from the previous round). With `intention_run` / `trajectory_run`,
-    validation feeds the policy the predictors' outputs; training always uses ground truth
-    (paper sec. 4.2). `compiler_options` go to every jit (tests lower the XLA level)."""
+    Round 0 (behaviour cloning) makes `cfg.steps` updates, each DAgger round
+    `imitation.dagger_steps`, each round with a fresh Adam and its own warm-up + cosine
+    schedule, warm-started from the previous round's weights. Batches are `cfg.batch` windows
+    drawn (with replacement) from `(cfg.seed, update step)` alone, so a resumed run repeats an
+    uninterrupted one. With `intention_run` / `trajectory_run`, validation feeds the policy the
+    predictors' outputs; training always uses ground truth (paper sec. 4.2).
+
+    A focused loop rather than train.loop: that loop scans its updates inside one jit, and on
+    XLA:CPU a conv update inside a while loop runs ~20x slower than the same update jitted
+    alone; here each update is one call, and the data stays on the host (only batches move)."""
     import jax
     import numpy as np
+    from tqdm import tqdm
 
     from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
     from conav_jax.episodes import read_manifest
     from conav_jax.expert import ExpertConfig
     from conav_jax.models import policy
     from conav_jax.models.policy import PolicyConfig, ablation_config
+    from conav_jax.optim import adam, warmup_cosine
     from envs import ConavEnv, EnvConfig, SensorConfig
     from envs.metrics import summarize
     from train import imitation as im
-    from train.loop import train
+    from train.loop import NonFiniteLoss
 
     expert = expert or ExpertConfig()
     run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "data").mkdir(exist_ok=True)
+    (run_dir / "data").mkdir(parents=True, exist_ok=True)
     log_path = run_dir / LOG_FILE
     content_hash = read_manifest(data_dir)["content_hash"]
     model = ablation_config(PolicyConfig(image_hw=tuple(imitation.resolution)), imitation.ablation)
-    config = run_config(model, imitation, expert, content_hash, intention_run, trajectory_run)
+    config = {**run_config(model, imitation, expert, content_hash, intention_run, trajectory_run), "train": cfg.optimisation()}
+    round_steps = [cfg.steps] + [imitation.dagger_steps or cfg.steps] * imitation.dagger_rounds
+    round_end = np.cumsum(round_steps)  # global update count at each round's end
 
-    # Resume: the last finished round's policy, or a fresh one.
     params = policy.init(jax.random.PRNGKey(cfg.seed), model)
-    done_round, step = -1, 0
-    expert_val: dict = {}
+    opt_state = adam(cfg.lr).init(params)
+    step, expert_val, val = 0, {}, {}
     found = latest_checkpoint(run_dir)
     if found is not None:
         try:
-            ckpt = load_checkpoint(found, config=config, params_like=params)
+            ckpt = load_checkpoint(found, config=config, params_like=params, opt_state_like=opt_state)
         except ValueError as e:
             raise ValueError(f"cannot resume {run_dir}: {e}") from None
-        params, step = ckpt.params, ckpt.step
-        done_round, expert_val = ckpt.extra["round"], ckpt.extra["expert_val"]
-        _trim_log(log_path, done_round)
-        log(f"resuming {run_dir} after round {done_round} ({step} updates)")
+        params, opt_state, step = ckpt.params, ckpt.opt_state, ckpt.step
+        expert_val, val = ckpt.extra["expert_val"], ckpt.extra["val"]
+        _trim_log(log_path, step)
+        log(f"resuming {run_dir} at update {step}")
     elif log_path.exists():
         log_path.unlink()  # a log without a checkpoint belongs to no state we can continue
 
@@ -198,6 +225,7 @@ def train_policy(
     jit = lambda f: jax.jit(f, compiler_options=compiler_options)  # noqa: E731
     record = jit(im.make_rollout_fn(train_env, model, expert, record=True))
     validate = jit(im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory))
+    update = make_update(model, cfg, compiler_options)
     train_eps, val_eps = np.arange(train_env.num_episodes), np.arange(val_env.num_episodes)
     val_key = jax.random.PRNGKey(cfg.seed + 1)
 
@@ -205,50 +233,75 @@ def train_policy(
         m, _ = im.run_batched(validate, p, val_key, val_eps, beta, imitation.rollout_batch)
         return summarize(m)
 
+    def checkpoint(r: int) -> None:
+        save_checkpoint(checkpoint_path(run_dir, step), params=params, opt_state=opt_state, config=config,
+                        step=step, extra={"round": r, "val": val, "expert_val": expert_val})
+
     if not expert_val:
         t0 = time.perf_counter()
         expert_val = val_metrics(params, 1.0)
         _append_log(log_path, {"split": "val", "agent": "expert", "episodes": len(val_eps), **expert_val})
         log(f"expert (the ceiling) on val, {len(val_eps)} episodes: {_rates(expert_val)}  [{time.perf_counter() - t0:.0f} s]")
 
-    loss_fn = im.make_loss_fn(model)
-    parts, val = [], {}
-    for r in range(imitation.dagger_rounds + 1):
+    parts = []
+    for r, (steps, end) in enumerate(zip(round_steps, round_end)):
         path = run_dir / "data" / f"round_{r}.npz"
+        start = end - steps
         if path.exists():
             parts.append(im.load_sequences(path))
-        elif r <= done_round:
-            raise FileNotFoundError(f"cannot resume {run_dir}: {path}, the data round {r} trained on, is missing")
+        elif step > start:
+            raise FileNotFoundError(f"cannot resume {run_dir}: {path}, the data of round {r}, is missing")
         else:
-            # Round 0: the expert acts (BC); later rounds: the current policy acts (DAgger).
-            beta = 1.0 if r == 0 else 0.0
+            # Round 0: the expert acts (behaviour cloning); later: the current policy (DAgger).
+            agent, beta = ("expert", 1.0) if r == 0 else ("policy", 0.0)
             t0 = time.perf_counter()
-            m, recs = im.run_batched(
-                record, params, jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r), train_eps, beta, imitation.rollout_batch
-            )
+            key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
+            m, recs = im.run_batched(record, params, key, train_eps, beta, imitation.rollout_batch)
             parts.append(im.sequences(recs, imitation.seq_len, imitation.burn_in))
             im.save_sequences(path, parts[-1])
-            agent = "expert" if r == 0 else "policy"
-            _append_log(log_path, {"round": r, "split": "train", "agent": agent, "episodes": len(train_eps), **summarize(m)})
-            log(f"round {r}: recorded {len(train_eps)} train episodes ({agent} acting: {_rates(summarize(m))}), "
+            _append_log(log_path, {"step": step, "round": r, "split": "train", "agent": agent, "episodes": len(train_eps),
+                                   "windows": len(parts[-1]["label"]), **summarize(m)})
+            log(f"round {r}: recorded {len(train_eps)} train episodes, {agent} acting ({_rates(summarize(m))}): "
                 f"{len(parts[-1]['label'])} windows  [{time.perf_counter() - t0:.0f} s]")
-        if r <= done_round:
+        if step >= end:
             continue
-        steps = cfg.steps if r == 0 else (imitation.dagger_steps or cfg.steps)
-        round_cfg = dataclasses.replace(cfg, steps=steps, warmup_steps=min(cfg.warmup_steps, steps))
-        result = train(
-            run_dir / f"round_{r}", loss_fn, params, im.concat_sequences(parts), round_cfg, {**config, "round": r},
-            val_fn=lambda p: val_metrics(p, 0.0), progress=progress, compiler_options=compiler_options,
-        )
-        params, val, step = result.params, result.val, step + steps
-        save_checkpoint(
-            checkpoint_path(run_dir, step), params=params, opt_state=result.opt_state, config=config, step=step,
-            extra={"round": r, "val": val, "expert_val": expert_val},
-        )
-        windows = sum(len(p["label"]) for p in parts)
-        _append_log(log_path, {"round": r, "step": step, "split": "val", "agent": "policy", "windows": windows, **val})
-        log(f"round {r}: {windows} windows, {steps} updates -> policy on val: {_rates(val)}")
-    if not val:  # resumed after the last round
+        data = im.concat_sequences(parts)
+        n = len(data["label"])
+        schedule = warmup_cosine(cfg.lr, min(cfg.warmup_steps, steps), steps)
+        if step == start:
+            opt_state = adam(cfg.lr).init(params)  # each round starts its own Adam
+        sums, count, t_log = np.zeros(2), 0, time.perf_counter()
+        bar = tqdm(total=steps, initial=step - start, disable=not progress, unit="step", desc=f"round {r}", dynamic_ncols=True)
+        while step < end:
+            idx = np.random.default_rng([cfg.seed, step]).integers(0, n, cfg.batch)
+            batch = jax.tree.map(lambda x: x[idx], data)
+            lr = float(schedule(step - start))
+            new_params, new_opt, loss, grad_norm = update(params, opt_state, batch, lr)
+            loss, grad_norm = float(loss), float(grad_norm)
+            if not (np.isfinite(loss) and np.isfinite(grad_norm)):
+                _append_log(log_path, {"step": step, "round": r, "split": "train", "error": "non-finite loss",
+                                       "indices": idx.tolist()})
+                raise NonFiniteLoss(f"non-finite loss or gradient at update {step} (windows {idx.tolist()}); stopped, "
+                                    f"last good checkpoint: {latest_checkpoint(run_dir)}", step, idx.tolist())
+            params, opt_state, step = new_params, new_opt, step + 1
+            sums += (loss, grad_norm)
+            count += 1
+            bar.update(1)
+            if step % cfg.log_every == 0 or step == end:
+                rate = cfg.batch * count / (time.perf_counter() - t_log)
+                mean_loss, mean_norm = sums / count
+                _append_log(log_path, {"step": step, "round": r, "split": "train", "loss": mean_loss,
+                                       "grad_norm": mean_norm, "lr": lr, "windows": n, "samples_per_s": round(rate, 1)})
+                bar.set_postfix(loss=f"{mean_loss:.4g}")
+                sums, count, t_log = np.zeros(2), 0, time.perf_counter()
+            if step % cfg.val_every == 0 or step == end:
+                val = val_metrics(params, 0.0)
+                _append_log(log_path, {"step": step, "round": r, "split": "val", "agent": "policy", **val})
+                bar.write(f"update {step} (round {r}): policy on val: {_rates(val)}")
+            if step % cfg.ckpt_every == 0 or step == end:
+                checkpoint(r)
+        bar.close()
+    if not val:  # resumed at the very end of a run that never validated
         val = val_metrics(params, 0.0)
     return PolicyResult(params, val, expert_val, run_dir)
 
