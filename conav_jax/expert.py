@@ -90,6 +90,7 @@ class ExpertCarry(NamedTuple):
 
 
 def initial_carry() -> ExpertCarry:
+    """The carry at an episode's start: approaching, no steps yet."""
     return ExpertCarry(jnp.int32(APPROACH), jnp.int32(0))
 
 
@@ -194,7 +195,7 @@ def _next_phase(cfg: ExpertConfig, carry: ExpertCarry, human_dist_m: jax.Array) 
     p, n = carry.phase, carry.steps
     to_observe = (p == APPROACH) & ((human_dist_m < cfg.approach_m) | (n >= cfg.approach_max_steps))
     to_go = (p == OBSERVE) & (n >= cfg.observe_steps)
-    after_approach = jnp.where(jnp.asarray(cfg.observe_steps) > 0, OBSERVE, GO)
+    after_approach = OBSERVE if cfg.observe_steps > 0 else GO
     new = jnp.where(to_observe, after_approach, jnp.where(to_go, GO, p)).astype(jnp.int32)
     return ExpertCarry(new, jnp.where(new == p, n, 0).astype(jnp.int32))
 

@@ -21,6 +21,9 @@ from train.loop import TrainConfig, add_train_args, train_config_from_args
 
 KIND = "policy"
 LOG_FILE = "log.jsonl"
+# ImitationConfig fields a resumed run may change: more DAgger rounds continue a finished run;
+# batching and the val subset do not change the weights.
+RESUME_FREE = ("dagger_rounds", "rollout_batch", "val_episodes")
 
 
 @dataclass(frozen=True)
@@ -64,7 +67,7 @@ def run_config(model, imitation: ImitationConfig, expert, content_hash: str, int
         "kind": KIND,
         "model": dataclasses.asdict(model),
         "sensor_hw": list(imitation.resolution),
-        "imitation": dataclasses.asdict(imitation),
+        "imitation": {k: v for k, v in dataclasses.asdict(imitation).items() if k not in RESUME_FREE},
         "expert": dataclasses.asdict(expert),
         "data_hash": content_hash,
         "intention_run": None if intention_run is None else str(intention_run),
@@ -120,24 +123,43 @@ def _trim_log(path: Path, step: int) -> None:
         path.write_text("".join(ln + "\n" for ln in keep))
 
 
+def window_indices(seed: int, step: int, n: int, batch: int):
+    """The `batch` window indices of update `step` (with replacement): a function of
+    `(seed, step)` alone, so a resumed run draws what an uninterrupted one would."""
+    import numpy as np
+
+    return np.random.default_rng([seed, step]).integers(0, n, batch).astype(np.int32)
+
+
 def _rates(m: dict) -> str:
     return f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"
 
 
 def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None):
-    """Jitted `(params, opt_state, batch, lr) -> (params, opt_state, loss, grad_norm)`: one Adam(W)
-    step on `bc_loss` with global-norm clipping. The learning rate is an argument, so every
-    round's schedule shares one compiled update."""
+    """Jitted `(params, opt_state, data, idx, lr, step, bad_step) -> (params, opt_state, loss,
+    grad_norm, bad_step)`: one Adam(W) step on `bc_loss` over the windows `data[idx]`, with
+    global-norm clipping. `data` lives on the device and is gathered inside the jit, so an update
+    moves only `idx` to the device and nothing back. The first update whose loss or gradient is
+    not finite is not applied and its `step` lands in `bad_step` (-1 while all is well); once
+    set, no later update is applied either, so the caller checks `bad_step` only when it logs and
+    still stops at the last good state. The learning rate is an argument: every round's schedule
+    shares one compiled update."""
     import jax
+    import jax.numpy as jnp
 
     from conav_jax.optim import adam, clip_by_global_norm
     from train.imitation import bc_loss
 
-    def update(params, opt_state, batch, lr):
+    def update(params, opt_state, data, idx, lr, step, bad_step):
+        batch = jax.tree.map(lambda x: jnp.take(x, idx, axis=0), data)
         (loss, _), grads = jax.value_and_grad(bc_loss, has_aux=True)(params, model, batch)
         grads, grad_norm = clip_by_global_norm(grads, cfg.grad_clip)
-        params, opt_state = adam(lr, weight_decay=cfg.weight_decay).update(grads, opt_state, params)
-        return params, opt_state, loss, grad_norm
+        new_params, new_opt = adam(lr, weight_decay=cfg.weight_decay).update(grads, opt_state, params)
+        finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+        ok = finite & (bad_step < 0)
+        params, opt_state = jax.tree.map(lambda n, o: jnp.where(ok, n, o), (new_params, new_opt), (params, opt_state))
+        bad_step = jnp.where(~finite & (bad_step < 0), step, bad_step)
+        return params, opt_state, loss, grad_norm, bad_step
 
     return jax.jit(update, compiler_options=compiler_options)
 
@@ -167,8 +189,10 @@ def train_policy(
 
     A focused loop rather than train.loop: that loop scans its updates inside one jit, and on
     XLA:CPU a conv update inside a while loop runs ~20x slower than the same update jitted
-    alone; here each update is one call, and the data stays on the host (only batches move)."""
+    alone. Here each update is one asynchronous call on device-resident windows; the host
+    reads losses back once per log interval, so the GPU is never idle waiting for it."""
     import jax
+    import jax.numpy as jnp
     import numpy as np
     from tqdm import tqdm
 
@@ -265,35 +289,37 @@ def train_policy(
                 f"{len(parts[-1]['label'])} windows  [{time.perf_counter() - t0:.0f} s]")
         if step >= end:
             continue
-        data = im.concat_sequences(parts)
+        data = jax.device_put(im.concat_sequences(parts))
         n = len(data["label"])
         schedule = warmup_cosine(cfg.lr, min(cfg.warmup_steps, steps), steps)
         if step == start:
             opt_state = adam(cfg.lr).init(params)  # each round starts its own Adam
-        sums, count, t_log = np.zeros(2), 0, time.perf_counter()
+        losses, t_log, bad = [], time.perf_counter(), jnp.int32(-1)
         bar = tqdm(total=steps, initial=step - start, disable=not progress, unit="step", desc=f"round {r}", dynamic_ncols=True)
         while step < end:
-            idx = np.random.default_rng([cfg.seed, step]).integers(0, n, cfg.batch)
-            batch = jax.tree.map(lambda x: x[idx], data)
+            idx = window_indices(cfg.seed, step, n, cfg.batch)
             lr = float(schedule(step - start))
-            new_params, new_opt, loss, grad_norm = update(params, opt_state, batch, lr)
-            loss, grad_norm = float(loss), float(grad_norm)
-            if not (np.isfinite(loss) and np.isfinite(grad_norm)):
-                _append_log(log_path, {"step": step, "round": r, "split": "train", "error": "non-finite loss",
-                                       "indices": idx.tolist()})
-                raise NonFiniteLoss(f"non-finite loss or gradient at update {step} (windows {idx.tolist()}); stopped, "
-                                    f"last good checkpoint: {latest_checkpoint(run_dir)}", step, idx.tolist())
-            params, opt_state, step = new_params, new_opt, step + 1
-            sums += (loss, grad_norm)
-            count += 1
+            params, opt_state, loss, grad_norm, bad = update(params, opt_state, data, idx, lr, step, bad)
+            losses.append((loss, grad_norm))  # device scalars: read back only when logging
+            step += 1
             bar.update(1)
+            boundary = step == end or any(step % e == 0 for e in (cfg.log_every, cfg.val_every, cfg.ckpt_every))
+            if not boundary:
+                continue
+            if int(bad) >= 0:  # the one host sync per log interval
+                b = int(bad)
+                bad_idx = window_indices(cfg.seed, b, n, cfg.batch).tolist()
+                _append_log(log_path, {"step": b, "round": r, "split": "train", "error": "non-finite loss",
+                                       "indices": bad_idx})
+                raise NonFiniteLoss(f"non-finite loss or gradient at update {b} (windows {bad_idx}); stopped, "
+                                    f"last good checkpoint: {latest_checkpoint(run_dir)}", b, bad_idx)
             if step % cfg.log_every == 0 or step == end:
-                rate = cfg.batch * count / (time.perf_counter() - t_log)
-                mean_loss, mean_norm = sums / count
+                mean_loss, mean_norm = np.asarray(jax.device_get(losses), np.float64).mean(0)
+                rate = cfg.batch * len(losses) / (time.perf_counter() - t_log)
                 _append_log(log_path, {"step": step, "round": r, "split": "train", "loss": mean_loss,
                                        "grad_norm": mean_norm, "lr": lr, "windows": n, "samples_per_s": round(rate, 1)})
                 bar.set_postfix(loss=f"{mean_loss:.4g}")
-                sums, count, t_log = np.zeros(2), 0, time.perf_counter()
+                losses, t_log = [], time.perf_counter()
             if step % cfg.val_every == 0 or step == end:
                 val = val_metrics(params, 0.0)
                 _append_log(log_path, {"step": step, "round": r, "split": "val", "agent": "policy", **val})
