@@ -5,7 +5,8 @@ An `Agent` acts for ONE environment (the rollout vmaps it): `init(key, episode) 
 agent reads `state.obs` and, if it is privileged (an oracle baseline, the expert), the env's
 constants through a closure and `state.pipeline_state` / `state.info`. Learned agents close over
 their parameters. This module is what evaluation sweeps, DAgger and validation during training
-all run on.
+all run on. With a device mesh (conav_jax.parallel), each batch of episodes is split over
+the devices.
 """
 
 from __future__ import annotations
@@ -16,7 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from brax.envs.base import State
+from jax.sharding import Mesh
 
+from conav_jax.parallel import replicate, round_up, shard_batch, to_host
 from envs.conav_env import ConavEnv
 
 
@@ -66,6 +69,43 @@ def make_rollout(env: ConavEnv, agent: Agent, num_steps: int, record: bool = Fal
     return run
 
 
+def map_episodes(
+    fn: Callable[[jax.Array, jax.Array], Any],
+    episodes: np.ndarray,
+    batch: int,
+    key: jax.Array,
+    mesh: Mesh | None = None,
+    progress: Callable | None = None,
+) -> Any:
+    """`fn(key, indices) -> pytree of (size, ...) arrays` over `episodes` in batches of `batch`
+    -> host (numpy) pytree of `(len(episodes), ...)`.
+
+    Batch `s` (starting at episode `s0`) gets `fold_in(key, s0)`. Each batch is padded by
+    repeating its last episode to `size = batch` rounded up to a multiple of the mesh's device
+    count (results of the padding are dropped), so one compiled function serves every batch;
+    with a `mesh` its indices are split over the devices and the key replicated. Keys of a
+    batch do not depend on the padding (jax's partitionable threefry), so results do not
+    depend on the device count."""
+    episodes = np.asarray(episodes)
+    if episodes.ndim != 1 or len(episodes) == 0:
+        raise ValueError("episodes must be a non-empty 1-D array of episode indices")
+    batch = min(batch, len(episodes))
+    size = round_up(batch, mesh)
+    chunks = []
+    starts = range(0, len(episodes), batch)
+    for s0 in progress(starts) if progress else starts:
+        idx = episodes[s0 : s0 + batch]
+        n = len(idx)
+        idx = np.concatenate([idx, np.full(size - n, idx[-1])]).astype(np.int32)
+        k = jax.random.fold_in(key, s0)
+        if mesh is None:
+            out = fn(k, jnp.asarray(idx))
+        else:
+            out = fn(replicate(k, mesh), shard_batch(idx, mesh))
+        chunks.append(jax.tree.map(lambda x: x[:n], to_host(out)))
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *chunks)
+
+
 def evaluate(
     env: ConavEnv,
     agent: Agent,
@@ -73,28 +113,19 @@ def evaluate(
     batch: int = 256,
     seed: int = 0,
     progress: Callable | None = None,
+    mesh: Mesh | None = None,
 ) -> dict[str, np.ndarray]:
     """Final metrics of every given episode (default: all of the bank, each exactly once).
 
-    Episodes run in batches of `batch`; the last batch is padded by repeating its last episode
-    (results of the padding are dropped), so one compiled function serves every batch."""
+    Episodes run in batches of `batch` (see `map_episodes` for padding and keys); with a
+    `mesh` (conav_jax.parallel.make_mesh) each batch is split over its devices, with the same
+    results as on one device."""
     episodes = np.arange(env.num_episodes) if episodes is None else np.asarray(episodes)
     if episodes.ndim != 1 or len(episodes) == 0:
         raise ValueError("episodes must be a non-empty 1-D array of episode indices")
     if episodes.min() < 0 or episodes.max() >= env.num_episodes:
         raise ValueError(f"episode indices must be in [0, {env.num_episodes})")
-    batch = min(batch, len(episodes))
     run = make_rollout(env, agent, num_steps=env.bank.max_steps)
-    key = jax.random.PRNGKey(seed)
-    chunks = []
-    starts = range(0, len(episodes), batch)
-    for s0 in progress(starts) if progress else starts:
-        idx = episodes[s0 : s0 + batch]
-        n = len(idx)
-        if n < batch:
-            idx = np.concatenate([idx, np.full(batch - n, idx[-1])])
-        metrics, _ = run(jax.random.fold_in(key, s0), jnp.asarray(idx, jnp.int32))
-        chunks.append({k: np.asarray(v)[:n] for k, v in metrics.items()})
-    out = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    out = map_episodes(lambda k, idx: run(k, idx)[0], episodes, batch, jax.random.PRNGKey(seed), mesh, progress)
     out["episode"] = episodes
     return out

@@ -2,7 +2,9 @@
 
 One jitted batched rollout (envs.rollout.make_rollout, full episode length) of `batch` episodes;
 after a compile-and-warm-up call, the median of repeated timed calls (block_until_ready around
-each) gives episodes/min = batch / seconds * 60. Prints the device, batch and resolution.
+each) gives episodes/min = batch / seconds * 60. With `--devices N` the batch is split over N
+devices (conav_jax.parallel); env steps/s are reported in total and per device. Prints the
+device, batch and resolution.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import statistics
 import tempfile
 import time
 
+from conav_jax.parallel import add_devices_arg
 from envs.bench import parse_resolution
 from eval.agents import AGENTS, check_agent
 
@@ -27,36 +30,48 @@ def add_bench_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", type=parse_resolution, default=(112, 448))
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--json", action="store_true", help="print one JSON line")
+    add_devices_arg(p)
     p.set_defaults(func=run_bench_eval)
 
 
-def bench_eval(env, agent, batch: int, repeats: int) -> dict:
-    """Time full-length rollouts of `batch` episodes (the split's episodes, cycled)."""
+def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
+    """Time full-length rollouts of `batch` episodes (the split's episodes, cycled), split
+    over the devices of `mesh` if given (ValueError unless `batch` divides by their count)."""
     import jax
-    import jax.numpy as jnp
+    import numpy as np
 
+    from conav_jax.parallel import replicate, shard_batch
     from envs.rollout import make_rollout
 
     steps = env.bank.max_steps
     run = make_rollout(env, agent, steps)
-    episodes = jnp.arange(batch, dtype=jnp.int32) % env.num_episodes
+    episodes = np.arange(batch, dtype=np.int32) % env.num_episodes
+    episodes = jax.device_put(episodes) if mesh is None else shard_batch(episodes, mesh)
+
+    def key(r: int):
+        k = jax.random.PRNGKey(r)
+        return k if mesh is None else replicate(k, mesh)
+
     t0 = time.perf_counter()
-    jax.block_until_ready(run(jax.random.PRNGKey(0), episodes))
+    jax.block_until_ready(run(key(0), episodes))
     compile_s = time.perf_counter() - t0
     times = []
     for r in range(repeats):
         t0 = time.perf_counter()
-        jax.block_until_ready(run(jax.random.PRNGKey(r + 1), episodes))
+        jax.block_until_ready(run(key(r + 1), episodes))
         times.append(time.perf_counter() - t0)
     med = statistics.median(times)
+    devices = 1 if mesh is None else mesh.size
     return {
         "device": jax.devices()[0].device_kind,
+        "devices": devices,
         "batch": batch,
         "steps_per_episode": steps,
         "compile_and_first_call_s": round(compile_s, 2),
         "median_call_s": round(med, 4),
         "episodes_per_min": round(batch / med * 60.0, 1),
         "env_steps_per_s": round(batch * steps / med, 1),
+        "env_steps_per_s_per_device": round(batch * steps / med / devices, 1),
     }
 
 
@@ -64,8 +79,12 @@ def run_bench_eval(args: argparse.Namespace) -> int:
     check_agent(args.agent, args.checkpoint)
     if args.batch < 1 or args.repeats < 1:
         raise ValueError("--batch and --repeats must be at least 1")
+    from conav_jax.parallel import check_divisible, make_mesh
     from envs import ConavEnv, EnvConfig, SensorConfig
     from eval.agents import make_agent
+
+    mesh = make_mesh(args.devices)
+    check_divisible(args.batch, mesh, "--batch")
 
     tmp, data = None, args.data
     if data is None:
@@ -77,14 +96,15 @@ def run_bench_eval(args: argparse.Namespace) -> int:
         generate_dataset(preset("tiny"), data)
     h, w = args.resolution
     env = ConavEnv(data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w)))
-    res = {"agent": args.agent, "resolution": f"{h}x{w}", **bench_eval(env, make_agent(args.agent, env, args.checkpoint), args.batch, args.repeats)}
+    res = {"agent": args.agent, "resolution": f"{h}x{w}", **bench_eval(env, make_agent(args.agent, env, args.checkpoint), args.batch, args.repeats, mesh)}
     if args.json:
         print(json.dumps(res), flush=True)
     else:
         print(
-            f"{res['device']} agent={args.agent} res={h}x{w} batch={args.batch} ({res['steps_per_episode']} steps/episode): "
-            f"{res['episodes_per_min']:,.1f} episodes/min = {res['env_steps_per_s']:,.0f} env steps/s (median of {args.repeats}), "
-            f"compile {res['compile_and_first_call_s']} s",
+            f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} batch={args.batch} "
+            f"({res['steps_per_episode']} steps/episode): {res['episodes_per_min']:,.1f} episodes/min = "
+            f"{res['env_steps_per_s']:,.0f} env steps/s ({res['env_steps_per_s_per_device']:,.0f} per device; "
+            f"median of {args.repeats}), compile {res['compile_and_first_call_s']} s",
             flush=True,
         )
     if tmp is not None:

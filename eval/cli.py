@@ -1,7 +1,8 @@
 """The `conav` command: one dispatcher over every stage's sub-commands.
 
 Each stage registers its own sub-commands; heavy modules are imported only by the sub-command
-that runs, so `conav --help` stays instant.
+that runs, so `conav --help` stays instant. Commands with `--devices` (data-parallel) first join
+a multi-host run if the environment describes one (conav_jax.parallel).
 """
 
 from __future__ import annotations
@@ -52,6 +53,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        if hasattr(args, "devices"):  # a data-parallel command: join a multi-host run first
+            from conav_jax.parallel import maybe_initialize_distributed
+
+            maybe_initialize_distributed()
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError) as e:
         print(f"conav {args.command}: error: {e}", file=sys.stderr)

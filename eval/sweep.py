@@ -21,6 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from conav_jax.parallel import add_devices_arg
 from envs.bench import parse_resolution
 from eval.agents import AGENTS, check_agent
 
@@ -44,6 +45,7 @@ class EvalPlan:
     seed: int = 0
     resolution: tuple[int, int] = (112, 448)
     out: Path = Path("eval_out")
+    devices: int | None = None  # devices each batch is split over (None: all visible)
 
 
 def add_eval(sub: argparse._SubParsersAction) -> None:
@@ -65,6 +67,7 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="rollout keys and bootstrap resampling")
     p.add_argument("--resolution", type=parse_resolution, default=(112, 448), help="panorama HxW (default 112x448)")
     p.add_argument("--out", required=True, help="output directory")
+    add_devices_arg(p)
     p.set_defaults(func=run_eval)
 
 
@@ -115,6 +118,8 @@ def plan_eval(args: argparse.Namespace) -> EvalPlan:
         raise ValueError(f"--episodes must be at least 1, got {args.episodes}")
     if args.batch < 1:
         raise ValueError(f"--batch must be at least 1, got {args.batch}")
+    if args.devices is not None and args.devices < 1:
+        raise ValueError(f"--devices must be at least 1, got {args.devices}")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} exists and is not a directory")
@@ -131,6 +136,7 @@ def plan_eval(args: argparse.Namespace) -> EvalPlan:
         seed=args.seed,
         resolution=tuple(args.resolution),
         out=out,
+        devices=args.devices,
     )
 
 
@@ -167,32 +173,26 @@ def compiled_rollout(env, name: str, checkpoint: str | None, **kwargs) -> Callab
     return per_env[key]
 
 
-def run_agent(env, run: Callable, episodes: np.ndarray, batch: int, seed: int, progress=None) -> tuple[dict, np.ndarray]:
+def run_agent(
+    env, run: Callable, episodes: np.ndarray, batch: int, seed: int, progress=None, mesh=None
+) -> tuple[dict, np.ndarray]:
     """(final metrics over `episodes`, the first episode's robot poses (steps, 3) up to its end).
 
-    Batches, padding (the last batch repeats its last episode) and keys (PRNGKey(seed) folded
-    with each batch's start) are those of envs.rollout.evaluate, so the numbers match it."""
+    Batches, padding, keys and the split over a `mesh`'s devices are those of
+    envs.rollout.evaluate (envs.rollout.map_episodes), so the numbers match it."""
     import jax
-    import jax.numpy as jnp
 
-    batch = min(batch, len(episodes))
-    key = jax.random.PRNGKey(seed)
-    chunks, first_path = [], None
-    starts = range(0, len(episodes), batch)
-    for s0 in progress(starts) if progress else starts:
-        idx = episodes[s0 : s0 + batch]
-        n = len(idx)
-        if n < batch:
-            idx = np.concatenate([idx, np.full(batch - n, idx[-1])])
-        metrics, trace = run(jax.random.fold_in(key, s0), jnp.asarray(idx, jnp.int32))
-        chunks.append({k: np.asarray(v)[:n] for k, v in metrics.items()})
-        if first_path is None:
-            done = np.asarray(trace.done[0]) > 0.5
-            end = int(np.argmax(done)) + 1 if done.any() else done.size
-            first_path = np.asarray(trace.robot_pose[0])[:end]
-    out = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
-    out["episode"] = np.asarray(episodes)
-    return out, first_path
+    from envs.rollout import map_episodes
+
+    def first_trace(key, idx):
+        metrics, trace = run(key, idx)
+        return metrics, jax.tree.map(lambda x: x[:1], (trace.done, trace.robot_pose))
+
+    metrics, (done, pose) = map_episodes(first_trace, np.asarray(episodes), batch, jax.random.PRNGKey(seed), mesh, progress)
+    done = done[0] > 0.5
+    end = int(np.argmax(done)) + 1 if done.any() else done.size
+    metrics["episode"] = np.asarray(episodes)
+    return metrics, pose[0][:end]
 
 
 def episode_records(split, metrics: dict) -> list[dict]:
@@ -288,9 +288,10 @@ def _report_md(plan: EvalPlan, n: int, table2: str, table3: str | None, maps: li
     return "\n".join(lines) + "\n"
 
 
-def sweep(plan: EvalPlan, env, progress_factory=None) -> dict:
-    """Evaluate every agent and ablation of `plan` on `env` and write all outputs to plan.out.
-    Returns the metrics.json content."""
+def sweep(plan: EvalPlan, env, progress_factory=None, mesh=None) -> dict:
+    """Evaluate every agent and ablation of `plan` on `env` and write all outputs to plan.out,
+    each batch split over the devices of `mesh` (conav_jax.parallel.make_mesh; None: one
+    device). Returns the metrics.json content."""
     from eval import plots
     from eval.report import summarize_with_ci, table2_markdown, table3_markdown
 
@@ -303,7 +304,7 @@ def sweep(plan: EvalPlan, env, progress_factory=None) -> dict:
     results, summaries, maps = {}, {}, []
     for (key, title, _, _), run in zip(runs, rollouts):
         progress = progress_factory(key) if progress_factory else None
-        metrics, first_path = run_agent(env, run, episodes, plan.batch, plan.seed, progress)
+        metrics, first_path = run_agent(env, run, episodes, plan.batch, plan.seed, progress, mesh)
         results[key] = (title, metrics)
         summaries[key] = summarize_with_ci(metrics, seed=plan.seed)
         write_csv(plan.out / f"episodes_{key}.csv", episode_records(env.split, metrics))
@@ -352,7 +353,10 @@ def run_eval(args: argparse.Namespace) -> int:
     """`conav eval`: validate everything, then build the env, evaluate and write the outputs."""
     from tqdm import tqdm
 
+    from conav_jax.parallel import make_mesh
+
     plan = plan_eval(args)
+    mesh = make_mesh(plan.devices)
     env = load_env(plan)
     n = env.num_episodes
     batches = -(-n // min(plan.batch, n))
@@ -360,7 +364,8 @@ def run_eval(args: argparse.Namespace) -> int:
     def progress(key):
         return lambda it: tqdm(it, total=batches, desc=f"eval {key}", unit="batch")
 
-    doc = sweep(plan, env, progress)
+    doc = sweep(plan, env, progress, mesh)
     print((plan.out / "report.md").read_text().split("## Figures")[0].rstrip())
-    print(f"wrote {plan.out} ({len(doc['agents'])} agents, {len(doc['ablations'])} ablations, {n} episodes)")
+    print(f"wrote {plan.out} ({len(doc['agents'])} agents, {len(doc['ablations'])} ablations, {n} episodes, "
+          f"{mesh.size} device(s))")
     return 0

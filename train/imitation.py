@@ -14,15 +14,17 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 
 from conav_jax.episodes import PHASE_ACTIVITY_A
 from conav_jax.expert import ExpertCarry, ExpertConfig, ExpertMaps, clearance_map, expert_action, initial_carry
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nn.lstm import LSTMState
+from conav_jax.parallel import replicate
 from envs.conav_env import ConavEnv
 from envs.mjcf import UD
-from envs.rollout import Agent
+from envs.rollout import Agent, map_episodes
 
 INTENTION_KEYS = ("activity_probs", "object_probs", "future_traj")
 # What a rollout records per step (besides the panorama, kept as "rgb" uint8 and "depth" f16).
@@ -243,28 +245,24 @@ def make_rollout_fn(
 
 
 def run_batched(
-    rollout, params, key: jax.Array, episodes: np.ndarray, beta: float, batch: int, progress: Callable | None = None
+    rollout,
+    params,
+    key: jax.Array,
+    episodes: np.ndarray,
+    beta: float,
+    batch: int,
+    progress: Callable | None = None,
+    mesh: Mesh | None = None,
 ) -> tuple[dict[str, np.ndarray], StepRecord | None]:
-    """A jitted `make_rollout_fn` over many episodes in batches of `batch` (the last padded by
-    repeating its last episode, padding dropped) -> host (metrics, records) over all of them."""
+    """A jitted `make_rollout_fn` over many episodes in batches of `batch` -> host (metrics,
+    records) over all of them (envs.rollout.map_episodes: padding, keys, and with a `mesh` each
+    batch split over its devices, `params` replicated; same results as on one device)."""
     episodes = np.asarray(episodes, np.int32)
-    if episodes.ndim != 1 or len(episodes) == 0:
-        raise ValueError("episodes must be a non-empty 1-D array of episode indices")
-    batch = min(batch, len(episodes))
-    metrics, records = [], []
-    starts = range(0, len(episodes), batch)
-    for s0 in progress(starts) if progress else starts:
-        idx = episodes[s0 : s0 + batch]
-        n = len(idx)
-        idx = np.concatenate([idx, np.full(batch - n, idx[-1], np.int32)])
-        m, r = rollout(params, jax.random.fold_in(key, s0), jnp.asarray(idx), beta)
-        metrics.append({k: np.asarray(v)[:n] for k, v in m.items()})
-        if r is not None:
-            records.append(jax.tree.map(lambda x: np.asarray(x)[:n], r))
-    out = {k: np.concatenate([m[k] for m in metrics]) for k in metrics[0]}
-    out["episode"] = episodes
-    recs = jax.tree.map(lambda *xs: np.concatenate(xs), *records) if records else None
-    return out, recs
+    if mesh is not None:
+        params = replicate(params, mesh)
+    metrics, records = map_episodes(lambda k, idx: rollout(params, k, idx, beta), episodes, batch, key, mesh, progress)
+    metrics["episode"] = episodes
+    return metrics, records
 
 
 # -- imitation data ------------------------------------------------------------------------------

@@ -18,10 +18,12 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 
 from conav_jax.episodes import read_manifest
 from conav_jax.models import perceiver
 from conav_jax.models.perceiver import PerceiverConfig
+from conav_jax.parallel import make_mesh
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.bench import parse_resolution
 from envs.mjcf import UD
@@ -223,8 +225,10 @@ def train_intention(
     data: IntentionDataConfig = IntentionDataConfig(),
     progress: bool = True,
     compiler_options: dict | None = None,
+    mesh: Mesh | None = None,
 ) -> TrainResult:
-    """Render both splits, train on train, validate on val."""
+    """Render both splits, train on train, validate on val (`mesh`: data-parallel, see
+    train.loop.train)."""
     content_hash = read_manifest(data_dir).get("content_hash")
     train_env, val_env = make_env(data_dir, "train", data), make_env(data_dir, "val", data)
     train_d = render_split(train_env, model, data, compiler_options=compiler_options)
@@ -240,7 +244,7 @@ def train_intention(
     return train(
         run_dir, loss, params, samples, cfg, run_config(model, data, content_hash, spacing),
         val_fn=make_val_fn(model, val_d, baselines, compiler_options=compiler_options),
-        progress=progress, compiler_options=compiler_options,
+        progress=progress, compiler_options=compiler_options, mesh=mesh,
     )
 
 
@@ -354,8 +358,8 @@ def run_train_intention(args: argparse.Namespace) -> int:
     data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames)
     model = PerceiverConfig(image_hw=args.image)
     try:
-        cfg = train_config_from_args(args)
-        result = train_intention(args.data, args.out, cfg, model, data, progress=not args.no_progress)
+        cfg, mesh = train_config_from_args(args), make_mesh(args.devices)
+        result = train_intention(args.data, args.out, cfg, model, data, progress=not args.no_progress, mesh=mesh)
     except NonFiniteLoss as e:
         print(f"conav train intention: {e}")
         return 1

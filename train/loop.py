@@ -4,7 +4,9 @@ data (dict of `(N, ...)` arrays, put on the device once) -> minibatch indices dr
 `(seed, step)` -> `loss_fn` -> clipped gradients -> Adam(W) on a warm-up + cosine schedule,
 `log_every` updates per jitted `lax.scan` chunk -> scalars to Python -> log.jsonl, tqdm,
 validation and atomic checkpoints. The batch of update `s` depends only on `(seed, s)`, so a
-run resumed from a checkpoint draws exactly the batches an uninterrupted run would.
+run resumed from a checkpoint draws exactly the batches an uninterrupted run would. With a
+device mesh (conav_jax.parallel) the data, parameters and optimiser state are replicated and
+each gathered minibatch is split over the devices: the same batches, the same losses.
 """
 
 from __future__ import annotations
@@ -23,10 +25,12 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 from tqdm import tqdm
 
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
 from conav_jax.optim import Optimizer, adam, clip_by_global_norm, warmup_cosine
+from conav_jax.parallel import add_devices_arg, check_divisible, constrain_batch, replicate, replicated
 
 PyTree = Any
 # loss_fn(params, batch, key) -> (scalar loss, dict of scalar metrics to log). `batch` is `data`
@@ -112,17 +116,18 @@ def num_samples(data: PyTree) -> int:
     return next(iter(sizes.values()))
 
 
-def make_update(loss_fn: LossFn, optimizer: Optimizer, cfg: TrainConfig, n: int):
+def make_update(loss_fn: LossFn, optimizer: Optimizer, cfg: TrainConfig, n: int, mesh: Mesh | None = None):
     """`update(params, opt_state, data) -> (params, opt_state, StepInfo)`: one pure training
     step (its aux gains the learning rate "lr" it used). The step index is `opt_state.step`;
-    minibatch indices and the loss's key derive from `(cfg.seed, step)` alone."""
+    minibatch indices and the loss's key derive from `(cfg.seed, step)` alone. With a `mesh`
+    the gathered minibatch is split over its devices."""
     base = jax.random.PRNGKey(cfg.seed)
     schedule = warmup_cosine(cfg.lr, cfg.warmup_steps, cfg.steps)
 
     def update(params, opt_state, data):
         k_idx, k_loss = jax.random.split(jax.random.fold_in(base, opt_state.step))
         idx = jax.random.randint(k_idx, (cfg.batch,), 0, n)
-        batch = jax.tree.map(lambda x: jnp.take(x, idx, axis=0), data)
+        batch = constrain_batch(jax.tree.map(lambda x: jnp.take(x, idx, axis=0), data), mesh)
         (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch, k_loss)
         grads, grad_norm = clip_by_global_norm(grads, cfg.grad_clip)
         lr = schedule(opt_state.step)
@@ -164,12 +169,14 @@ def make_chunk(update, batch: int):
 
 
 @functools.lru_cache(maxsize=16)
-def _jitted_chunk(loss_fn: LossFn, cfg: TrainConfig, n: int, compiler_options: tuple):
-    """The jitted chunk, shared by runs of one process with the same loss, optimisation and
-    data size (so a resumed or repeated run reuses its compiled code)."""
-    update = make_update(loss_fn, make_optimizer(cfg), cfg, n)
+def _jitted_chunk(loss_fn: LossFn, cfg: TrainConfig, n: int, compiler_options: tuple, mesh: Mesh | None):
+    """The jitted chunk, shared by runs of one process with the same loss, optimisation, data
+    size and mesh (so a resumed or repeated run reuses its compiled code). With a mesh all its
+    outputs (parameters, optimiser state, scalars) are replicated."""
+    update = make_update(loss_fn, make_optimizer(cfg), cfg, n, mesh)
     options = dict(compiler_options) or None
-    return jax.jit(make_chunk(update, cfg.batch), static_argnames="length", compiler_options=options)
+    out = None if mesh is None else replicated(mesh)
+    return jax.jit(make_chunk(update, cfg.batch), static_argnames="length", compiler_options=options, out_shardings=out)
 
 
 def _next_boundary(step: int, cfg: TrainConfig) -> int:
@@ -206,6 +213,7 @@ def train(
     val_fn: Callable[[PyTree], dict] | None = None,
     progress: bool = True,
     compiler_options: dict | None = None,
+    mesh: Mesh | None = None,
 ) -> TrainResult:
     """Train `params` on `data` for `cfg.steps` updates, resuming from `run_dir` if it holds a
     checkpoint.
@@ -217,6 +225,10 @@ def train(
       device once. `loss_fn` gets it indexed by `cfg.batch` sample indices.
     - `val_fn(params) -> dict of floats`, run every `cfg.val_every` updates and at the end.
     - `compiler_options`: passed to `jax.jit` (tests use a low XLA optimisation level).
+    - `mesh` (conav_jax.parallel.make_mesh): data-parallel over its devices; `data`, params and
+      optimiser state replicated, each minibatch split (ValueError unless `cfg.batch` divides
+      by the device count). The same batches as without it, so the same losses up to the
+      order of float sums.
     Raises NonFiniteLoss (naming the step and the batch's sample indices) when a loss or
     gradient goes inf/NaN; nothing is saved then, so the last checkpoint stays the last good one.
     """
@@ -227,7 +239,9 @@ def train(
     log_path = run_dir / LOG_FILE
     full_config = {**config, "train": cfg.optimisation()}
     n = num_samples(data)
-    data = jax.device_put(data)
+    if mesh is not None:
+        check_divisible(cfg.batch, mesh, "TrainConfig.batch")
+    data = jax.device_put(data) if mesh is None else replicate(data, mesh)
     opt_state = make_optimizer(cfg).init(params)
 
     step = 0
@@ -241,9 +255,11 @@ def train(
         _trim_log(log_path, step)
     elif log_path.exists():
         log_path.unlink()  # a log without a checkpoint belongs to no state we can continue
+    if mesh is not None:
+        params, opt_state = replicate((params, opt_state), mesh)
 
     cadence_free = dataclasses.replace(cfg, **{k: 1 for k in CADENCE_FIELDS})
-    chunk = _jitted_chunk(loss_fn, cadence_free, n, tuple(sorted((compiler_options or {}).items())))
+    chunk = _jitted_chunk(loss_fn, cadence_free, n, tuple(sorted((compiler_options or {}).items())), mesh)
     val: dict = {}
 
     def validate(at: int) -> None:
@@ -324,6 +340,7 @@ def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig) -> None:
         default = getattr(defaults, f.name)
         p.add_argument(flag, type=type(default), default=default, help=f"TrainConfig.{f.name} (default {default})")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_devices_arg(p)
 
 
 def train_config_from_args(args: argparse.Namespace) -> TrainConfig:

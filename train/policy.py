@@ -4,7 +4,9 @@ Round 0 records the expert on the train split; each DAgger round rolls out the c
 the expert labels the states it visits, and the aggregated windows (RUN/data/round_R.npz)
 train it further. Validation runs the policy in the simulator on the val split. RUN/log.jsonl
 holds the expert's val metrics (the ceiling), losses, and validations; RUN/ckpt_*.npz the
-policy (read by eval.learned.policy_agent and train.ppo's --init-from); runs resume.
+policy (read by eval.learned.policy_agent and train.ppo's --init-from); runs resume. With a
+device mesh (conav_jax.parallel) every update's windows and every simulator batch are split
+over the devices, parameters replicated.
 """
 
 from __future__ import annotations
@@ -135,7 +137,7 @@ def _rates(m: dict) -> str:
     return f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"
 
 
-def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None):
+def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None, mesh=None):
     """Jitted `(params, opt_state, data, idx, lr, step, bad_step) -> (params, opt_state, loss,
     grad_norm, bad_step)`: one Adam(W) step on `bc_loss` over the windows `data[idx]`, with
     global-norm clipping. `data` lives on the device and is gathered inside the jit, so an update
@@ -143,15 +145,17 @@ def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None):
     not finite is not applied and its `step` lands in `bad_step` (-1 while all is well); once
     set, no later update is applied either, so the caller checks `bad_step` only when it logs and
     still stops at the last good state. The learning rate is an argument: every round's schedule
-    shares one compiled update."""
+    shares one compiled update. With a `mesh` (data, params and opt_state replicated on it) the
+    gathered windows are split over its devices and every output is replicated."""
     import jax
     import jax.numpy as jnp
 
     from conav_jax.optim import adam, clip_by_global_norm
+    from conav_jax.parallel import constrain_batch, replicated
     from train.imitation import bc_loss
 
     def update(params, opt_state, data, idx, lr, step, bad_step):
-        batch = jax.tree.map(lambda x: jnp.take(x, idx, axis=0), data)
+        batch = constrain_batch(jax.tree.map(lambda x: jnp.take(x, idx, axis=0), data), mesh)
         (loss, _), grads = jax.value_and_grad(bc_loss, has_aux=True)(params, model, batch)
         grads, grad_norm = clip_by_global_norm(grads, cfg.grad_clip)
         new_params, new_opt = adam(lr, weight_decay=cfg.weight_decay).update(grads, opt_state, params)
@@ -161,7 +165,8 @@ def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None):
         bad_step = jnp.where(~finite & (bad_step < 0), step, bad_step)
         return params, opt_state, loss, grad_norm, bad_step
 
-    return jax.jit(update, compiler_options=compiler_options)
+    out = None if mesh is None else replicated(mesh)
+    return jax.jit(update, compiler_options=compiler_options, out_shardings=out)
 
 
 def train_policy(
@@ -175,6 +180,7 @@ def train_policy(
     progress: bool = True,
     compiler_options: dict | None = None,
     log=print,
+    mesh=None,
 ) -> PolicyResult:
     """Imitation-train the policy on `data_dir`'s train split into `run_dir` (resumed from its
     latest checkpoint if it has one of the same config; ValueError naming the first difference
@@ -185,7 +191,10 @@ def train_policy(
     schedule, warm-started from the previous round's weights. Batches are `cfg.batch` windows
     drawn (with replacement) from `(cfg.seed, update step)` alone, so a resumed run repeats an
     uninterrupted one. With `intention_run` / `trajectory_run`, validation feeds the policy the
-    predictors' outputs; training always uses ground truth (paper sec. 4.2).
+    predictors' outputs; training always uses ground truth (paper sec. 4.2). With a `mesh`
+    (conav_jax.parallel.make_mesh) updates and rollouts run data-parallel over its devices,
+    drawing the same windows and episodes (ValueError unless `cfg.batch` divides by the device
+    count).
 
     A focused loop rather than train.loop: that loop scans its updates inside one jit, and on
     XLA:CPU a conv update inside a while loop runs ~20x slower than the same update jitted
@@ -202,12 +211,20 @@ def train_policy(
     from conav_jax.models import policy
     from conav_jax.models.policy import PolicyConfig, ablation_config
     from conav_jax.optim import adam, warmup_cosine
+    from conav_jax.parallel import check_divisible, replicate
     from envs import ConavEnv, EnvConfig, SensorConfig
     from envs.metrics import summarize
     from train import imitation as im
     from train.loop import NonFiniteLoss
 
     expert = expert or ExpertConfig()
+    if mesh is not None:
+        check_divisible(cfg.batch, mesh, "TrainConfig.batch")
+
+    def place(tree):
+        """On the device; with a mesh, a copy on each of its devices."""
+        return jax.device_put(tree) if mesh is None else replicate(tree, mesh)
+
     run_dir = Path(run_dir)
     (run_dir / "data").mkdir(parents=True, exist_ok=True)
     log_path = run_dir / LOG_FILE
@@ -249,12 +266,12 @@ def train_policy(
     jit = lambda f: jax.jit(f, compiler_options=compiler_options)  # noqa: E731
     record = jit(im.make_rollout_fn(train_env, model, expert, record=True))
     validate = jit(im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory))
-    update = make_update(model, cfg, compiler_options)
+    update = make_update(model, cfg, compiler_options, mesh)
     train_eps, val_eps = np.arange(train_env.num_episodes), np.arange(val_env.num_episodes)
     val_key = jax.random.PRNGKey(cfg.seed + 1)
 
     def val_metrics(p, beta: float) -> dict:
-        m, _ = im.run_batched(validate, p, val_key, val_eps, beta, imitation.rollout_batch)
+        m, _ = im.run_batched(validate, p, val_key, val_eps, beta, imitation.rollout_batch, mesh=mesh)
         return summarize(m)
 
     def checkpoint(r: int) -> None:
@@ -280,7 +297,7 @@ def train_policy(
             agent, beta = ("expert", 1.0) if r == 0 else ("policy", 0.0)
             t0 = time.perf_counter()
             key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
-            m, recs = im.run_batched(record, params, key, train_eps, beta, imitation.rollout_batch)
+            m, recs = im.run_batched(record, params, key, train_eps, beta, imitation.rollout_batch, mesh=mesh)
             parts.append(im.sequences(recs, imitation.seq_len, imitation.burn_in))
             im.save_sequences(path, parts[-1])
             _append_log(log_path, {"step": step, "round": r, "split": "train", "agent": agent, "episodes": len(train_eps),
@@ -289,11 +306,12 @@ def train_policy(
                 f"{len(parts[-1]['label'])} windows  [{time.perf_counter() - t0:.0f} s]")
         if step >= end:
             continue
-        data = jax.device_put(im.concat_sequences(parts))
+        data = place(im.concat_sequences(parts))
         n = len(data["label"])
         schedule = warmup_cosine(cfg.lr, min(cfg.warmup_steps, steps), steps)
         if step == start:
             opt_state = adam(cfg.lr).init(params)  # each round starts its own Adam
+        params, opt_state = place((params, opt_state))
         losses, t_log, bad = [], time.perf_counter(), jnp.int32(-1)
         bar = tqdm(total=steps, initial=step - start, disable=not progress, unit="step", desc=f"round {r}", dynamic_ncols=True)
         while step < end:
@@ -373,12 +391,14 @@ def run_train_policy(args: argparse.Namespace) -> int:
     for flag, run in (("--intention", args.intention), ("--trajectory", args.trajectory)):
         if run is not None and not Path(run).is_dir():
             raise FileNotFoundError(f"{flag} run directory not found: {run}")
+    from conav_jax.parallel import make_mesh
     from train.loop import NonFiniteLoss
 
     try:
         result = train_policy(
             args.data, args.out, train_config_from_args(args), imitation,
             intention_run=args.intention, trajectory_run=args.trajectory, progress=not args.no_progress,
+            mesh=make_mesh(args.devices),
         )
     except NonFiniteLoss as e:
         print(f"conav train policy: {e}")

@@ -18,6 +18,9 @@ Choices, stated once:
   interrupted episodes are bootstrapped from their value like any segment end.
 - Time-limit truncation (EpisodeWrapper) counts as termination; the default episode length is
   longer than any episode of the bank, so only the env's own ends (goal reached, human done).
+- Many devices: with a mesh (conav_jax.parallel) the env batch axis (num_envs) of the runner
+  is split over the devices, parameters and optimiser state replicated; jit partitions the
+  rollout and the update from that.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from brax.envs.wrappers import training as brax_training
+from jax.sharding import Mesh
 from tqdm import tqdm
 
 import envs  # noqa: F401  (registers 'conav' with brax)
@@ -44,6 +48,7 @@ from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nn.lstm import LSTMState
 from conav_jax.optim import Optimizer, adam, clip_by_global_norm
+from conav_jax.parallel import add_devices_arg, batch_sharding, check_divisible, make_mesh, replicated
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.metrics import summarize
 from envs.rollout import Agent, evaluate
@@ -364,7 +369,21 @@ class Runner(NamedTuple):
     iteration: jax.Array
 
 
-def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig):
+def env_shardings(tree: Any, mesh: Mesh, num_envs: int) -> Any:
+    """Shardings for `tree` on `mesh`: leaves whose leading axis is the env batch `num_envs`
+    split over the devices, every other leaf replicated (works on arrays and tracers)."""
+    split, whole = batch_sharding(mesh), replicated(mesh)
+    return jax.tree.map(lambda x: split if np.ndim(x) and np.shape(x)[0] == num_envs else whole, tree)
+
+
+def runner_shardings(runner: Runner, mesh: Mesh, num_envs: int) -> Runner:
+    """The Runner on a mesh: its env carry split along the env batch, the rest replicated."""
+    whole = replicated(mesh)
+    return Runner(jax.tree.map(lambda _: whole, runner.params), jax.tree.map(lambda _: whole, runner.opt_state),
+                  env_shardings(runner.env, mesh, num_envs), whole, whole)
+
+
+def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig, mesh: Mesh | None = None):
     """-> `(init_runner(params, key) -> Runner, iteration(runner) -> (runner, metrics))`;
     `iteration` is to be jitted once: it re-resets the batch onto new episodes if
     `iteration % reset_every == 0` (always at iteration 0), then rollout, GAE, update.
@@ -372,7 +391,8 @@ def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig):
 
     The runner from `init_runner` holds a zero placeholder env state of the right shapes
     (`jax.eval_shape`), as iteration 0 resets anyway; both go through one jitted reset, whose
-    trace jax caches, so the slow MJX trace happens once."""
+    trace jax caches, so the slow MJX trace happens once. With a `mesh` the start of each
+    rollout is constrained to `env_shardings` (envs split over the devices)."""
     optimizer = adam(config.lr)
     reset = jax.jit(env.reset)
     b = config.num_envs
@@ -389,6 +409,8 @@ def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig):
     def iteration(runner: Runner):
         key, k_reset, k_roll, k_update = jax.random.split(runner.key, 4)
         start = jax.lax.cond(runner.iteration % config.reset_every == 0, fresh, lambda _: runner.env, k_reset)
+        if mesh is not None:
+            start = jax.lax.with_sharding_constraint(start, env_shardings(start, mesh, b))
         end, traj, last_value, stats = rollout(
             env, policy_config, config.recurrent, runner.params, start, k_roll, config.rollout_steps
         )
@@ -495,6 +517,7 @@ def train_ppo(
     init_from: str | Path | None = None,
     progress: bool = True,
     compiler_options: dict | None = None,
+    mesh: Mesh | None = None,
 ) -> PPOResult:
     """Train a PPO policy on the `train` split of `data_dir`; log, checkpoint and evaluate
     (val split, through `ppo_agent` on the saved checkpoint) into `run_dir`, which must hold
@@ -502,8 +525,13 @@ def train_ppo(
 
     `policy_config`: the network (default PolicyConfig at `config.resolution`); with
     `init_from` (an imitation "policy" run) the network and its weights come from that run.
-    `compiler_options` go to `jax.jit` (tests lower the XLA optimisation level)."""
+    `compiler_options` go to `jax.jit` (tests lower the XLA optimisation level). `mesh`
+    (conav_jax.parallel.make_mesh): the envs split over its devices, parameters replicated,
+    and the validations' episodes split too (ValueError unless `num_envs` divides by the
+    device count)."""
     run_dir = Path(run_dir)
+    if mesh is not None:
+        check_divisible(config.num_envs, mesh, "PPOConfig.num_envs")
     if latest_checkpoint(run_dir) is not None:
         raise ValueError(f"{run_dir} already holds a checkpoint; PPO runs do not resume, choose a new --out")
     hw = tuple(config.resolution)
@@ -537,9 +565,13 @@ def train_ppo(
                 "init_from": None if init_from is None else str(init_from)},
     }
 
-    init_runner, iteration = make_iteration(wrapped, policy_config, config)
-    iteration = jax.jit(iteration, compiler_options=compiler_options)
+    init_runner, iteration = make_iteration(wrapped, policy_config, config, mesh)
     runner = init_runner(params, jax.random.PRNGKey(config.seed))
+    out_shardings = None
+    if mesh is not None:
+        placement = runner_shardings(runner, mesh, config.num_envs)
+        runner, out_shardings = jax.device_put(runner, placement), (placement, replicated(mesh))
+    iteration = jax.jit(iteration, compiler_options=compiler_options, out_shardings=out_shardings)
     n_iter, per_iter = config.num_iterations, config.steps_per_iteration
     val: dict = {}
 
@@ -553,7 +585,7 @@ def train_ppo(
         # The checkpoint just saved, loaded as `conav eval --agent ppo` does. Each call compiles
         # a new val rollout: the agent closes over its params.
         agent = ppo_agent(val_env, run_dir)
-        val = summarize(evaluate(val_env, agent, episodes, batch=config.eval_batch, seed=config.seed))
+        val = summarize(evaluate(val_env, agent, episodes, batch=config.eval_batch, seed=config.seed, mesh=mesh))
         _append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "val", **val})
 
     bar = tqdm(total=n_iter * per_iter, disable=not progress, unit="step", dynamic_ncols=True)
@@ -625,6 +657,7 @@ def add_train_rl(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--eval-every", type=int, default=d.eval_every, help="iterations between val evaluations (0: none)")
     p.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="iterations between checkpoints")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_devices_arg(p)
     p.set_defaults(func=run_train_rl)
 
 
@@ -640,7 +673,8 @@ def run_train_rl(args: argparse.Namespace) -> int:
     if not args.init_from:
         policy_config = PolicyConfig(image_hw=config.resolution, hidden=args.hidden or PolicyConfig.hidden)
     try:
-        result = train_ppo(args.data, args.out, config, policy_config, args.init_from, progress=not args.no_progress)
+        result = train_ppo(args.data, args.out, config, policy_config, args.init_from, progress=not args.no_progress,
+                           mesh=make_mesh(args.devices))
     except FloatingPointError as e:
         print(f"conav train rl: {e}")
         return 1

@@ -16,10 +16,12 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 
 from conav_jax.episodes import PHASE_WALK, load_split, read_manifest
 from conav_jax.models import trajectory as traj_model
 from conav_jax.models.trajectory import TrajectoryConfig
+from conav_jax.parallel import make_mesh
 from train.loop import NonFiniteLoss, TrainConfig, TrainResult, add_train_args, load_run, train, train_config_from_args
 
 KIND = "trajectory"
@@ -137,9 +139,10 @@ def train_trajectory(
     data: TrajectoryDataConfig = TrajectoryDataConfig(),
     progress: bool = True,
     compiler_options: dict | None = None,
+    mesh: Mesh | None = None,
 ) -> TrainResult:
     """Train on the train split's windows, validate on the val split's (see train.loop.train
-    for resuming and errors)."""
+    for resuming, errors and the data-parallel `mesh`)."""
     content_hash = read_manifest(data_dir).get("content_hash")
     train_w = split_windows(data_dir, "train", model, data, data.max_train_windows)
     val_w = split_windows(data_dir, "val", model, data, data.max_val_windows)
@@ -147,7 +150,7 @@ def train_trajectory(
     loss = lambda p, b, k: trajectory_loss(p, model, b, k)
     return train(
         run_dir, loss, params, train_w, cfg, run_config(model, data, content_hash),
-        val_fn=make_val_fn(model, val_w, compiler_options), progress=progress, compiler_options=compiler_options,
+        val_fn=make_val_fn(model, val_w, compiler_options), progress=progress, compiler_options=compiler_options, mesh=mesh,
     )
 
 
@@ -189,8 +192,8 @@ def add_train_trajectory(sub: argparse._SubParsersAction) -> None:
 def run_train_trajectory(args: argparse.Namespace) -> int:
     model = TrajectoryConfig(hidden=args.hidden)
     try:
-        cfg = train_config_from_args(args)
-        result = train_trajectory(args.data, args.out, cfg, model, progress=not args.no_progress)
+        cfg, mesh = train_config_from_args(args), make_mesh(args.devices)
+        result = train_trajectory(args.data, args.out, cfg, model, progress=not args.no_progress, mesh=mesh)
     except NonFiniteLoss as e:
         print(f"conav train trajectory: {e}")
         return 1
