@@ -83,13 +83,7 @@ def _in_passes(cfg: SensorConfig, init: jax.Array, per_geom: tuple, keys_fn) -> 
 
     per_geom: arrays with a leading geom axis G; padded to a multiple of the pass size with
     copies of geom 0 (harmless: a duplicate cannot change a min)."""
-    p = cfg.geoms_per_pass
-    g = per_geom[0].shape[0]
-    n = -(-g // p)
-    pad = n * p - g
-    grouped = tuple(
-        jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]).reshape((n, p) + a.shape[1:]) for a in per_geom
-    )
+    grouped = _split(per_geom, cfg.geoms_per_pass)
 
     def body(keys, group):
         return jnp.minimum(keys, jnp.min(keys_fn(*group), axis=0)), None
@@ -209,6 +203,16 @@ def legacy_depth_ids(
 # and per-pixel functions feed the Pallas kernel (envs/panorama_pallas.py).
 
 _NO_HIT = 0xFFFFFFFF
+
+
+def _split(arrays: tuple, p: int) -> tuple:
+    """Arrays with a leading geom axis G -> (ceil(G / p), p, ...), padded with copies of geom 0
+    (harmless: a duplicate cannot change a min)."""
+    g = arrays[0].shape[0]
+    n = -(-g // p)
+    pad = n * p - g
+    return tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]).reshape((n, p) + a.shape[1:])
+                 for a in arrays)
 
 
 def box_terms(cfg: SensorConfig, cam, yaw, box_lo, box_hi, box_valid):
@@ -349,18 +353,6 @@ def fast_depth_ids(
     keys = jnp.broadcast_to(floor_row_keys(cfg, cam, floor_id)[:, None], (cfg.height, cfg.width))
     col_in, col_out, row_in, row_out = box_terms(cfg, cam, yaw, box_lo, box_hi, box_valid)
     box_ids = box_ids.astype(jnp.uint32)
-    if cfg.fast_min == "reduce":
-        bkeys = box_pixel_keys(
-            col_in[:, None, :], col_out[:, None, :], row_in[:, :, None], row_out[:, :, None],
-            inv_cos[None, :, None], box_ids[:, None, None], scale, maxd,
-        )
-        keys = jnp.minimum(keys, jnp.min(bkeys, axis=0))
-    else:  # "unroll": a running min, one elementwise chain per geom
-        for g in range(box_lo.shape[0]):
-            keys = jnp.minimum(keys, box_pixel_keys(
-                col_in[g][None, :], col_out[g][None, :], row_in[g][:, None], row_out[g][:, None],
-                inv_cos[:, None], box_ids[g], scale, maxd,
-            ))
     if cap_p0.shape[0]:
         u, v, s = capsule_terms(cfg, cam, yaw, cap_p0, cap_p1, cap_r)
         cap_ids = cap_ids.astype(jnp.uint32)
@@ -370,12 +362,30 @@ def fast_depth_ids(
                 {k: x[:, None, None] for k, x in s.items()}, cap_ids[:, None, None], scale, maxd,
             )
             keys = jnp.minimum(keys, jnp.min(ckeys, axis=0))
-        else:
+        else:  # "unroll": a running min, one elementwise chain per geom
             for c in range(cap_p0.shape[0]):
                 keys = jnp.minimum(keys, capsule_pixel_keys(
                     u[c][None, :], v[c][None, :], ce[:, None], se[:, None],
-                    {k: x[c] for k, x in s.items()}, cap_ids[c], scale, maxd,
+                    {n: x[c] for n, x in s.items()}, cap_ids[c], scale, maxd,
                 ))
+    box_terms_ = (col_in, col_out, row_in, row_out, box_ids)
+    if cfg.fast_min == "reduce":
+        def one_pass(keys, group):
+            ci, co, ri, ro, ids = group
+            k = box_pixel_keys(ci[:, None, :], co[:, None, :], ri[:, :, None], ro[:, :, None],
+                               inv_cos[None, :, None], ids[:, None, None], scale, maxd)
+            return jnp.minimum(keys, jnp.min(k, axis=0)), None
+    else:
+        def one_pass(keys, group):
+            for ci, co, ri, ro, ids in zip(*group):
+                keys = jnp.minimum(keys, box_pixel_keys(ci[None, :], co[None, :], ri[:, None], ro[:, None],
+                                                        inv_cos[:, None], ids, scale, maxd))
+            return keys, None
+    # Boxes in two passes of a lax.scan: its carry is a fusion boundary, so the keys are written
+    # once (4 bytes a pixel) and depth, ids and colours read them. A caster ending in plain
+    # elementwise ops lets XLA fuse it whole into each consumer (depth, the colour gather, each
+    # rgbd channel, the front view) and cast the panorama several times over (seen on the CPU).
+    keys, _ = jax.lax.scan(one_pass, keys, _split(box_terms_, max(1, -(-box_lo.shape[0] // 2))))
     return _unpack(keys, cfg)
 
 
