@@ -29,9 +29,9 @@ class SensorConfig:
     # previous caster, in passes of `geoms_per_pass` geoms; "reference": mujoco.mjx.ray per pixel.
     kind: str = "fast"
     # Fast caster: how the min over geoms is written for XLA. "unroll": a running min unrolled
-    # over geoms, one elementwise chain per pixel that XLA fuses whole (only (H, W) buffers; the
-    # CPU HLO shows one fusion); "reduce": a min-reduction over a (geoms, H, W) expression, which
-    # relies on XLA fusing the producer into the reduction (the CPU backend does not).
+    # over geoms, elementwise chains that XLA fuses whole (only (H, W) buffers; checked in the
+    # CPU HLO); "reduce": min-reductions over (geoms, H, W) expressions, which rely on XLA fusing
+    # the producer into the reduction (the CPU backend does not for the boxes).
     fast_min: str = "unroll"
     # Legacy caster only: geoms per pass; memory per env is geoms_per_pass x H x W keys.
     geoms_per_pass: int = 8

@@ -198,9 +198,10 @@ def legacy_depth_ids(
 
 # -- the fused caster (kind "fast") -------------------------------------------------------------
 # Per-geom work is split into terms per (geom, column) and per (geom, row), computed once; per
-# pixel only a few max/min/compare ops remain, inside one min-reduction over all geoms that XLA
-# fuses with its producer, so no (geoms, H, W) array is ever written to memory. The same terms
-# and per-pixel functions feed the Pallas kernel (envs/panorama_pallas.py).
+# pixel only a few max/min/compare ops remain, in a running min over geoms that XLA fuses into
+# one loop (the capsules, then the boxes in two passes of a lax.scan), so no (geoms, H, W)
+# array is ever written to memory: only the (H, W) keys, three times. The same terms and
+# per-pixel functions feed the Pallas kernel (envs/panorama_pallas.py).
 
 _NO_HIT = 0xFFFFFFFF
 
@@ -346,8 +347,9 @@ def fast_depth_ids(
 
     box_lo/box_hi (G, 3) corners of axis-aligned boxes, box_ids (G,) their geom ids, box_valid
     (G,) which are real; capsules cap_p0/cap_p1 (C, 3) segment ends and cap_r (C,) radii.
-    One fused min over all boxes of an expression built from (G, 1, W) column terms and
-    (G, H, 1) row terms, and the same for capsules; see the section comment above."""
+    A running min over geoms of expressions built from (1, W) column terms and (H, 1) row
+    terms (cfg.fast_min "unroll"), or min-reductions over (G, H, W) expressions ("reduce");
+    see the section comment above."""
     scale, maxd = _scale(cfg), float(cfg.max_depth_m)
     inv_cos, ce, se = elevation_terms(cfg)
     keys = jnp.broadcast_to(floor_row_keys(cfg, cam, floor_id)[:, None], (cfg.height, cfg.width))
