@@ -3,6 +3,12 @@
 A batch of episodes is reset and stepped with random actions inside one jitted `lax.scan`;
 after a compile-and-warm-up call, the median of repeated timed calls (block_until_ready around
 each) gives steps/s = batch * steps / seconds. Prints the device, batch and resolution.
+
+`--what breakdown` times the stages of a step separately, each its own jitted scan over the
+same batch: physics (episode model + MJX substeps under random velocity commands), the
+humanoid pose update, the sensors (panorama, colours, observations) and the full step; and
+prints the floor a perfect kernel could reach: ray-geom tests and observation bytes written per
+step against H100 rates (FP32 non-tensor throughput, HBM bandwidth).
 """
 
 from __future__ import annotations
@@ -31,12 +37,17 @@ def add_bench_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", default="val")
     p.add_argument("--batch", type=int, nargs="+", default=[1024])
     p.add_argument("--resolution", type=parse_resolution, nargs="+", default=[(112, 448)])
-    p.add_argument("--sensor", choices=["fast", "reference", "both"], default="fast")
+    p.add_argument("--sensor", nargs="+", choices=["fast", "pallas", "legacy", "reference", "both"], default=["fast"],
+                   help="sensor kinds to time (both = fast and reference)")
+    p.add_argument("--fast-min", choices=["reduce", "unroll"], default=None, help="fast caster: min over geoms as")
     p.add_argument("--steps", type=int, default=20, help="env steps per timed call")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--geoms-per-pass", type=int, default=None, help="fast caster geoms per pass")
-    p.add_argument("--what", choices=["step", "sensor"], default="step",
-                   help="step: full env steps (physics, humanoid, sensors); sensor: panoramas only")
+    p.add_argument("--what", choices=["step", "sensor", "breakdown"], default="step",
+                   help="step: full env steps (physics, humanoid, sensors); sensor: panoramas only; "
+                   "breakdown: physics, humanoid, sensors and the full step timed separately, plus the floor")
+    p.add_argument("--pallas-block-w", type=int, default=None, help="pallas caster: columns per program")
+    p.add_argument("--pallas-num-warps", type=int, default=None, help="pallas caster: warps per program")
     p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
     p.set_defaults(func=run_bench_sim)
 
@@ -69,8 +80,91 @@ def _sensor_run(env, batch: int, steps: int):
     return run
 
 
-def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step") -> dict:
-    """Time `steps` env steps (or panoramas) of `batch` episodes; returns a dict of figures."""
+# Rates of one H100 SXM the floor is computed against (dense FP32 without tensor cores; HBM3).
+H100_FP32_FLOPS = 60e12
+H100_HBM_BYTES_PER_S = 3.35e12
+# Arithmetic per ray-geom test of the fast caster's per-pixel code (envs/panorama.py): a box is
+# ~13 ops (2 max/min, compare, select, multiply, pack, running min), a capsule ~45.
+BOX_TEST_FLOPS = 13
+CAPSULE_TEST_FLOPS = 45
+
+
+def sensor_floor(env, batch: int) -> dict:
+    """Work per env step of the whole batch and the time a perfect kernel would need."""
+    cfg = env.config.sensor
+    rays = batch * cfg.height * cfg.width
+    boxes, caps = int(env._box_ids.shape[0]), int(env._cap_ids.shape[0])
+    flops = rays * (boxes * BOX_TEST_FLOPS + caps * CAPSULE_TEST_FLOPS)
+    # Observations written: rgbd (H, W, 4) and front (H, W / 4, 4) float32.
+    obs_bytes = batch * cfg.height * cfg.width * 4 * 4 * 5 // 4
+    t_flops, t_bytes = flops / H100_FP32_FLOPS, obs_bytes / H100_HBM_BYTES_PER_S
+    return {
+        "rays_per_step": rays,
+        "boxes": boxes,
+        "capsules": caps,
+        "ray_geom_tests_per_step": rays * (boxes + caps),
+        "est_flops_per_step": flops,
+        "obs_bytes_written_per_step": obs_bytes,
+        "h100_compute_floor_s": t_flops,
+        "h100_memory_floor_s": t_bytes,
+        "h100_sensor_bound_steps_per_s": round(batch / max(t_flops, t_bytes), 1),
+    }
+
+
+def _stage_runs(env, batch: int, steps: int) -> dict:
+    """Jitted scans of `steps` repetitions of each stage of ConavEnv.step, over `batch` envs."""
+    n = env.num_episodes
+    reset = jax.vmap(env.reset_to_episode)
+    task = env.task
+
+    def start(key):
+        state = reset(jax.random.split(key, batch), jnp.arange(batch) % n)
+        return state.pipeline_state, state.info["episode"]
+
+    @jax.jit
+    def physics(key):
+        d, ep = start(key)
+
+        def body(d, k):
+            a = jax.random.uniform(k, (batch, 2), minval=-1.0, maxval=1.0)
+            m = jax.vmap(env._episode_model)(ep, d.qpos[:, :2])
+            d = jax.vmap(env._physics)(m, d, a[:, 0] * task.v_max_mps, a[:, 1] * task.w_max_radps)
+            return d, None
+
+        d, _ = jax.lax.scan(body, d, jax.random.split(key, steps))
+        return d.qpos.sum()
+
+    @jax.jit
+    def humanoid(key):
+        d, ep = start(key)
+
+        def body(carry, t):
+            d, acc = carry
+            d = jax.vmap(env._pose_human, in_axes=(0, 0, None))(d, ep, t)
+            return (d, acc + d.mocap_pos[:, 0, 0].sum()), None
+
+        (d, acc), _ = jax.lax.scan(body, (d, jnp.zeros(())), jnp.arange(1, steps + 1))
+        return acc
+
+    @jax.jit
+    def sensors(key):
+        d, ep = start(key)
+
+        def body(total, k):
+            yaw = jax.random.uniform(k, (batch,), minval=-3.14, maxval=3.14)
+            dd = d.replace(qpos=d.qpos.at[:, 2].set(yaw))
+            m = jax.vmap(env._episode_model)(ep, dd.qpos[:, :2])
+            obs = jax.vmap(env._observe)(m, dd, ep)
+            # Every pixel of both images is read: XLA would otherwise compute only the ones used.
+            return total + obs["rgbd"].mean() + obs["front"].mean(), None
+
+        total, _ = jax.lax.scan(body, jnp.zeros(()), jax.random.split(key, steps))
+        return total
+
+    return {"physics": physics, "humanoid": humanoid, "sensors": sensors, "step": _step_run(env, batch, steps)}
+
+
+def _step_run(env, batch: int, steps: int):
     n = env.num_episodes
     reset = jax.vmap(env.reset_to_episode)
     step = jax.vmap(env.step)
@@ -88,7 +182,11 @@ def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step") -> 
         state, r = jax.lax.scan(body, state, jax.random.split(key, steps))
         return r.sum() + state.obs["rgbd"][:, 0, 0, 3].sum()
 
-    run = run_steps if what == "step" else _sensor_run(env, batch, steps)
+    return run_steps
+
+
+def _time(run, repeats: int) -> tuple[float, float]:
+    """(compile + first call seconds, median seconds of `repeats` timed calls)."""
     t0 = time.perf_counter()
     jax.block_until_ready(run(jax.random.PRNGKey(0)))
     compile_s = time.perf_counter() - t0
@@ -97,7 +195,34 @@ def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step") -> 
         t0 = time.perf_counter()
         jax.block_until_ready(run(jax.random.PRNGKey(r + 1)))
         times.append(time.perf_counter() - t0)
-    med = statistics.median(times)
+    return compile_s, statistics.median(times)
+
+
+def bench_breakdown(env, batch: int, steps: int, repeats: int) -> dict:
+    """Per-stage seconds per env step (of the whole batch), their rates, and the floor."""
+    out = {"device": jax.devices()[0].device_kind, "batch": batch, "steps_per_call": steps, "what": "breakdown"}
+    for name, run in _stage_runs(env, batch, steps).items():
+        compile_s, med = _time(run, repeats)
+        out[name] = {
+            "compile_and_first_call_s": round(compile_s, 2),
+            "s_per_step": med / steps,
+            "env_steps_per_s": round(batch * steps / med, 1),
+        }
+    parts = sum(out[k]["s_per_step"] for k in ("physics", "humanoid", "sensors"))
+    out["rest_of_step_s_per_step"] = out["step"]["s_per_step"] - parts  # contacts, reward, freeze
+    out["floor"] = sensor_floor(env, batch)
+    out["sensor_s_over_floor"] = round(out["sensors"]["s_per_step"] / max(
+        out["floor"]["h100_compute_floor_s"], out["floor"]["h100_memory_floor_s"]), 1)
+    out["peak_bytes_in_use"] = _memory_bytes()
+    return out
+
+
+def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step") -> dict:
+    """Time `steps` env steps (or panoramas) of `batch` episodes; returns a dict of figures."""
+    if what == "breakdown":
+        return bench_breakdown(env, batch, steps, repeats)
+    run = _step_run(env, batch, steps) if what == "step" else _sensor_run(env, batch, steps)
+    compile_s, med = _time(run, repeats)
     return {
         "device": jax.devices()[0].device_kind,
         "batch": batch,
@@ -122,15 +247,26 @@ def run_bench_sim(args: argparse.Namespace) -> int:
         tmp = tempfile.TemporaryDirectory()
         data = tmp.name
         generate_dataset(preset("tiny"), data)
-    kinds = ["fast", "reference"] if args.sensor == "both" else [args.sensor]
+    kinds = []
+    for k in args.sensor:
+        for kk in (["fast", "reference"] if k == "both" else [k]):
+            if kk not in kinds:
+                kinds.append(kk)
     for (h, w) in args.resolution:
         for kind in kinds:
             extra = {} if args.geoms_per_pass is None else {"geoms_per_pass": args.geoms_per_pass}
+            for name in ("fast_min", "pallas_block_w", "pallas_num_warps"):
+                if getattr(args, name) is not None:
+                    extra[name] = getattr(args, name)
             cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra))
             env = ConavEnv(data, args.split, cfg)
             for batch in args.batch:
                 res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats, args.what)}
-                if args.json:
+                if kind == "fast":
+                    res["fast_min"] = cfg.sensor.fast_min
+                if kind == "pallas":
+                    res["pallas"] = {"block_w": cfg.sensor.pallas_block_w, "num_warps": cfg.sensor.pallas_num_warps}
+                if args.json or args.what == "breakdown":
                     print(json.dumps(res), flush=True)
                 else:
                     rate = res.get("env_steps_per_s", res.get("frames_per_s"))

@@ -35,7 +35,7 @@ from envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
 from envs.config import EnvConfig
 from envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_poses, quat_z_to
 from envs.mjcf import UD, GeomLayout, build_model, robot_body_id
-from envs.panorama import colourise, fast_depth_ids, front_view, reference_depth_ids
+from envs.panorama import colourise, fast_depth_ids, front_view, legacy_depth_ids, reference_depth_ids
 
 ROBOT_RGB = np.array([0.3, 0.3, 0.32], np.float32)
 
@@ -155,13 +155,7 @@ class ConavEnv(Env):
 
         m = self._episode_model(episode, d0.qpos[:2])
         d = self._pose_human(d0, episode, t)
-
-        def substep(d, _):
-            yaw = d.qpos[2]
-            d = d.replace(ctrl=jnp.stack([v * jnp.cos(yaw), v * jnp.sin(yaw), w]))
-            return mjx.step(m, d), None
-
-        d, _ = jax.lax.scan(substep, d, None, length=self._substeps)
+        d = self._physics(m, d, v, w)
 
         xy = d.qpos[:2]
         human_touch, wall_touch = self._contacts(episode, xy, t)
@@ -212,6 +206,17 @@ class ConavEnv(Env):
         return jax.tree.map(lambda old, nw: jnp.where(ended, old, nw), frozen, new)
 
     # -- pieces --------------------------------------------------------------------------------
+    def _physics(self, m: mjx.Model, d: mjx.Data, v: jax.Array, w: jax.Array) -> mjx.Data:
+        """The MJX substeps of one control step, the robot servoed to (v m/s, w rad/s)."""
+
+        def substep(d, _):
+            yaw = d.qpos[2]
+            d = d.replace(ctrl=jnp.stack([v * jnp.cos(yaw), v * jnp.sin(yaw), w]))
+            return mjx.step(m, d), None
+
+        d, _ = jax.lax.scan(substep, d, None, length=self._substeps)
+        return d
+
     def _episode_model(self, episode: jax.Array, robot_xy: jax.Array, render: bool = False) -> mjx.Model:
         """The shared MJX model with this episode's blocking boxes nearest `robot_xy` in the
         physics slots (and, with `render`, every scene box in the render slots)."""
@@ -284,7 +289,11 @@ class ConavEnv(Env):
         s = b.scene_index[episode]
         t = d.userdata[UD["t"]].astype(jnp.int32)
         _, _, ends = capsule_poses(self.human_joints(episode, t))
-        return fast_depth_ids(
+        if cfg.kind == "pallas":
+            from envs.panorama_pallas import pallas_depth_ids as caster
+        else:
+            caster = legacy_depth_ids if cfg.kind == "legacy" else fast_depth_ids
+        return caster(
             cfg,
             cam,
             yaw,

@@ -9,6 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 
+SENSOR_KINDS = ("fast", "pallas", "legacy", "reference")
+
+
 @dataclass(frozen=True)
 class SensorConfig:
     """Panoramic RGB-D camera at the robot's camera height.
@@ -21,14 +24,30 @@ class SensorConfig:
     height: int = 112
     width: int = 448
     max_depth_m: float = 10.0  # farther hits and no hit read as max_depth and sky colour
-    kind: str = "fast"  # "fast" (our column caster) or "reference" (mujoco.mjx.ray per pixel)
-    # The fast caster tests this many geoms per pass and keeps a running nearest hit across
-    # passes: memory per env is geoms_per_pass x H x W keys instead of all geoms x H x W.
+    # "fast": our column caster, one fused min over all geoms (nothing of size geoms x H x W
+    # reaches memory); "pallas": the same math as a Pallas (Triton) GPU kernel; "legacy": the
+    # previous caster, in passes of `geoms_per_pass` geoms; "reference": mujoco.mjx.ray per pixel.
+    kind: str = "fast"
+    # Fast caster: how the min over geoms is written for XLA. "unroll": a running min unrolled
+    # over geoms, elementwise chains that XLA fuses whole (only (H, W) buffers; checked in the
+    # CPU HLO); "reduce": min-reductions over (geoms, H, W) expressions, which rely on XLA fusing
+    # the producer into the reduction (the CPU backend does not for the boxes).
+    fast_min: str = "unroll"
+    # Legacy caster only: geoms per pass; memory per env is geoms_per_pass x H x W keys.
     geoms_per_pass: int = 8
+    # Pallas caster: image columns per kernel program (a power of two), Triton warps per program,
+    # and whether to run the kernel through the Pallas interpreter (any backend; CPU tests).
+    pallas_block_w: int = 16
+    pallas_num_warps: int = 4
+    pallas_interpret: bool = False
 
     def __post_init__(self):
-        if self.kind not in ("fast", "reference"):
-            raise ValueError(f"sensor kind must be 'fast' or 'reference', got {self.kind!r}")
+        if self.kind not in SENSOR_KINDS:
+            raise ValueError(f"sensor kind must be one of {SENSOR_KINDS}, got {self.kind!r}")
+        if self.fast_min not in ("reduce", "unroll"):
+            raise ValueError(f"fast_min must be 'reduce' or 'unroll', got {self.fast_min!r}")
+        if self.pallas_block_w < 1 or self.pallas_block_w & (self.pallas_block_w - 1):
+            raise ValueError(f"pallas_block_w must be a power of two, got {self.pallas_block_w}")
         if self.geoms_per_pass < 1:
             raise ValueError(f"geoms_per_pass must be at least 1, got {self.geoms_per_pass}")
         if self.height < 4 or self.width < 8 or self.width % 8:

@@ -6,9 +6,15 @@ is a colour lookup. The fast caster uses the scene's structure: every box is axi
 per image column the ray is a 2-D ray and each box a 2-D slab interval; per row the box's z
 range turns into a second interval along the same horizontal distance; their intersection
 gives the exact hit. The floor is analytic per row; capsules (the humanoid) are tested per ray.
-The nearest hit and its id are found together by a min over packed integer keys, kept as a
-running min over passes of a few geoms each so memory does not grow with the geom count.
-Data flow: robot pose + scene boxes + human capsules -> (depth, geom id) -> rgbd.
+The nearest hit and its id are found together by a min over packed integer keys.
+
+Three implementations of that caster share the packing: `fast_depth_ids` (kind "fast")
+computes the per-geom terms once per column (G, W) and per row (G, H) and writes the per-pixel
+test as one expression whose min over geoms XLA fuses, so only (H, W) arrays reach memory;
+`envs.panorama_pallas` (kind "pallas") runs the same per-pixel functions in a Triton kernel that
+also skips geoms a block of columns cannot see; `legacy_depth_ids` (kind "legacy") is the
+previous form, a running min over passes of `geoms_per_pass` geoms that materialise
+(P, H, W) arrays. Data flow: robot pose + scene boxes + human capsules -> (depth, geom id) -> rgbd.
 """
 
 from __future__ import annotations
@@ -77,13 +83,7 @@ def _in_passes(cfg: SensorConfig, init: jax.Array, per_geom: tuple, keys_fn) -> 
 
     per_geom: arrays with a leading geom axis G; padded to a multiple of the pass size with
     copies of geom 0 (harmless: a duplicate cannot change a min)."""
-    p = cfg.geoms_per_pass
-    g = per_geom[0].shape[0]
-    n = -(-g // p)
-    pad = n * p - g
-    grouped = tuple(
-        jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]).reshape((n, p) + a.shape[1:]) for a in per_geom
-    )
+    grouped = _split(per_geom, cfg.geoms_per_pass)
 
     def body(keys, group):
         return jnp.minimum(keys, jnp.min(keys_fn(*group), axis=0)), None
@@ -172,6 +172,163 @@ def _floor_keys(cfg, cam, floor_id):
     return _pack(depth, jnp.full(depth.shape, floor_id, jnp.int32), cfg)
 
 
+def legacy_depth_ids(
+    cfg: SensorConfig,
+    cam: jax.Array,
+    yaw: jax.Array,
+    box_lo: jax.Array,
+    box_hi: jax.Array,
+    box_ids: jax.Array,
+    box_valid: jax.Array,
+    cap_p0: jax.Array,
+    cap_p1: jax.Array,
+    cap_r: jax.Array,
+    cap_ids: jax.Array,
+    floor_id: int,
+) -> tuple[jax.Array, jax.Array]:
+    """The previous caster (kind "legacy"): the same keys as `fast_depth_ids`, computed in
+    passes of `geoms_per_pass` geoms that each materialise (P, H, W) arrays. Kept as a
+    bit-for-bit baseline for tests and `conav bench sim`."""
+    keys = _floor_keys(cfg, cam, floor_id)
+    keys = _box_keys(cfg, cam, yaw, box_lo, box_hi, box_ids, box_valid, keys)
+    if cap_p0.shape[0]:
+        keys = _capsule_keys(cfg, cam, ray_directions(cfg, yaw), cap_p0, cap_p1, cap_r, cap_ids, keys)
+    return _unpack(keys, cfg)
+
+
+# -- the fused caster (kind "fast") -------------------------------------------------------------
+# Per-geom work is split into terms per (geom, column) and per (geom, row), computed once; per
+# pixel only a few max/min/compare ops remain, in a running min over geoms that XLA fuses into
+# one loop (the capsules, then the boxes in two passes of a lax.scan), so no (geoms, H, W)
+# array is ever written to memory: only the (H, W) keys, three times. The same terms and
+# per-pixel functions feed the Pallas kernel (envs/panorama_pallas.py).
+
+_NO_HIT = 0xFFFFFFFF
+
+
+def _split(arrays: tuple, p: int) -> tuple:
+    """Arrays with a leading geom axis G -> (ceil(G / p), p, ...), padded with copies of geom 0
+    (harmless: a duplicate cannot change a min)."""
+    g = arrays[0].shape[0]
+    n = -(-g // p)
+    pad = n * p - g
+    return tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]).reshape((n, p) + a.shape[1:])
+                 for a in arrays)
+
+
+def box_terms(cfg: SensorConfig, cam, yaw, box_lo, box_hi, box_valid):
+    """Per box: column terms (G, W) `col_in` (horizontal distance where the column's 2-D ray
+    enters the box's footprint, at least 0; +inf where it misses it or the box is padding) and
+    `col_out` (where it leaves), and row terms (G, H) `row_in`, `row_out`: the horizontal
+    distance interval over which the row's ray is inside the box's z range."""
+    az, el = ray_angles(cfg)
+    a = yaw + jnp.asarray(az)  # (W,)
+    dx, dy = jnp.cos(a), jnp.sin(a)
+    safe = lambda v: jnp.where(jnp.abs(v) < _EPS, jnp.where(v < 0, -_EPS, _EPS), v)
+    inv_x, inv_y = 1.0 / safe(dx), 1.0 / safe(dy)
+    tx1 = (box_lo[:, None, 0] - cam[0]) * inv_x[None]
+    tx2 = (box_hi[:, None, 0] - cam[0]) * inv_x[None]
+    ty1 = (box_lo[:, None, 1] - cam[1]) * inv_y[None]
+    ty2 = (box_hi[:, None, 1] - cam[1]) * inv_y[None]
+    t_in = jnp.maximum(jnp.maximum(jnp.minimum(tx1, tx2), jnp.minimum(ty1, ty2)), 0.0)
+    t_out = jnp.minimum(jnp.maximum(tx1, tx2), jnp.maximum(ty1, ty2))
+    # A column that misses the footprint can never hit (enter >= t_in > t_out >= leave): the
+    # same outcome as the per-pixel test, decided once per column.
+    col_in = jnp.where(box_valid[:, None] & (t_in <= t_out), t_in, jnp.inf)
+    tan_e = jnp.tan(jnp.asarray(el))
+    tan_e = jnp.where(jnp.abs(tan_e) < _EPS, _EPS, tan_e)
+    tz1 = (box_lo[:, None, 2] - cam[2]) / tan_e[None]
+    tz2 = (box_hi[:, None, 2] - cam[2]) / tan_e[None]
+    return col_in, t_out, jnp.minimum(tz1, tz2), jnp.maximum(tz1, tz2)
+
+
+def box_pixel_keys(col_in, col_out, row_in, row_out, inv_cos, ids, scale: float, max_depth: float):
+    """Packed keys for broadcastable column terms, row terms, 1/cos(elevation) and ids (uint32).
+    The legacy caster's per-pixel arithmetic: keys agree bit for bit below max_depth."""
+    enter = jnp.maximum(col_in, row_in)
+    leave = jnp.minimum(col_out, row_out)
+    return _pack_single_use(jnp.where(enter <= leave, enter * inv_cos, jnp.inf), ids, scale, max_depth)
+
+
+def _pack_single_use(depth, ids, scale: float, max_depth: float):
+    """Key of `depth` (inf for no hit) with each value used once, so that XLA fuses the
+    producer (divides, square roots) into the min instead of writing it out. A hit needs its
+    quantised depth below that of max_depth: the legacy test `depth < max_depth` except within
+    one quantum (0.6 micrometres at 10 m) of max_depth."""
+    q = jnp.floor(jnp.minimum(depth, max_depth) * scale).astype(jnp.uint32)
+    q_max = np.uint32(np.floor(np.float32(max_depth) * np.float32(scale)))
+    return jnp.where(q >= q_max, jnp.uint32(_NO_HIT), (q << _ID_BITS) | ids)
+
+
+def capsule_terms(cfg: SensorConfig, cam, yaw, cap_p0, cap_p1, cap_r):
+    """Per capsule: column terms (C, W) `u` = d_xy . (p1 - p0)_xy and `v` = d_xy . (cam - p0)_xy
+    for the column's horizontal unit direction d_xy, and scalars (C,) for the closed form.
+    A ray's direction is (cos e d_xy, sin e), so per pixel dir . x = cos e * (col term) + sin e * x_z."""
+    az, _ = ray_angles(cfg)
+    a = yaw + jnp.asarray(az)
+    ca, sa = jnp.cos(a), jnp.sin(a)
+    ba = cap_p1 - cap_p0
+    oa = cam[None, :] - cap_p0
+    u = ca[None] * ba[:, 0:1] + sa[None] * ba[:, 1:2]
+    v = ca[None] * oa[:, 0:1] + sa[None] * oa[:, 1:2]
+    dot = lambda x, y: jnp.sum(x * y, axis=-1)
+    baba, baoa, oaoa = dot(ba, ba), dot(ba, oa), dot(oa, oa)
+    r2 = cap_r * cap_r
+    ob = oa - ba
+    scal = {
+        "ba_z": ba[:, 2],
+        "oa_z": oa[:, 2],
+        "baba": baba,
+        "baoa": baoa,
+        "c": baba * oaoa - baoa * baoa - r2 * baba,
+        "cc0": oaoa - r2,  # end-cap sphere at p0: |cam - p0|^2 - r^2
+        "cc1": dot(ob, ob) - r2,  # at p1
+    }
+    return u, v, scal
+
+
+def capsule_pixel_keys(u, v, ce, se, s, ids, scale: float, max_depth: float):
+    """Packed keys of the capsule hit for broadcastable column terms u, v, cos/sin of the
+    elevation ce, se, per-capsule scalars s (dict) and ids (uint32). The ray against the infinite
+    cylinder, accepted between the end caps, else against the nearer end-cap sphere."""
+    bard = ce * u + se * s["ba_z"]
+    rdoa = ce * v + se * s["oa_z"]
+    baba, baoa = s["baba"], s["baoa"]
+    a = baba - bard * bard
+    b = baba * rdoa - baoa * bard
+    h = b * b - a * s["c"]
+    small = jnp.abs(a) < _EPS
+    a_s = jnp.where(small, _EPS, a)
+    # t_body = n / a_s; the tests on it and on y = baoa + t_body * bard are made on n and
+    # y * |a_s| so the division is used once (XLA then keeps it inside the fused min).
+    n = -b - jnp.sqrt(jnp.maximum(h, 0.0))
+    sgn = jnp.where(a_s < 0, -1.0, 1.0)
+    ya = (baoa * a_s + n * bard) * sgn  # y * |a_s|
+    body_ok = (h >= 0) & ~small & (ya > 0) & (ya < baba * (a_s * sgn)) & (n * sgn > 0)
+    first = ya <= 0
+    bc = jnp.where(first, rdoa, rdoa - bard)  # dir . (cam - cap centre)
+    hc = bc * bc - jnp.where(first, s["cc0"], s["cc1"])
+    t_cap = -bc - jnp.sqrt(jnp.maximum(hc, 0.0))
+    cap_ok = (hc >= 0) & (t_cap > 0)
+    depth = jnp.where(body_ok, n / a_s, jnp.where(cap_ok, t_cap, jnp.inf))
+    return _pack_single_use(depth, ids, scale, max_depth)
+
+
+def floor_row_keys(cfg: SensorConfig, cam, floor_id) -> jax.Array:
+    """(H,) keys of the floor plane per row (no hit above the horizon)."""
+    _, el = ray_angles(cfg)
+    sin_e = jnp.asarray(np.sin(el))
+    depth = jnp.where(sin_e < -_EPS, -cam[2] / jnp.where(sin_e < -_EPS, sin_e, -1.0), jnp.inf)
+    return _pack(depth, jnp.full(depth.shape, floor_id, jnp.int32), cfg)
+
+
+def elevation_terms(cfg: SensorConfig):
+    """(1/cos e, cos e, sin e) per row (H,), as the legacy caster computes them."""
+    _, el = ray_angles(cfg)
+    e = jnp.asarray(el)
+    return 1.0 / jnp.cos(e), jnp.cos(e), jnp.sin(e)
+
+
 def fast_depth_ids(
     cfg: SensorConfig,
     cam: jax.Array,
@@ -189,11 +346,48 @@ def fast_depth_ids(
     """Depth (H, W) metres and geom ids (H, W) for one camera at `cam` (3,) facing `yaw`.
 
     box_lo/box_hi (G, 3) corners of axis-aligned boxes, box_ids (G,) their geom ids, box_valid
-    (G,) which are real; capsules cap_p0/cap_p1 (C, 3) segment ends and cap_r (C,) radii."""
-    keys = _floor_keys(cfg, cam, floor_id)
-    keys = _box_keys(cfg, cam, yaw, box_lo, box_hi, box_ids, box_valid, keys)
+    (G,) which are real; capsules cap_p0/cap_p1 (C, 3) segment ends and cap_r (C,) radii.
+    A running min over geoms of expressions built from (1, W) column terms and (H, 1) row
+    terms (cfg.fast_min "unroll"), or min-reductions over (G, H, W) expressions ("reduce");
+    see the section comment above."""
+    scale, maxd = _scale(cfg), float(cfg.max_depth_m)
+    inv_cos, ce, se = elevation_terms(cfg)
+    keys = jnp.broadcast_to(floor_row_keys(cfg, cam, floor_id)[:, None], (cfg.height, cfg.width))
+    col_in, col_out, row_in, row_out = box_terms(cfg, cam, yaw, box_lo, box_hi, box_valid)
+    box_ids = box_ids.astype(jnp.uint32)
     if cap_p0.shape[0]:
-        keys = _capsule_keys(cfg, cam, ray_directions(cfg, yaw), cap_p0, cap_p1, cap_r, cap_ids, keys)
+        u, v, s = capsule_terms(cfg, cam, yaw, cap_p0, cap_p1, cap_r)
+        cap_ids = cap_ids.astype(jnp.uint32)
+        if cfg.fast_min == "reduce":
+            ckeys = capsule_pixel_keys(
+                u[:, None, :], v[:, None, :], ce[None, :, None], se[None, :, None],
+                {k: x[:, None, None] for k, x in s.items()}, cap_ids[:, None, None], scale, maxd,
+            )
+            keys = jnp.minimum(keys, jnp.min(ckeys, axis=0))
+        else:  # "unroll": a running min, one elementwise chain per geom
+            for c in range(cap_p0.shape[0]):
+                keys = jnp.minimum(keys, capsule_pixel_keys(
+                    u[c][None, :], v[c][None, :], ce[:, None], se[:, None],
+                    {n: x[c] for n, x in s.items()}, cap_ids[c], scale, maxd,
+                ))
+    box_terms_ = (col_in, col_out, row_in, row_out, box_ids)
+    if cfg.fast_min == "reduce":
+        def one_pass(keys, group):
+            ci, co, ri, ro, ids = group
+            k = box_pixel_keys(ci[:, None, :], co[:, None, :], ri[:, :, None], ro[:, :, None],
+                               inv_cos[None, :, None], ids[:, None, None], scale, maxd)
+            return jnp.minimum(keys, jnp.min(k, axis=0)), None
+    else:
+        def one_pass(keys, group):
+            for ci, co, ri, ro, ids in zip(*group):
+                keys = jnp.minimum(keys, box_pixel_keys(ci[None, :], co[None, :], ri[:, None], ro[:, None],
+                                                        inv_cos[:, None], ids, scale, maxd))
+            return keys, None
+    # Boxes in two passes of a lax.scan: its carry is a fusion boundary, so the keys are written
+    # once (4 bytes a pixel) and depth, ids and colours read them. A caster ending in plain
+    # elementwise ops lets XLA fuse it whole into each consumer (depth, the colour gather, each
+    # rgbd channel, the front view) and cast the panorama several times over (seen on the CPU).
+    keys, _ = jax.lax.scan(one_pass, keys, _split(box_terms_, max(1, -(-box_lo.shape[0] // 2))))
     return _unpack(keys, cfg)
 
 

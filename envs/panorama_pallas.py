@@ -1,0 +1,176 @@
+"""The fast caster as one Pallas (Triton) GPU kernel: SensorConfig(kind="pallas").
+
+Same math as `envs.panorama.fast_depth_ids` (the per-geom column and row terms come from the
+same functions, computed in XLA; the per-pixel key functions are called inside the kernel), so
+keys agree with it bit for bit. The kernel runs over a grid (env, column block): a program
+holds the running min key of its (H_pad, block_w) pixels in registers and loops over boxes and
+capsules; nothing of size geoms x H x W ever reaches memory. A geom that no column of the
+block can see is skipped with a branch (a uniform `lax.cond` per program): boxes whose 2-D
+footprint all the block's columns miss, and capsules outside the block's azimuth range, which
+in most blocks is every capsule of the humanoid.
+
+Triton constraints respected: every block dimension is a power of two (H padded to the next
+power of two, W to a multiple of block_w, geoms to a power of two); per-geom rows are read with
+a scalar index (`ref[g, :]`), no gathers. `pallas_interpret=True` runs the kernel through the
+Pallas interpreter on any backend (the CPU tests); vmap over envs adds a grid axis.
+Data flow: per-env terms (XLA, tiny) -> kernel -> keys (H_pad, W_pad) -> crop, unpack (XLA).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import pallas as pl
+
+from envs.config import SensorConfig
+from envs.panorama import (
+    _NO_HIT,
+    _scale,
+    _unpack,
+    box_pixel_keys,
+    box_terms,
+    capsule_pixel_keys,
+    capsule_terms,
+    elevation_terms,
+    floor_row_keys,
+    ray_angles,
+)
+
+# Order of the per-capsule scalars in the kernel's (C_pad, 8) table.
+_CAP_SCALARS = ("ba_z", "oa_z", "baba", "baoa", "c", "cc0", "cc1")
+# Slack (radians) on the capsule azimuth test: only makes culling more conservative.
+_AZ_SLACK = 1e-3
+
+
+def _pow2(n: int) -> int:
+    return 1 << max(0, int(n - 1).bit_length())
+
+
+def _pad(x, shape, value):
+    return jnp.pad(x, [(0, s - d) for s, d in zip(shape, x.shape)], constant_values=value)
+
+
+def capsule_column_mask(cfg: SensorConfig, cam, yaw, cap_p0, cap_p1, cap_r) -> jax.Array:
+    """(C, W) float, 1 where column w's rays may hit capsule c (conservative): the column's
+    azimuth lies within the angle that the capsule's bounding circle in the ground plane
+    subtends from the camera, or the camera is inside that circle."""
+    az, _ = ray_angles(cfg)
+    a = yaw + jnp.asarray(az)  # (W,)
+    mid = (cap_p0[:, :2] + cap_p1[:, :2]) / 2.0
+    radius = jnp.linalg.norm(cap_p1[:, :2] - cap_p0[:, :2], axis=-1) / 2.0 + cap_r
+    rel = mid - cam[None, :2]
+    dist = jnp.linalg.norm(rel, axis=-1)
+    inside = dist <= radius * 1.001 + 1e-4
+    half = jnp.arcsin(jnp.clip(radius / jnp.maximum(dist, 1e-9), 0.0, 1.0)) + _AZ_SLACK
+    phi = jnp.arctan2(rel[:, 1], rel[:, 0])
+    x = a[None, :] - phi[:, None]
+    diff = jnp.abs(jnp.arctan2(jnp.sin(x), jnp.cos(x)))  # wrapped to [0, pi]
+    return (inside[:, None] | (diff <= half[:, None])).astype(jnp.float32)
+
+
+def _kernel(n_box: int, n_cap: int, scale: float, maxd: float,
+            floor_ref, inv_cos_ref, ce_ref, se_ref,
+            col_in_ref, col_out_ref, row_in_ref, row_out_ref, box_id_ref,
+            u_ref, v_ref, cmask_ref, cscal_ref, cap_id_ref,
+            out_ref):
+    hp, bw = out_ref.shape
+    keys = jnp.broadcast_to(floor_ref[...][:, None], (hp, bw))
+    inv_cos = inv_cos_ref[...][:, None]
+
+    def box(g, keys):
+        ci = col_in_ref[g, :]
+
+        def hit(keys):
+            k = box_pixel_keys(ci[None, :], col_out_ref[g, :][None, :], row_in_ref[g, :][:, None],
+                               row_out_ref[g, :][:, None], inv_cos, box_id_ref[g], scale, maxd)
+            return jnp.minimum(keys, k)
+
+        # Every column of the block misses the footprint: nothing to do (col_in is inf there).
+        return jax.lax.cond(jnp.min(ci) < jnp.inf, hit, lambda k: k, keys)
+
+    keys = jax.lax.fori_loop(0, n_box, box, keys)
+    if n_cap:
+        ce, se = ce_ref[...][:, None], se_ref[...][:, None]
+
+        def cap(c, keys):
+            def hit(keys):
+                s = {name: cscal_ref[c, i] for i, name in enumerate(_CAP_SCALARS)}
+                k = capsule_pixel_keys(u_ref[c, :][None, :], v_ref[c, :][None, :], ce, se, s,
+                                       cap_id_ref[c], scale, maxd)
+                return jnp.minimum(keys, k)
+
+            return jax.lax.cond(jnp.max(cmask_ref[c, :]) > 0.0, hit, lambda k: k, keys)
+
+        keys = jax.lax.fori_loop(0, n_cap, cap, keys)
+    out_ref[...] = keys
+
+
+def pallas_depth_ids(
+    cfg: SensorConfig,
+    cam: jax.Array,
+    yaw: jax.Array,
+    box_lo: jax.Array,
+    box_hi: jax.Array,
+    box_ids: jax.Array,
+    box_valid: jax.Array,
+    cap_p0: jax.Array,
+    cap_p1: jax.Array,
+    cap_r: jax.Array,
+    cap_ids: jax.Array,
+    floor_id: int,
+) -> tuple[jax.Array, jax.Array]:
+    """`envs.panorama.fast_depth_ids` (same arguments and results) as a Pallas kernel."""
+    h, w, bw = cfg.height, cfg.width, cfg.pallas_block_w
+    hp, wp = _pow2(h), -(-w // bw) * bw
+    n_box, n_cap = int(box_lo.shape[0]), int(cap_p0.shape[0])
+    gp, cp = _pow2(max(n_box, 1)), _pow2(max(n_cap, 1))
+    scale, maxd = _scale(cfg), float(cfg.max_depth_m)
+    inf = jnp.inf
+
+    inv_cos, ce, se = elevation_terms(cfg)
+    col_in, col_out, row_in, row_out = box_terms(cfg, cam, yaw, box_lo, box_hi, box_valid)
+    # Padding rows / columns / geoms never hit (their results are cropped anyway).
+    rows = lambda x, v: _pad(x, (hp,), v)
+    args = [
+        _pad(floor_row_keys(cfg, cam, floor_id), (hp,), np.uint32(_NO_HIT)),
+        rows(inv_cos, 1.0), rows(ce, 1.0), rows(se, 0.0),
+        _pad(col_in, (gp, wp), inf), _pad(col_out, (gp, wp), -inf),
+        _pad(row_in, (gp, hp), inf), _pad(row_out, (gp, hp), -inf),
+        _pad(box_ids.astype(jnp.uint32), (gp,), np.uint32(_NO_HIT)),
+    ]
+    if n_cap:
+        u, v, s = capsule_terms(cfg, cam, yaw, cap_p0, cap_p1, cap_r)
+        mask = capsule_column_mask(cfg, cam, yaw, cap_p0, cap_p1, cap_r)
+        table = jnp.stack([s[k] for k in _CAP_SCALARS] + [jnp.zeros_like(s["c"])], axis=-1)  # (C, 8)
+        args += [_pad(u, (cp, wp), 0.0), _pad(v, (cp, wp), 0.0), _pad(mask, (cp, wp), 0.0),
+                 _pad(table, (cp, 8), 0.0), _pad(cap_ids.astype(jnp.uint32), (cp,), np.uint32(_NO_HIT))]
+    else:
+        args += [jnp.zeros((cp, wp)), jnp.zeros((cp, wp)), jnp.zeros((cp, wp)), jnp.zeros((cp, 8)),
+                 jnp.full((cp,), _NO_HIT, jnp.uint32)]
+
+    whole = lambda x: pl.BlockSpec(x.shape, lambda j: (0,) * x.ndim)
+    cols = lambda x: pl.BlockSpec((x.shape[0], bw), lambda j: (0, j))
+    in_specs = [whole(a) for a in args[:4]] + [cols(args[4]), cols(args[5]), whole(args[6]), whole(args[7]),
+                                                  whole(args[8]), cols(args[9]), cols(args[10]), cols(args[11]),
+                                                  whole(args[12]), whole(args[13])]
+    # Triton needs a GPU: elsewhere (the CPU tests and benches) the kernel is interpreted.
+    interpret = cfg.pallas_interpret or jax.default_backend() not in ("gpu", "cuda", "rocm")
+    compiler_params = None
+    if not interpret:
+        from jax.experimental.pallas import triton as plgpu
+
+        compiler_params = plgpu.CompilerParams(num_warps=cfg.pallas_num_warps, num_stages=1)
+    keys = pl.pallas_call(
+        functools.partial(_kernel, n_box, n_cap, scale, maxd),
+        out_shape=jax.ShapeDtypeStruct((hp, wp), jnp.uint32),
+        grid=(wp // bw,),
+        in_specs=in_specs,
+        out_specs=pl.BlockSpec((hp, bw), lambda j: (0, j)),
+        interpret=interpret,
+        compiler_params=compiler_params,
+        name="panorama_caster",
+    )(*args)
+    return _unpack(keys[:h, :w], cfg)
