@@ -22,6 +22,8 @@ import time
 import jax
 import jax.numpy as jnp
 
+from conav_jax.parallel import add_devices_arg, check_divisible, constrain_batch, make_mesh
+
 
 def parse_resolution(text: str) -> tuple[int, int]:
     try:
@@ -49,6 +51,7 @@ def add_bench_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pallas-block-w", type=int, default=None, help="pallas caster: columns per program")
     p.add_argument("--pallas-num-warps", type=int, default=None, help="pallas caster: warps per program")
     p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
+    add_devices_arg(p)
     p.set_defaults(func=run_bench_sim)
 
 
@@ -57,14 +60,15 @@ def _memory_bytes() -> int | None:
     return stats.get("peak_bytes_in_use")
 
 
-def _sensor_run(env, batch: int, steps: int):
-    """Panoramas only: `steps` frames of `batch` robots at random yaws in their start poses."""
+def _sensor_run(env, batch: int, steps: int, mesh=None):
+    """Panoramas only: `steps` frames of `batch` robots at random yaws in their start poses
+    (split over `mesh`'s devices if given)."""
     n = env.num_episodes
     reset = jax.vmap(env.reset_to_episode)
 
     @jax.jit
     def run(key):
-        state = reset(jax.random.split(key, batch), jnp.arange(batch) % n)
+        state = constrain_batch(reset(jax.random.split(key, batch), jnp.arange(batch) % n), mesh)
         d = state.pipeline_state
         episodes = state.info["episode"]
 
@@ -164,7 +168,9 @@ def _stage_runs(env, batch: int, steps: int) -> dict:
     return {"physics": physics, "humanoid": humanoid, "sensors": sensors, "step": _step_run(env, batch, steps)}
 
 
-def _step_run(env, batch: int, steps: int):
+def _step_run(env, batch: int, steps: int, mesh=None):
+    """Full env steps of `batch` episodes under random actions (split over `mesh`'s devices if
+    given: the batch axis of the state is sharded, XLA partitions the scan)."""
     n = env.num_episodes
     reset = jax.vmap(env.reset_to_episode)
     step = jax.vmap(env.step)
@@ -172,7 +178,7 @@ def _step_run(env, batch: int, steps: int):
     @jax.jit
     def run_steps(key):
         keys = jax.random.split(key, batch)
-        state = reset(keys, jnp.arange(batch) % n)
+        state = constrain_batch(reset(keys, jnp.arange(batch) % n), mesh)
 
         def body(state, k):
             a = jax.random.uniform(k, (batch, 2), minval=-1.0, maxval=1.0)
@@ -217,20 +223,30 @@ def bench_breakdown(env, batch: int, steps: int, repeats: int) -> dict:
     return out
 
 
-def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step") -> dict:
-    """Time `steps` env steps (or panoramas) of `batch` episodes; returns a dict of figures."""
+def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mesh=None) -> dict:
+    """Time `steps` env steps (or panoramas) of `batch` episodes (in all, split over `mesh`'s
+    devices if given); returns a dict of figures, rates in total and per device."""
     if what == "breakdown":
+        if mesh is not None and mesh.size > 1:
+            raise ValueError("--what breakdown runs on one device; use --devices 1")
         return bench_breakdown(env, batch, steps, repeats)
-    run = _step_run(env, batch, steps) if what == "step" else _sensor_run(env, batch, steps)
+    if mesh is not None:
+        check_divisible(batch, mesh)
+    run = _step_run(env, batch, steps, mesh) if what == "step" else _sensor_run(env, batch, steps, mesh)
     compile_s, med = _time(run, repeats)
+    devices = 1 if mesh is None else mesh.size
+    rate = batch * steps / med
     return {
         "device": jax.devices()[0].device_kind,
+        "devices": devices,
         "batch": batch,
+        "batch_per_device": batch // devices,
+        ("env_steps_per_s_per_device" if what == "step" else "frames_per_s_per_device"): round(rate / devices, 1),
         "steps_per_call": steps,
         "compile_and_first_call_s": round(compile_s, 2),
         "median_call_s": round(med, 4),
         "what": what,
-        ("env_steps_per_s" if what == "step" else "frames_per_s"): round(batch * steps / med, 1),
+        ("env_steps_per_s" if what == "step" else "frames_per_s"): round(rate, 1),
         "peak_bytes_in_use": _memory_bytes(),
     }
 
@@ -247,6 +263,8 @@ def run_bench_sim(args: argparse.Namespace) -> int:
         tmp = tempfile.TemporaryDirectory()
         data = tmp.name
         generate_dataset(preset("tiny"), data)
+    # The breakdown times single-device stages; the other modes split the batch over the mesh.
+    mesh = make_mesh(args.devices) if args.devices != 1 and args.what != "breakdown" else None
     kinds = []
     for k in args.sensor:
         for kk in (["fast", "reference"] if k == "both" else [k]):
@@ -261,7 +279,7 @@ def run_bench_sim(args: argparse.Namespace) -> int:
             cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra))
             env = ConavEnv(data, args.split, cfg)
             for batch in args.batch:
-                res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats, args.what)}
+                res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh)}
                 if kind == "fast":
                     res["fast_min"] = cfg.sensor.fast_min
                 if kind == "pallas":

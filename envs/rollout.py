@@ -38,13 +38,17 @@ class Trace(NamedTuple):
     done: jax.Array
 
 
-def make_rollout(env: ConavEnv, agent: Agent, num_steps: int, record: bool = False):
-    """A jitted function (key, episodes (B,)) -> (final metrics dict of (B,), Trace | None).
+def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_steps: int, record: bool = False):
+    """A jitted function (params, key, episodes (B,)) -> (final metrics dict of (B,), Trace | None)
+    for the agent `agent_fn(params)` builds. The agent is built inside the trace, so new params
+    of the same structure reuse the compiled rollout (an Agent closing over its params would
+    compile once per set: training-time validation needs this form).
 
     Runs `num_steps` steps; episodes that end earlier stay frozen (the env's contract), so
     the final metrics are each episode's result at its end."""
 
-    def one(key, episode):
+    def one(params, key, episode):
+        agent = agent_fn(params)
         k_init, k_run = jax.random.split(key)
         state = env.reset_to_episode(k_init, episode)
         carry = agent.init(k_init, episode)
@@ -62,11 +66,18 @@ def make_rollout(env: ConavEnv, agent: Agent, num_steps: int, record: bool = Fal
         return state.metrics, trace
 
     @jax.jit
-    def run(key, episodes):
+    def run(params, key, episodes):
         keys = jax.random.split(key, episodes.shape[0])
-        return jax.vmap(one)(keys, episodes)
+        return jax.vmap(one, in_axes=(None, 0, 0))(params, keys, episodes)
 
     return run
+
+
+def make_rollout(env: ConavEnv, agent: Agent, num_steps: int, record: bool = False):
+    """A jitted function (key, episodes (B,)) -> (final metrics dict of (B,), Trace | None):
+    `make_param_rollout` for an agent without parameters (or closing over its own)."""
+    run = make_param_rollout(env, lambda _: agent, num_steps, record)
+    return lambda key, episodes: run(None, key, episodes)
 
 
 def map_episodes(
@@ -120,12 +131,27 @@ def evaluate(
     Episodes run in batches of `batch` (see `map_episodes` for padding and keys); with a
     `mesh` (conav_jax.parallel.make_mesh) each batch is split over its devices, with the same
     results as on one device."""
-    episodes = np.arange(env.num_episodes) if episodes is None else np.asarray(episodes)
-    if episodes.ndim != 1 or len(episodes) == 0:
-        raise ValueError("episodes must be a non-empty 1-D array of episode indices")
-    if episodes.min() < 0 or episodes.max() >= env.num_episodes:
-        raise ValueError(f"episode indices must be in [0, {env.num_episodes})")
-    run = make_rollout(env, agent, num_steps=env.bank.max_steps)
-    out = map_episodes(lambda k, idx: run(k, idx)[0], episodes, batch, jax.random.PRNGKey(seed), mesh, progress)
-    out["episode"] = episodes
-    return out
+    return make_evaluator(env, lambda _: agent, batch, seed, mesh)(None, episodes, progress)
+
+
+def make_evaluator(
+    env: ConavEnv, agent_fn: Callable[[Any], Agent], batch: int = 256, seed: int = 0, mesh: Mesh | None = None
+) -> Callable[..., dict[str, np.ndarray]]:
+    """`evaluate` for agents built from parameters: `evaluator(params, episodes=None,
+    progress=None) -> metrics` (as `evaluate` returns them). The rollout compiles on the first
+    call; later params of the same structure reuse it (PPO validates every few iterations)."""
+    run = make_param_rollout(env, agent_fn, num_steps=env.bank.max_steps)
+
+    def evaluator(params, episodes: np.ndarray | None = None, progress: Callable | None = None):
+        episodes = np.arange(env.num_episodes) if episodes is None else np.asarray(episodes)
+        if episodes.ndim != 1 or len(episodes) == 0:
+            raise ValueError("episodes must be a non-empty 1-D array of episode indices")
+        if episodes.min() < 0 or episodes.max() >= env.num_episodes:
+            raise ValueError(f"episode indices must be in [0, {env.num_episodes})")
+        if mesh is not None and params is not None:
+            params = replicate(params, mesh)
+        out = map_episodes(lambda k, idx: run(params, k, idx)[0], episodes, batch, jax.random.PRNGKey(seed), mesh, progress)
+        out["episode"] = episodes
+        return out
+
+    return evaluator

@@ -18,6 +18,7 @@ def build_parser() -> argparse.ArgumentParser:
     from envs.bench import add_bench_sim
     from eval.bench import add_bench_eval
     from eval.demo import add_demo
+    from eval.curve import add_curve
     from eval.sweep import add_eval
     from eval.viewer import add_view
     from train.bench import add_bench_train
@@ -39,6 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_eval(sub)
     add_view(sub)
     add_demo(sub)
+    add_curve(sub)
     bench = sub.add_parser("bench", help="throughput benchmarks (run them on the GPU machine)")
     bench_sub = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
     for add in (add_bench_sim, add_bench_train, add_bench_eval):

@@ -25,6 +25,20 @@ from envs.metrics import episode_outcomes  # noqa: E402
 PHASE_STYLE = {PHASE_ACTIVITY_A: ("activity A", "tab:blue"), PHASE_WALK: ("walk", "tab:orange"), PHASE_ACTIVITY_B: ("activity B", "tab:purple")}
 
 
+def _save_percent_plot(fig, ax, path: Path, xlabel: str, title: str) -> Path:
+    """Label a plot of episode shares (%), write it as PNG, close it."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("episodes (%)")
+    ax.set_ylim(0, 100)
+    ax.set_title(title)
+    ax.legend(fontsize=7, loc="upper left")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def success_over_time(results: Mapping[str, Mapping[str, np.ndarray]], path: str | Path) -> Path:
     """Share of episodes (%) successfully reached by each step, one curve per agent.
 
@@ -46,16 +60,7 @@ def success_over_time(results: Mapping[str, Mapping[str, np.ndarray]], path: str
     steps = np.arange(horizon)
     arrived = 100.0 * (np.asarray(first["t_arrive"])[None, :] <= steps[:, None]).mean(axis=1)
     ax.step(steps, arrived, where="post", color="black", linestyle="--", label="human arrived")
-    ax.set_xlabel("episode step (0.1 s)")
-    ax.set_ylabel("episodes (%)")
-    ax.set_ylim(0, 100)
-    ax.set_title("Success by step")
-    ax.legend(fontsize=7, loc="upper left")
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save_percent_plot(fig, ax, path, "episode step (0.1 s)", "Success by step")
 
 
 def episode_map(
@@ -111,3 +116,40 @@ def episode_map(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def pooled_reach_rate(train: list[dict], window: int) -> tuple[np.ndarray, np.ndarray]:
+    """(env steps at each block's end, share of the block's ended episodes that reached the
+    goal) over blocks of `window` PPO training records (the last block may be shorter)."""
+    blocks = [train[i : i + window] for i in range(0, len(train), window)]
+    x = np.array([b[-1]["env_steps"] for b in blocks], float)
+    reached = np.array([sum(r["reach_rate"] * r["episodes"] for r in b) for b in blocks])
+    ended = np.array([sum(r["episodes"] for r in b) for b in blocks], float)
+    return x, reached / np.maximum(ended, 1.0)
+
+
+def learning_curve(runs: Mapping[str, list[dict]], path: str | Path, window: int = 4) -> Path:
+    """Success against env steps for PPO runs (`conav train rl`), one colour per run.
+
+    `runs`: title -> the run's log.jsonl records. Lines: the share of training episodes that
+    ended with the goal reached (`reach_rate` x `episodes`, %), pooled over blocks of `window`
+    iterations: PPO re-resets its batch every `reset_every` (default 4) iterations and the
+    episodes ending first after a reset are the quick successes, so a per-iteration rate swings
+    with that cycle. Markers: the val sweeps' FASR (circles) and RASR (squares). ValueError if
+    a run has no PPO training records."""
+    path = Path(path)
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for i, (title, records) in enumerate(runs.items()):
+        train = [r for r in records if r.get("split") == "train" and "env_steps" in r and r.get("reach_rate") is not None]
+        if not train:
+            raise ValueError(f"run {title!r} has no PPO training records (env_steps, reach_rate) in its log")
+        colour = f"C{i}"
+        x, rate = pooled_reach_rate(train, window)
+        ax.plot(x, 100.0 * rate, "-", color=colour, label=f"{title}: train episodes reached")
+        val = [r for r in records if r.get("split") == "val" and "env_steps" in r]
+        if val:
+            vx = [r["env_steps"] for r in val]
+            ax.plot(vx, [r["FASR"] for r in val], "o", color=colour, label=f"{title}: val FASR")
+            ax.plot(vx, [r["RASR"] for r in val], "s", color=colour, mfc="none", label=f"{title}: val RASR")
+    return _save_percent_plot(fig, ax, path, "env steps", "PPO learning curve")
+

@@ -54,8 +54,10 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", default="val")
     p.add_argument("--agent", required=True, help=f"comma-separated agent names: {', '.join(AGENTS)}")
     p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
-    p.add_argument("--intention-checkpoint", default=None, help="conav: intention predictor run (default: the policy's own)")
-    p.add_argument("--trajectory-checkpoint", default=None, help="conav: trajectory predictor run (default: the policy's own)")
+    p.add_argument("--intention-checkpoint", default=None, help="conav: intention predictor run (default: the one the policy run names)")
+    p.add_argument("--trajectory-checkpoint", default=None, help="conav: trajectory predictor run (default: the one the policy run names)")
+    p.add_argument("--ground-truth-intentions", action="store_true",
+                   help="conav: feed the env's ground-truth intentions instead of predictions (privileged upper bound)")
     p.add_argument(
         "--ablation-checkpoints",
         default=None,
@@ -109,9 +111,13 @@ def plan_eval(args: argparse.Namespace) -> EvalPlan:
             if not Path(run).is_dir():
                 raise ValueError(f"{key.replace('_run', '')} checkpoint run directory not found: {run}")
             learned[key] = run
+    if args.ground_truth_intentions:
+        if learned:
+            raise ValueError("--ground-truth-intentions excludes --intention-checkpoint / --trajectory-checkpoint")
+        learned["ground_truth"] = True
     ablations = _parse_ablations(args.ablation_checkpoints)
     if learned and not ablations and not any(AGENTS[n].takes_predictors for n in names):
-        raise ValueError("--intention-checkpoint / --trajectory-checkpoint only apply to the conav agent and ablations")
+        raise ValueError("--intention-checkpoint / --trajectory-checkpoint / --ground-truth-intentions only apply to the conav agent and ablations")
     for _, run in ablations:
         check_agent("conav", run)
     if args.episodes is not None and args.episodes < 1:
@@ -271,7 +277,9 @@ def _report_md(plan: EvalPlan, n: int, table2: str, table3: str | None, maps: li
         "# CoNav evaluation",
         "",
         f"Data `{plan.data}` (content hash {plan.content_hash[:16]}), split `{plan.split}`, {n} episodes; "
-        f"seed {plan.seed}, batch {plan.batch}, panorama {h}x{w}.",
+        f"seed {plan.seed}, batch {plan.batch}, panorama {h}x{w}. CoNav policies' intention inputs: "
+        + ("ground truth (privileged)." if plan.learned_kwargs.get("ground_truth") else
+           "predicted (the predictor runs given, else those each policy run names; ground truth where it names none)."),
         "",
         "## Agents (paper Table 2)",
         "",

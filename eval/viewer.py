@@ -31,8 +31,10 @@ def add_view(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episode", type=int, required=True, help="episode index within the split")
     p.add_argument("--agent", default="pioneer", help=f"who drives the robot: {', '.join(AGENTS)}")
     p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
-    p.add_argument("--intention-checkpoint", default=None, help="conav: intention predictor run (default: ground truth)")
-    p.add_argument("--trajectory-checkpoint", default=None, help="conav: trajectory predictor run (default: ground truth)")
+    p.add_argument("--intention-checkpoint", default=None, help="conav: intention predictor run (default: the one the policy run names)")
+    p.add_argument("--trajectory-checkpoint", default=None, help="conav: trajectory predictor run (default: the one the policy run names)")
+    p.add_argument("--ground-truth-intentions", action="store_true",
+                   help="conav: feed the env's ground-truth intentions instead of predictions")
     p.add_argument("--resolution", type=parse_resolution, default=(56, 224), help="panorama HxW (default 56x224)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output .rrd file")
@@ -224,6 +226,12 @@ def run_view(args: argparse.Namespace) -> int:
             if not Path(run).is_dir():
                 raise ValueError(f"{key.replace('_run', '')} checkpoint run directory not found: {run}")
             predictors[key] = run
+    if args.ground_truth_intentions:
+        if not spec.takes_predictors:
+            raise ValueError(f"agent {args.agent!r} takes no intention inputs (--ground-truth-intentions)")
+        if predictors:
+            raise ValueError("--ground-truth-intentions excludes --intention-checkpoint / --trajectory-checkpoint")
+        predictors["ground_truth"] = True
     out = Path(args.out)
     if out.suffix != ".rrd":
         raise ValueError(f"--out must name a .rrd file, got {out}")

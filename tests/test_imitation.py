@@ -202,3 +202,22 @@ def test_policy_agent_rejects_wrong_runs_before_compiling(hall, trained, tmp_pat
     blind = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=SMALL.sensor, intention_obs=False))
     with pytest.raises(ValueError, match="intention_obs=True"):
         policy_agent(blind, trained.run)
+
+
+def test_predictor_runs_default_to_the_ones_the_policy_run_names(tmp_path):
+    from eval.learned import predictor_runs
+
+    intention, trajectory = tmp_path / "intention", tmp_path / "trajectory"
+    intention.mkdir()
+    trajectory.mkdir()
+    config = {"intention_run": str(intention), "trajectory_run": str(trajectory)}
+    assert predictor_runs("run", config, None, None, False) == (str(intention), str(trajectory))
+    assert predictor_runs("run", config, str(trajectory), None, False) == (str(trajectory), str(trajectory))
+    assert predictor_runs("run", {"intention_run": None, "trajectory_run": None}, None, None, False) == (None, None)
+    assert predictor_runs("run", config, None, None, True) == (None, None)  # ground truth asked for
+    with pytest.raises(ValueError, match="exclude"):
+        predictor_runs("run", config, str(intention), None, True)
+    with pytest.raises(ValueError, match="named by policy run run"):
+        predictor_runs("run", {"intention_run": str(tmp_path / "gone")}, None, None, False)
+    with pytest.raises(ValueError, match=r"\(given\) not found"):
+        predictor_runs("run", config, str(tmp_path / "gone"), None, False)

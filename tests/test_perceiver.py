@@ -102,3 +102,30 @@ def test_lowest_entropy_average_with_few_or_no_valid_steps():
     out = LOWEST_ENTROPY_AVERAGE(history.astype(np.float32), valid, k=5)
     np.testing.assert_allclose(out[0], history[0, :2].mean(0), rtol=1e-6)  # fewer than k: those
     np.testing.assert_allclose(out[1], np.full(3, 1 / 3), rtol=1e-6)  # none: uniform
+
+
+def test_graph_route_maps_a_certain_activity_a_to_its_graph_successors():
+    from conav_jax.activities import load_activity_graph
+
+    graph = load_activity_graph()
+    transition, objects = perceiver.graph_tables(CONFIG)
+    np.testing.assert_allclose(transition.sum(1), 1.0, rtol=1e-6)
+    np.testing.assert_array_equal(objects.sum(1), 1.0)
+    a = next(i for i in range(len(graph.activities)) if graph.successors(i))
+    successors = {link.b for link in graph.successors(a)}
+    assert set(np.flatnonzero(transition[a])) == successors
+    # Certain of A, indifferent heads: p(B) = mix * P(B | A) + (1 - mix) * uniform.
+    n, m = CONFIG.num_activities, CONFIG.num_objects
+    logits = perceiver.IntentionLogits(jnp.zeros(n), jnp.zeros(m), jnp.full(n, -1e9).at[a].set(0.0))
+    act, obj = perceiver.intention_probs(CONFIG, logits)
+    w = CONFIG.graph_mix
+    np.testing.assert_allclose(act, w * transition[a] + (1 - w) / n, atol=1e-6)
+    np.testing.assert_allclose(obj, w * transition[a] @ objects + (1 - w) / m, atol=1e-6)
+    assert abs(float(act.sum()) - 1.0) < 1e-5 and abs(float(obj.sum()) - 1.0) < 1e-5
+    # Without the A head the direct heads alone; a graph route needs the graph's class counts.
+    plain = perceiver.intention_probs(CONFIG, logits._replace(activity_a=None))
+    np.testing.assert_allclose(plain[0], 1.0 / n, rtol=1e-6)
+    with pytest.raises(ValueError, match="activity_a_head=False"):
+        perceiver.init(jax.random.PRNGKey(0), PerceiverConfig(num_activities=4, num_objects=6))
+    with pytest.raises(ValueError, match="graph_mix"):
+        PerceiverConfig(graph_mix=1.5)

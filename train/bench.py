@@ -51,6 +51,7 @@ def _intention_setup(key, batch: int, resolution):
         "num_frames": jnp.full((n,), frames, jnp.int32),
         "activity": jax.random.randint(k_a, (n,), 0, config.num_activities),
         "object": jax.random.randint(k_o, (n,), 0, config.num_objects),
+        "activity_a": jax.random.randint(k_a, (n,), 0, config.num_activities)[::-1],
     }
     loss = lambda p, b, k: intention_loss(p, config, b, k)
     h, w = config.image_hw

@@ -161,8 +161,9 @@ def _cross_entropy(logits: jax.Array, labels: jax.Array) -> jax.Array:
 
 
 def intention_loss(params, config: PerceiverConfig, batch: dict, key: jax.Array):
-    """CE(activity) + CE(object); each sample sees a random prefix of 1..num_frames frames
-    (the paper: the robot may have watched for any time). Aux: both CEs."""
+    """CE(activity B) + CE(object B) (+ CE(activity A) with the A head); each sample sees a
+    random prefix of 1..num_frames frames (the paper: the robot may have watched for any time).
+    Aux: each CE."""
     frames = batch["frames"].astype(jnp.float32)
     f = frames.shape[1]
     seen = jax.random.randint(key, batch["num_frames"].shape, 1, batch["num_frames"] + 1)
@@ -170,20 +171,26 @@ def intention_loss(params, config: PerceiverConfig, batch: dict, key: jax.Array)
     logits = perceiver.apply(params, config, frames, mask)
     ce_a = _cross_entropy(logits.activity, batch["activity"])
     ce_o = _cross_entropy(logits.object, batch["object"])
-    return ce_a + ce_o, {"ce_activity": ce_a, "ce_object": ce_o}
+    if logits.activity_a is None:
+        return ce_a + ce_o, {"ce_activity": ce_a, "ce_object": ce_o}
+    ce_watched = _cross_entropy(logits.activity_a, batch["activity_a"])
+    return ce_a + ce_o + ce_watched, {"ce_activity": ce_a, "ce_object": ce_o, "ce_activity_a": ce_watched}
 
 
 def make_val_fn(
     config: PerceiverConfig, val: dict, baselines: dict, batch: int = 256, compiler_options: dict | None = None
 ):
-    """`val(params) -> dict`: top-1/top-5 of both heads with every frame of activity A seen,
-    plus the (constant) prior and chance figures."""
+    """`val(params) -> dict`: top-1/top-5 of the predicted activity B and object B (the
+    predictor's output, `perceiver.intention_probs`) with every frame of activity A seen, top-1
+    of the watched activity A with the A head, plus the (constant) prior and chance figures."""
     f = val["frames"].shape[1]
 
     def logits(params, frames, num):
         mask = jnp.arange(f)[None, :] < num[:, None]
         out = perceiver.apply(params, config, frames.astype(jnp.float32), mask)
-        return out.activity, out.object
+        act, obj = perceiver.intention_probs(config, out)  # what the predictor outputs
+        watched = act if out.activity_a is None else out.activity_a
+        return act, obj, watched
 
     # The data are arguments: closed over, they would be baked into the compiled program.
     def all_logits(params, frames, num):
@@ -192,11 +199,13 @@ def make_val_fn(
     all_logits = jax.jit(all_logits, compiler_options=compiler_options)
 
     def run(params) -> dict:
-        act, obj = (np.asarray(x)[:, 0] for x in all_logits(params, val["frames"], val["num_frames"]))
+        act, obj, watched = (np.asarray(x)[:, 0] for x in all_logits(params, val["frames"], val["num_frames"]))
         out = {}
         for head, scores in (("activity", act), ("object", obj)):
             for k in (1, 5):
                 out[f"{head}_top{k}"] = topk_accuracy(scores, np.asarray(val[head]), k)
+        if config.activity_a_head:
+            out["activity_a_top1"] = topk_accuracy(watched, np.asarray(val["activity_a"]), 1)
         return {**out, **baselines}
 
     return run
@@ -240,7 +249,7 @@ def train_intention(
     spacing = frame_spacing(train_env.split.episodes["t_walk_start"], data.frames)
     params = perceiver.init(jax.random.PRNGKey(cfg.seed), model)
     loss = lambda p, b, k: intention_loss(p, model, b, k)
-    samples = {k: train_d[k] for k in ("frames", "num_frames", "activity", "object")}
+    samples = {k: train_d[k] for k in ("frames", "num_frames", "activity", "object", "activity_a")}
     return train(
         run_dir, loss, params, samples, cfg, run_config(model, data, content_hash, spacing),
         val_fn=make_val_fn(model, val_d, baselines, compiler_options=compiler_options),
@@ -309,8 +318,7 @@ def make_intention_predictor(
         buf, n = _push(carry.frames, carry.num_frames, frame)
         buf, n = jnp.where(record, buf, carry.frames), jnp.where(record, n, carry.num_frames)
         mask = jnp.arange(frames) < n
-        logits = perceiver.apply(params, config, buf[None], mask[None])
-        act_p, obj_p = jax.nn.softmax(logits.activity[0]), jax.nn.softmax(logits.object[0])
+        act_p, obj_p = (x[0] for x in perceiver.intention_probs(config, perceiver.apply(params, config, buf[None], mask[None])))
         # Only a new frame adds a prediction: repeated steps on the same buffer would
         # otherwise crowd the history with one prediction.
         act_h, m = _push(carry.activity_history, carry.num_predictions, act_p)
@@ -334,6 +342,7 @@ def load_intention_predictor(
     ckpt = load_run(run_dir, KIND)
     cfg = dict(ckpt.config["model"])
     cfg["image_hw"] = tuple(cfg["image_hw"])
+    cfg.setdefault("activity_a_head", False)  # runs from before the A head had none
     data = ckpt.config["data"]
     stride = frame_stride if frame_stride is not None else max(1, int(round(data["frame_spacing_steps"])))
     return make_intention_predictor(ckpt.params, PerceiverConfig(**cfg), data["frames"], stride, history, top_k)
@@ -351,12 +360,16 @@ def add_train_intention(sub: argparse._SubParsersAction) -> None:
                    help="panorama HxW rendered, front view H x W/4 (default 32x128)")
     p.add_argument("--image", type=parse_resolution, default=PerceiverConfig.image_hw,
                    help="Perceiver input HxW; front views are resized to it (default 32x32)")
+    p.add_argument("--no-activity-a-head", dest="activity_a_head", action="store_false",
+                   help="predict B with the direct heads only (no activity-A head, no activity graph)")
+    p.add_argument("--graph-mix", type=float, default=PerceiverConfig.graph_mix,
+                   help=f"weight of the activity-graph route in the predictions (default {PerceiverConfig.graph_mix})")
     p.set_defaults(func=run_train_intention)
 
 
 def run_train_intention(args: argparse.Namespace) -> int:
     data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames)
-    model = PerceiverConfig(image_hw=args.image)
+    model = PerceiverConfig(image_hw=args.image, activity_a_head=args.activity_a_head, graph_mix=args.graph_mix)
     try:
         cfg, mesh = train_config_from_args(args), make_mesh(args.devices)
         result = train_intention(args.data, args.out, cfg, model, data, progress=not args.no_progress, mesh=mesh)
@@ -371,5 +384,7 @@ def run_train_intention(args: argparse.Namespace) -> int:
             f"(prior {v[f'prior_{head}_top1']:.3f} / {v[f'prior_{head}_top5']:.3f}, "
             f"chance {v[f'chance_{head}_top1']:.3f} / {v[f'chance_{head}_top5']:.3f})"
         )
+    if "activity_a_top1" in v:
+        print(f"val watched activity A: top-1 {v['activity_a_top1']:.3f} (chance {1 / model.num_activities:.3f})")
     print(f"val frames showing the human: {v['val_frames_with_human']:.1%}")
     return 0

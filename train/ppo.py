@@ -51,7 +51,7 @@ from conav_jax.optim import Optimizer, adam, clip_by_global_norm
 from conav_jax.parallel import add_devices_arg, batch_sharding, check_divisible, make_mesh, replicated
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.metrics import summarize
-from envs.rollout import Agent, evaluate
+from envs.rollout import Agent, make_evaluator
 from train.policy import load_policy_run, policy_config_from_dict
 
 KIND = "ppo"
@@ -553,6 +553,9 @@ def train_ppo(
     episode_length = config.episode_length or env.bank.max_steps + 1
     wrapped = brax_training.wrap(env, episode_length=episode_length)
     val_env = ConavEnv(str(data_dir), "val", env_config) if config.eval_every else None
+    recurrent = config.recurrent
+    evaluator = None if val_env is None else make_evaluator(
+        val_env, lambda p: make_ppo_agent(p, policy_config, recurrent), config.eval_batch, config.seed, mesh)
 
     run_dir.mkdir(parents=True, exist_ok=True)
     log_path = run_dir / LOG_FILE
@@ -582,10 +585,9 @@ def train_ppo(
     def validate(it: int) -> None:
         nonlocal val
         episodes = None if config.eval_episodes is None else np.arange(min(config.eval_episodes, val_env.num_episodes))
-        # The checkpoint just saved, loaded as `conav eval --agent ppo` does. Each call compiles
-        # a new val rollout: the agent closes over its params.
-        agent = ppo_agent(val_env, run_dir)
-        val = summarize(evaluate(val_env, agent, episodes, batch=config.eval_batch, seed=config.seed, mesh=mesh))
+        # The deterministic agent `conav eval --agent ppo` builds, on the params just saved;
+        # params are an argument of the compiled rollout, so only the first validation compiles.
+        val = summarize(evaluator(runner.params, episodes))
         _append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "val", **val})
 
     bar = tqdm(total=n_iter * per_iter, disable=not progress, unit="step", dynamic_ncols=True)

@@ -3,7 +3,13 @@
 frames `(B, N, h, w, 4)` + valid `mask (B, N)` -> patch tokens (linear patch embedding +
 learned patch position + sinusoidal frame index) -> a learned latent array cross-attends to the
 valid tokens -> latent self-attention blocks -> mean-pooled latent -> activity (107) and object
-(51) logits. `lowest_entropy_average` is the paper's inference-time smoothing of predictions.
+(51) logits of what the human does next (B), and, with `activity_a_head`, logits of the
+activity being watched (A). `intention_probs` turns them into the predicted distributions:
+with the A head, through the shipped causal activity graph, p(B) = sum_A p(A | frames) P(B | A),
+mixed with the direct B head. Recognising A from its motion and object is what the frames
+show; the step to B is the graph's knowledge, which a model trained on a few scenes otherwise
+has to learn from their labels (and memorises the scenes instead: BENCHMARKS.md).
+`lowest_entropy_average` is the paper's inference-time smoothing of predictions.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from conav_jax import nn
 
@@ -34,6 +41,14 @@ class PerceiverConfig:
     mlp_ratio: int = 2  # MLP hidden width = mlp_ratio * dim
     num_activities: int = 107
     num_objects: int = 51
+    # Also classify activity A and predict B through the activity graph (needs the graph's
+    # 107 activities and 51 categories). Checkpoints written before this field had no A head.
+    activity_a_head: bool = True
+    graph_mix: float = 0.8  # weight of the graph route in p(B) and p(object B); the rest: direct heads
+
+    def __post_init__(self):
+        if not 0.0 <= self.graph_mix <= 1.0:
+            raise ValueError(f"graph_mix must be in [0, 1], got {self.graph_mix}")
 
     @property
     def num_patches(self) -> int:
@@ -42,10 +57,52 @@ class PerceiverConfig:
 
 
 class IntentionLogits(NamedTuple):
-    """Unnormalised class scores: `activity (B, num_activities)`, `object (B, num_objects)`."""
+    """Unnormalised class scores: `activity (B, num_activities)` and `object (B, num_objects)`
+    of activity B; `activity_a (B, num_activities)` of the watched activity A (None without
+    the A head)."""
 
     activity: jax.Array
     object: jax.Array
+    activity_a: jax.Array | None = None
+
+
+def graph_tables(config: PerceiverConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(P(B | A) `(A, B)` row-stochastic over the graph's links, uniform over all activities for
+    an A without links; object of B `(B, num_objects)` one-hot) from the shipped activity graph.
+    ValueError if the config's class counts are not the graph's."""
+    from conav_jax.activities import load_activity_graph
+    from conav_jax.categories import CATEGORY_NAMES
+
+    graph = load_activity_graph()
+    n, m = len(graph.activities), len(CATEGORY_NAMES)
+    if (config.num_activities, config.num_objects) != (n, m):
+        raise ValueError(
+            f"activity_a_head predicts through the activity graph ({n} activities, {m} categories); "
+            f"the config has {config.num_activities} / {config.num_objects}: set activity_a_head=False"
+        )
+    counts = np.zeros((n, n), np.float64)
+    for link in graph.links:
+        counts[link.a, link.b] += 1.0
+    rows = counts.sum(1, keepdims=True)
+    transition = np.where(rows > 0, counts / np.maximum(rows, 1.0), 1.0 / n)
+    objects = np.zeros((n, m), np.float32)
+    objects[np.arange(n), [graph.object_of(i) for i in range(n)]] = 1.0
+    return transition.astype(np.float32), objects
+
+
+def intention_probs(config: PerceiverConfig, logits: IntentionLogits) -> tuple[jax.Array, jax.Array]:
+    """(activity B probabilities `(..., num_activities)`, object B probabilities
+    `(..., num_objects)`): the direct heads' softmax, and with the A head their mix with the
+    graph route (weight `graph_mix`)."""
+    act, obj = jax.nn.softmax(logits.activity, axis=-1), jax.nn.softmax(logits.object, axis=-1)
+    if logits.activity_a is None:
+        return act, obj
+    transition, objects = graph_tables(config)
+    hi = jax.lax.Precision.HIGHEST  # probabilities: keep float32 on the GPU
+    via_b = jnp.matmul(jax.nn.softmax(logits.activity_a, axis=-1), jnp.asarray(transition), precision=hi)
+    via_obj = jnp.matmul(via_b, jnp.asarray(objects), precision=hi)
+    w = config.graph_mix
+    return (1.0 - w) * act + w * via_b, (1.0 - w) * obj + w * via_obj
 
 
 def _block_init(key: jax.Array, config: PerceiverConfig, kv_dim: int) -> Params:
@@ -78,17 +135,22 @@ def init(key: jax.Array, config: PerceiverConfig) -> Params:
         raise ValueError(f"patch_size {p} must divide the frame size {config.image_hw}")
     if d % config.num_heads or d % 2:
         raise ValueError(f"dim {d} must be even and divisible by num_heads {config.num_heads}")
-    keys = jax.random.split(key, 6 + config.num_blocks)
-    return {
+    if config.activity_a_head:
+        graph_tables(config)  # the class counts must be the graph's
+    keys = jax.random.split(key, 7 + config.num_blocks)
+    params = {
         "patch_embed": nn.linear.init(keys[0], p * p * config.channels, d),
         "patch_pos": 0.02 * jax.random.normal(keys[1], (config.num_patches, d)),
         "latents": 0.02 * jax.random.normal(keys[2], (config.num_latents, d)),
         "cross": _block_init(keys[3], config, d),
-        "blocks": [_block_init(k, config, d) for k in keys[6:]],
+        "blocks": [_block_init(k, config, d) for k in keys[7:]],
         "norm_out": nn.norm.init(None, d),
         "activity_head": nn.linear.init(keys[4], d, config.num_activities, scheme="glorot"),
         "object_head": nn.linear.init(keys[5], d, config.num_objects, scheme="glorot"),
     }
+    if config.activity_a_head:
+        params["activity_a_head"] = nn.linear.init(keys[6], d, config.num_activities, scheme="glorot")
+    return params
 
 
 def _patchify(frames: jax.Array, patch: int) -> jax.Array:
@@ -125,6 +187,7 @@ def apply(
     return IntentionLogits(
         activity=nn.linear.apply(params["activity_head"], pooled),
         object=nn.linear.apply(params["object_head"], pooled),
+        activity_a=nn.linear.apply(params["activity_a_head"], pooled) if config.activity_a_head else None,
     )
 
 

@@ -1,0 +1,29 @@
+"""`conav curve`: the PPO learning-curve PNG from run logs (eval.plots.learning_curve)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def add_curve(sub) -> None:
+    """Register `conav curve`."""
+    p = sub.add_parser("curve", help="PPO learning curve (success vs env steps) from run logs, as PNG")
+    p.add_argument("runs", nargs="+", metavar="[TITLE=]RUN", help="`conav train rl` run dirs")
+    p.add_argument("--out", required=True, help="output .png")
+    p.set_defaults(func=run_curve)
+
+
+def run_curve(args) -> int:
+    import json
+
+    runs = {}
+    for spec in args.runs:
+        title, _, run = spec.rpartition("=")
+        log = Path(run) / "log.jsonl"
+        if not log.is_file():
+            raise FileNotFoundError(f"no log.jsonl in {run}")
+        runs[title or Path(run).name] = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+    from eval.plots import learning_curve  # matplotlib: only when the command runs
+
+    print(f"wrote {learning_curve(runs, args.out)}")
+    return 0
