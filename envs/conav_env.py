@@ -308,6 +308,18 @@ class ConavEnv(Env):
             self.layout.floor,
         )
 
+    def render_at(self, episode: jax.Array, robot_pose: jax.Array, t: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(rgbd (H, W, 4), geom ids (H, W)): the panorama the robot's camera sees from
+        `robot_pose` (x m, y m, yaw rad) with the humanoid posed at step `t` of `episode`, as
+        the configured sensor renders it in `step`. Outside the simulation (nothing moves): for
+        rendering datasets (the intention predictor's frames) and debugging."""
+        t = jnp.asarray(t, jnp.int32)
+        d = self._data0.replace(qpos=jnp.asarray(robot_pose, self._data0.qpos.dtype))
+        d = d.replace(userdata=d.userdata.at[UD["t"]].set(t.astype(d.userdata.dtype)))
+        d = self._pose_human(d, episode, t)  # mocap poses: what the mjx.ray reference sees
+        depth, ids = self.panorama(self._episode_model(episode, d.qpos[:2]), d, episode)
+        return colourise(depth, ids, self._geom_rgb(episode)), ids
+
     def _observe(self, m: mjx.Model, d: mjx.Data, episode: jax.Array) -> dict[str, jax.Array]:
         b, cfg = self.bank, self.config
         xy, yaw = d.qpos[:2], d.qpos[2]

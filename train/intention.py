@@ -26,8 +26,7 @@ from conav_jax.models.perceiver import PerceiverConfig
 from conav_jax.parallel import make_mesh
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.bench import parse_resolution
-from envs.mjcf import UD
-from envs.panorama import colourise, front_view
+from envs.panorama import front_view
 from train.loop import NonFiniteLoss, TrainConfig, TrainResult, add_train_args, load_run, train, train_config_from_args
 
 KIND = "intention"
@@ -70,13 +69,8 @@ def make_front_renderer(env: ConavEnv, image_hw: tuple[int, int], chunk: int, co
     human_start = env.layout.human_start
 
     def one(episode, t):
-        # The episode's start state (the unused observation is dead code under jit), with
-        # the clock and the humanoid moved to step t.
-        d = env.reset_to_episode(jax.random.PRNGKey(0), episode).pipeline_state
-        d = d.replace(userdata=d.userdata.at[UD["t"]].set(t.astype(d.userdata.dtype)))
-        d = env._pose_human(d, episode, t)  # mocap poses: what the mjx.ray reference sees
-        depth, ids = env.panorama(env._episode_model(episode, d.qpos[:2]), d, episode)
-        front = front_view(colourise(depth, ids, env._geom_rgb(episode)))
+        rgbd, ids = env.render_at(episode, env.bank.robot_start[episode], t)  # from the start pose
+        front = front_view(rgbd)
         if front.shape[:2] != tuple(image_hw):
             front = jax.image.resize(front, (*image_hw, front.shape[-1]), "linear")
         return front, jnp.sum(front_view(ids[..., None]) >= human_start, dtype=jnp.int32)
