@@ -4,6 +4,14 @@ Importing the package registers the environment with brax as 'conav', so
 `brax.envs.get_environment('conav', data_dir=..., split=...)` builds it.
 """
 
+import contextlib as _contextlib
+import io as _io
+
+# mujoco-mjx prints "Failed to import warp" on import when its optional Warp backend is not
+# installed (we use the JAX backend); keep that line out of every command's output.
+with _contextlib.redirect_stdout(_io.StringIO()):
+    from mujoco import mjx as _mjx  # noqa: F401
+
 from brax import envs as _brax_envs
 
 from envs.config import EnvConfig, PhysicsConfig, RewardConfig, SensorConfig

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import envs  # noqa: F401, I001  (first: registers 'conav' with brax, and imports mjx quietly)
+
 import brax.envs
 import jax
 import jax.numpy as jnp
@@ -42,7 +44,6 @@ from brax.envs.wrappers import training as brax_training
 from jax.sharding import Mesh
 from tqdm import tqdm
 
-import envs  # noqa: F401  (registers 'conav' with brax)
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
