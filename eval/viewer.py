@@ -44,10 +44,14 @@ def add_view(sub: argparse._SubParsersAction) -> None:
 
 def agent_predictions(carry: Any) -> dict[str, Any]:
     """The PREDICTION_KEYS entries of an agent's carry: a mapping or an object (e.g. a NamedTuple)
-    with those names. Empty for baselines."""
+    with those names, or with a `predicted` mapping of them (the CoNav policy's PolicyCarry).
+    Empty for baselines."""
     if isinstance(carry, Mapping):
         return {k: carry[k] for k in PREDICTION_KEYS if k in carry}
-    return {k: getattr(carry, k) for k in PREDICTION_KEYS if hasattr(carry, k)}
+    found = {k: getattr(carry, k) for k in PREDICTION_KEYS if hasattr(carry, k)}
+    if isinstance(getattr(carry, "predicted", None), Mapping):
+        found.update({k: v for k, v in carry.predicted.items() if k in PREDICTION_KEYS})
+    return found
 
 
 def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, np.ndarray], dict[str, str]]:

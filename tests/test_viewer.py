@@ -75,6 +75,11 @@ def test_predictions_are_read_from_an_agents_carry():
     assert viewer.agent_predictions(()) == {}
     assert set(viewer.agent_predictions({"object_probs": 1, "future_traj": 2, "h": 3})) == {"object_probs", "future_traj"}
     assert set(viewer.agent_predictions(_Carry((), np.zeros(3)))) == {"activity_probs"}
+    # The CoNav policy's carry holds what its predictors produced under `predicted`.
+    from train.imitation import PolicyCarry
+
+    carry = PolicyCarry((), None, {"future_traj": np.zeros((5, 2))})
+    assert set(viewer.agent_predictions(carry)) == {"future_traj"}
 
 
 @pytest.mark.parametrize(

@@ -75,11 +75,14 @@ def expert_agent(env: ConavEnv, cfg: ExpertConfig = ExpertConfig()) -> Agent:
 
 
 class PolicyCarry(NamedTuple):
-    """The acting policy's memory: its LSTM state ((hidden,) each) and the intention
-    predictor's carry (None without one)."""
+    """The acting policy's memory: its LSTM state ((hidden,) each), the intention predictor's
+    carry (None without one) and `predicted`, the predictors' latest outputs the policy read,
+    by observation key (activity_probs / object_probs / future_traj; {} without predictors),
+    which the viewer (eval.viewer) shows."""
 
     lstm: LSTMState
     intention: Any
+    predicted: dict
 
 
 class PolicyStep(NamedTuple):
@@ -106,9 +109,15 @@ def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None) -> Poli
     use_trajectory = trajectory is not None and cfg.use_trajectory
     keys = policy_inputs(cfg)
 
+    predicted_keys = (("activity_probs", "object_probs") if use_intention else ()) + (
+        ("future_traj",) if use_trajectory else ())
+
     def init() -> PolicyCarry:
         lstm = jax.tree.map(lambda x: x[0], policy.initial_carry(cfg, 1))
-        return PolicyCarry(lstm, intention.init() if use_intention else None)
+        shapes = {"activity_probs": (cfg.num_activities,), "object_probs": (cfg.num_objects,),
+                  "future_traj": (cfg.horizon, 2)}
+        predicted = {k: jnp.zeros(shapes[k], jnp.float32) for k in predicted_keys}
+        return PolicyCarry(lstm, intention.init() if use_intention else None, predicted)
 
     def step(params, obs: dict, carry: PolicyCarry):
         inputs = {k: obs[k] for k in keys if k in obs}
@@ -121,7 +130,8 @@ def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None) -> Poli
         batched = {k: inputs[k][None] for k in keys}
         lstm = jax.tree.map(lambda x: x[None], carry.lstm)
         action, _, lstm = policy.apply(params, cfg, batched, lstm)
-        return action[0], PolicyCarry(jax.tree.map(lambda x: x[0], lstm), icarry)
+        predicted = {k: inputs[k].astype(jnp.float32).reshape(carry.predicted[k].shape) for k in predicted_keys}
+        return action[0], PolicyCarry(jax.tree.map(lambda x: x[0], lstm), icarry, predicted)
 
     return PolicyStep(init, step)
 
