@@ -185,22 +185,43 @@ def _next_boundary(step: int, cfg: TrainConfig) -> int:
     return min(*nxt, cfg.steps)
 
 
-def _trim_log(path: Path, step: int) -> None:
-    """Keep only records up to `step`: a resumed run re-logs what came after its checkpoint."""
+def trim_log(path: Path, step: int) -> None:
+    """Keep only records up to `step` (and those without one): a resumed run re-logs what came
+    after its checkpoint."""
     if not path.is_file():
         return
     keep = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
     path.write_text("".join(line + "\n" for line in keep))
 
 
-def _append_log(path: Path, record: dict) -> None:
+def resume(run_dir: Path, config: dict, params: PyTree, opt_state: PyTree):
+    """The latest checkpoint of `run_dir`, loaded against `config` and the state's structure,
+    with the run's log trimmed to its step; None for a fresh run (whose stale log, belonging to
+    no state we can continue, is removed). ValueError naming the first difference when the
+    checkpoint is of another config."""
+    log_path = Path(run_dir) / LOG_FILE
+    found = latest_checkpoint(run_dir)
+    if found is None:
+        log_path.unlink(missing_ok=True)
+        return None
+    try:
+        ckpt = load_checkpoint(found, config=config, params_like=params, opt_state_like=opt_state)
+    except ValueError as e:
+        raise ValueError(f"cannot resume {run_dir}: {e}") from None
+    trim_log(log_path, ckpt.step)
+    return ckpt
+
+
+def append_log(path: Path, record: dict) -> None:
+    """Append one JSON record (a line) to a run's log."""
     with open(path, "a") as f:
         f.write(json.dumps(record) + "\n")
 
 
-def _to_float(x) -> float | None:
+def finite_or_none(x) -> float | None:
+    """`float(x)`, or None where it is inf/NaN (JSON has no NaN)."""
     v = float(x)
-    return v if math.isfinite(v) else None  # JSON has no NaN
+    return v if math.isfinite(v) else None
 
 
 def train(
@@ -245,16 +266,9 @@ def train(
     opt_state = make_optimizer(cfg).init(params)
 
     step = 0
-    found = latest_checkpoint(run_dir)
-    if found is not None:
-        try:
-            ckpt = load_checkpoint(found, config=full_config, params_like=params, opt_state_like=opt_state)
-        except ValueError as e:
-            raise ValueError(f"cannot resume {run_dir}: {e}") from None
+    ckpt = resume(run_dir, full_config, params, opt_state)
+    if ckpt is not None:
         params, opt_state, step = ckpt.params, ckpt.opt_state, ckpt.step
-        _trim_log(log_path, step)
-    elif log_path.exists():
-        log_path.unlink()  # a log without a checkpoint belongs to no state we can continue
     if mesh is not None:
         params, opt_state = replicate((params, opt_state), mesh)
 
@@ -265,7 +279,7 @@ def train(
     def validate(at: int) -> None:
         nonlocal val
         val = {k: float(v) for k, v in val_fn(params).items()}
-        _append_log(log_path, {"step": at, "split": "val", **val})
+        append_log(log_path, {"step": at, "split": "val", **val})
 
     bar = tqdm(total=cfg.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True)
     start = time.perf_counter()
@@ -277,7 +291,7 @@ def train(
             bad = int(bad_step)  # the one sync per chunk
             if bad >= 0:
                 indices = [int(i) for i in np.asarray(bad_idx)]
-                _append_log(log_path, {"step": bad, "split": "train", "error": "non-finite loss", "indices": indices})
+                append_log(log_path, {"step": bad, "split": "train", "error": "non-finite loss", "indices": indices})
                 last = latest_checkpoint(run_dir)
                 raise NonFiniteLoss(
                     f"non-finite loss or gradient at update step {bad} (batch sample indices {indices}); "
@@ -291,9 +305,9 @@ def train(
             step = end
             if step % cfg.log_every == 0 or step == cfg.steps:
                 count = max(sums.pop("n"), 1.0)
-                record = {k: _to_float(v / count) for k, v in sums.items()}
+                record = {k: finite_or_none(v / count) for k, v in sums.items()}
                 record["samples_per_s"] = round(rate, 1)
-                _append_log(log_path, {"step": step, "split": "train", **record,
+                append_log(log_path, {"step": step, "split": "train", **record,
                                        "elapsed_s": round(time.perf_counter() - start, 2)})
                 bar.set_postfix(loss=f"{record['loss']:.4g}", samples_s=f"{rate:.0f}")
             bar.update(end - bar.n)

@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
-from train.loop import TrainConfig, add_train_args, train_config_from_args
+from train.loop import TrainConfig, add_train_args, append_log, resume, train_config_from_args
 
 KIND = "policy"
 LOG_FILE = "log.jsonl"
@@ -112,19 +111,6 @@ def load_policy_run(run_dir: str | Path):
     return params, cfg, ckpt.config
 
 
-def _append_log(path: Path, record: dict) -> None:
-    with open(path, "a") as f:
-        f.write(json.dumps(record) + "\n")
-
-
-def _trim_log(path: Path, step: int) -> None:
-    """Keep the records up to update `step` (and the step-less ones): a resumed run re-logs
-    what came after its checkpoint."""
-    if path.is_file():
-        keep = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln).get("step", -1) <= step]
-        path.write_text("".join(ln + "\n" for ln in keep))
-
-
 def window_indices(seed: int, step: int, n: int, batch: int):
     """The `batch` window indices of update `step` (with replacement): a function of
     `(seed, step)` alone, so a resumed run draws what an uninterrupted one would."""
@@ -205,7 +191,7 @@ def train_policy(
     import numpy as np
     from tqdm import tqdm
 
-    from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+    from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
     from conav_jax.episodes import read_manifest
     from conav_jax.expert import ExpertConfig
     from conav_jax.models import policy
@@ -237,18 +223,11 @@ def train_policy(
     params = policy.init(jax.random.PRNGKey(cfg.seed), model)
     opt_state = adam(cfg.lr).init(params)
     step, expert_val, val = 0, {}, {}
-    found = latest_checkpoint(run_dir)
-    if found is not None:
-        try:
-            ckpt = load_checkpoint(found, config=config, params_like=params, opt_state_like=opt_state)
-        except ValueError as e:
-            raise ValueError(f"cannot resume {run_dir}: {e}") from None
+    ckpt = resume(run_dir, config, params, opt_state)
+    if ckpt is not None:
         params, opt_state, step = ckpt.params, ckpt.opt_state, ckpt.step
         expert_val, val = ckpt.extra["expert_val"], ckpt.extra["val"]
-        _trim_log(log_path, step)
         log(f"resuming {run_dir} at update {step}")
-    elif log_path.exists():
-        log_path.unlink()  # a log without a checkpoint belongs to no state we can continue
 
     h, w = imitation.resolution
     env_cfg = EnvConfig(sensor=SensorConfig(height=h, width=w))
@@ -281,7 +260,7 @@ def train_policy(
     if not expert_val:
         t0 = time.perf_counter()
         expert_val = val_metrics(params, 1.0)
-        _append_log(log_path, {"split": "val", "agent": "expert", "episodes": len(val_eps), **expert_val})
+        append_log(log_path, {"split": "val", "agent": "expert", "episodes": len(val_eps), **expert_val})
         log(f"expert (the ceiling) on val, {len(val_eps)} episodes: {_rates(expert_val)}  [{time.perf_counter() - t0:.0f} s]")
 
     parts = []
@@ -300,7 +279,7 @@ def train_policy(
             m, recs = im.run_batched(record, params, key, train_eps, beta, imitation.rollout_batch, mesh=mesh)
             parts.append(im.sequences(recs, imitation.seq_len, imitation.burn_in))
             im.save_sequences(path, parts[-1])
-            _append_log(log_path, {"step": step, "round": r, "split": "train", "agent": agent, "episodes": len(train_eps),
+            append_log(log_path, {"step": step, "round": r, "split": "train", "agent": agent, "episodes": len(train_eps),
                                    "windows": len(parts[-1]["label"]), **summarize(m)})
             log(f"round {r}: recorded {len(train_eps)} train episodes, {agent} acting ({_rates(summarize(m))}): "
                 f"{len(parts[-1]['label'])} windows  [{time.perf_counter() - t0:.0f} s]")
@@ -308,7 +287,9 @@ def train_policy(
             continue
         data = place(im.concat_sequences(parts))
         n = len(data["label"])
-        schedule = warmup_cosine(cfg.lr, min(cfg.warmup_steps, steps), steps)
+        # The round's learning rates, read back once: a per-update read would wait for the
+        # update queued before it and stall the device.
+        schedule = np.asarray(jax.vmap(warmup_cosine(cfg.lr, min(cfg.warmup_steps, steps), steps))(jnp.arange(steps)))
         if step == start:
             opt_state = adam(cfg.lr).init(params)  # each round starts its own Adam
         params, opt_state = place((params, opt_state))
@@ -316,7 +297,7 @@ def train_policy(
         bar = tqdm(total=steps, initial=step - start, disable=not progress, unit="step", desc=f"round {r}", dynamic_ncols=True)
         while step < end:
             idx = window_indices(cfg.seed, step, n, cfg.batch)
-            lr = float(schedule(step - start))
+            lr = float(schedule[step - start])
             params, opt_state, loss, grad_norm, bad = update(params, opt_state, data, idx, lr, step, bad)
             losses.append((loss, grad_norm))  # device scalars: read back only when logging
             step += 1
@@ -327,20 +308,20 @@ def train_policy(
             if int(bad) >= 0:  # the one host sync per log interval
                 b = int(bad)
                 bad_idx = window_indices(cfg.seed, b, n, cfg.batch).tolist()
-                _append_log(log_path, {"step": b, "round": r, "split": "train", "error": "non-finite loss",
+                append_log(log_path, {"step": b, "round": r, "split": "train", "error": "non-finite loss",
                                        "indices": bad_idx})
                 raise NonFiniteLoss(f"non-finite loss or gradient at update {b} (windows {bad_idx}); stopped, "
                                     f"last good checkpoint: {latest_checkpoint(run_dir)}", b, bad_idx)
             if step % cfg.log_every == 0 or step == end:
                 mean_loss, mean_norm = np.asarray(jax.device_get(losses), np.float64).mean(0)
                 rate = cfg.batch * len(losses) / (time.perf_counter() - t_log)
-                _append_log(log_path, {"step": step, "round": r, "split": "train", "loss": mean_loss,
+                append_log(log_path, {"step": step, "round": r, "split": "train", "loss": mean_loss,
                                        "grad_norm": mean_norm, "lr": lr, "windows": n, "samples_per_s": round(rate, 1)})
                 bar.set_postfix(loss=f"{mean_loss:.4g}")
                 losses, t_log = [], time.perf_counter()
             if step % cfg.val_every == 0 or step == end:
                 val = val_metrics(params, 0.0)
-                _append_log(log_path, {"step": step, "round": r, "split": "val", "agent": "policy", **val})
+                append_log(log_path, {"step": step, "round": r, "split": "val", "agent": "policy", **val})
                 bar.write(f"update {step} (round {r}): policy on val: {_rates(val)}")
             if step % cfg.ckpt_every == 0 or step == end:
                 checkpoint(r)

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -53,6 +52,7 @@ from conav_jax.parallel import add_devices_arg, batch_sharding, check_divisible,
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.metrics import summarize
 from envs.rollout import Agent, make_evaluator
+from train.loop import append_log, finite_or_none
 from train.policy import load_policy_run, policy_config_from_dict
 
 KIND = "ppo"
@@ -500,16 +500,6 @@ class PPOResult(NamedTuple):
     run_dir: Path
 
 
-def _append_log(path: Path, record: dict) -> None:
-    with open(path, "a") as f:
-        f.write(json.dumps(record) + "\n")
-
-
-def _float(x) -> float | None:
-    v = float(x)
-    return v if math.isfinite(v) else None  # JSON has no NaN
-
-
 def train_ppo(
     data_dir: str | Path,
     run_dir: str | Path,
@@ -589,7 +579,7 @@ def train_ppo(
         # The deterministic agent `conav eval --agent ppo` builds, on the params just saved;
         # params are an argument of the compiled rollout, so only the first validation compiles.
         val = summarize(evaluator(runner.params, episodes))
-        _append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "val", **val})
+        append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "val", **val})
 
     bar = tqdm(total=n_iter * per_iter, disable=not progress, unit="step", dynamic_ncols=True)
     start = time.perf_counter()
@@ -600,16 +590,16 @@ def train_ppo(
             metrics = {k: float(v) for k, v in metrics.items()}  # the one sync per iteration
             seconds = time.perf_counter() - t0
             episodes = metrics.pop("episodes")
-            record = {k: _float(v) for k, v in metrics.items() if k not in ("return", "reached", "collided")}
+            record = {k: finite_or_none(v) for k, v in metrics.items() if k not in ("return", "reached", "collided")}
             record.update(
                 episodes=int(episodes),
-                episode_return=_float(metrics["return"] / episodes) if episodes else None,
+                episode_return=finite_or_none(metrics["return"] / episodes) if episodes else None,
                 reach_rate=metrics["reached"] / episodes if episodes else None,
                 collision_rate=metrics["collided"] / episodes if episodes else None,
                 steps_per_s=round(per_iter / seconds, 1),
                 elapsed_s=round(time.perf_counter() - start, 2),
             )
-            _append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "train", **record})
+            append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "train", **record})
             if not all(math.isfinite(metrics[k]) for k in ("loss", "grad_norm")):
                 raise FloatingPointError(f"non-finite PPO loss or gradient at iteration {it}; see {log_path}")
             bar.set_postfix(steps_s=f"{per_iter / seconds:.0f}", reward=f"{metrics['reward']:.4f}")

@@ -14,6 +14,7 @@ has to learn from their labels (and memorises the scenes instead: BENCHMARKS.md)
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -70,24 +71,30 @@ def graph_tables(config: PerceiverConfig) -> tuple[np.ndarray, np.ndarray]:
     """(P(B | A) `(A, B)` row-stochastic over the graph's links, uniform over all activities for
     an A without links; object of B `(B, num_objects)` one-hot) from the shipped activity graph.
     ValueError if the config's class counts are not the graph's."""
+    return _graph_tables(config.num_activities, config.num_objects)
+
+
+@functools.lru_cache(maxsize=4)
+def _graph_tables(num_activities: int, num_objects: int) -> tuple[np.ndarray, np.ndarray]:
     from conav_jax.activities import load_activity_graph
     from conav_jax.categories import CATEGORY_NAMES
 
     graph = load_activity_graph()
     n, m = len(graph.activities), len(CATEGORY_NAMES)
-    if (config.num_activities, config.num_objects) != (n, m):
+    if (num_activities, num_objects) != (n, m):
         raise ValueError(
             f"activity_a_head predicts through the activity graph ({n} activities, {m} categories); "
-            f"the config has {config.num_activities} / {config.num_objects}: set activity_a_head=False"
+            f"the config has {num_activities} / {num_objects}: set activity_a_head=False"
         )
     counts = np.zeros((n, n), np.float64)
     for link in graph.links:
         counts[link.a, link.b] += 1.0
     rows = counts.sum(1, keepdims=True)
-    transition = np.where(rows > 0, counts / np.maximum(rows, 1.0), 1.0 / n)
+    transition = np.where(rows > 0, counts / np.maximum(rows, 1.0), 1.0 / n).astype(np.float32)
     objects = np.zeros((n, m), np.float32)
     objects[np.arange(n), [graph.object_of(i) for i in range(n)]] = 1.0
-    return transition.astype(np.float32), objects
+    transition.flags.writeable = objects.flags.writeable = False  # shared by every caller
+    return transition, objects
 
 
 def intention_probs(config: PerceiverConfig, logits: IntentionLogits) -> tuple[jax.Array, jax.Array]:
