@@ -14,16 +14,15 @@ def add_curve(sub) -> None:
 
 
 def run_curve(args) -> int:
-    import json
+    from eval.plots import learning_curve  # matplotlib and jax: only when the command runs
+    from train.loop import LOG_FILE, read_log
 
     runs = {}
     for spec in args.runs:
         title, _, run = spec.rpartition("=")
-        log = Path(run) / "log.jsonl"
-        if not log.is_file():
-            raise FileNotFoundError(f"no log.jsonl in {run}")
-        runs[title or Path(run).name] = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
-    from eval.plots import learning_curve  # matplotlib: only when the command runs
+        if not (Path(run) / LOG_FILE).is_file():
+            raise FileNotFoundError(f"no {LOG_FILE} in {run}")
+        runs[title or Path(run).name] = read_log(run)
 
     print(f"wrote {learning_curve(runs, args.out)}")
     return 0
