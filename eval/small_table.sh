@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Reproduce the README's `small`-preset agent table on one GPU (the device tool's H100).
 #
-#   bash eval/small_table.sh OUT [imitation|rl|eval|pack|all]
+#   bash eval/small_table.sh OUT [imitation|dagger|rl|eval|pack|all]
 #
 # imitation: data, intention + trajectory predictors, BC (all inputs / no intention inputs),
-#            DAgger (the BC-all run continued with one round)                  ~8 min on an H100
-# rl:        PPO from scratch and PPO fine-tuned from the DAgger policy        ~6 min
+#            DAgger (the BC-all run continued with one round; `dagger` runs this part alone)                  ~8 min on an H100
+# rl:        PPO from scratch ($PPO_STEPS env steps) and fine-tuned from DAgger ($FT_STEPS)        ~6 min
 # eval:      every agent on the 500 val episodes, intentions predicted by the predictors each
 #            policy run names (OUT/eval), and with ground truth (OUT/eval_gt)  ~6 min
 # pack:      OUT/pack/<run>.tgz: each run's latest checkpoint and log (< 16 MB each), and the
@@ -24,8 +24,15 @@ DATA=$OUT/data
 conav() { python3 -m eval.cli "$@"; }
 stamp() { echo "[$(date +%T)] $*"; }
 want() { [[ $STAGE == "$1" || $STAGE == all ]]; }
+PPO_STEPS=${PPO_STEPS:-6000000}  # PPO from scratch, env steps
+FT_STEPS=${FT_STEPS:-2000000}    # PPO fine-tuned from DAgger, env steps
 
 [ -f "$DATA/manifest.json" ] || conav generate --preset small --out "$DATA" --seed "$SEED" --workers "$(nproc)"
+
+# Same flags for every policy run, so the DAgger run resumes the BC-all run's checkpoint.
+POLICY=(--data "$DATA" --intention "$OUT/intention" --trajectory "$OUT/trajectory" --resolution "$RES"
+        --episodes 1000 --val-episodes 128 --steps 2000 --dagger-steps 1000 --batch 256 --lr 5e-4
+        --rollout-batch 500 --log-every 100 --val-every 1000 --ckpt-every 1000 --seed "$SEED" --no-progress)
 
 if want imitation; then
   stamp intention
@@ -34,14 +41,13 @@ if want imitation; then
   stamp trajectory
   conav train trajectory --data "$DATA" --out "$OUT/trajectory" --steps 3000 --batch 1024 --lr 1e-3 \
     --val-every 3000 --ckpt-every 3000 --log-every 100 --seed "$SEED" --no-progress
-  # Same flags for every policy run, so the DAgger run resumes the BC-all run's checkpoint.
-  POLICY=(--data "$DATA" --intention "$OUT/intention" --trajectory "$OUT/trajectory" --resolution "$RES"
-          --episodes 1000 --val-episodes 128 --steps 2000 --dagger-steps 1000 --batch 256 --lr 5e-4
-          --rollout-batch 500 --log-every 100 --val-every 1000 --ckpt-every 1000 --seed "$SEED" --no-progress)
   for ab in all none; do
     stamp "bc $ab"
     conav train policy "${POLICY[@]}" --ablation $ab --out "$OUT/bc_$ab"
   done
+fi
+
+if want imitation || want dagger; then
   stamp dagger
   if [ ! -d "$OUT/dagger" ]; then  # DAgger continues BC-all: its checkpoint, log and round-0 data
     mkdir -p "$OUT/dagger/data"
@@ -55,9 +61,9 @@ if want rl; then
   RL=(--data "$DATA" --resolution "$RES" --num-envs 2048 --rollout-steps 32 --eval-every 25 --ckpt-every 25
       --seed "$SEED" --no-progress)
   stamp "ppo scratch"
-  [ -d "$OUT/ppo_scratch" ] || conav train rl "${RL[@]}" --feedforward --steps 6000000 --out "$OUT/ppo_scratch"
+  [ -d "$OUT/ppo_scratch" ] || conav train rl "${RL[@]}" --feedforward --steps "$PPO_STEPS" --out "$OUT/ppo_scratch"
   stamp "ppo finetune"
-  [ -d "$OUT/ppo_finetune" ] || conav train rl "${RL[@]}" --init-from "$OUT/dagger" --steps 2000000 --lr 3e-5 \
+  [ -d "$OUT/ppo_finetune" ] || conav train rl "${RL[@]}" --init-from "$OUT/dagger" --steps "$FT_STEPS" --lr 3e-5 \
     --out "$OUT/ppo_finetune"
   conav curve "PPO scratch=$OUT/ppo_scratch" "PPO fine-tuned from DAgger=$OUT/ppo_finetune" --out "$OUT/ppo_curve.png"
 fi
