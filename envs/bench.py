@@ -39,7 +39,7 @@ def add_bench_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", default="val")
     p.add_argument("--batch", type=int, nargs="+", default=[1024])
     p.add_argument("--resolution", type=parse_resolution, nargs="+", default=[(112, 448)])
-    p.add_argument("--sensor", nargs="+", choices=["fast", "pallas", "legacy", "reference", "both"], default=["fast"],
+    p.add_argument("--sensor", nargs="+", choices=["auto", "fast", "pallas", "legacy", "reference", "both"], default=["auto"],
                    help="sensor kinds to time (both = fast and reference)")
     p.add_argument("--fast-min", choices=["reduce", "unroll"], default=None, help="fast caster: min over geoms as")
     p.add_argument("--steps", type=int, default=20, help="env steps per timed call")
@@ -278,10 +278,11 @@ def run_bench_sim(args: argparse.Namespace) -> int:
                     extra[name] = getattr(args, name)
             cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra))
             env = ConavEnv(data, args.split, cfg)
+            kind = env.config.sensor.kind  # what "auto" became here
             for batch in args.batch:
                 res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh)}
                 if kind == "fast":
-                    res["fast_min"] = cfg.sensor.fast_min
+                    res["fast_min"] = env.config.sensor.fast_min
                 if kind == "pallas":
                     res["pallas"] = {"block_w": cfg.sensor.pallas_block_w, "num_warps": cfg.sensor.pallas_num_warps}
                 if args.json or args.what == "breakdown":

@@ -19,6 +19,8 @@ different lengths reads every episode's result at its end.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -32,7 +34,7 @@ from conav_jax.episodes import EpisodeSplit, load_split
 from conav_jax.planning import field_value
 from envs import contact
 from envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
-from envs.config import EnvConfig
+from envs.config import EnvConfig, resolve_sensor_kind
 from envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_poses, quat_z_to
 from envs.mjcf import UD, GeomLayout, build_model, robot_body_id
 from envs.panorama import colourise, fast_depth_ids, front_view, legacy_depth_ids, reference_depth_ids
@@ -74,7 +76,10 @@ class ConavEnv(Env):
             if data_dir is None:
                 raise ValueError("ConavEnv needs data_dir (a generated dataset) or episodes=")
             episodes = load_split(data_dir, split, max_episodes=max_episodes)
-        self.config = config or EnvConfig()
+        config = config or EnvConfig()
+        # "auto" becomes the caster this machine runs (pallas on one GPU, else fast).
+        sensor = dataclasses.replace(config.sensor, kind=resolve_sensor_kind(config.sensor.kind))
+        self.config = dataclasses.replace(config, sensor=sensor)
         self.task: TaskConfig = episodes.config.task
         self.split = episodes
         self.bank: EpisodeBank = build_bank(episodes)

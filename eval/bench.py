@@ -28,8 +28,8 @@ def add_bench_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--resolution", type=parse_resolution, default=(112, 448))
-    p.add_argument("--sensor", choices=["fast", "pallas", "legacy", "reference"], default="fast",
-                   help="panorama caster (envs.SensorConfig.kind; pallas needs a GPU)")
+    p.add_argument("--sensor", choices=["auto", "fast", "pallas", "legacy", "reference"], default="auto",
+                   help="panorama caster (envs.SensorConfig.kind; auto: pallas on one GPU, else fast)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--json", action="store_true", help="print one JSON line")
     add_devices_arg(p)
@@ -98,12 +98,12 @@ def run_bench_eval(args: argparse.Namespace) -> int:
         generate_dataset(preset("tiny"), data)
     h, w = args.resolution
     env = ConavEnv(data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w, kind=args.sensor)))
-    res = {"agent": args.agent, "resolution": f"{h}x{w}", "sensor": args.sensor, **bench_eval(env, make_agent(args.agent, env, args.checkpoint), args.batch, args.repeats, mesh)}
+    res = {"agent": args.agent, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind, **bench_eval(env, make_agent(args.agent, env, args.checkpoint), args.batch, args.repeats, mesh)}
     if args.json:
         print(json.dumps(res), flush=True)
     else:
         print(
-            f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={args.sensor} batch={args.batch} "
+            f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={res['sensor']} batch={args.batch} "
             f"({res['steps_per_episode']} steps/episode): {res['episodes_per_min']:,.1f} episodes/min = "
             f"{res['env_steps_per_s']:,.0f} env steps/s ({res['env_steps_per_s_per_device']:,.0f} per device; "
             f"median of {args.repeats}), compile {res['compile_and_first_call_s']} s",

@@ -22,7 +22,7 @@ from envs.mjcf import UD
 from envs.rollout import evaluate
 from eval.learned import policy_agent
 from train import imitation as im
-from train.policy import ImitationConfig, run_config
+from train.policy import ImitationConfig, check_recordable, run_config
 from worlds import make_split
 
 # For the small jits. The MJX rollout keeps XLA's default: at level 0 its run time costs more
@@ -119,6 +119,19 @@ def test_rollouts_are_deterministic_for_a_seed(hall, params0):
     for a, b in zip(*(jax.tree.leaves(x) for x in mixed)):
         assert a.tobytes() == b.tobytes()
     assert not np.array_equal(mixed[0][1].action, mixed[0][1].label)
+
+
+def test_expert_round_data_do_not_depend_on_the_policy_so_a_run_can_record_them_again(hall, bc, trained, tmp_path):
+    # train.policy records round 0 again when a resumed run lacks its file: the same bytes as
+    # long as the policy's params play no part when the expert acts alone.
+    again = _run(hall, trained.params, 1.0)
+    for a, b in zip(jax.tree.leaves(bc), jax.tree.leaves(again)):
+        assert a.tobytes() == b.tobytes()
+    path = tmp_path / "data" / "round_1.npz"
+    check_recordable(0, 2000, 0, tmp_path / "data" / "round_0.npz", tmp_path)  # round 0: any time
+    check_recordable(1, 2000, 2000, path, tmp_path)  # a DAgger round not yet begun
+    with pytest.raises(FileNotFoundError, match="round_1.npz, the data of round 1, is missing"):
+        check_recordable(1, 2500, 2000, path, tmp_path)
 
 
 def test_sequences_are_windows_with_burn_in_masked_after_the_end():

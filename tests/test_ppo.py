@@ -50,6 +50,14 @@ def test_gae_matches_hand_computation_with_a_done_in_the_middle():
     np.testing.assert_allclose(np.asarray(ret)[:, 0], [2.62, 2.0, 8.184, 6.7], rtol=1e-6)
 
 
+def test_reset_cycle_covers_the_longest_episode_unless_given():
+    assert ppo.resolve_reset_every(PPOConfig(rollout_steps=32), 396).reset_every == 13  # 416 >= 396 steps
+    assert ppo.resolve_reset_every(PPOConfig(rollout_steps=128), 128).reset_every == 1
+    assert ppo.resolve_reset_every(PPOConfig(rollout_steps=32, reset_every=4), 396).reset_every == 4  # warned
+    with pytest.raises(ValueError, match="reset_every must be > 0"):
+        PPOConfig(reset_every=0)
+
+
 def test_clipped_loss_matches_hand_computation():
     cfg = PPOConfig(clip_eps=0.2, value_coef=0.5, entropy_coef=0.01, normalize_advantages=False)
     log_prob = jnp.log(jnp.array([1.5, 0.5, 1.0]))  # ratios against old log-probs of 0
@@ -126,10 +134,15 @@ def test_update_pass_replays_the_rollout_log_probs(recurrent):
     params["log_std"] = jnp.array([-1.0, -0.3])
 
     reset = jit(lambda key: ppo.EnvCarry(env.reset(jax.random.split(key, b)), policy.initial_carry(BLIND, b),
-                                         jnp.ones((b,), bool)))
+                                         jnp.ones((b,), bool), jnp.zeros((b,), bool)))
     roll = jit(lambda params, start, key: ppo.rollout(env, BLIND, recurrent, params, start, key, t))
-    mid, _, _, _ = roll(params, reset(jax.random.PRNGKey(0)), jax.random.PRNGKey(1))
-    _, traj, _, _ = roll(params, mid, jax.random.PRNGKey(2))  # starts mid-episode, non-zero carry
+    start = reset(jax.random.PRNGKey(0))
+    mid, _, _, stats = roll(params, start, jax.random.PRNGKey(1))
+    _, traj, _, stats2 = roll(params, mid, jax.random.PRNGKey(2))  # starts mid-episode, non-zero carry
+    # Every slot's first episode (2-5 steps) ends in the first 6 steps; the auto-reset replays
+    # it and it ends again by step 10, which the stats must not count.
+    assert int(stats["episodes"]) == int(stats["reached"]) == b and int(stats2["episodes"]) == 0
+    assert np.asarray(mid.ended).all()
     carry = mid.carry
     assert traj.first.any() and not traj.first.all()  # episodes start inside the segment
     mb = {"obs": traj.obs, "first": traj.first, "action": traj.action, "carry": carry}

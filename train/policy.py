@@ -119,6 +119,17 @@ def window_indices(seed: int, step: int, n: int, batch: int):
     return np.random.default_rng([seed, step]).integers(0, n, batch).astype(np.int32)
 
 
+def check_recordable(r: int, step: int, start: int, path: Path, run_dir: Path) -> None:
+    """Round `r`'s data file `path` is missing at update `step` of a run whose round `r` starts at
+    update `start`: fine before the round has begun, and for round 0 at any time (the expert acts
+    alone there, so its data depend on the seed only: a run copied without its data resumes).
+    A later round's data came from a policy that no longer exists: FileNotFoundError."""
+    if step <= start or r == 0:
+        return
+    raise FileNotFoundError(f"cannot resume {run_dir}: {path}, the data of round {r}, is missing "
+                            "(recorded by the policy of that time; start a new run)")
+
+
 def _rates(m: dict) -> str:
     return f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"
 
@@ -269,11 +280,12 @@ def train_policy(
         start = end - steps
         if path.exists():
             parts.append(im.load_sequences(path))
-        elif step > start:
-            raise FileNotFoundError(f"cannot resume {run_dir}: {path}, the data of round {r}, is missing")
         else:
+            check_recordable(r, step, start, path, run_dir)
             # Round 0: the expert acts (behaviour cloning); later: the current policy (DAgger).
             agent, beta = ("expert", 1.0) if r == 0 else ("policy", 0.0)
+            if step > start:
+                log(f"round {r}: {path} is missing; recording it again (the expert's rollouts: same seed, same data)")
             t0 = time.perf_counter()
             key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
             m, recs = im.run_batched(record, params, key, train_eps, beta, imitation.rollout_batch, mesh=mesh)

@@ -13,9 +13,13 @@ Choices, stated once:
   output, std = exp(params["log_std"]) (state-independent). Log-probs are of the unclipped
   sample; the env clips it to [-1, 1]. The deterministic agent acts with the mean.
 - Episode variety: brax's AutoResetWrapper restarts each slot on the episode it was first reset
-  to, so every `reset_every` iterations the whole batch is re-reset from fresh keys (new
-  episodes). Long enough that `reset_every * rollout_steps` covers most episodes; the
-  interrupted episodes are bootstrapped from their value like any segment end.
+  to, so every `reset_every` iterations (a cycle) the whole batch is re-reset from fresh keys
+  (new episodes). By default a cycle is long enough for the longest episode of the bank, so
+  every slot's episode runs to its end (a shorter cycle would never train on the late steps of
+  long episodes); the interrupted episodes are bootstrapped from their value like any segment
+  end. The logged train episodes (`episodes`, `reach_rate`, `collision_rate`) are each slot's
+  first episode of the cycle only: a slot that ends early replays its episode, and counting
+  those replays would over-count the short, successful ones.
 - Time-limit truncation (EpisodeWrapper) counts as termination; the default episode length is
   longer than any episode of the bank, so only the env's own ends (goal reached, human done).
 - Many devices: with a mesh (conav_jax.parallel) the env batch axis (num_envs) of the runner
@@ -84,7 +88,9 @@ class PPOConfig:
     # 32x128 at B=64, T=128 is 0.5 GB; the paper's 112x448 is 12x that.
     resolution: tuple[int, int] = (32, 128)
     episode_length: int | None = None  # EpisodeWrapper limit; None: longer than every episode
-    reset_every: int = 4  # iterations between re-resets of the batch onto new episodes
+    # Iterations between re-resets of the batch onto new episodes; None: enough for the bank's
+    # longest episode, ceil((max_steps + 1) / rollout_steps).
+    reset_every: int | None = None
     eval_every: int = 50  # iterations between val evaluations (and one at the end); 0: none
     ckpt_every: int = 50  # iterations between checkpoints (one is always written at the end)
     eval_episodes: int | None = None  # first N val episodes; None: all of them
@@ -93,7 +99,7 @@ class PPOConfig:
     def __post_init__(self):
         positive = ("num_envs", "rollout_steps", "total_env_steps", "epochs", "minibatches", "reset_every", "eval_batch")
         for name in positive:
-            if getattr(self, name) <= 0:
+            if getattr(self, name) is not None and getattr(self, name) <= 0:
                 raise ValueError(f"PPOConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("eval_every", "ckpt_every"):
             if getattr(self, name) < 0:
@@ -175,11 +181,14 @@ def evaluate_actions(
 class EnvCarry(NamedTuple):
     """What passes from one rollout to the next: the wrapped env's batched State, the LSTM
     carry `(B, hidden)` after the last step, and `first (B,)` bool, True where the current
-    observation starts an episode (the carry is zeroed before acting on it)."""
+    observation starts an episode (the carry is zeroed before acting on it), and `ended (B,)`
+    bool, True where the slot's first episode of the reset cycle has ended (its replays are
+    not counted in the stats)."""
 
     env_state: Any
     carry: LSTMState
     first: jax.Array
+    ended: jax.Array
 
 
 class Transition(NamedTuple):
@@ -210,8 +219,8 @@ def rollout(
     """`num_steps` steps of the batched, wrapped env by lax.scan.
 
     -> `(end EnvCarry, Transition (T, B, ...), last_value (B,) for bootstrapping, stats)`;
-    stats sums over the episodes that ended in the rollout: `episodes`, `return` (their
-    summed reward), `reached`, `collided` (counts)."""
+    stats sums over the slots whose first episode of the cycle ended in the rollout:
+    `episodes`, `return` (their summed reward), `reached`, `collided` (counts)."""
 
     def step(c: EnvCarry, k):
         obs = policy_obs(c.env_state.obs, policy_config)
@@ -220,15 +229,16 @@ def rollout(
         log_prob = gaussian_log_prob(action, mean, params["log_std"])
         state = env.step(c.env_state, jnp.clip(action, -1.0, 1.0))
         done = state.done > 0
+        counted = done & ~c.ended
         stats = {
-            "episodes": done.sum(),
+            "episodes": counted.sum(),
             # The EpisodeWrapper's running sum still holds the whole episode at its last step.
-            "return": jnp.where(done, state.info["episode_metrics"]["sum_reward"], 0.0).sum(),
-            "reached": (done & (state.metrics["reached"] > 0)).sum(),
-            "collided": (done & (state.metrics["collided"] > 0)).sum(),
+            "return": jnp.where(counted, state.info["episode_metrics"]["sum_reward"], 0.0).sum(),
+            "reached": (counted & (state.metrics["reached"] > 0)).sum(),
+            "collided": (counted & (state.metrics["collided"] > 0)).sum(),
         }
         tr = Transition(obs, c.first, action, log_prob, value, state.reward, state.done)
-        return EnvCarry(state, carry, done), (tr, stats)
+        return EnvCarry(state, carry, done, c.ended | done), (tr, stats)
 
     end, (traj, stats) = jax.lax.scan(step, start, jax.random.split(key, num_steps))
     _, last_value, _ = _act(params, policy_config, recurrent, policy_obs(end.env_state.obs, policy_config),
@@ -384,6 +394,20 @@ def runner_shardings(runner: Runner, mesh: Mesh, num_envs: int) -> Runner:
                   env_shardings(runner.env, mesh, num_envs), whole, whole)
 
 
+def resolve_reset_every(config: PPOConfig, episode_length: int) -> PPOConfig:
+    """`config` with `reset_every` set: as given, or (None) the fewest iterations in which an
+    episode of `episode_length` steps runs to its end. A given cycle shorter than that is
+    allowed but warned about: no slot would ever reach the late steps of the longest episodes."""
+    cover = -(-episode_length // config.rollout_steps)
+    if config.reset_every is None:
+        return dataclasses.replace(config, reset_every=cover)
+    if config.reset_every < cover:
+        print(f"conav train rl: warning: reset_every {config.reset_every} x rollout_steps {config.rollout_steps} = "
+              f"{config.reset_every * config.rollout_steps} steps per reset cycle, shorter than the longest "
+              f"episode ({episode_length} steps): later steps of long episodes are never trained on", flush=True)
+    return config
+
+
 def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig, mesh: Mesh | None = None):
     """-> `(init_runner(params, key) -> Runner, iteration(runner) -> (runner, metrics))`;
     `iteration` is to be jitted once: it re-resets the batch onto new episodes if
@@ -394,17 +418,20 @@ def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig, mesh: Me
     (`jax.eval_shape`), as iteration 0 resets anyway; both go through one jitted reset, whose
     trace jax caches, so the slow MJX trace happens once. With a `mesh` the start of each
     rollout is constrained to `env_shardings` (envs split over the devices)."""
+    if config.reset_every is None:
+        raise ValueError("PPOConfig.reset_every is None: resolve it for the env first (resolve_reset_every)")
     optimizer = adam(config.lr)
     reset = jax.jit(env.reset)
     b = config.num_envs
 
     def fresh(key):
-        return EnvCarry(reset(jax.random.split(key, b)), policy.initial_carry(policy_config, b), jnp.ones((b,), bool))
+        return EnvCarry(reset(jax.random.split(key, b)), policy.initial_carry(policy_config, b), jnp.ones((b,), bool),
+                        jnp.zeros((b,), bool))
 
     def init_runner(params: dict, key: jax.Array) -> Runner:
         shapes = jax.eval_shape(reset, jax.ShapeDtypeStruct((b, 2), jnp.uint32))
         placeholder = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-        start = EnvCarry(placeholder, policy.initial_carry(policy_config, b), jnp.ones((b,), bool))
+        start = EnvCarry(placeholder, policy.initial_carry(policy_config, b), jnp.ones((b,), bool), jnp.zeros((b,), bool))
         return Runner(params, optimizer.init(params), start, key, jnp.zeros((), jnp.int32))
 
     def iteration(runner: Runner):
@@ -542,6 +569,7 @@ def train_ppo(
     env = brax.envs.get_environment("conav", data_dir=str(data_dir), split="train", config=env_config)
     _check_env(env, policy_config, "the policy")
     episode_length = config.episode_length or env.bank.max_steps + 1
+    config = resolve_reset_every(config, min(episode_length, env.bank.max_steps + 1))
     wrapped = brax_training.wrap(env, episode_length=episode_length)
     val_env = ConavEnv(str(data_dir), "val", env_config) if config.eval_every else None
     recurrent = config.recurrent
@@ -639,6 +667,8 @@ def add_train_rl(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=d.total_env_steps, help=f"total env steps (default {d.total_env_steps})")
     p.add_argument("--rollout-steps", type=int, default=d.rollout_steps, help=f"steps per env per iteration (default {d.rollout_steps})")
     p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr})")
+    p.add_argument("--reset-every", type=int, default=None,
+                   help="iterations between re-resets onto new episodes (default: enough for the longest episode)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--recurrent", dest="recurrent", action="store_true", default=d.recurrent,
                       help="LSTM carry through time (default)")
@@ -656,7 +686,7 @@ def add_train_rl(sub: argparse._SubParsersAction) -> None:
 
 def run_train_rl(args: argparse.Namespace) -> int:
     config = PPOConfig(
-        num_envs=args.num_envs, rollout_steps=args.rollout_steps, total_env_steps=args.steps, lr=args.lr,
+        num_envs=args.num_envs, rollout_steps=args.rollout_steps, reset_every=args.reset_every, total_env_steps=args.steps, lr=args.lr,
         recurrent=args.recurrent, resolution=tuple(args.resolution), seed=args.seed,
         eval_every=args.eval_every, ckpt_every=args.ckpt_every,
     )
