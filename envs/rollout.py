@@ -19,7 +19,7 @@ import numpy as np
 from brax.envs.base import State
 from jax.sharding import Mesh
 
-from conav_jax.parallel import replicate, round_up, shard_batch, to_host
+from conav_jax.parallel import constrain_batch, replicate, round_up, shard_batch, to_host
 from envs.conav_env import ConavEnv
 
 
@@ -49,28 +49,33 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
 
     def one(params, key, episode):
         agent = agent_fn(params)
-        k_init, k_run = jax.random.split(key)
-        state = env.reset_to_episode(k_init, episode)
-        carry = agent.init(k_init, episode)
+        state, carry, k_run = _start(env, agent, key, episode)
 
-        def body(c, k):
+        def body(c, i):
             state, carry = c
-            action, carry = agent.act(state, carry, k)
+            action, carry = agent.act(state, carry, jax.random.fold_in(k_run, i))
             state = env.step(state, action)
             out = None
             if record:
                 out = Trace(state.pipeline_state.qpos, action, state.reward, state.done)
             return (state, carry), out
 
-        (state, _), trace = jax.lax.scan(body, (state, carry), jax.random.split(k_run, num_steps))
+        (state, _), trace = jax.lax.scan(body, (state, carry), jnp.arange(num_steps))
         return state.metrics, trace
 
     @jax.jit
     def run(params, key, episodes):
-        keys = jax.random.split(key, episodes.shape[0])
-        return jax.vmap(one, in_axes=(None, 0, 0))(params, keys, episodes)
+        return jax.vmap(one, in_axes=(None, None, 0))(params, key, episodes)
 
     return run
+
+
+def _start(env: ConavEnv, agent: Agent, key: jax.Array, episode: jax.Array):
+    """(state, agent carry, step key) of `episode`'s start. Keys come from (key, episode) alone,
+    and the agent's key at step i is fold_in(step key, i): an episode's result does not depend
+    on the batch it runs in, its place there, or the device count."""
+    k_init, k_run = jax.random.split(jax.random.fold_in(key, episode))
+    return env.reset_to_episode(k_init, episode), agent.init(k_init, episode), k_run
 
 
 def make_rollout(env: ConavEnv, agent: Agent, num_steps: int, record: bool = False):
@@ -87,11 +92,13 @@ def map_episodes(
     key: jax.Array,
     mesh: Mesh | None = None,
     progress: Callable | None = None,
+    per_batch_keys: bool = True,
 ) -> Any:
     """`fn(key, indices) -> pytree of (size, ...) arrays` over `episodes` in batches of `batch`
     -> host (numpy) pytree of `(len(episodes), ...)`.
 
-    Batch `s` (starting at episode `s0`) gets `fold_in(key, s0)`. Each batch is padded by
+    Batch `s` (starting at episode `s0`) gets `fold_in(key, s0)` (`key` itself with
+    `per_batch_keys=False`, for rollouts that key each episode by its index). Each batch is padded by
     repeating its last episode to `size = batch` rounded up to a multiple of the mesh's device
     count (results of the padding are dropped), so one compiled function serves every batch;
     with a `mesh` its indices are split over the devices and the key replicated. Keys of a
@@ -108,7 +115,7 @@ def map_episodes(
         idx = episodes[s0 : s0 + batch]
         n = len(idx)
         idx = np.concatenate([idx, np.full(size - n, idx[-1])]).astype(np.int32)
-        k = jax.random.fold_in(key, s0)
+        k = jax.random.fold_in(key, s0) if per_batch_keys else key
         if mesh is None:
             out = fn(k, jnp.asarray(idx))
         else:
@@ -117,40 +124,100 @@ def map_episodes(
     return jax.tree.map(lambda *xs: np.concatenate(xs), *chunks)
 
 
+def make_pool_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], slots: int, chunk: int = 16, mesh: Mesh | None = None):
+    """A jitted `(params, key, queue (Q,) int32, n ()) -> final metrics dict of (Q,)` that runs
+    episodes `queue[:n]` on `slots` parallel lanes, refilling a lane with the next queued
+    episode as soon as its episode has ended (checked every `chunk` steps), until every
+    episode has run to its end. Work is the sum of the episodes' lengths (plus under `chunk`
+    idle steps each, and the tail), not `batches x the longest episode` as in fixed batches:
+    about half on the paper preset's val split (mean 568 steps, longest 1,087).
+
+    Keys as `make_param_rollout` (from (key, episode) alone), so the metrics equal its
+    full-length rollout's, episode by episode. With a `mesh` the lanes are split over its
+    devices (`slots` must divide by the device count). Entries `queue[n:]` are padding."""
+    if chunk < 1 or slots < 1:
+        raise ValueError("slots and chunk must be at least 1")
+
+    def pick(mask, new, old):
+        return jax.tree.map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+
+    @jax.jit
+    def run(params, key, queue, n):
+        agent = agent_fn(params)
+        q = queue.shape[0]
+        start = jax.vmap(lambda ep: _start(env, agent, key, ep))
+        lanes = jnp.arange(slots)
+        lane = start(queue[jnp.minimum(lanes, q - 1)]) + (jnp.zeros(slots, jnp.int32),)  # state, carry, key, step
+        lane = constrain_batch(lane, mesh)
+        out = jax.tree.map(lambda m: jnp.zeros((q,) + m.shape[1:], m.dtype), lane[0].metrics)
+
+        def one_step(lane, _):
+            state, carry, k_run, i = lane
+            action, carry = jax.vmap(agent.act)(state, carry, jax.vmap(jax.random.fold_in)(k_run, i))
+            return (jax.vmap(env.step)(state, action), carry, k_run, i + 1), None
+
+        def body(c):
+            lane, pos, active, out, next_pos = c
+            lane, _ = jax.lax.scan(one_step, lane, None, length=chunk)
+            finished = active & (lane[0].done > 0)
+            out = jax.tree.map(lambda o, m: o.at[jnp.where(finished, pos, q)].set(m, mode="drop"), out, lane[0].metrics)
+            new_pos = next_pos + jnp.cumsum(finished) - 1
+            take = finished & (new_pos < n)
+            refill = lambda lane: pick(take, start(queue[jnp.clip(new_pos, 0, q - 1)]) + (jnp.zeros_like(lane[3]),), lane)
+            lane = constrain_batch(jax.lax.cond(take.any(), refill, lambda lane: lane, lane), mesh)
+            pos = jnp.where(take, new_pos, pos)
+            return lane, pos, take | (active & ~finished), out, next_pos + finished.sum()
+
+        c = (lane, lanes, lanes < n, out, jnp.minimum(jnp.int32(slots), n))
+        return jax.lax.while_loop(lambda c: c[2].any(), body, c)[3]
+
+    return run
+
+
 def evaluate(
     env: ConavEnv,
     agent: Agent,
     episodes: np.ndarray | None = None,
     batch: int = 256,
     seed: int = 0,
-    progress: Callable | None = None,
     mesh: Mesh | None = None,
 ) -> dict[str, np.ndarray]:
-    """Final metrics of every given episode (default: all of the bank, each exactly once).
-
-    Episodes run in batches of `batch` (see `map_episodes` for padding and keys); with a
-    `mesh` (conav_jax.parallel.make_mesh) each batch is split over its devices, with the same
-    results as on one device."""
-    return make_evaluator(env, lambda _: agent, batch, seed, mesh)(None, episodes, progress)
+    """Final metrics of every given episode (default: all of the bank, each exactly once), on
+    `batch` parallel lanes refilled as episodes end (`make_pool_rollout`); with a `mesh`
+    (conav_jax.parallel.make_mesh) the lanes are split over its devices, with the same results
+    as on one device."""
+    return make_evaluator(env, lambda _: agent, batch, seed, mesh)(None, episodes)
 
 
 def make_evaluator(
     env: ConavEnv, agent_fn: Callable[[Any], Agent], batch: int = 256, seed: int = 0, mesh: Mesh | None = None
 ) -> Callable[..., dict[str, np.ndarray]]:
-    """`evaluate` for agents built from parameters: `evaluator(params, episodes=None,
-    progress=None) -> metrics` (as `evaluate` returns them). The rollout compiles on the first
-    call; later params of the same structure reuse it (PPO validates every few iterations)."""
-    run = make_param_rollout(env, agent_fn, num_steps=env.bank.max_steps)
+    """`evaluate` for agents built from parameters: `evaluator(params, episodes=None) -> metrics`
+    (as `evaluate` returns them). `batch` lanes run the episodes, longest first, each lane
+    taking the next episode when its own ends (`make_pool_rollout`). The rollout compiles on the
+    first call; later params of the same structure and episode count reuse it (PPO validates
+    every few iterations)."""
+    runs: dict[int, Callable] = {}
+    t_end = np.asarray(env.bank.t_end)
 
-    def evaluator(params, episodes: np.ndarray | None = None, progress: Callable | None = None):
+    def evaluator(params, episodes: np.ndarray | None = None):
         episodes = np.arange(env.num_episodes) if episodes is None else np.asarray(episodes)
         if episodes.ndim != 1 or len(episodes) == 0:
             raise ValueError("episodes must be a non-empty 1-D array of episode indices")
         if episodes.min() < 0 or episodes.max() >= env.num_episodes:
             raise ValueError(f"episode indices must be in [0, {env.num_episodes})")
-        if mesh is not None and params is not None:
-            params = replicate(params, mesh)
-        out = map_episodes(lambda k, idx: run(params, k, idx)[0], episodes, batch, jax.random.PRNGKey(seed), mesh, progress)
+        slots = round_up(min(batch, len(episodes)), mesh)
+        if slots not in runs:
+            runs[slots] = make_pool_rollout(env, agent_fn, slots, mesh=mesh)
+        order = np.argsort(-t_end[episodes], kind="stable")  # longest first: the shortest fill the tail
+        queue = jnp.asarray(episodes[order].astype(np.int32))
+        key, n = jax.random.PRNGKey(seed), jnp.int32(len(episodes))
+        if mesh is not None:
+            params, key, queue, n = replicate((params, key, queue, n), mesh)
+        metrics = to_host(runs[slots](params, key, queue, n))
+        out = {k: np.empty_like(v) for k, v in metrics.items()}
+        for k, v in metrics.items():
+            out[k][order] = v
         out["episode"] = episodes
         return out
 

@@ -184,8 +184,8 @@ def run_agent(
 ) -> tuple[dict, np.ndarray]:
     """(final metrics over `episodes`, the first episode's robot poses (steps, 3) up to its end).
 
-    Batches, padding, keys and the split over a `mesh`'s devices are those of
-    envs.rollout.evaluate (envs.rollout.map_episodes), so the numbers match it."""
+    Fixed batches of full-length rollouts (envs.rollout.map_episodes), keyed per episode as
+    envs.rollout.evaluate keys them, so the numbers match it."""
     import jax
 
     from envs.rollout import map_episodes
@@ -194,7 +194,8 @@ def run_agent(
         metrics, trace = run(key, idx)
         return metrics, jax.tree.map(lambda x: x[:1], (trace.done, trace.robot_pose))
 
-    metrics, (done, pose) = map_episodes(first_trace, np.asarray(episodes), batch, jax.random.PRNGKey(seed), mesh, progress)
+    metrics, (done, pose) = map_episodes(first_trace, np.asarray(episodes), batch, jax.random.PRNGKey(seed), mesh, progress,
+                                         per_batch_keys=False)
     done = done[0] > 0.5
     end = int(np.argmax(done)) + 1 if done.any() else done.size
     metrics["episode"] = np.asarray(episodes)
