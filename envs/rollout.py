@@ -124,7 +124,14 @@ def map_episodes(
     return jax.tree.map(lambda *xs: np.concatenate(xs), *chunks)
 
 
-def make_pool_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], slots: int, chunk: int = 16, mesh: Mesh | None = None):
+def make_pool_rollout(
+    env: ConavEnv,
+    agent_fn: Callable[[Any], Agent],
+    slots: int,
+    chunk: int = 16,
+    mesh: Mesh | None = None,
+    trace_steps: int = 0,
+):
     """A jitted `(params, key, queue (Q,) int32, n ()) -> final metrics dict of (Q,)` that runs
     episodes `queue[:n]` on `slots` parallel lanes, refilling a lane with the next queued
     episode as soon as its episode has ended (checked every `chunk` steps), until every
@@ -134,9 +141,14 @@ def make_pool_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], slots: in
 
     Keys as `make_param_rollout` (from (key, episode) alone), so the metrics equal its
     full-length rollout's, episode by episode. With a `mesh` the lanes are split over its
-    devices (`slots` must divide by the device count). Entries `queue[n:]` are padding."""
-    if chunk < 1 or slots < 1:
-        raise ValueError("slots and chunk must be at least 1")
+    devices (`slots` must divide by the device count). Entries `queue[n:]` are padding.
+
+    With `trace_steps > 0` it returns `(metrics, Trace)` where the Trace (`trace_steps`, ...)
+    follows `queue[0]`'s episode (lane 0's first) step by step, as `make_param_rollout(...,
+    record=True)` records it (steps past the run are zeros): a map of one episode costs no
+    second compile."""
+    if chunk < 1 or slots < 1 or trace_steps < 0:
+        raise ValueError("slots and chunk must be at least 1, trace_steps at least 0")
 
     def pick(mask, new, old):
         return jax.tree.map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
@@ -150,15 +162,22 @@ def make_pool_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], slots: in
         lane = start(queue[jnp.minimum(lanes, q - 1)]) + (jnp.zeros(slots, jnp.int32),)  # state, carry, key, step
         lane = constrain_batch(lane, mesh)
         out = jax.tree.map(lambda m: jnp.zeros((q,) + m.shape[1:], m.dtype), lane[0].metrics)
+        trace = Trace(jnp.zeros((trace_steps, 3)), jnp.zeros((trace_steps, 2)), jnp.zeros(trace_steps), jnp.zeros(trace_steps))
 
-        def one_step(lane, _):
+        def one_step(c, _):
+            lane, trace, tracing = c
             state, carry, k_run, i = lane
             action, carry = jax.vmap(agent.act)(state, carry, jax.vmap(jax.random.fold_in)(k_run, i))
-            return (jax.vmap(env.step)(state, action), carry, k_run, i + 1), None
+            state = jax.vmap(env.step)(state, action)
+            if trace_steps:  # lane 0 while it runs queue[0]; other steps write out of range (dropped)
+                at = jnp.where(tracing, i[0], trace_steps)
+                now = Trace(state.pipeline_state.qpos[0], action[0], state.reward[0], state.done[0])
+                trace = jax.tree.map(lambda buf, x: buf.at[at].set(x.astype(buf.dtype), mode="drop"), trace, now)
+            return ((state, carry, k_run, i + 1), trace, tracing), None
 
         def body(c):
-            lane, pos, active, out, next_pos = c
-            lane, _ = jax.lax.scan(one_step, lane, None, length=chunk)
+            lane, pos, active, out, next_pos, trace = c
+            (lane, trace, _), _ = jax.lax.scan(one_step, (lane, trace, pos[0] == 0), None, length=chunk)
             finished = active & (lane[0].done > 0)
             out = jax.tree.map(lambda o, m: o.at[jnp.where(finished, pos, q)].set(m, mode="drop"), out, lane[0].metrics)
             new_pos = next_pos + jnp.cumsum(finished) - 1
@@ -166,10 +185,11 @@ def make_pool_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], slots: in
             refill = lambda lane: pick(take, start(queue[jnp.clip(new_pos, 0, q - 1)]) + (jnp.zeros_like(lane[3]),), lane)
             lane = constrain_batch(jax.lax.cond(take.any(), refill, lambda lane: lane, lane), mesh)
             pos = jnp.where(take, new_pos, pos)
-            return lane, pos, take | (active & ~finished), out, next_pos + finished.sum()
+            return lane, pos, take | (active & ~finished), out, next_pos + finished.sum(), trace
 
-        c = (lane, lanes, lanes < n, out, jnp.minimum(jnp.int32(slots), n))
-        return jax.lax.while_loop(lambda c: c[2].any(), body, c)[3]
+        c = (lane, lanes, lanes < n, out, jnp.minimum(jnp.int32(slots), n), trace)
+        c = jax.lax.while_loop(lambda c: c[2].any(), body, c)
+        return (c[3], c[5]) if trace_steps else c[3]
 
     return run
 
@@ -190,15 +210,25 @@ def evaluate(
 
 
 def make_evaluator(
-    env: ConavEnv, agent_fn: Callable[[Any], Agent], batch: int = 256, seed: int = 0, mesh: Mesh | None = None
+    env: ConavEnv,
+    agent_fn: Callable[[Any], Agent],
+    batch: int = 256,
+    seed: int = 0,
+    mesh: Mesh | None = None,
+    trace_first: bool = False,
 ) -> Callable[..., dict[str, np.ndarray]]:
     """`evaluate` for agents built from parameters: `evaluator(params, episodes=None) -> metrics`
     (as `evaluate` returns them). `batch` lanes run the episodes, longest first, each lane
     taking the next episode when its own ends (`make_pool_rollout`). The rollout compiles on the
     first call; later params of the same structure and episode count reuse it (PPO validates
-    every few iterations)."""
+    every few iterations).
+
+    With `trace_first` the evaluator returns `(metrics, episode, Trace)`: the Trace (host,
+    (steps, ...) up to the episode's end) of `episode`, the longest of those given (the first
+    one the lanes take)."""
     runs: dict[int, Callable] = {}
     t_end = np.asarray(env.bank.t_end)
+    steps = env.bank.max_steps if trace_first else 0
 
     def evaluator(params, episodes: np.ndarray | None = None):
         episodes = np.arange(env.num_episodes) if episodes is None else np.asarray(episodes)
@@ -208,17 +238,22 @@ def make_evaluator(
             raise ValueError(f"episode indices must be in [0, {env.num_episodes})")
         slots = round_up(min(batch, len(episodes)), mesh)
         if slots not in runs:
-            runs[slots] = make_pool_rollout(env, agent_fn, slots, mesh=mesh)
+            runs[slots] = make_pool_rollout(env, agent_fn, slots, mesh=mesh, trace_steps=steps)
         order = np.argsort(-t_end[episodes], kind="stable")  # longest first: the shortest fill the tail
         queue = jnp.asarray(episodes[order].astype(np.int32))
         key, n = jax.random.PRNGKey(seed), jnp.int32(len(episodes))
         if mesh is not None:
             params, key, queue, n = replicate((params, key, queue, n), mesh)
-        metrics = to_host(runs[slots](params, key, queue, n))
+        result = to_host(runs[slots](params, key, queue, n))
+        metrics, trace = result if trace_first else (result, None)
         out = {k: np.empty_like(v) for k, v in metrics.items()}
         for k, v in metrics.items():
             out[k][order] = v
         out["episode"] = episodes
-        return out
+        if not trace_first:
+            return out
+        done = trace.done > 0.5
+        end = int(np.argmax(done)) + 1 if done.any() else len(done)
+        return out, int(episodes[order[0]]), jax.tree.map(lambda x: x[:end], trace)
 
     return evaluator

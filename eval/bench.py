@@ -1,10 +1,12 @@
 """`conav bench eval`: evaluation throughput, val episodes per minute for one agent.
 
-One jitted batched rollout (envs.rollout.make_rollout, full episode length) of `batch` episodes;
-after a compile-and-warm-up call, the median of repeated timed calls (block_until_ready around
-each) gives episodes/min = batch / seconds * 60. With `--devices N` the batch is split over N
-devices (conav_jax.parallel); env steps/s are reported in total and per device. Prints the
-device, batch and resolution.
+`--mode sweep` (default): the whole split (or its first `--episodes`) through the evaluator
+`conav eval` uses (envs.rollout.make_evaluator: `batch` lanes, each taking the next episode as
+its own ends); after a compile-and-first sweep, the median of repeated timed sweeps gives the
+seconds per sweep and episodes/min. `--mode fixed`: one jitted full-length rollout
+(envs.rollout.make_rollout) of `batch` episodes, timed the same way: episodes/min = batch /
+seconds * 60 and env steps/s. With `--devices N` the lanes (batch) are split over N devices
+(conav_jax.parallel). Prints the device, batch and resolution.
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ def add_bench_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", type=parse_resolution, default=(112, 448))
     p.add_argument("--sensor", choices=["auto", "fast", "pallas", "legacy", "reference"], default="auto",
                    help="panorama caster (envs.SensorConfig.kind; auto: pallas on one GPU, else fast)")
+    p.add_argument("--mode", choices=["sweep", "fixed"], default="sweep",
+                   help="sweep: the split through conav eval's evaluator; fixed: one full-length batch")
+    p.add_argument("--episodes", type=int, default=None, help="sweep mode: the first N episodes (default: all)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--json", action="store_true", help="print one JSON line")
     add_devices_arg(p)
@@ -77,10 +82,44 @@ def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
     }
 
 
+def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = None, mesh=None) -> dict:
+    """Time sweeps of the split's first `episodes` (default all) with `batch` lanes
+    (envs.rollout.make_evaluator), the first sweep including the compile."""
+    import jax
+    import numpy as np
+
+    from envs.rollout import make_evaluator
+
+    n = env.num_episodes if episodes is None else min(episodes, env.num_episodes)
+    evaluator = make_evaluator(env, lambda _: agent, batch, 0, mesh)
+    idx = np.arange(n)
+    t0 = time.perf_counter()
+    evaluator(None, idx)
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        evaluator(None, idx)  # returns host arrays: the sweep has finished
+        times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    t_end = np.asarray(env.bank.t_end)[idx]
+    return {
+        "device": jax.devices()[0].device_kind,
+        "devices": 1 if mesh is None else mesh.size,
+        "batch": batch,
+        "episodes": n,
+        "mean_episode_steps": round(float(t_end.mean()), 1),
+        "longest_episode_steps": int(t_end.max()),
+        "compile_and_first_sweep_s": round(compile_s, 2),
+        "median_sweep_s": round(med, 3),
+        "episodes_per_min": round(n / med * 60.0, 1),
+    }
+
+
 def run_bench_eval(args: argparse.Namespace) -> int:
     check_agent(args.agent, args.checkpoint)
-    if args.batch < 1 or args.repeats < 1:
-        raise ValueError("--batch and --repeats must be at least 1")
+    if args.batch < 1 or args.repeats < 1 or (args.episodes is not None and args.episodes < 1):
+        raise ValueError("--batch, --repeats and --episodes must be at least 1")
     from conav_jax.parallel import check_divisible, make_mesh
     from envs import ConavEnv, EnvConfig, SensorConfig
     from eval.agents import make_agent
@@ -98,9 +137,22 @@ def run_bench_eval(args: argparse.Namespace) -> int:
         generate_dataset(preset("tiny"), data)
     h, w = args.resolution
     env = ConavEnv(data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w, kind=args.sensor)))
-    res = {"agent": args.agent, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind, **bench_eval(env, make_agent(args.agent, env, args.checkpoint), args.batch, args.repeats, mesh)}
+    agent = make_agent(args.agent, env, args.checkpoint)
+    res = {"agent": args.agent, "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind}
+    if args.mode == "sweep":
+        res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, mesh))
+    else:
+        res.update(bench_eval(env, agent, args.batch, args.repeats, mesh))
     if args.json:
         print(json.dumps(res), flush=True)
+    elif args.mode == "sweep":
+        print(
+            f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={res['sensor']} lanes={args.batch}: "
+            f"{res['episodes']} episodes (mean {res['mean_episode_steps']} steps, longest {res['longest_episode_steps']}) "
+            f"in {res['median_sweep_s']} s = {res['episodes_per_min']:,.1f} episodes/min (median of {args.repeats}); "
+            f"compile + first sweep {res['compile_and_first_sweep_s']} s",
+            flush=True,
+        )
     else:
         print(
             f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={res['sensor']} batch={args.batch} "

@@ -29,10 +29,13 @@ FT_STEPS=${FT_STEPS:-2000000}    # PPO fine-tuned from DAgger, env steps
 
 [ -f "$DATA/manifest.json" ] || conav generate --preset small --out "$DATA" --seed "$SEED" --workers "$(nproc)"
 
-# Same flags for every policy run, so the DAgger run resumes the BC-all run's checkpoint.
+# Same flags for every policy run, so the DAgger run resumes the BC-all run's checkpoint. The
+# policies train on the predictors' outputs (--train-intentions predicted), what they read at
+# evaluation; trained on ground truth they did worse with predictions than without intentions.
 POLICY=(--data "$DATA" --intention "$OUT/intention" --trajectory "$OUT/trajectory" --resolution "$RES"
         --episodes 1000 --val-episodes 128 --steps 2000 --dagger-steps 1000 --batch 256 --lr 5e-4
-        --rollout-batch 500 --log-every 100 --val-every 1000 --ckpt-every 1000 --seed "$SEED" --no-progress)
+        --rollout-batch 500 --log-every 100 --val-every 1000 --ckpt-every 1000 --seed "$SEED" --no-progress
+        --train-intentions predicted)
 
 if want imitation; then
   stamp intention

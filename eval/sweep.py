@@ -1,8 +1,9 @@
 """`conav eval`: every episode of a split for each agent -> per-episode records, metrics, report.
 
 args -> validated plan (data, agents, checkpoints; nothing compiled yet) -> env -> per agent one
-jitted batched rollout (envs.rollout.make_rollout with record=True, so the first episode's
-robot path for its map comes from the same compile) -> episodes_<agent>.csv, metrics.json
+jitted evaluator (envs.rollout.make_evaluator: `batch` lanes, each taking the next episode when
+its own ends; with trace_first, so the longest episode's robot path for its map comes from the
+same compile) -> episodes_<agent>.csv, metrics.json
 (each metric with a 95% interval), report.md (the paper's Table 2, and Table 3 for ablation
 checkpoints), success_over_time.png and map_<agent>.png.
 """
@@ -41,11 +42,11 @@ class EvalPlan:
     learned_kwargs: dict = field(default_factory=dict)  # intention_run / trajectory_run
     ablations: tuple[tuple[str, str], ...] = ()  # (name, run dir)
     episodes: int | None = None  # the first N episodes, None for all
-    batch: int = 256
+    batch: int = 256  # parallel lanes (envs.rollout.make_evaluator)
     seed: int = 0
     resolution: tuple[int, int] = (112, 448)
     out: Path = Path("eval_out")
-    devices: int | None = None  # devices each batch is split over (None: all visible)
+    devices: int | None = None  # devices the lanes are split over (None: all visible)
 
 
 def add_eval(sub: argparse._SubParsersAction) -> None:
@@ -65,7 +66,7 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
         "activity_object, all mark which intention inputs a run uses",
     )
     p.add_argument("--episodes", type=int, default=None, help="evaluate only the first N episodes")
-    p.add_argument("--batch", type=int, default=256, help="episodes per jitted call")
+    p.add_argument("--batch", type=int, default=256, help="parallel lanes: episodes in flight at once")
     p.add_argument("--seed", type=int, default=0, help="rollout keys and bootstrap resampling")
     p.add_argument("--resolution", type=parse_resolution, default=(112, 448), help="panorama HxW (default 112x448)")
     p.add_argument("--out", required=True, help="output directory")
@@ -165,41 +166,26 @@ def load_env(plan: EvalPlan):
     return _ENV_CACHE[key]
 
 
-def compiled_rollout(env, name: str, checkpoint: str | None, **kwargs) -> Callable:
-    """The jitted recorded rollout (envs.rollout.make_rollout) of agent `name` over the env's
-    longest episode, built once per env and agent (building loads the agent; nothing compiles
-    until the first call)."""
-    from envs.rollout import make_rollout
+def compiled_evaluator(env, name: str, checkpoint: str | None, batch: int, seed: int, mesh=None, **kwargs) -> Callable:
+    """The evaluator (envs.rollout.make_evaluator with trace_first) of agent `name`, built once
+    per env, agent, batch, seed and mesh (building loads the agent; nothing compiles until the
+    first call)."""
+    from envs.rollout import make_evaluator
     from eval.agents import make_agent
 
     per_env = _ROLLOUTS.setdefault(env, {})
-    key = (name, checkpoint, tuple(sorted(kwargs.items())))
+    key = (name, checkpoint, batch, seed, mesh, tuple(sorted(kwargs.items())))
     if key not in per_env:
-        per_env[key] = make_rollout(env, make_agent(name, env, checkpoint, **kwargs), env.bank.max_steps, record=True)
+        agent = make_agent(name, env, checkpoint, **kwargs)
+        per_env[key] = make_evaluator(env, lambda _: agent, batch, seed, mesh, trace_first=True)
     return per_env[key]
 
 
-def run_agent(
-    env, run: Callable, episodes: np.ndarray, batch: int, seed: int, progress=None, mesh=None
-) -> tuple[dict, np.ndarray]:
-    """(final metrics over `episodes`, the first episode's robot poses (steps, 3) up to its end).
-
-    Fixed batches of full-length rollouts (envs.rollout.map_episodes), keyed per episode as
-    envs.rollout.evaluate keys them, so the numbers match it."""
-    import jax
-
-    from envs.rollout import map_episodes
-
-    def first_trace(key, idx):
-        metrics, trace = run(key, idx)
-        return metrics, jax.tree.map(lambda x: x[:1], (trace.done, trace.robot_pose))
-
-    metrics, (done, pose) = map_episodes(first_trace, np.asarray(episodes), batch, jax.random.PRNGKey(seed), mesh, progress,
-                                         per_batch_keys=False)
-    done = done[0] > 0.5
-    end = int(np.argmax(done)) + 1 if done.any() else done.size
-    metrics["episode"] = np.asarray(episodes)
-    return metrics, pose[0][:end]
+def run_agent(evaluator: Callable, episodes: np.ndarray) -> tuple[dict, int, np.ndarray]:
+    """(final metrics over `episodes`, the traced episode (the longest), its robot poses (steps,
+    3) up to its end). Keys per episode (envs.rollout), so the numbers do not depend on the batch."""
+    metrics, first, trace = evaluator(None, np.asarray(episodes))
+    return metrics, first, np.asarray(trace.robot_pose)
 
 
 def episode_records(split, metrics: dict) -> list[dict]:
@@ -293,14 +279,16 @@ def _report_md(plan: EvalPlan, n: int, table2: str, table3: str | None, maps: li
     if table3 is not None:
         lines += ["## Ablations of the intention inputs (paper Table 3)", "", table3, "`?`: the run does not say which inputs it uses.", ""]
     lines += ["## Figures", "", "![success by step](success_over_time.png)", ""]
-    lines += [f"![{title}: first episode]({png})" for title, png in maps]
+    lines += [f"![{title}: longest episode]({png})" for title, png in maps]
     return "\n".join(lines) + "\n"
 
 
-def sweep(plan: EvalPlan, env, progress_factory=None, mesh=None) -> dict:
+def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
     """Evaluate every agent and ablation of `plan` on `env` and write all outputs to plan.out,
-    each batch split over the devices of `mesh` (conav_jax.parallel.make_mesh; None: one
-    device). Returns the metrics.json content."""
+    the lanes split over the devices of `mesh` (conav_jax.parallel.make_mesh; None: one
+    device), with a progress bar over the agents if `progress`. Returns the metrics.json content."""
+    from tqdm import tqdm
+
     from eval import plots
     from eval.report import summarize_with_ci, table2_markdown, table3_markdown
 
@@ -309,15 +297,19 @@ def sweep(plan: EvalPlan, env, progress_factory=None, mesh=None) -> dict:
     runs = [(name, AGENTS[name].title, name, plan.checkpoint if AGENTS[name].needs_checkpoint else None) for name in plan.agents]
     runs += [(f"ablation_{n}", n, "conav", run) for n, run in plan.ablations]
     # Build every agent (loading checkpoints) before the first compile, so a bad run fails fast.
-    rollouts = [compiled_rollout(env, name, ckpt, **(plan.learned_kwargs if AGENTS[name].takes_predictors else {})) for _, _, name, ckpt in runs]
+    evaluators = [compiled_evaluator(env, name, ckpt, plan.batch, plan.seed, mesh,
+                                     **(plan.learned_kwargs if AGENTS[name].takes_predictors else {}))
+                  for _, _, name, ckpt in runs]
     results, summaries, maps = {}, {}, []
-    for (key, title, _, _), run in zip(runs, rollouts):
-        progress = progress_factory(key) if progress_factory else None
-        metrics, first_path = run_agent(env, run, episodes, plan.batch, plan.seed, progress, mesh)
+    bar = tqdm(total=len(runs), desc="eval", unit="agent", disable=not progress, dynamic_ncols=True)
+    for (key, title, _, _), evaluator in zip(runs, evaluators):
+        bar.set_postfix_str(f"{key} ({len(episodes)} episodes, compile + run)")
+        metrics, i, first_path = run_agent(evaluator, episodes)
+        j = int(np.flatnonzero(metrics["episode"] == i)[0])
+        bar.update(1)
         results[key] = (title, metrics)
         summaries[key] = summarize_with_ci(metrics, seed=plan.seed)
         write_csv(plan.out / f"episodes_{key}.csv", episode_records(env.split, metrics))
-        i = int(episodes[0])
         ep = {k: env.split.episodes[k][i] for k in ("root_xy", "phase", "goal_xy", "robot_start", "t_end")}
         start = np.asarray(ep["robot_start"])[None]
         png = f"map_{key}.png"
@@ -328,9 +320,10 @@ def sweep(plan: EvalPlan, env, progress_factory=None, mesh=None) -> dict:
             plan.out / png,
             success_radius_m=env.task.success_radius_m,
             robot_height_m=env.task.robot_height_m,
-            title=f"{title}: episode {i}, t_reach {int(metrics['t_reach'][0])}, human arrives {int(metrics['t_arrive'][0])}",
+            title=f"{title}: episode {i}, t_reach {int(metrics['t_reach'][j])}, human arrives {int(metrics['t_arrive'][j])}",
         )
         maps.append((title, png))
+    bar.close()
     plots.success_over_time({t: m for t, m in results.values()}, plan.out / "success_over_time.png")
 
     agent_keys = list(plan.agents)
@@ -360,20 +353,13 @@ def sweep(plan: EvalPlan, env, progress_factory=None, mesh=None) -> dict:
 
 def run_eval(args: argparse.Namespace) -> int:
     """`conav eval`: validate everything, then build the env, evaluate and write the outputs."""
-    from tqdm import tqdm
-
     from conav_jax.parallel import make_mesh
 
     plan = plan_eval(args)
     mesh = make_mesh(plan.devices)
     env = load_env(plan)
     n = env.num_episodes
-    batches = -(-n // min(plan.batch, n))
-
-    def progress(key):
-        return lambda it: tqdm(it, total=batches, desc=f"eval {key}", unit="batch")
-
-    doc = sweep(plan, env, progress, mesh)
+    doc = sweep(plan, env, progress=True, mesh=mesh)
     print((plan.out / "report.md").read_text().split("## Figures")[0].rstrip())
     print(f"wrote {plan.out} ({len(doc['agents'])} agents, {len(doc['ablations'])} ablations, {n} episodes, "
           f"{mesh.size} device(s))")

@@ -22,7 +22,8 @@ from envs.mjcf import UD
 from envs.rollout import evaluate
 from eval.learned import policy_agent
 from train import imitation as im
-from train.policy import ImitationConfig, check_recordable, run_config
+from train.loop import TrainConfig
+from train.policy import ImitationConfig, check_recordable, run_config, train_policy
 from worlds import make_split
 
 # For the small jits. The MJX rollout keeps XLA's default: at level 0 its run time costs more
@@ -186,6 +187,24 @@ def test_dagger_aggregates_expert_labels_of_the_policys_states(hall, bc, trained
     n_old, n_new = len(trained.windows["label"]), len(new["label"])
     assert len(data["label"]) == n_old + n_new and data["obs"]["rgb"].shape[0] == n_old + n_new
     np.testing.assert_array_equal(data["label"][n_old:], new["label"])
+
+
+def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0, tmp_path):
+    # A stand-in trajectory predictor: "the human stays 7 m ahead", wherever it is.
+    fake = SimpleNamespace(predict=lambda history: jnp.full(history.shape[:-2] + (PCFG.horizon, 2), 7.0))
+    rollout = jax.jit(im.make_rollout_fn(hall.env, PCFG, trajectory=fake, record_predicted=True, num_steps=24))
+    for beta in (1.0, 0.0):  # the predictor follows the expert's steps and the policy's alike
+        _, recs = jax.tree.map(np.asarray, rollout(params0, jax.random.PRNGKey(0), hall.episodes, beta))
+        np.testing.assert_array_equal(recs.obs["future_traj"], 7.0)
+        np.testing.assert_array_equal(recs.obs["activity_probs"].argmax(-1), 4)  # no predictor: ground truth
+    with pytest.raises(ValueError, match="needs an intention or trajectory predictor"):
+        im.make_rollout_fn(hall.env, PCFG, record_predicted=True)
+    # `conav train policy --train-intentions predicted` names the missing predictor runs up front.
+    with pytest.raises(ValueError, match="predictor runs --intention, --trajectory"):
+        train_policy(tmp_path / "no_data", tmp_path / "run", TrainConfig(steps=1, warmup_steps=0),
+                     ImitationConfig(train_intentions="predicted"))
+    with pytest.raises(ValueError, match="unknown train_intentions"):
+        ImitationConfig(train_intentions="oracle")
 
 
 def test_policy_agent_runs_in_evaluate(hall, trained):

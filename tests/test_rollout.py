@@ -36,17 +36,22 @@ def noisy_expert(env):
 
 def test_refilled_lanes_match_full_length_batches(env, noisy_expert):
     episodes = np.array([4, 0, 5, 2, 1, 3])
-    evaluator = make_evaluator(env, lambda _: noisy_expert, batch=2, seed=7)  # 2 lanes for 6 episodes
-    pooled = evaluator(None, episodes)
+    evaluator = make_evaluator(env, lambda _: noisy_expert, batch=2, seed=7, trace_first=True)  # 2 lanes, 6 episodes
+    pooled, first, first_trace = evaluator(None, episodes)
     reference, trace = make_rollout(env, noisy_expert, env.bank.max_steps, record=True)(jax.random.PRNGKey(7), jnp.asarray(episodes))
     ends = np.argmax(np.asarray(trace.done) > 0, axis=1)
     assert len(set(ends.tolist())) > 2 and ends.min() < T_END - 16  # early, different ends: lanes refill
     np.testing.assert_array_equal(pooled["episode"], episodes)
     for k, v in reference.items():
         np.testing.assert_array_equal(pooled[k], np.asarray(v), err_msg=k)
+    # The traced episode is the longest (the lanes take it first), recorded up to its end.
+    j = int(np.argmax(np.asarray(env.bank.t_end)[episodes]))
+    assert first == episodes[j] and len(first_trace.done) == ends[j] + 1
+    for name, a, b in zip(first_trace._fields, first_trace, trace):
+        np.testing.assert_array_equal(a, np.asarray(b)[j, : ends[j] + 1], err_msg=name)
     # Reversed, each episode runs in another lane at another time: the same bytes (an episode's
     # keys do not depend on its lane; the same compiled rollout serves).
-    again = evaluator(None, episodes[::-1])
+    again, _, _ = evaluator(None, episodes[::-1])
     for k in reference:
         assert pooled[k].tobytes() == again[k][::-1].tobytes(), k
 

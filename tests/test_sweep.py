@@ -73,8 +73,8 @@ def _args(*argv):
 
 @pytest.fixture(scope="module")
 def two_sweeps(tiny_data, tmp_path_factory):
-    """The same sweep twice (same seed) into two directories; 3 episodes in batches of 2, so
-    the second batch is padded."""
+    """The same sweep twice (same seed) into two directories; 3 episodes on 2 lanes, so
+    a lane takes a second episode."""
     outs = [tmp_path_factory.mktemp(f"sweep{k}") for k in range(2)]
     for out in outs:
         argv = ["--data", str(tiny_data), "--agent", "objectgoal", "--episodes", "3", "--batch", "2", "--resolution", "8x32", "--seed", "1", "--out", str(out)]

@@ -86,10 +86,14 @@ class PolicyCarry(NamedTuple):
 
 
 class PolicyStep(NamedTuple):
-    """`init() -> PolicyCarry`; `step(params, obs, carry) -> (action (2,), carry)` for one env."""
+    """`init() -> PolicyCarry`; `step(params, obs, carry) -> (action (2,), carry)` for one env,
+    which is `act(params, *predict(obs, carry))`: `predict` runs the predictors (the policy's
+    inputs, with predicted intentions where a predictor is given), `act` the network."""
 
     init: Callable[[], PolicyCarry]
     step: Callable[[dict, dict, PolicyCarry], tuple[jax.Array, PolicyCarry]]
+    predict: Callable[[dict, PolicyCarry], tuple[dict, PolicyCarry]]
+    act: Callable[[dict, dict, PolicyCarry], tuple[jax.Array, PolicyCarry]]
 
 
 def policy_inputs(cfg: PolicyConfig) -> tuple[str, ...]:
@@ -119,7 +123,7 @@ def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None) -> Poli
         predicted = {k: jnp.zeros(shapes[k], jnp.float32) for k in predicted_keys}
         return PolicyCarry(lstm, intention.init() if use_intention else None, predicted)
 
-    def step(params, obs: dict, carry: PolicyCarry):
+    def predict(obs: dict, carry: PolicyCarry) -> tuple[dict, PolicyCarry]:
         inputs = {k: obs[k] for k in keys if k in obs}
         icarry = carry.intention
         if use_intention:
@@ -127,13 +131,19 @@ def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None) -> Poli
             inputs.update(activity_probs=activity, object_probs=obj)
         if use_trajectory:
             inputs["future_traj"] = trajectory.predict(obs["human_history"])
+        predicted = {k: inputs[k].astype(jnp.float32).reshape(carry.predicted[k].shape) for k in predicted_keys}
+        return inputs, carry._replace(intention=icarry, predicted=predicted)
+
+    def act(params, inputs: dict, carry: PolicyCarry):
         batched = {k: inputs[k][None] for k in keys}
         lstm = jax.tree.map(lambda x: x[None], carry.lstm)
         action, _, lstm = policy.apply(params, cfg, batched, lstm)
-        predicted = {k: inputs[k].astype(jnp.float32).reshape(carry.predicted[k].shape) for k in predicted_keys}
-        return action[0], PolicyCarry(jax.tree.map(lambda x: x[0], lstm), icarry, predicted)
+        return action[0], carry._replace(lstm=jax.tree.map(lambda x: x[0], lstm))
 
-    return PolicyStep(init, step)
+    def step(params, obs: dict, carry: PolicyCarry):
+        return act(params, *predict(obs, carry))
+
+    return PolicyStep(init, step, predict, act)
 
 
 def check_policy_env(env: ConavEnv, cfg: PolicyConfig, source: str, intention=None, trajectory=None) -> None:
@@ -207,6 +217,7 @@ def make_rollout_fn(
     num_steps: int | None = None,
     intention=None,
     trajectory=None,
+    record_predicted: bool = False,
 ):
     """A pure function `(params, key, episodes (B,) int32, beta ()) -> (metrics, records)`;
     jit it (once: params and beta are arguments, so every round and every validation reuses
@@ -216,10 +227,16 @@ def make_rollout_fn(
     and the policy side by side: at each step the expert's action (its label) is taken with
     probability `beta`, else the policy's; with `beta >= 1` the policy is not evaluated at all.
     `metrics`: the env's final per-episode metrics dict of (B,) (envs.metrics). `records`: a
-    StepRecord of (B, T, ...) if `record`, else None (validation needs no observations)."""
+    StepRecord of (B, T, ...) if `record`, else None (validation needs no observations).
+
+    With `record_predicted` the records hold the predictors' outputs in place of the ground-truth
+    intention inputs they replace (the predictors run at every step, also while the expert acts),
+    so a policy trains on what it will read at evaluation."""
     check_policy_env(env, policy_cfg, "the policy", intention, trajectory)
     if record and not env.config.intention_obs:
         raise ValueError("recording imitation data needs the ground-truth intentions: EnvConfig(intention_obs=True)")
+    if record_predicted and intention is None and trajectory is None:
+        raise ValueError("record_predicted needs an intention or trajectory predictor")
     expert = make_expert_step(env, expert_cfg)
     pol = make_policy_step(policy_cfg, intention, trajectory)
     steps = num_steps or env.bank.max_steps
@@ -231,16 +248,22 @@ def make_rollout_fn(
         def body(c, k):
             state, ecarry, pcarry = c
             label, ecarry = expert(state, ecarry)
+            if record_predicted:  # the predictors follow every step, whoever acts
+                inputs, pcarry = pol.predict(state.obs, pcarry)
 
             def mixed(pcarry):
-                action, pcarry = pol.step(params, state.obs, pcarry)
+                if record_predicted:
+                    action, pcarry = pol.act(params, inputs, pcarry)
+                else:
+                    action, pcarry = pol.step(params, state.obs, pcarry)
                 return jnp.where(jax.random.uniform(k) < beta, label, action), pcarry
 
             # beta is the same for the whole batch, so under vmap this stays a real branch.
             action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
             rec = None
             if record:
-                rec = StepRecord(compact_obs(state.obs), label, action, state.done < 0.5, state.pipeline_state.qpos)
+                obs = {**state.obs, **pcarry.predicted} if record_predicted else state.obs
+                rec = StepRecord(compact_obs(obs), label, action, state.done < 0.5, state.pipeline_state.qpos)
             return (env.step(state, action), ecarry, pcarry), rec
 
         init = (state, initial_carry(), pol.init())

@@ -25,6 +25,7 @@ LOG_FILE = "log.jsonl"
 # ImitationConfig fields a resumed run may change: more DAgger rounds continue a finished run;
 # batching and the val subset do not change the weights.
 RESUME_FREE = ("dagger_rounds", "rollout_batch", "val_episodes")
+TRAIN_INTENTIONS = ("ground_truth", "predicted")
 
 
 @dataclass(frozen=True)
@@ -40,12 +41,18 @@ class ImitationConfig:
     seq_len: int = 32  # steps per training window in the loss (truncated BPTT)
     burn_in: int = 16  # steps before each window that only warm up the LSTM
     rollout_batch: int = 64  # episodes per simulator call (recording and validation)
+    # Intention inputs in the training data: "ground_truth" (the paper, sec. 4.2) or "predicted"
+    # (the predictor runs' outputs, recorded along every rollout: what the policy reads at
+    # evaluation, so it learns how far to trust them).
+    train_intentions: str = "ground_truth"
 
     def __post_init__(self):
         from conav_jax.models.policy import ABLATIONS
 
         if self.ablation not in ABLATIONS:
             raise ValueError(f"unknown ablation {self.ablation!r}; expected one of {sorted(ABLATIONS)}")
+        if self.train_intentions not in TRAIN_INTENTIONS:
+            raise ValueError(f"unknown train_intentions {self.train_intentions!r}; expected one of {TRAIN_INTENTIONS}")
         if self.dagger_rounds < 0 or self.seq_len < 1 or self.burn_in < 0 or self.rollout_batch < 1:
             raise ValueError("need dagger_rounds >= 0, seq_len >= 1, burn_in >= 0, rollout_batch >= 1")
         for name in ("episodes", "val_episodes", "dagger_steps"):
@@ -188,7 +195,9 @@ def train_policy(
     schedule, warm-started from the previous round's weights. Batches are `cfg.batch` windows
     drawn (with replacement) from `(cfg.seed, update step)` alone, so a resumed run repeats an
     uninterrupted one. With `intention_run` / `trajectory_run`, validation feeds the policy the
-    predictors' outputs; training always uses ground truth (paper sec. 4.2). With a `mesh`
+    predictors' outputs; training uses ground truth (paper sec. 4.2) unless
+    `imitation.train_intentions == "predicted"`, which records the predictors' outputs instead
+    (ValueError unless a run is given for each intention input the ablation keeps). With a `mesh`
     (conav_jax.parallel.make_mesh) updates and rollouts run data-parallel over its devices,
     drawing the same windows and episodes (ValueError unless `cfg.batch` divides by the device
     count).
@@ -217,6 +226,14 @@ def train_policy(
     expert = expert or ExpertConfig()
     if mesh is not None:
         check_divisible(cfg.batch, mesh, "TrainConfig.batch")
+    if imitation.train_intentions == "predicted":
+        needs = ablation_config(PolicyConfig(), imitation.ablation)
+        missing = [flag for flag, use, run in (
+            ("--intention", needs.use_activity or needs.use_object, intention_run),
+            ("--trajectory", needs.use_trajectory, trajectory_run)) if use and run is None]
+        if missing:
+            raise ValueError(f"training on predicted intentions (ablation {imitation.ablation!r}) needs the "
+                             f"predictor runs {', '.join(missing)}")
 
     def place(tree):
         """On the device; with a mesh, a copy on each of its devices."""
@@ -254,7 +271,9 @@ def train_policy(
 
         trajectory = load_trajectory_predictor(trajectory_run)
     jit = lambda f: jax.jit(f, compiler_options=compiler_options)  # noqa: E731
-    record = jit(im.make_rollout_fn(train_env, model, expert, record=True))
+    predicted = imitation.train_intentions == "predicted" and (intention, trajectory) != (None, None)
+    record = jit(im.make_rollout_fn(train_env, model, expert, record=True, record_predicted=predicted,
+                                    **({"intention": intention, "trajectory": trajectory} if predicted else {})))
     validate = jit(im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory))
     update = make_update(model, cfg, compiler_options, mesh)
     train_eps, val_eps = np.arange(train_env.num_episodes), np.arange(val_env.num_episodes)
@@ -372,6 +391,8 @@ def add_train_policy(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
     p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
     p.add_argument("--rollout-batch", type=int, default=d.rollout_batch, help="episodes per simulator call")
+    p.add_argument("--train-intentions", choices=TRAIN_INTENTIONS, default=d.train_intentions,
+                   help="intention inputs in the training data: ground truth (the paper) or the predictor runs' outputs")
     p.set_defaults(func=run_train_policy)
 
 
@@ -380,6 +401,7 @@ def run_train_policy(args: argparse.Namespace) -> int:
         ablation=args.ablation, resolution=_hw(args.resolution), episodes=args.episodes,
         val_episodes=args.val_episodes, dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps,
         seq_len=args.seq_len, burn_in=args.burn_in, rollout_batch=args.rollout_batch,
+        train_intentions=args.train_intentions,
     )
     for flag, run in (("--intention", args.intention), ("--trajectory", args.trajectory)):
         if run is not None and not Path(run).is_dir():
