@@ -10,6 +10,8 @@ def add_curve(sub) -> None:
     p = sub.add_parser("curve", help="PPO learning curve (success vs env steps) from run logs, as PNG")
     p.add_argument("runs", nargs="+", metavar="[TITLE=]RUN", help="`conav train rl` run dirs")
     p.add_argument("--out", required=True, help="output .png")
+    p.add_argument("--window", type=int, default=None,
+                   help="training iterations pooled per point (default: each run's reset cycle, else 4)")
     p.set_defaults(func=run_curve)
 
 
@@ -24,5 +26,7 @@ def run_curve(args) -> int:
             raise FileNotFoundError(f"no {LOG_FILE} in {run}")
         runs[title or Path(run).name] = read_log(run)
 
-    print(f"wrote {learning_curve(runs, args.out)}")
+    if args.window is not None and args.window < 1:
+        raise ValueError(f"--window must be at least 1, got {args.window}")
+    print(f"wrote {learning_curve(runs, args.out, args.window)}")
     return 0

@@ -120,23 +120,27 @@ def episode_map(
 
 def pooled_reach_rate(train: list[dict], window: int) -> tuple[np.ndarray, np.ndarray]:
     """(env steps at each block's end, share of the block's ended episodes that reached the
-    goal) over blocks of `window` PPO training records (the last block may be shorter)."""
+    goal) over blocks of `window` PPO training records. A shorter last block is dropped when
+    there are full ones: a cut-off reset cycle has seen only its quick successes."""
     blocks = [train[i : i + window] for i in range(0, len(train), window)]
+    if len(blocks) > 1 and len(blocks[-1]) < window:
+        blocks = blocks[:-1]
     x = np.array([b[-1]["env_steps"] for b in blocks], float)
     reached = np.array([sum(r["reach_rate"] * r["episodes"] for r in b) for b in blocks])
     ended = np.array([sum(r["episodes"] for r in b) for b in blocks], float)
     return x, reached / np.maximum(ended, 1.0)
 
 
-def learning_curve(runs: Mapping[str, list[dict]], path: str | Path, window: int = 4) -> Path:
+def learning_curve(runs: Mapping[str, list[dict]], path: str | Path, window: int | None = None) -> Path:
     """Success against env steps for PPO runs (`conav train rl`), one colour per run.
 
     `runs`: title -> the run's log.jsonl records. Lines: the share of training episodes that
     ended with the goal reached (`reach_rate` x `episodes`, %), pooled over blocks of `window`
-    iterations: PPO re-resets its batch every `reset_every` (default 4) iterations and the
-    episodes ending first after a reset are the quick successes, so a per-iteration rate swings
-    with that cycle. Markers: the val sweeps' FASR (circles) and RASR (squares). ValueError if
-    a run has no PPO training records."""
+    iterations (None: each run's reset cycle, `reset_every` in its records, else 4): PPO
+    re-resets its batch every `reset_every` iterations and the episodes ending first after a
+    reset are the quick successes, so a per-iteration rate swings with that cycle. Markers:
+    the val sweeps' FASR (circles) and RASR (squares). ValueError if a run has no PPO
+    training records."""
     path = Path(path)
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     for i, (title, records) in enumerate(runs.items()):
@@ -144,7 +148,7 @@ def learning_curve(runs: Mapping[str, list[dict]], path: str | Path, window: int
         if not train:
             raise ValueError(f"run {title!r} has no PPO training records (env_steps, reach_rate) in its log")
         colour = f"C{i}"
-        x, rate = pooled_reach_rate(train, window)
+        x, rate = pooled_reach_rate(train, window or train[-1].get("reset_every") or 4)
         ax.plot(x, 100.0 * rate, "-", color=colour, label=f"{title}: train episodes reached")
         val = [r for r in records if r.get("split") == "val" and "env_steps" in r]
         if val:

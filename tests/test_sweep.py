@@ -145,17 +145,21 @@ def test_missing_dataset_is_a_clear_error(tmp_path):
 def test_learning_curve_pools_reach_rates_over_reset_cycles(tmp_path):
     from eval.plots import learning_curve, pooled_reach_rate
 
-    # Iterations of 100 env steps: 2 of 4 episodes reached, then 0 of 1, then 3 of 3.
+    # Iterations of 100 env steps: 2 of 4 episodes reached, then 0 of 1, 3 of 3, 1 of 2, and a
+    # cut-off cycle's quick successes (dropped).
     train = [
         {"split": "train", "env_steps": 100, "episodes": 4, "reach_rate": 0.5},
         {"split": "train", "env_steps": 200, "episodes": 1, "reach_rate": 0.0},
         {"split": "train", "env_steps": 300, "episodes": 3, "reach_rate": 1.0},
+        {"split": "train", "env_steps": 400, "episodes": 2, "reach_rate": 0.5},
+        {"split": "train", "env_steps": 500, "episodes": 5, "reach_rate": 1.0, "reset_every": 2},
     ]
     x, rate = pooled_reach_rate(train, window=2)
-    np.testing.assert_allclose(x, [200, 300])
-    np.testing.assert_allclose(rate, [2 / 5, 1.0])
+    np.testing.assert_allclose(x, [200, 400])
+    np.testing.assert_allclose(rate, [2 / 5, 4 / 5])
+    np.testing.assert_allclose(pooled_reach_rate(train[:1], window=2)[1], [0.5])  # only a partial one: kept
     val = {"split": "val", "env_steps": 300, "FASR": 10.0, "RASR": 20.0}
-    out = learning_curve({"run": train + [val]}, tmp_path / "curve.png", window=2)
+    out = learning_curve({"run": train + [val]}, tmp_path / "curve.png")  # window: the run's reset_every
     assert out.stat().st_size > 1000
     with pytest.raises(ValueError, match="no PPO training records"):
         learning_curve({"imitation": [{"split": "train", "step": 10, "loss": 0.1}]}, tmp_path / "bad.png")

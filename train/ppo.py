@@ -626,6 +626,7 @@ def train_ppo(
                 collision_rate=metrics["collided"] / episodes if episodes else None,
                 steps_per_s=round(per_iter / seconds, 1),
                 elapsed_s=round(time.perf_counter() - start, 2),
+                reset_every=config.reset_every,  # conav curve pools the training rates per cycle
             )
             append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "train", **record})
             if not all(math.isfinite(metrics[k]) for k in ("loss", "grad_norm")):
