@@ -49,6 +49,13 @@ def test_refilled_lanes_match_full_length_batches(env, noisy_expert):
     assert first == episodes[j] and len(first_trace.done) == ends[j] + 1
     for name, a, b in zip(first_trace._fields, first_trace, trace):
         np.testing.assert_array_equal(a, np.asarray(b)[j, : ends[j] + 1], err_msg=name)
+    # Lanes for every episode: one full-length batch (no refills), the same numbers and trace.
+    whole, first_b, trace_b = make_evaluator(env, lambda _: noisy_expert, batch=8, seed=7, trace_first=True)(None, episodes)
+    assert first_b == first
+    for k in reference:
+        np.testing.assert_array_equal(whole[k], pooled[k], err_msg=k)
+    for a, b in zip(trace_b, first_trace):
+        np.testing.assert_array_equal(a, b)
     # Reversed, each episode runs in another lane at another time: the same bytes (an episode's
     # keys do not depend on its lane; the same compiled rollout serves).
     again, _, _ = evaluator(None, episodes[::-1])
