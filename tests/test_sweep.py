@@ -73,11 +73,11 @@ def _args(*argv):
 
 @pytest.fixture(scope="module")
 def two_sweeps(tiny_data, tmp_path_factory):
-    """The same sweep twice (same seed) into two directories; 3 episodes on 2 lanes, so
-    a lane takes a second episode."""
+    """The same sweep twice (same seed) into two directories; 3 episodes on 4 lanes (one
+    full-length batch: tests/test_rollout.py checks it against refilled lanes)."""
     outs = [tmp_path_factory.mktemp(f"sweep{k}") for k in range(2)]
     for out in outs:
-        argv = ["--data", str(tiny_data), "--agent", "objectgoal", "--episodes", "3", "--batch", "2", "--resolution", "8x32", "--seed", "1", "--out", str(out)]
+        argv = ["--data", str(tiny_data), "--agent", "objectgoal", "--episodes", "3", "--batch", "4", "--resolution", "8x32", "--seed", "1", "--out", str(out)]
         assert sweep.run_eval(_args(*argv)) == 0
     return outs
 
