@@ -247,13 +247,15 @@ def make_evaluator(
             # for half the compile time of the refilling loop (measured on CPU and GPU).
             if ("batch", slots) not in runs:
                 runs["batch", slots] = make_param_rollout(env, agent_fn, env.bank.max_steps, record=trace_first)
-            queue = np.concatenate([queue, np.full(slots - n, queue[-1], np.int32)])
-            if mesh is None:
-                metrics, trace = runs["batch", slots](params, key, jnp.asarray(queue))
-            else:
-                metrics, trace = runs["batch", slots](replicate(params, mesh), replicate(key, mesh), shard_batch(queue, mesh))
-            metrics, trace = to_host((metrics, trace))
-            metrics = {k: v[:n] for k, v in metrics.items()}
+            run = runs["batch", slots]
+            if mesh is not None and params is not None:
+                params = replicate(params, mesh)
+
+            def first_trace(k, idx):  # only queue[0]'s trace comes back to the host
+                metrics, trace = run(params, k, idx)
+                return metrics, None if trace is None else jax.tree.map(lambda x: x[:1], trace)
+
+            metrics, trace = map_episodes(first_trace, queue, slots, key, mesh, per_batch_keys=False)
             trace = None if trace is None else jax.tree.map(lambda x: x[0], trace)
         else:
             if slots not in runs:

@@ -90,7 +90,9 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
 
     from envs.rollout import make_evaluator
 
-    n = env.num_episodes if episodes is None else min(episodes, env.num_episodes)
+    if episodes is not None and episodes > env.num_episodes:
+        raise ValueError(f"--episodes {episodes}: the split has only {env.num_episodes} episodes")
+    n = env.num_episodes if episodes is None else episodes
     evaluator = make_evaluator(env, lambda _: agent, batch, 0, mesh)
     idx = np.arange(n)
     t0 = time.perf_counter()

@@ -152,7 +152,7 @@ def plan_eval(args: argparse.Namespace) -> EvalPlan:
 # A process keeps its last env and each agent's compiled rollout: evaluating the same agents on
 # the same data again (tests, notebooks) skips the minute-long compile of the env step.
 _ENV_CACHE: dict[tuple, Any] = {}
-_ROLLOUTS: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary()
+_EVALUATORS: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary()
 
 
 def load_env(plan: EvalPlan):
@@ -173,7 +173,7 @@ def compiled_evaluator(env, name: str, checkpoint: str | None, batch: int, seed:
     from envs.rollout import make_evaluator
     from eval.agents import make_agent
 
-    per_env = _ROLLOUTS.setdefault(env, {})
+    per_env = _EVALUATORS.setdefault(env, {})
     key = (name, checkpoint, batch, seed, mesh, tuple(sorted(kwargs.items())))
     if key not in per_env:
         agent = make_agent(name, env, checkpoint, **kwargs)

@@ -271,7 +271,7 @@ def train_policy(
 
         trajectory = load_trajectory_predictor(trajectory_run)
     jit = lambda f: jax.jit(f, compiler_options=compiler_options)  # noqa: E731
-    predicted = imitation.train_intentions == "predicted" and (intention, trajectory) != (None, None)
+    predicted = imitation.train_intentions == "predicted" and (intention is not None or trajectory is not None)
     record = jit(im.make_rollout_fn(train_env, model, expert, record=True, record_predicted=predicted,
                                     **({"intention": intention, "trajectory": trajectory} if predicted else {})))
     validate = jit(im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory))
