@@ -50,9 +50,29 @@ def add_bench_sim(sub: argparse._SubParsersAction) -> None:
                    "breakdown: physics, humanoid, sensors and the full step timed separately, plus the floor")
     p.add_argument("--pallas-block-w", type=int, default=None, help="pallas caster: columns per program")
     p.add_argument("--pallas-num-warps", type=int, default=None, help="pallas caster: warps per program")
+    p.add_argument("--physics", type=parse_physics_override, nargs="+", default=[], metavar="NAME=VALUE",
+                   help="PhysicsConfig fields to override, e.g. timestep_s=0.02 solver_iterations=2 substep_unroll=10")
     p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
     add_devices_arg(p)
     p.set_defaults(func=run_bench_sim)
+
+
+def parse_physics_override(text: str) -> tuple[str, object]:
+    """`NAME=VALUE` for a field of envs.config.PhysicsConfig, VALUE converted to the field's type."""
+    import dataclasses
+
+    from envs.config import PhysicsConfig
+
+    fields = {f.name: f for f in dataclasses.fields(PhysicsConfig)}
+    name, sep, value = text.partition("=")
+    if not sep or name not in fields:
+        raise argparse.ArgumentTypeError(
+            f"physics override must be NAME=VALUE with NAME one of {sorted(fields)}, got {text!r}")
+    kind = type(getattr(PhysicsConfig(), name))
+    try:
+        return name, kind(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"physics {name} needs a {kind.__name__}, got {value!r}") from None
 
 
 def _memory_bytes() -> int | None:
@@ -253,6 +273,9 @@ def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mes
 
 def run_bench_sim(args: argparse.Namespace) -> int:
     from envs import ConavEnv, EnvConfig, SensorConfig
+    from envs.config import PhysicsConfig
+
+    physics = PhysicsConfig(**dict(args.physics))
 
     data = args.data
     tmp = None
@@ -276,11 +299,17 @@ def run_bench_sim(args: argparse.Namespace) -> int:
             for name in ("fast_min", "pallas_block_w", "pallas_num_warps"):
                 if getattr(args, name) is not None:
                     extra[name] = getattr(args, name)
-            cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra))
+            cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra), physics=physics)
             env = ConavEnv(data, args.split, cfg)
             kind = env.config.sensor.kind  # what "auto" became here
+            if kind == "pallas" and mesh is not None and mesh.size > 1:
+                raise ValueError("the pallas caster runs on one device (XLA cannot partition a Pallas call): "
+                                 "use --sensor fast with several devices, or --devices 1")
             for batch in args.batch:
-                res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh)}
+                res = {"sensor": kind, "resolution": f"{h}x{w}",
+                       **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh)}
+                if args.physics:
+                    res["physics"] = dict(args.physics)
                 if kind == "fast":
                     res["fast_min"] = env.config.sensor.fast_min
                 if kind == "pallas":

@@ -219,7 +219,8 @@ class ConavEnv(Env):
             d = d.replace(ctrl=jnp.stack([v * jnp.cos(yaw), v * jnp.sin(yaw), w]))
             return mjx.step(m, d), None
 
-        d, _ = jax.lax.scan(substep, d, None, length=self._substeps)
+        d, _ = jax.lax.scan(substep, d, None, length=self._substeps,
+                            unroll=min(self.config.physics.substep_unroll, self._substeps))
         return d
 
     def _episode_model(self, episode: jax.Array, robot_xy: jax.Array, render: bool = False) -> mjx.Model:

@@ -95,7 +95,7 @@ def build_mjcf(layout: GeomLayout, task: TaskConfig, physics: PhysicsConfig) -> 
     lines += [f'    <geom name="col{k}" type="box" {pad} contype="0" conaffinity="0" material="flat"/>' for k in range(layout.col_slots)]
     lines += [f'    <geom name="vis{k}" type="box" {pad} contype="0" conaffinity="0" material="flat"/>' for k in range(layout.vis_slots)]
     lines += [
-        f'    <geom name="phys{k}" type="box" {pad} contype="1" conaffinity="0" group="{PHYSICS_GROUP}" material="flat"/>'
+        f'    <geom name="phys{k}" type="box" {pad} contype="1" conaffinity="0" condim="{physics.contact_condim}" group="{PHYSICS_GROUP}" material="flat"/>'
         for k in range(layout.physics_slots)
     ]
     lines += [
@@ -104,13 +104,13 @@ def build_mjcf(layout: GeomLayout, task: TaskConfig, physics: PhysicsConfig) -> 
         '      <joint name="robot_y" type="slide" axis="0 1 0"/>',
         '      <joint name="robot_yaw" type="hinge" axis="0 0 1"/>',
         f'      <geom name="robot" type="capsule" fromto="0 0 {r} 0 0 {h - r}" size="{r}" mass="{physics.robot_mass_kg}"'
-        ' contype="2" conaffinity="5" material="flat"/>',
+        f' contype="2" conaffinity="5" condim="{physics.contact_condim}" material="flat"/>',
         "    </body>",
     ]
     for k in range(NUM_CAPSULES):
         lines.append(
             f'    <body name="human{k}" mocap="true" pos="0 0 {PAD_Z_M}"><geom name="human{k}" type="capsule"'
-            f' size="{CAPSULE_RADII[k]:.4f} {CAPSULE_HALF_LENGTHS[k]:.4f}" contype="4" conaffinity="0" material="flat"/></body>'
+            f' size="{CAPSULE_RADII[k]:.4f} {CAPSULE_HALF_LENGTHS[k]:.4f}" contype="4" conaffinity="0" condim="{physics.contact_condim}" material="flat"/></body>'
         )
     lines += [
         "  </worldbody>",

@@ -44,10 +44,13 @@ class BaselineConfig:
     pioneer_horizon_s: float = 2.0  # 2 s and 3 s tie on the tiny train split; 5 s and 8 s do worse
     pioneer_min_speed_mps: float = 0.2
     # Follower: trail the human's path this far behind them; full speed when the human is
-    # farther than follow_slow_m, slowing linearly to a stop at follow_distance_m. Its path
-    # lookahead is path_lookahead_cells trail points follow_stride_steps apart.
+    # farther than follow_slow_m, slowing linearly to a stop at follow_distance_m; nearer, it
+    # reverses, at full speed once follow_back_off_m inside it (a human walking at the robot
+    # closes 0.12 m a step). Its path lookahead is path_lookahead_cells trail points
+    # follow_stride_steps apart.
     follow_distance_m: float = 1.0
     follow_slow_m: float = 2.0
+    follow_back_off_m: float = 0.25
     follow_stride_steps: int = 2  # spacing (env steps) of the trail points the follower aims at
 
 
@@ -191,7 +194,7 @@ def follower_agent(env, cfg: BaselineConfig | None = None) -> Agent:
     least `follow_distance_m` from the human (the human itself if they have not moved that far),
     and the robot aims along the trail from the trail point nearest to it. Full speed while the
     human is farther than `follow_slow_m`, slowing to a stop at `follow_distance_m`; closer than
-    that it faces the human and backs away, the faster the closer the human is. Carry: none.
+    that it faces the human and backs away, at full speed `follow_back_off_m` inside it. Carry: none.
     """
     cfg = cfg or BaselineConfig()
     b = env.bank
@@ -212,7 +215,8 @@ def follower_agent(env, cfg: BaselineConfig | None = None) -> Agent:
         to_human = jnp.linalg.norm(human - xy)
         close = to_human <= cfg.follow_distance_m
         # Negative inside the follow distance: it backs away, still facing the human.
-        speed = jnp.clip((to_human - cfg.follow_distance_m) / (cfg.follow_slow_m - cfg.follow_distance_m), -1.0, 1.0)
+        gap = to_human - cfg.follow_distance_m
+        speed = jnp.clip(gap / jnp.where(close, cfg.follow_back_off_m, cfg.follow_slow_m - cfg.follow_distance_m), -1.0, 1.0)
         face = (human - xy) / jnp.maximum(to_human, 1e-6)
         direction = jnp.where(close, face, _pursue(env, cfg, b.scene_index[episode], xy, points))
         return steer(pose, direction, speed, env, cfg), carry

@@ -1,11 +1,14 @@
 """The MJX environment: physics, contacts, metrics, sensors' parity, batching, brax wrappers."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from envs import ConavEnv, EnvConfig, SensorConfig
+from envs.config import PhysicsConfig
 from envs.mjcf import UD
 from envs.metrics import summarize
 from worlds import goal_of, make_split
@@ -17,12 +20,16 @@ SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32))
 def hall():
     """Episodes in the hand-built hall: 0 faces the east wall 1 m away; 1 faces the human;
     2 starts 2 m west of the goal (x = 8.5) facing it; 3 starts far from the goal."""
+    return _hall_env(SMALL)
+
+
+def _hall_env(config):
     split = make_split(
         [(8.0, 0.9, -np.pi / 2), (2.0, 2.0, np.pi), (6.5, 2.0, 0.0), (1.6, 3.3, 0.0)],
         t_arrive=20,
         t_end=40,
     )
-    env = ConavEnv(episodes=split, config=SMALL)
+    env = ConavEnv(episodes=split, config=config)
     return env, jax.jit(env.reset_to_episode), jax.jit(env.step)
 
 
@@ -47,6 +54,57 @@ def test_robot_stops_at_wall(hall):
     assert ys.min() > 0.1 + 0.3 - 0.005  # face of the wall + radius, less 5 mm of soft contact
     assert abs(ys[-1] - ys[-5]) < 0.005  # and stays stopped
     assert float(states[-1].metrics["wall_contact_steps"]) > 5
+
+
+def _slide_along_wall(env_fns, steps=20):
+    """Episode 0 turned to face south-west, driven at full speed into the south wall at 45 deg."""
+    env, reset, step = env_fns
+    s = reset(jax.random.PRNGKey(0), 0)
+    d = s.pipeline_state
+    s = s.replace(pipeline_state=d.replace(qpos=d.qpos.at[2].set(-0.75 * np.pi)))
+    states = [s]
+    for _ in range(steps):
+        states.append(step(states[-1], jnp.array([1.0, 0.0])))
+    return np.array([np.asarray(s.pipeline_state.qpos[:2]) for s in states])
+
+
+def test_robot_slides_along_a_wall_it_meets_at_an_angle(hall):
+    # Frictionless contacts (PhysicsConfig.contact_condim = 1): pressed against the wall, the
+    # robot keeps the along-wall half of its velocity, 0.1 m/step * cos 45 deg.
+    xy = _slide_along_wall(hall)
+    assert xy[:, 1].min() > 0.1 + 0.3 - 0.005  # never through the wall
+    assert abs(xy[-1, 1] - 0.4) < 0.01  # pressed against it at the end
+    slide = -np.diff(xy[-6:, 0])
+    assert np.all(slide > 0.05) and np.all(slide < 0.075)
+
+
+def test_default_solver_budget_matches_a_converged_solve(hall):
+    # Three Newton iterations (PhysicsConfig default) against thirty on wall and human contacts.
+    converged = _hall_env(dataclasses.replace(SMALL, physics=PhysicsConfig(solver_iterations=30, ls_iterations=30)))
+    np.testing.assert_allclose(_slide_along_wall(hall), _slide_along_wall(converged), atol=1e-3)
+    push = [(1.0, 0.0)] * 8  # episode 1: into the human
+    fast = np.array([np.asarray(s.pipeline_state.qpos) for s in _run(hall, 1, push)])
+    ref = np.array([np.asarray(s.pipeline_state.qpos) for s in _run(converged, 1, push)])
+    np.testing.assert_allclose(fast, ref, atol=1e-3)
+
+
+@pytest.mark.parametrize("bad", [dict(contact_condim=4), dict(solver_iterations=0), dict(timestep_s=0.0)])
+def test_bad_physics_config_is_rejected(bad):
+    with pytest.raises(ValueError, match="physics"):
+        PhysicsConfig(**bad)
+
+
+def test_bench_physics_overrides_are_typed_and_checked():
+    import argparse
+
+    from envs.bench import parse_physics_override
+
+    assert parse_physics_override("solver_iterations=2") == ("solver_iterations", 2)
+    assert parse_physics_override("timestep_s=0.02") == ("timestep_s", 0.02)
+    with pytest.raises(argparse.ArgumentTypeError, match="NAME one of"):
+        parse_physics_override("iterations=2")
+    with pytest.raises(argparse.ArgumentTypeError, match="needs a int"):
+        parse_physics_override("solver_iterations=two")
 
 
 def test_touching_the_human_is_counted_and_robot_does_not_pass_through(hall):

@@ -74,6 +74,20 @@ def test_apply_sequence_equals_stepping_apply_in_a_loop(params):
     np.testing.assert_allclose(final.c, step_carry.c, rtol=1e-5, atol=1e-6)
 
 
+def test_rematerialised_sequence_gives_the_same_outputs_and_gradients(params):
+    obs_seq, carry = _obs((B, T)), _random_carry()
+
+    def loss(p, remat):
+        actions, values, final = policy.apply_sequence(p, CONFIG, obs_seq, carry, remat=remat)
+        return jnp.sum(actions**2) + jnp.sum(values) + jnp.sum(final.h)
+
+    grad = jit(jax.value_and_grad(loss), static_argnums=1)
+    (plain, g_plain), (remat, g_remat) = grad(params, False), grad(params, True)
+    np.testing.assert_allclose(remat, plain, rtol=1e-5)
+    for a, b in zip(jax.tree.leaves(g_remat), jax.tree.leaves(g_plain)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
 def test_reset_starts_the_step_from_a_zero_carry(params):
     obs = _obs((B,))
     fresh = STEP(params, CONFIG, obs, policy.initial_carry(CONFIG, B), np.zeros(B, bool))

@@ -16,6 +16,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from conav_jax.parallel import add_devices_arg, check_divisible, make_mesh, replicate
 from envs.bench import parse_resolution
 from train.loop import TrainConfig, make_chunk, make_optimizer, make_update
 
@@ -58,19 +59,18 @@ def _intention_setup(key, batch: int, resolution):
     return perceiver.init(k_p, config), data, loss, {"resolution": f"{h}x{w}", "frames": frames}
 
 
-def policy_l2_loss(params, config, batch: dict, key):
+def policy_l2_loss(params, config, batch: dict, key, remat: bool = False):
     """Imitation loss of the LSTM policy: mean squared action error over `(B, T)` steps."""
     from conav_jax.models import policy
 
     del key
-    obs = {k: v for k, v in batch.items() if k != "action"}
-    obs["rgbd"] = obs["rgbd"].astype(jnp.float32)
+    obs = {k: v for k, v in batch.items() if k != "action"}  # float16 rgbd: encode widens it
     carry = policy.initial_carry(config, batch["action"].shape[0])
-    actions, _, _ = policy.apply_sequence(params, config, obs, carry)
+    actions, _, _ = policy.apply_sequence(params, config, obs, carry, remat=remat)
     return jnp.mean(jnp.sum(jnp.square(actions - batch["action"]), axis=-1)), {}
 
 
-def _policy_setup(key, batch: int, resolution):
+def _policy_setup(key, batch: int, resolution, remat: bool = False):
     from conav_jax.models import policy
 
     config = policy.PolicyConfig(image_hw=resolution)
@@ -86,26 +86,35 @@ def _policy_setup(key, batch: int, resolution):
         "future_traj": jax.random.normal(ks[5], (n, t, config.horizon, 2)),
         "action": jax.random.uniform(ks[6], (n, t, 2), minval=-1.0, maxval=1.0),
     }
-    loss = lambda p, b, k: policy_l2_loss(p, config, b, k)
+    loss = lambda p, b, k: policy_l2_loss(p, config, b, k, remat)
     h, w = resolution
-    return policy.init(ks[7], config), data, loss, {"resolution": f"{h}x{w}", "sequence": t}
+    return policy.init(ks[7], config), data, loss, {"resolution": f"{h}x{w}", "sequence": t, "remat": remat}
 
 
 SETUPS = {"trajectory": _trajectory_setup, "intention": _intention_setup, "policy": _policy_setup}
 
 
-def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int, repeats: int) -> dict:
-    """Time `steps` updates of `model` at `batch` samples; returns a dict of figures."""
+def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int, repeats: int, mesh=None,
+                remat: bool = False) -> dict:
+    """Time `steps` updates of `model` at `batch` samples (split over `mesh`'s devices if given,
+    data and parameters replicated, as train.loop runs them); returns a dict of figures."""
     if model not in SETUPS:
         raise ValueError(f"unknown model {model!r}; choose from {sorted(SETUPS)}")
     if batch <= 0 or steps <= 0 or repeats <= 0:
         raise ValueError(f"batch, steps and repeats must be > 0, got {batch}, {steps}, {repeats}")
-    params, data, loss, shape_info = SETUPS[model](jax.random.PRNGKey(0), batch, resolution)
+    if mesh is not None:
+        check_divisible(batch, mesh)
+    if remat and model != "policy":
+        raise ValueError("--remat applies to the policy model")
+    extra = {"remat": True} if remat else {}
+    params, data, loss, shape_info = SETUPS[model](jax.random.PRNGKey(0), batch, resolution, **extra)
     cfg = TrainConfig(steps=steps * (repeats + 1), batch=batch, warmup_steps=0)
     optimizer = make_optimizer(cfg)
     n = jax.tree.leaves(data)[0].shape[0]
-    chunk = jax.jit(make_chunk(make_update(loss, optimizer, cfg, n), batch), static_argnames="length")
+    chunk = jax.jit(make_chunk(make_update(loss, optimizer, cfg, n, mesh), batch), static_argnames="length")
     state = (params, optimizer.init(params))
+    if mesh is not None:
+        data, state = replicate((data, state), mesh)
 
     def call(state):
         params, opt_state, _, _, sums = chunk(*state, data, length=steps)
@@ -125,6 +134,7 @@ def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int,
     return {
         "model": model,
         "device": jax.devices()[0].device_kind,
+        "devices": 1 if mesh is None else mesh.size,
         "batch": batch,
         **shape_info,
         "params": int(num_params),
@@ -132,6 +142,7 @@ def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int,
         "compile_and_first_call_s": round(compile_s, 2),
         "median_call_s": round(med, 4),
         "samples_per_s": round(batch * steps / med, 1),
+        "samples_per_s_per_device": round(batch * steps / med / (1 if mesh is None else mesh.size), 1),
         "updates_per_s": round(steps / med, 2),
         **({"timesteps_per_s": round(batch * steps * POLICY_SEQUENCE / med, 1)} if model == "policy" else {}),
     }
@@ -145,13 +156,17 @@ def add_bench_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", type=parse_resolution, default=(112, 448), help="policy panorama HxW")
     p.add_argument("--steps", type=int, default=10, help="updates per timed call")
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--remat", action="store_true",
+                   help="policy: encode one time step at a time under jax.checkpoint (less memory, more compute)")
     p.add_argument("--json", action="store_true", help="print one JSON line per batch size")
+    add_devices_arg(p)
     p.set_defaults(func=run_bench_train)
 
 
 def run_bench_train(args: argparse.Namespace) -> int:
+    mesh = make_mesh(args.devices) if args.devices != 1 else None
     for batch in args.batch or [DEFAULT_BATCH[args.model]]:
-        res = bench_train(args.model, batch, args.resolution, args.steps, args.repeats)
+        res = bench_train(args.model, batch, args.resolution, args.steps, args.repeats, mesh, args.remat)
         if args.json:
             print(json.dumps(res), flush=True)
         else:

@@ -114,7 +114,7 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
     """Per-step features fed to the LSTM: obs with leading dims `(...)` -> `(..., lstm_in)`.
     Reads `rgbd (..., H, W, 4)`, `gps_compass (..., 3)`, `human_pos (..., 2)` and only the
     enabled intention keys."""
-    rgbd = obs["rgbd"]
+    rgbd = obs["rgbd"].astype(jnp.float32)  # float16 panoramas widen here, per call
     depth = jnp.clip(rgbd[..., 3:] / config.max_depth_m, 0.0, 1.0)
     image = jnp.concatenate([rgbd[..., :3], depth], axis=-1)
     feat = _conv_stack(params["convs"], image)
@@ -167,11 +167,27 @@ def apply_sequence(
     obs_seq: Obs,
     carry: LSTMState,
     resets: jax.Array | None = None,
+    remat: bool = False,
 ) -> tuple[jax.Array, jax.Array, LSTMState]:
     """A `T`-step rollout for truncated BPTT. obs values `(B, T, ...)`, `resets (B, T)` bool ->
     `(actions (B, T, 2), values (B, T), final_carry)`; equals calling `apply` step by step.
-    The CNN runs once over all B*T frames; only the LSTM is scanned over time."""
-    features = jnp.swapaxes(encode(params, config, obs_seq), 0, 1)  # (T, B, F)
+    The CNN runs once over all B*T frames; only the LSTM is scanned over time. With `remat`
+    the CNN runs one time step at a time under `jax.checkpoint` and is recomputed for the
+    gradient: activation memory of B frames instead of B*T, for 1.7x the update's time at
+    32x128 on an H100 (112x448 windows of 32 steps do not fit an H100 at batch 256 without
+    it; with it they run at batch 1024; BENCHMARKS.md)."""
+    if remat:
+        # The step's frames are sliced inside the checkpoint, so only the index is saved per
+        # step and the (B, T, ...) inputs are neither copied nor widened to float32 whole.
+        @jax.checkpoint
+        def per_step(t):
+            obs = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, t, 1, keepdims=False), obs_seq)
+            return encode(params, config, obs)
+
+        num_steps = jax.tree.leaves(obs_seq)[0].shape[1]
+        features = jax.lax.map(per_step, jnp.arange(num_steps))  # (T, B, F)
+    else:
+        features = jnp.swapaxes(encode(params, config, obs_seq), 0, 1)  # (T, B, F)
     time_resets = None if resets is None else jnp.swapaxes(resets, 0, 1)
     carry, hs = nn.lstm.lstm_scan(params["lstm"], carry, features, time_resets)
     actions, values = _heads(params, jnp.swapaxes(hs, 0, 1))
