@@ -95,6 +95,16 @@ def trained(bc, params0, tmp_path_factory):
     return SimpleNamespace(run=run, params=params, windows=windows, losses=losses)
 
 
+def test_rematerialised_bc_loss_gives_the_same_loss_and_gradients(trained, params0):
+    # remat widens the compact uint8 / float16 frames one window step at a time.
+    grad = jax.jit(jax.value_and_grad(im.bc_loss, has_aux=True), static_argnums=(1, 3), compiler_options=FAST)
+    (plain, _), g_plain = grad(params0, PCFG, trained.windows, False)
+    (remat, _), g_remat = grad(params0, PCFG, trained.windows, True)
+    np.testing.assert_allclose(remat, plain, rtol=1e-5)
+    for a, b in zip(jax.tree.leaves(g_remat), jax.tree.leaves(g_plain)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
 def test_expert_in_the_simulator_reaches_the_goal_without_touching_the_human(bc):
     m, recs = bc
     assert (m["t_reach"] >= 0).all(), m["t_reach"]

@@ -363,13 +363,15 @@ def load_sequences(path) -> dict:
 # -- behaviour cloning ------------------------------------------------------------------------
 
 
-def bc_loss(params, cfg: PolicyConfig, batch: dict) -> tuple[jax.Array, dict]:
+def bc_loss(params, cfg: PolicyConfig, batch: dict, remat: bool = False) -> tuple[jax.Array, dict]:
     """The paper's L2 imitation loss, (v_lin - v_lin*)^2 + (v_ang - v_ang*)^2, averaged over
     the batch's in-loss steps. `batch`: windows as `sequences` returns them, (B, W, ...); the
-    LSTM runs each window from a zero carry (reset at episode starts)."""
-    obs = expand_obs(batch["obs"])
+    LSTM runs each window from a zero carry (reset at episode starts). `remat`: encode one
+    step at a time and recompute it for the gradient (policy.apply_sequence), for windows of
+    large panoramas that do not fit otherwise."""
     carry = policy.initial_carry(cfg, batch["label"].shape[0])
-    actions, _, _ = policy.apply_sequence(params, cfg, obs, carry, batch["reset"])
+    actions, _, _ = policy.apply_sequence(params, cfg, batch["obs"], carry, batch["reset"], remat=remat,
+                                          prepare=expand_obs)
     err = jnp.sum(jnp.square(actions - batch["label"]), axis=-1)
     n = jnp.sum(batch["mask"])
     loss = jnp.sum(err * batch["mask"]) / jnp.maximum(n, 1.0)

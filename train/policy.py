@@ -141,7 +141,7 @@ def _rates(m: dict) -> str:
     return f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"
 
 
-def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None, mesh=None):
+def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None, mesh=None, remat: bool = False):
     """Jitted `(params, opt_state, data, idx, lr, step, bad_step) -> (params, opt_state, loss,
     grad_norm, bad_step)`: one Adam(W) step on `bc_loss` over the windows `data[idx]`, with
     global-norm clipping. `data` lives on the device and is gathered inside the jit, so an update
@@ -150,7 +150,8 @@ def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None, m
     set, no later update is applied either, so the caller checks `bad_step` only when it logs and
     still stops at the last good state. The learning rate is an argument: every round's schedule
     shares one compiled update. With a `mesh` (data, params and opt_state replicated on it) the
-    gathered windows are split over its devices and every output is replicated."""
+    gathered windows are split over its devices and every output is replicated. `remat`: the
+    loss rematerialises the CNN per step (bc_loss), same result in less memory."""
     import jax
     import jax.numpy as jnp
 
@@ -160,7 +161,7 @@ def make_update(model, cfg: TrainConfig, compiler_options: dict | None = None, m
 
     def update(params, opt_state, data, idx, lr, step, bad_step):
         batch = constrain_batch(jax.tree.map(lambda x: jnp.take(x, idx, axis=0), data), mesh)
-        (loss, _), grads = jax.value_and_grad(bc_loss, has_aux=True)(params, model, batch)
+        (loss, _), grads = jax.value_and_grad(bc_loss, has_aux=True)(params, model, batch, remat)
         grads, grad_norm = clip_by_global_norm(grads, cfg.grad_clip)
         new_params, new_opt = adam(lr, weight_decay=cfg.weight_decay).update(grads, opt_state, params)
         finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
@@ -185,6 +186,7 @@ def train_policy(
     compiler_options: dict | None = None,
     log=print,
     mesh=None,
+    remat: bool = False,
 ) -> PolicyResult:
     """Imitation-train the policy on `data_dir`'s train split into `run_dir` (resumed from its
     latest checkpoint if it has one of the same config; ValueError naming the first difference
@@ -200,7 +202,8 @@ def train_policy(
     (ValueError unless a run is given for each intention input the ablation keeps). With a `mesh`
     (conav_jax.parallel.make_mesh) updates and rollouts run data-parallel over its devices,
     drawing the same windows and episodes (ValueError unless `cfg.batch` divides by the device
-    count).
+    count). `remat` rematerialises the CNN per window step in the update (less memory, same
+    result up to float rounding; not part of the run's config, like the mesh).
 
     A focused loop rather than train.loop: that loop scans its updates inside one jit, and on
     XLA:CPU a conv update inside a while loop runs ~20x slower than the same update jitted
@@ -275,7 +278,7 @@ def train_policy(
     record = jit(im.make_rollout_fn(train_env, model, expert, record=True, record_predicted=predicted,
                                     **({"intention": intention, "trajectory": trajectory} if predicted else {})))
     validate = jit(im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory))
-    update = make_update(model, cfg, compiler_options, mesh)
+    update = make_update(model, cfg, compiler_options, mesh, remat)
     train_eps, val_eps = np.arange(train_env.num_episodes), np.arange(val_env.num_episodes)
     val_key = jax.random.PRNGKey(cfg.seed + 1)
 
@@ -391,6 +394,9 @@ def add_train_policy(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
     p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
     p.add_argument("--rollout-batch", type=int, default=d.rollout_batch, help="episodes per simulator call")
+    p.add_argument("--remat", action="store_true",
+                   help="recompute the CNN per window step in the backward pass: less memory (112x448 windows "
+                   "at batch >= 256 need it on an H100), ~1.7x the update time")
     p.add_argument("--train-intentions", choices=TRAIN_INTENTIONS, default=d.train_intentions,
                    help="intention inputs in the training data: ground truth (the paper) or the predictor runs' outputs")
     p.set_defaults(func=run_train_policy)
@@ -413,7 +419,7 @@ def run_train_policy(args: argparse.Namespace) -> int:
         result = train_policy(
             args.data, args.out, train_config_from_args(args), imitation,
             intention_run=args.intention, trajectory_run=args.trajectory, progress=not args.no_progress,
-            mesh=make_mesh(args.devices),
+            mesh=make_mesh(args.devices), remat=args.remat,
         )
     except NonFiniteLoss as e:
         print(f"conav train policy: {e}")

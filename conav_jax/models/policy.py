@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -168,6 +169,7 @@ def apply_sequence(
     carry: LSTMState,
     resets: jax.Array | None = None,
     remat: bool = False,
+    prepare: Callable[[Obs], Obs] | None = None,
 ) -> tuple[jax.Array, jax.Array, LSTMState]:
     """A `T`-step rollout for truncated BPTT. obs values `(B, T, ...)`, `resets (B, T)` bool ->
     `(actions (B, T, 2), values (B, T), final_carry)`; equals calling `apply` step by step.
@@ -175,19 +177,22 @@ def apply_sequence(
     the CNN runs one time step at a time under `jax.checkpoint` and is recomputed for the
     gradient: activation memory of B frames instead of B*T, for 1.7x the update's time at
     32x128 on an H100 (112x448 windows of 32 steps do not fit an H100 at batch 256 without
-    it; with it they run at batch 1024; BENCHMARKS.md)."""
+    it; with it they run at batch 1024; BENCHMARKS.md). `prepare` maps stored observations to
+    the model's (e.g. compact uint8 panoramas to float rgbd); with `remat` it runs per step
+    inside the checkpoint, so the widened frames never exist for all T steps at once."""
+    prepare = prepare or (lambda obs: obs)
     if remat:
         # The step's frames are sliced inside the checkpoint, so only the index is saved per
         # step and the (B, T, ...) inputs are neither copied nor widened to float32 whole.
         @jax.checkpoint
         def per_step(t):
             obs = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, t, 1, keepdims=False), obs_seq)
-            return encode(params, config, obs)
+            return encode(params, config, prepare(obs))
 
         num_steps = jax.tree.leaves(obs_seq)[0].shape[1]
         features = jax.lax.map(per_step, jnp.arange(num_steps))  # (T, B, F)
     else:
-        features = jnp.swapaxes(encode(params, config, obs_seq), 0, 1)  # (T, B, F)
+        features = jnp.swapaxes(encode(params, config, prepare(obs_seq)), 0, 1)  # (T, B, F)
     time_resets = None if resets is None else jnp.swapaxes(resets, 0, 1)
     carry, hs = nn.lstm.lstm_scan(params["lstm"], carry, features, time_resets)
     actions, values = _heads(params, jnp.swapaxes(hs, 0, 1))
