@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Reproduce the README's `small`-preset agent table on one GPU (the device tool's H100).
 #
-#   bash eval/small_table.sh OUT [imitation|dagger|rl|eval|pack|all]
+#   bash eval/small_table.sh OUT [imitation|predictors|bc|dagger|rl|eval|pack|all]
 #
-# imitation: data, intention + trajectory predictors, BC (all inputs / no intention inputs),
-#            DAgger (the BC-all run continued with one round; `dagger` runs this part alone)                  ~8 min on an H100
+# imitation: data, intention + trajectory predictors (`predictors`), BC with all inputs / no
+#            intention inputs (`bc`), DAgger (the BC-all run continued with one round; `dagger`)
+#            ~8 min on an H100
 # rl:        PPO from scratch ($PPO_STEPS env steps) and fine-tuned from DAgger ($FT_STEPS)        ~6 min
 # eval:      every agent on the 500 val episodes, intentions predicted by the predictors each
 #            policy run names (OUT/eval), and with ground truth (OUT/eval_gt)  ~6 min
@@ -16,14 +17,14 @@
 # panoramas for 1,000 episodes would not fit in host memory, and PPO's rollout buffer grows
 # with the pixel count.
 set -euo pipefail
-OUT=${1:?usage: small_table.sh OUT [imitation|rl|eval|pack|all]}
+OUT=${1:?usage: small_table.sh OUT [imitation|predictors|bc|dagger|rl|eval|pack|all]}
 STAGE=${2:-all}
 RES=${RES:-32x128}
 SEED=${SEED:-0}
 DATA=$OUT/data
 conav() { python3 -m eval.cli "$@"; }
 stamp() { echo "[$(date +%T)] $*"; }
-want() { [[ $STAGE == "$1" || $STAGE == all ]]; }
+want() { [[ $STAGE == "$1" || $STAGE == all ]] || { [[ $STAGE == imitation ]] && [[ $1 == predictors || $1 == bc || $1 == dagger ]]; }; }
 PPO_STEPS=${PPO_STEPS:-6000000}  # PPO from scratch, env steps
 FT_STEPS=${FT_STEPS:-2000000}    # PPO fine-tuned from DAgger, env steps
 
@@ -37,20 +38,23 @@ POLICY=(--data "$DATA" --intention "$OUT/intention" --trajectory "$OUT/trajector
         --rollout-batch 500 --log-every 100 --val-every 1000 --ckpt-every 1000 --seed "$SEED" --no-progress
         --train-intentions predicted)
 
-if want imitation; then
+if want predictors; then
   stamp intention
   conav train intention --data "$DATA" --out "$OUT/intention" --steps 2000 --batch 256 --lr 1e-3 \
     --weight-decay 0.05 --val-every 2000 --ckpt-every 2000 --log-every 100 --seed "$SEED" --no-progress
   stamp trajectory
   conav train trajectory --data "$DATA" --out "$OUT/trajectory" --steps 3000 --batch 1024 --lr 1e-3 \
     --val-every 3000 --ckpt-every 3000 --log-every 100 --seed "$SEED" --no-progress
+fi
+
+if want bc; then
   for ab in all none; do
     stamp "bc $ab"
     conav train policy "${POLICY[@]}" --ablation $ab --out "$OUT/bc_$ab"
   done
 fi
 
-if want imitation || want dagger; then
+if want dagger; then
   stamp dagger
   if [ ! -d "$OUT/dagger" ]; then  # DAgger continues BC-all: its checkpoint, log and round-0 data
     mkdir -p "$OUT/dagger/data"

@@ -1,6 +1,7 @@
 """conav_jax.models.policy: a sequence rollout equals stepping, resets start from a zero carry,
 and the Table 3 ablations neither read nor hold weights for the inputs they switch off."""
 
+import dataclasses
 import functools
 
 import jax
@@ -8,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conav_jax.categories import CATEGORIES, FLOOR_RGB, WALL_RGB
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig, ablation_config
 
@@ -28,8 +30,12 @@ B, T = 2, 4
 def _obs(lead, seed=0):
     rng = np.random.default_rng(seed)
     f = lambda *shape: rng.uniform(size=(*lead, *shape)).astype(np.float32)
+    rgbd = f(16, 64, 4) * np.array([1, 1, 1, 8], np.float32)
+    # Paint objects of a few categories, so the saliency channel sees some.
+    for k, col in enumerate((3, 20, 41)):
+        rgbd[..., 4:12, col : col + 3, :3] = np.asarray(CATEGORIES[7 * k + 1].rgb, np.float32) / 255.0
     return {
-        "rgbd": f(16, 64, 4) * np.array([1, 1, 1, 8], np.float32),
+        "rgbd": rgbd,
         "gps_compass": (f(3) - 0.5) * np.array([10, 10, 6.28], np.float32),
         "human_pos": f(2) * 3,
         "activity_probs": f(107) / 53.5,
@@ -111,7 +117,10 @@ def test_ablation_has_no_params_for_disabled_inputs_and_never_reads_them(name, u
     config = ablation_config(CONFIG, name)
     shapes = jax.eval_shape(lambda k: policy.init(k, config), jax.random.PRNGKey(0))
     assert set(shapes["intentions"]) == used
-    assert shapes["lstm"]["wi"].shape[0] == 32 + 8 + 8 * len(used)  # visual + state + intentions
+    saliency = "object_probs" in used
+    assert ("saliency" in shapes) == saliency and shapes["convs"][0]["w"].shape[-2] == 4 + saliency
+    # visual + state + intentions (+ the object's saliency bearing)
+    assert shapes["lstm"]["wi"].shape[0] == 32 + 8 + 8 * (len(used) + saliency)
     obs = {k: v for k, v in _obs((B,)).items() if k not in INTENTION_KEYS - used}
     action, _, _ = jax.eval_shape(
         lambda p, o, c: policy.apply(p, config, o, c), shapes, obs, policy.initial_carry(config, B)
@@ -133,3 +142,65 @@ def test_default_config_builds_for_the_112x448_panorama():
         lambda p, o, c: policy.apply(p, config, o, c), shapes, obs, policy.initial_carry(config, 3)
     )
     assert action.shape == (3, 2) and value.shape == (3,)
+
+
+# -- the object saliency channel ---------------------------------------------------------------
+
+
+def _colour(rgb):
+    return np.asarray(rgb, np.float32) / 255.0
+
+
+def test_pixel_categories_read_each_category_colour_and_nothing_else():
+    rgb = np.stack([_colour(c.rgb) for c in CATEGORIES] + [_colour(WALL_RGB), _colour(FLOOR_RGB), np.array([0.62, 0.72, 0.85], np.float32)])
+    cats = np.asarray(policy.pixel_categories(rgb[None]))[0]
+    np.testing.assert_array_equal(cats, [*range(len(CATEGORIES)), -1, -1, -1])
+    # A colour one step away from a category's is not that category.
+    off = _colour(CATEGORIES[5].rgb) + np.float32(1 / 255)
+    assert int(policy.pixel_categories(off[None, None])[0, 0]) == -1
+
+
+def test_object_saliency_weights_pixels_by_their_category_probability():
+    rgb = np.zeros((2, 3, 3), np.float32)
+    rgb[0, 0], rgb[0, 1], rgb[1, 2] = _colour(CATEGORIES[4].rgb), _colour(CATEGORIES[9].rgb), _colour(WALL_RGB)
+    rgb[1, 0] = rgb[1, 1] = _colour(CATEGORIES[30].rgb)
+    probs = np.zeros(51, np.float32)
+    probs[4], probs[9], probs[30] = 0.4, 0.1, 0.0
+    probs[0] = 0.5  # the most likely category is not in view: saliencies are relative to it
+    sal = np.asarray(policy.object_saliency(rgb, probs))
+    np.testing.assert_allclose(sal, [[0.8, 0.2, 0.0], [0.0, 0.0, 0.0]], atol=1e-6)
+
+
+def test_saliency_bearing_finds_the_sector_and_depth_of_the_salient_pixels():
+    config = PolicyConfig(image_hw=(4, 32), saliency_sectors=8)
+    sal = np.zeros((4, 32), np.float32)
+    depth = np.full((4, 32), 9.0, np.float32)
+    sal[1:3, 13] = 1.0  # sector 3 (columns 12-15)
+    depth[1, 13], depth[2, 13] = 2.5, 3.0
+    sal[0, 29], depth[0, 29] = 0.4, 1.0  # sector 7: weaker, nearer
+    feat = np.asarray(policy.saliency_bearing(config, sal, depth))
+    peak, near = feat[:8], feat[8:]
+    np.testing.assert_allclose(peak, [0, 0, 0, 1.0, 0, 0, 0, 0.4], atol=1e-6)
+    np.testing.assert_allclose(near, [1, 1, 1, 0.25, 1, 1, 1, 0.1], atol=1e-6)
+
+
+def test_the_policy_reads_where_the_predicted_object_is(params):
+    """Same panorama, same probabilities: moving the predicted object's pixels to the other
+    side of the panorama changes the action (the object input is read spatially)."""
+    obs = _obs((1,))
+    obs["object_probs"] = np.eye(51, dtype=np.float32)[None, 1]  # category 1 is painted at column 3
+    moved = {k: v.copy() for k, v in obs.items()}
+    moved["rgbd"][..., 4:12, 3:6, :3] = moved["rgbd"][..., 4:12, 6:9, :3]
+    moved["rgbd"][..., 4:12, 35:38, :3] = _colour(CATEGORIES[1].rgb)
+    carry = policy.initial_carry(CONFIG, 1)
+    a, _, _ = STEP(params, CONFIG, obs, carry)
+    b, _, _ = STEP(params, CONFIG, moved, carry)
+    assert not np.allclose(a, b, atol=1e-6)
+    # Without the saliency channel, the object input is a vector and nothing else.
+    flat = ablation_config(CONFIG, "object")
+    assert "saliency" not in jax.eval_shape(lambda k: policy.init(k, dataclasses.replace(flat, object_saliency=False)), jax.random.PRNGKey(0))
+
+
+def test_saliency_sectors_must_divide_the_width():
+    with pytest.raises(ValueError, match="saliency_sectors"):
+        policy.init(jax.random.PRNGKey(0), PolicyConfig(image_hw=(16, 64), conv_channels=(4,), conv_kernels=(3,), saliency_sectors=12))

@@ -88,6 +88,7 @@ def policy_config_from_dict(d: dict):
     from conav_jax.models.policy import PolicyConfig
 
     names = {f.name for f in dataclasses.fields(PolicyConfig)}
+    d = {"object_saliency": False, **d}  # checkpoints from before the saliency channel had none
     if set(d) - names:
         raise ValueError(f"checkpoint model config has unknown PolicyConfig fields {sorted(set(d) - names)}")
     return PolicyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})

@@ -4,18 +4,30 @@ obs -> CNN(rgbd) -> flatten -> linear; pose (x, y, sin yaw, cos yaw) and human p
 linear; each enabled intention input (activity probs, object probs, future trajectory) ->
 its own linear -> concat -> LSTM -> `action (B, 2)` in [-1, 1] (tanh) and `value (B,)`.
 Disabled intention inputs (the paper's Table 3 ablation) are never read and have no weights.
+
+With the object input and `object_saliency` (the default), the predicted object distribution
+is also read *where it is in the panorama*: each pixel's object category comes from its colour
+(our renderer draws every category in its own flat colour, so this lookup is exact: the stand-in
+for the semantic segmenter a real robot would run), and the pixel's saliency is the predicted
+probability of that category relative to the most likely one. The saliency map is a fifth CNN
+channel, and per azimuth sector its peak and the nearest salient depth feed the LSTM directly.
+A probability vector alone says *what* the human will use; without a map the policy had to
+learn from a few thousand demonstrations which pixels show it, and did not (README).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from conav_jax import nn
+from conav_jax.categories import CATEGORIES
 from conav_jax.nn.lstm import LSTMState
 
 Params = dict
@@ -50,7 +62,15 @@ class PolicyConfig:
     use_activity: bool = True
     use_object: bool = True
     use_trajectory: bool = True
+    # With use_object: the object-B saliency channel and its per-sector bearing features
+    # (module docstring). Checkpoints written before this field had none (False when absent).
+    object_saliency: bool = True
+    saliency_sectors: int = 16  # azimuth sectors of the bearing features; must divide the width
     init_log_std: float = -0.5  # initial action log-std (PPO only)
+
+    @property
+    def uses_saliency(self) -> bool:
+        return self.use_object and self.object_saliency
 
 
 def ablation_config(base: PolicyConfig, name: str) -> PolicyConfig:
@@ -74,6 +94,54 @@ def _intention_inputs(config: PolicyConfig) -> dict[str, int]:
     return widths
 
 
+@functools.lru_cache(maxsize=1)
+def _category_colour_keys() -> tuple[np.ndarray, np.ndarray]:
+    """(sorted 24-bit colour keys (C,), the category of each sorted key (C,)) of the object
+    categories' flat colours. The categories' colours are distinct (>= 5/255 apart)."""
+    rgb = np.asarray([c.rgb for c in CATEGORIES], np.int64)
+    keys = (rgb[:, 0] * 256 + rgb[:, 1]) * 256 + rgb[:, 2]
+    if len(np.unique(keys)) != len(keys):
+        raise ValueError("object categories need distinct colours for the saliency lookup")
+    order = np.argsort(keys)
+    return keys[order].astype(np.int32), order.astype(np.int32)
+
+
+def pixel_categories(rgb: jax.Array) -> jax.Array:
+    """Object category of each pixel `(..., H, W)` int32 from its colour `rgb (..., H, W, 3)`
+    in [0, 1] (k/255 per channel, as rendered): the category whose flat colour it is exactly,
+    -1 for anything else (walls, floor, sky, the human, the robot)."""
+    keys, cats = _category_colour_keys()
+    q = jnp.round(jnp.clip(rgb, 0.0, 1.0) * 255.0).astype(jnp.int32)
+    key = (q[..., 0] * 256 + q[..., 1]) * 256 + q[..., 2]
+    pos = jnp.clip(jnp.searchsorted(jnp.asarray(keys), key), 0, len(keys) - 1)
+    return jnp.where(jnp.asarray(keys)[pos] == key, jnp.asarray(cats)[pos], -1)
+
+
+def object_saliency(rgb: jax.Array, object_probs: jax.Array) -> jax.Array:
+    """Saliency `(..., H, W)` in [0, 1]: each pixel's category's probability under
+    `object_probs (..., C)`, divided by the largest probability (the most likely category's
+    pixels read 1, however unsure the prediction); 0 where the pixel shows no object."""
+    cats = pixel_categories(rgb)
+    probs = object_probs / jnp.maximum(jnp.max(object_probs, axis=-1, keepdims=True), 1e-6)
+    flat = cats.reshape(*cats.shape[:-2], -1)
+    picked = jnp.take_along_axis(probs, jnp.maximum(flat, 0), axis=-1)
+    return jnp.where(flat >= 0, picked, 0.0).reshape(cats.shape)
+
+
+def saliency_bearing(config: PolicyConfig, saliency: jax.Array, depth_m: jax.Array) -> jax.Array:
+    """Bearing features `(..., 2 * sectors)` of a saliency map and depth `(..., H, W)`: per
+    azimuth sector (panorama columns, robot frame), the peak saliency and the nearest depth of
+    its pixels at least half as salient as that peak (scaled by max_depth_m; 1 where none)."""
+    s = config.saliency_sectors
+    *lead, h, w = saliency.shape
+    sal = saliency.reshape(*lead, h, s, w // s)
+    depth = jnp.clip(depth_m / config.max_depth_m, 0.0, 1.0).reshape(*lead, h, s, w // s)
+    peak = jnp.max(sal, axis=(-3, -1))
+    salient = (sal >= 0.5 * peak[..., None, :, None]) & (sal > 0.0)
+    near = jnp.min(jnp.where(salient, depth, 1.0), axis=(-3, -1))
+    return jnp.concatenate([peak, near], axis=-1)
+
+
 def _conv_stack(params: list, x: jax.Array) -> jax.Array:
     """Stride-2 SAME convs with ReLU: `(..., H, W, 4) -> (..., ~H / 2^n, ~W / 2^n, C_last)`."""
     for layer in params:
@@ -85,17 +153,20 @@ def init(key: jax.Array, config: PolicyConfig) -> Params:
     """Parameters for `config`; the CNN output size is derived by shape evaluation."""
     if len(config.conv_channels) != len(config.conv_kernels):
         raise ValueError("conv_channels and conv_kernels need one entry per conv layer")
+    if config.uses_saliency and (config.saliency_sectors < 1 or config.image_hw[1] % config.saliency_sectors):
+        raise ValueError(f"saliency_sectors ({config.saliency_sectors}) must divide the panorama width {config.image_hw[1]}")
     intentions = _intention_inputs(config)
-    keys = iter(jax.random.split(key, len(config.conv_channels) + 5 + len(intentions)))
-    in_ch = (4, *config.conv_channels[:-1])
+    keys = iter(jax.random.split(key, len(config.conv_channels) + 6 + len(intentions)))
+    in_ch = (4 + config.uses_saliency, *config.conv_channels[:-1])
     convs = [
         nn.conv.init(next(keys), i, o, k)
         for i, o, k in zip(in_ch, config.conv_channels, config.conv_kernels)
     ]
-    image = jax.ShapeDtypeStruct((1, *config.image_hw, 4), jnp.float32)
+    image = jax.ShapeDtypeStruct((1, *config.image_hw, in_ch[0]), jnp.float32)
     _, fh, fw, fc = jax.eval_shape(_conv_stack, convs, image).shape
-    lstm_in = config.visual_dim + config.state_dim + config.intention_dim * len(intentions)
-    return {
+    lstm_in = config.visual_dim + config.state_dim + config.intention_dim * (len(intentions) + config.uses_saliency)
+    saliency_key = next(keys)
+    params = {
         "convs": convs,
         "visual": nn.linear.init(next(keys), fh * fw * fc, config.visual_dim),
         "state": nn.linear.init(next(keys), 6, config.state_dim),
@@ -109,6 +180,9 @@ def init(key: jax.Array, config: PolicyConfig) -> Params:
         "value_head": nn.linear.init(next(keys), config.hidden, 1),
         "log_std": jnp.full((2,), config.init_log_std, jnp.float32),
     }
+    if config.uses_saliency:
+        params["saliency"] = nn.linear.init(saliency_key, 2 * config.saliency_sectors, config.intention_dim)
+    return params
 
 
 def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
@@ -117,7 +191,11 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
     enabled intention keys."""
     rgbd = obs["rgbd"].astype(jnp.float32)  # float16 panoramas widen here, per call
     depth = jnp.clip(rgbd[..., 3:] / config.max_depth_m, 0.0, 1.0)
-    image = jnp.concatenate([rgbd[..., :3], depth], axis=-1)
+    channels = [rgbd[..., :3], depth]
+    if config.uses_saliency:
+        saliency = object_saliency(rgbd[..., :3], obs["object_probs"].astype(jnp.float32))
+        channels.append(saliency[..., None])
+    image = jnp.concatenate(channels, axis=-1)
     feat = _conv_stack(params["convs"], image)
     feat = feat.reshape(*feat.shape[:-3], -1)
     visual = jax.nn.relu(nn.linear.apply(params["visual"], feat))
@@ -132,6 +210,9 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
         if name == "future_traj":
             value = value.reshape(*value.shape[:-2], -1) / config.position_scale_m
         parts.append(jax.nn.relu(nn.linear.apply(params["intentions"][name], value)))
+    if config.uses_saliency:
+        bearing = saliency_bearing(config, saliency, rgbd[..., 3])
+        parts.append(jax.nn.relu(nn.linear.apply(params["saliency"], bearing)))
     return jnp.concatenate(parts, axis=-1)
 
 
