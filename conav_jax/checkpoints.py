@@ -191,16 +191,19 @@ def save_checkpoint(
 # --- load ---------------------------------------------------------------------------------------
 
 
-def _first_config_mismatch(saved: Any, expected: Any, key: str = "") -> str | None:
-    """Dotted key and values of the first difference between two JSON values, else None."""
+def _first_config_mismatch(saved: Any, expected: Any, key: str = "", ignore: frozenset = frozenset()) -> str | None:
+    """Dotted key and values of the first difference between two JSON values (keys in `ignore`
+    excepted), else None."""
     if isinstance(saved, dict) and isinstance(expected, dict):
         for k in list(expected) + [k for k in saved if k not in expected]:
             sub = f"{key}.{k}" if key else str(k)
+            if sub in ignore:
+                continue
             if k not in saved:
                 return f"{sub}: missing from the checkpoint, expected {expected[k]!r}"
             if k not in expected:
                 return f"{sub}: saved {saved[k]!r}, not in the expected config"
-            found = _first_config_mismatch(saved[k], expected[k], sub)
+            found = _first_config_mismatch(saved[k], expected[k], sub, ignore)
             if found:
                 return found
         return None
@@ -241,11 +244,13 @@ def load_checkpoint(
     config: dict | None = None,
     params_like: PyTree = None,
     opt_state_like: PyTree = None,
+    ignore: tuple[str, ...] = (),
 ) -> Checkpoint:
     """Read a checkpoint written by `save_checkpoint`.
 
     - `config`: if given, the saved config must equal it, else ValueError naming the first
-      differing dotted key (`task.v_max_mps: saved 1.0 vs expected 2.0`).
+      differing dotted key (`task.v_max_mps: saved 1.0 vs expected 2.0`); the dotted keys in
+      `ignore` may differ (or be absent on either side).
     - `params_like` / `opt_state_like`: templates (arrays or `jax.ShapeDtypeStruct`s); the saved
       tree must match in structure, shape and dtype, else ValueError naming the key path.
       Without a template the tree is rebuilt from the saved structure.
@@ -269,7 +274,7 @@ def load_checkpoint(
         raise ValueError(f"corrupt checkpoint {path}: {type(e).__name__}: {e}") from e
 
     if config is not None:
-        mismatch = _first_config_mismatch(meta["config"], _config_dict(config))
+        mismatch = _first_config_mismatch(meta["config"], _config_dict(config), ignore=frozenset(ignore))
         if mismatch:
             raise ValueError(f"checkpoint {path} config mismatch at {mismatch}")
 

@@ -74,6 +74,18 @@ def test_config_mismatch_names_the_dotted_key(tmp_path, trained):
         load_checkpoint(path, config={**CONFIG, "extra_flag": True})
 
 
+def test_ignored_config_keys_may_differ_or_be_missing_and_nothing_else(tmp_path, trained):
+    params, state = trained
+    path = save_checkpoint(tmp_path / "c.npz", params=params, opt_state=state, config=CONFIG, step=1)
+    changed = {**CONFIG, "model": {**CONFIG["model"], "hidden": 16}}
+    load_checkpoint(path, config=changed, ignore=("model.hidden",))
+    load_checkpoint(path, config={**CONFIG, "model": {"image_hw": (16, 64)}}, ignore=("model.hidden",))
+    with pytest.raises(ValueError, match=r"model\.hidden"):
+        load_checkpoint(path, config=changed, ignore=("hidden",))  # dotted from the root
+    with pytest.raises(ValueError, match=r"model\.image_hw"):
+        load_checkpoint(path, config={**changed, "model": {"hidden": 16, "image_hw": (8, 8)}}, ignore=("model.hidden",))
+
+
 def test_shape_and_structure_mismatches_name_the_key_path(tmp_path, trained):
     params, state = trained
     path = save_checkpoint(tmp_path / "c.npz", params=params, opt_state=state, config=CONFIG, step=1)

@@ -204,3 +204,11 @@ def test_the_policy_reads_where_the_predicted_object_is(params):
 def test_saliency_sectors_must_divide_the_width():
     with pytest.raises(ValueError, match="saliency_sectors"):
         policy.init(jax.random.PRNGKey(0), PolicyConfig(image_hw=(16, 64), conv_channels=(4,), conv_kernels=(3,), saliency_sectors=12))
+
+
+def test_checkpoint_configs_from_before_the_saliency_channel_load_without_it():
+    from train.policy import policy_config_from_dict
+
+    old = {k: v for k, v in dataclasses.asdict(CONFIG).items() if k != "object_saliency"}
+    assert policy_config_from_dict(old).object_saliency is False
+    assert policy_config_from_dict(dataclasses.asdict(CONFIG)).object_saliency is True

@@ -194,18 +194,18 @@ def trim_log(path: Path, step: int) -> None:
     path.write_text("".join(line + "\n" for line in keep))
 
 
-def resume(run_dir: Path, config: dict, params: PyTree, opt_state: PyTree):
+def resume(run_dir: Path, config: dict, params: PyTree, opt_state: PyTree, ignore: tuple[str, ...] = ()):
     """The latest checkpoint of `run_dir`, loaded against `config` and the state's structure,
     with the run's log trimmed to its step; None for a fresh run (whose stale log, belonging to
     no state we can continue, is removed). ValueError naming the first difference when the
-    checkpoint is of another config."""
+    checkpoint is of another config (`ignore`: dotted config keys a resumed run may change)."""
     log_path = Path(run_dir) / LOG_FILE
     found = latest_checkpoint(run_dir)
     if found is None:
         log_path.unlink(missing_ok=True)
         return None
     try:
-        ckpt = load_checkpoint(found, config=config, params_like=params, opt_state_like=opt_state)
+        ckpt = load_checkpoint(found, config=config, params_like=params, opt_state_like=opt_state, ignore=ignore)
     except ValueError as e:
         raise ValueError(f"cannot resume {run_dir}: {e}") from None
     trim_log(log_path, ckpt.step)

@@ -25,6 +25,9 @@ LOG_FILE = "log.jsonl"
 # ImitationConfig fields a resumed run may change: more DAgger rounds continue a finished run;
 # batching and the val subset do not change the weights.
 RESUME_FREE = ("dagger_rounds", "rollout_batch", "val_episodes")
+# Recorded in the run's config, yet a resumed run may change them: the length of DAgger rounds
+# to come (a round already begun takes it as its new length; its schedule stretches).
+RESUME_CHANGEABLE = ("imitation.dagger_steps",)
 TRAIN_INTENTIONS = ("ground_truth", "predicted")
 
 
@@ -255,7 +258,7 @@ def train_policy(
     params = policy.init(jax.random.PRNGKey(cfg.seed), model)
     opt_state = adam(cfg.lr).init(params)
     step, expert_val, val = 0, {}, {}
-    ckpt = resume(run_dir, config, params, opt_state)
+    ckpt = resume(run_dir, config, params, opt_state, ignore=RESUME_CHANGEABLE)
     if ckpt is not None:
         params, opt_state, step = ckpt.params, ckpt.opt_state, ckpt.step
         expert_val, val = ckpt.extra["expert_val"], ckpt.extra["val"]
