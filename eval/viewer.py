@@ -1,5 +1,8 @@
 """`conav view`: one episode as a rerun recording (.rrd): scene, humanoid, robot, panorama, intentions.
 
+The panorama comes with the object intention's saliency map (conav_jax.models.policy): each
+pixel's category probability relative to the most likely one, what the CoNav policy reads.
+
 A jitted rollout of the episode records per step the robot pose, the panorama and the intention
 inputs (the agent's own predictions where its carry exposes them, else the ground truth,
 labelled as such); logging to rerun happens afterwards from those arrays, so rendering never
@@ -182,6 +185,11 @@ def log_episode(rec, env, episode: int, frames: dict[str, np.ndarray], sources: 
 
     graph = load_activity_graph()
     activity_names = [a.name for a in graph.activities]
+    saliency = None
+    if "object_probs" in sources:  # where the object intention points in the panorama (what the policy reads)
+        from conav_jax.models.policy import object_saliency
+
+        saliency = (np.asarray(object_saliency(frames["rgbd"][..., :3], frames["object_probs"])) * 255).astype(np.uint8)
     pose = frames["pose"]
     done = frames["done"] > 0.5
     ended = int(np.argmax(done)) if done.any() else len(done) - 1  # the frame the episode ended at
@@ -197,6 +205,8 @@ def log_episode(rec, env, episode: int, frames: dict[str, np.ndarray], sources: 
         rgbd = frames["rgbd"][t]
         rec.log("camera/rgb", rr.Image((np.clip(rgbd[..., :3], 0.0, 1.0) * 255).astype(np.uint8)))
         rec.log("camera/depth", rr.DepthImage(rgbd[..., 3].astype(np.float32), meter=1.0))
+        if saliency is not None:
+            rec.log(f"camera/object_saliency/{sources['object_probs']}", rr.Image(saliency[t]))
         rec.log("metrics/distance_to_goal_m", rr.Scalars(float(np.hypot(x - goal[0], y - goal[1]))))
         for key, names, title in (("activity_probs", activity_names, "activity B"), ("object_probs", CATEGORY_NAMES, "object B")):
             if key in sources:

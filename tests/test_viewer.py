@@ -46,6 +46,7 @@ def test_recording_holds_scene_human_robot_panorama_and_intentions(recording):
         "/world/robot_path",
         "/camera/rgb",
         "/camera/depth",
+        "/camera/object_saliency/ground_truth",
         # a baseline predicts nothing: the ground truth is shown, and labelled so
         "/intention/ground_truth/activity/top5",
         "/intention/ground_truth/object/text",
