@@ -143,7 +143,7 @@ def saliency_bearing(config: PolicyConfig, saliency: jax.Array, depth_m: jax.Arr
 
 
 def _conv_stack(params: list, x: jax.Array) -> jax.Array:
-    """Stride-2 SAME convs with ReLU: `(..., H, W, 4) -> (..., ~H / 2^n, ~W / 2^n, C_last)`."""
+    """Stride-2 SAME convs with ReLU: `(..., H, W, C) -> (..., ~H / 2^n, ~W / 2^n, C_last)`."""
     for layer in params:
         x = jax.nn.relu(nn.conv.apply(layer, x, stride=2, padding="SAME"))
     return x
@@ -165,7 +165,7 @@ def init(key: jax.Array, config: PolicyConfig) -> Params:
     image = jax.ShapeDtypeStruct((1, *config.image_hw, in_ch[0]), jnp.float32)
     _, fh, fw, fc = jax.eval_shape(_conv_stack, convs, image).shape
     lstm_in = config.visual_dim + config.state_dim + config.intention_dim * (len(intentions) + config.uses_saliency)
-    saliency_key = next(keys)
+    saliency_key = next(keys)  # its place in the key order is the one the README's runs were initialised with
     params = {
         "convs": convs,
         "visual": nn.linear.init(next(keys), fh * fw * fc, config.visual_dim),
