@@ -390,8 +390,10 @@ def add_train_policy(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--intention", default=None, help="intention run (conav train intention): validate with its predictions")
     p.add_argument("--trajectory", default=None, help="trajectory run (conav train trajectory): validate with its predictions")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default=d.ablation, help="intention inputs kept (Table 3)")
-    p.add_argument("--dagger-rounds", type=int, default=d.dagger_rounds, help="DAgger rounds after behaviour cloning")
-    p.add_argument("--dagger-steps", type=int, default=None, help="updates per DAgger round (default: --steps)")
+    p.add_argument("--dagger-rounds", type=int, default=d.dagger_rounds,
+                   help="DAgger rounds after behaviour cloning (a finished run resumes with more)")
+    p.add_argument("--dagger-steps", type=int, default=None,
+                   help="updates per DAgger round (default: --steps); a resumed run may change it for the rounds to come")
     p.add_argument("--resolution", default="x".join(map(str, d.resolution)), help="panorama HxW")
     p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
     p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
