@@ -114,3 +114,23 @@ def test_bad_inputs_are_refused(tmp_path):
         train(tmp_path, linear_loss, init_params(), {"x": np.zeros((3, 3)), "y": np.zeros(4)}, cfg(), CONFIG)
     with pytest.raises(ValueError, match="kind"):
         train(tmp_path, linear_loss, init_params(), make_data(), cfg(), {"model": {}})
+
+
+def test_resume_accepts_changes_to_the_keys_it_is_told_to_ignore_and_no_others(tmp_path):
+    """What `conav train policy` relies on to resume a finished BC run with another DAgger
+    round length (train.policy.RESUME_CHANGEABLE)."""
+    from conav_jax.checkpoints import save_checkpoint
+    from train.loop import resume
+    from train.policy import RESUME_CHANGEABLE
+
+    params = init_params()
+    opt_state = {"m": jnp.zeros(3)}
+    saved = {"kind": "policy", "imitation": {"dagger_steps": 1000, "seq_len": 32}}
+    save_checkpoint(checkpoint_path(tmp_path, 5), params=params, opt_state=opt_state, config=saved, step=5)
+    longer = {"kind": "policy", "imitation": {"dagger_steps": 4000, "seq_len": 32}}
+    assert resume(tmp_path, longer, params, opt_state, ignore=RESUME_CHANGEABLE).step == 5
+    with pytest.raises(ValueError, match="imitation.dagger_steps"):
+        resume(tmp_path, longer, params, opt_state)
+    with pytest.raises(ValueError, match="imitation.seq_len"):
+        resume(tmp_path, {"kind": "policy", "imitation": {"dagger_steps": 4000, "seq_len": 16}}, params, opt_state,
+               ignore=RESUME_CHANGEABLE)
