@@ -28,6 +28,8 @@ RESUME_FREE = ("dagger_rounds", "rollout_batch", "val_episodes")
 # Recorded in the run's config, yet a resumed run may change them: the length of DAgger rounds
 # to come (a round already begun takes it as its new length; its schedule stretches).
 RESUME_CHANGEABLE = ("imitation.dagger_steps",)
+# ImitationConfig fields that shape the network: the run's config records them under "model".
+MODEL_FIELDS = ("object_saliency",)
 TRAIN_INTENTIONS = ("ground_truth", "predicted")
 
 
@@ -48,6 +50,10 @@ class ImitationConfig:
     # (the predictor runs' outputs, recorded along every rollout: what the policy reads at
     # evaluation, so it learns how far to trust them).
     train_intentions: str = "ground_truth"
+    # With the object input: read it as a saliency map over the panorama too (PolicyConfig;
+    # False gives session 4's policy, which reads the object distribution as a vector only).
+    # Recorded in the run's "model" config.
+    object_saliency: bool = True
 
     def __post_init__(self):
         from conav_jax.models.policy import ABLATIONS
@@ -78,12 +84,20 @@ def run_config(model, imitation: ImitationConfig, expert, content_hash: str, int
         "kind": KIND,
         "model": dataclasses.asdict(model),
         "sensor_hw": list(imitation.resolution),
-        "imitation": {k: v for k, v in dataclasses.asdict(imitation).items() if k not in RESUME_FREE},
+        "imitation": {k: v for k, v in dataclasses.asdict(imitation).items() if k not in RESUME_FREE + MODEL_FIELDS},
         "expert": dataclasses.asdict(expert),
         "data_hash": content_hash,
         "intention_run": None if intention_run is None else str(intention_run),
         "trajectory_run": None if trajectory_run is None else str(trajectory_run),
     }
+
+
+def policy_model(imitation: ImitationConfig):
+    """The PolicyConfig an imitation run trains: its resolution, ablation and saliency switch."""
+    from conav_jax.models.policy import PolicyConfig, ablation_config
+
+    base = PolicyConfig(image_hw=tuple(imitation.resolution), object_saliency=imitation.object_saliency)
+    return ablation_config(base, imitation.ablation)
 
 
 def policy_config_from_dict(d: dict):
@@ -250,7 +264,7 @@ def train_policy(
     (run_dir / "data").mkdir(parents=True, exist_ok=True)
     log_path = run_dir / LOG_FILE
     content_hash = read_manifest(data_dir)["content_hash"]
-    model = ablation_config(PolicyConfig(image_hw=tuple(imitation.resolution)), imitation.ablation)
+    model = policy_model(imitation)
     config = {**run_config(model, imitation, expert, content_hash, intention_run, trajectory_run), "train": cfg.optimisation()}
     round_steps = [cfg.steps] + [imitation.dagger_steps or cfg.steps] * imitation.dagger_rounds
     round_end = np.cumsum(round_steps)  # global update count at each round's end
@@ -405,6 +419,9 @@ def add_train_policy(sub: argparse._SubParsersAction) -> None:
                    "at batch >= 256 need it on an H100), ~1.7x the update time")
     p.add_argument("--train-intentions", choices=TRAIN_INTENTIONS, default=d.train_intentions,
                    help="intention inputs in the training data: ground truth (the paper) or the predictor runs' outputs")
+    p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=d.object_saliency,
+                   help="with the object input, also read it as a saliency map over the panorama (default: on; "
+                   "--no-object-saliency reads the object distribution as a vector only)")
     p.set_defaults(func=run_train_policy)
 
 
@@ -413,7 +430,7 @@ def run_train_policy(args: argparse.Namespace) -> int:
         ablation=args.ablation, resolution=_hw(args.resolution), episodes=args.episodes,
         val_episodes=args.val_episodes, dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps,
         seq_len=args.seq_len, burn_in=args.burn_in, rollout_batch=args.rollout_batch,
-        train_intentions=args.train_intentions,
+        train_intentions=args.train_intentions, object_saliency=args.object_saliency,
     )
     for flag, run in (("--intention", args.intention), ("--trajectory", args.trajectory)):
         if run is not None and not Path(run).is_dir():
