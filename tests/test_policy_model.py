@@ -1,5 +1,6 @@
 """conav_jax.models.policy: a sequence rollout equals stepping, resets start from a zero carry,
-and the Table 3 ablations neither read nor hold weights for the inputs they switch off."""
+the Table 3 ablations neither read nor hold weights for the inputs they switch off, and the
+object saliency channel finds each category by its rendered colour and nothing else."""
 
 import dataclasses
 import functools
@@ -152,9 +153,14 @@ def _colour(rgb):
 
 
 def test_pixel_categories_read_each_category_colour_and_nothing_else():
-    rgb = np.stack([_colour(c.rgb) for c in CATEGORIES] + [_colour(WALL_RGB), _colour(FLOOR_RGB), np.array([0.62, 0.72, 0.85], np.float32)])
+    from envs.conav_env import ROBOT_RGB
+    from envs.humanoid import capsule_colours
+    from envs.panorama import SKY_RGB
+
+    others = [_colour(WALL_RGB), _colour(FLOOR_RGB), SKY_RGB, ROBOT_RGB, *capsule_colours()]
+    rgb = np.stack([_colour(c.rgb) for c in CATEGORIES] + [np.asarray(o, np.float32) for o in others])
     cats = np.asarray(policy.pixel_categories(rgb[None]))[0]
-    np.testing.assert_array_equal(cats, [*range(len(CATEGORIES)), -1, -1, -1])
+    np.testing.assert_array_equal(cats, [*range(len(CATEGORIES))] + [-1] * len(others))
     # A colour one step away from a category's is not that category.
     off = _colour(CATEGORIES[5].rgb) + np.float32(1 / 255)
     assert int(policy.pixel_categories(off[None, None])[0, 0]) == -1
