@@ -236,7 +236,6 @@ def train_policy(
     from conav_jax.episodes import read_manifest
     from conav_jax.expert import ExpertConfig
     from conav_jax.models import policy
-    from conav_jax.models.policy import PolicyConfig, ablation_config
     from conav_jax.optim import adam, warmup_cosine
     from conav_jax.parallel import check_divisible, replicate
     from envs import ConavEnv, EnvConfig, SensorConfig
@@ -248,7 +247,7 @@ def train_policy(
     if mesh is not None:
         check_divisible(cfg.batch, mesh, "TrainConfig.batch")
     if imitation.train_intentions == "predicted":
-        needs = ablation_config(PolicyConfig(), imitation.ablation)
+        needs = policy_model(imitation)
         missing = [flag for flag, use, run in (
             ("--intention", needs.use_activity or needs.use_object, intention_run),
             ("--trajectory", needs.use_trajectory, trajectory_run)) if use and run is None]

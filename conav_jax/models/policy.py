@@ -68,6 +68,10 @@ class PolicyConfig:
     saliency_sectors: int = 16  # azimuth sectors of the bearing features; must divide the width
     init_log_std: float = -0.5  # initial action log-std (PPO only)
 
+    def __post_init__(self):
+        if self.uses_saliency and (self.saliency_sectors < 1 or self.image_hw[1] % self.saliency_sectors):
+            raise ValueError(f"saliency_sectors ({self.saliency_sectors}) must divide the panorama width {self.image_hw[1]}")
+
     @property
     def uses_saliency(self) -> bool:
         return self.use_object and self.object_saliency
@@ -153,8 +157,6 @@ def init(key: jax.Array, config: PolicyConfig) -> Params:
     """Parameters for `config`; the CNN output size is derived by shape evaluation."""
     if len(config.conv_channels) != len(config.conv_kernels):
         raise ValueError("conv_channels and conv_kernels need one entry per conv layer")
-    if config.uses_saliency and (config.saliency_sectors < 1 or config.image_hw[1] % config.saliency_sectors):
-        raise ValueError(f"saliency_sectors ({config.saliency_sectors}) must divide the panorama width {config.image_hw[1]}")
     intentions = _intention_inputs(config)
     keys = iter(jax.random.split(key, len(config.conv_channels) + 6 + len(intentions)))
     in_ch = (4 + config.uses_saliency, *config.conv_channels[:-1])
