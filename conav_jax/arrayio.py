@@ -2,8 +2,9 @@
 
 `np.savez` stamps the wall-clock time into each zip entry, so the same arrays give different
 bytes on every run; here entries carry a fixed timestamp and a sorted order. Every write goes to
-a temporary sibling that is fsynced and then renamed over the target, so an interrupted run
-never leaves a truncated file under the real name.
+a temporary sibling that is fsynced and then renamed over the target, and the directory is
+fsynced after the rename, so an interrupted run (or a power cut) never leaves a truncated file
+under the real name, nor loses the rename of a file a later write depends on.
 """
 
 from __future__ import annotations
@@ -22,8 +23,23 @@ import numpy as np
 _FIXED_ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
 
+def fsync_dir(directory: str | os.PathLike) -> None:
+    """Persist the entries of `directory` (a rename into it): fsync the directory itself.
+    Best effort: some platforms cannot open a directory for fsync."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write `data` to `path` so that readers see either the old file or the whole new one."""
+    """Write `data` to `path` so that readers see either the old file or the whole new one:
+    a temporary sibling is written and fsynced, renamed over `path`, and the directory fsynced
+    so the rename itself survives a crash."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -37,6 +53,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    fsync_dir(path.parent)
 
 
 def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:

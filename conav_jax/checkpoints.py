@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from conav_jax.arrayio import fsync_dir
+
 FORMAT_VERSION = 1
 META_MEMBER = "meta.json"
 CHECKPOINT_RE = re.compile(r"^ckpt_(\d+)\.npz$")
@@ -130,18 +132,6 @@ def _config_dict(config: Any) -> dict:
     return json.loads(json.dumps(config))
 
 
-def _fsync_dir(directory: Path) -> None:
-    """Persist a rename: fsync the directory entry (not possible on every OS; best effort)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def save_checkpoint(
     path: str | os.PathLike,
     *,
@@ -184,7 +174,7 @@ def save_checkpoint(
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
     return path
 
 

@@ -9,6 +9,10 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+# Dataset splits in generation order: a scene's seed is its index in this order, so a split
+# added at the end (minival) leaves the scenes and episodes of the ones before it unchanged.
+SPLITS = ("train", "val", "minival")
+
 
 @dataclass(frozen=True)
 class TaskConfig:
@@ -75,12 +79,24 @@ class DatasetConfig:
     val_scenes: int = 1
     train_episodes: int = 8
     val_episodes: int = 4
+    # `minival`: extra scenes, disjoint from train and val, for choosing hyper-parameters
+    # without touching the reported val split. Generated after val, so adding it leaves
+    # train and val unchanged. 0 scenes = no minival split (datasets written before it existed).
+    minival_scenes: int = 0
+    minival_episodes: int = 0
     episodes_per_shard: int = 256
     seed: int = 0
     task: TaskConfig = field(default_factory=TaskConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
     scenes: SceneGenConfig = field(default_factory=SceneGenConfig)
     nav: NavConfig = field(default_factory=NavConfig)
+
+    def split_sizes(self) -> dict[str, tuple[int, int]]:
+        """split -> (scenes, episodes) in SPLITS order; minival only when it has scenes or episodes."""
+        sizes = {sp: (getattr(self, f"{sp}_scenes"), getattr(self, f"{sp}_episodes")) for sp in SPLITS}
+        if sizes["minival"] == (0, 0):
+            del sizes["minival"]
+        return sizes
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

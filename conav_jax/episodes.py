@@ -1,10 +1,11 @@
 """CoNav episodes: generation into array shards, and loading them back as a padded bank.
 
-scene (scenegen) -> navigation fields -> activity pair (activities) -> human path + motion
-(motion) -> robot start -> arrays. Each scene's episodes come from their own seed, so the same
-dataset seed gives byte-identical shards whatever the number of worker processes. Every file
-is written atomically and the manifest, written last, lists each file's sha256: a directory
-without a manifest, or with a file that does not match it, is an incomplete dataset.
+scene (scenegen, or the user's scene files) -> navigation fields -> activity pair (activities)
+-> human path + motion (motion) -> robot start -> arrays. Each scene's episodes come from their
+own seed, so the same dataset seed gives byte-identical shards whatever the number of worker
+processes. Every file is written atomically and the manifest, written last, lists each file's
+sha256 and a content hash over them: a directory without a manifest, or with a file that does
+not match it, is an incomplete dataset.
 
 Layout of a dataset directory:
     manifest.json
@@ -12,24 +13,28 @@ Layout of a dataset directory:
     scenes/<name>.nav.npz       occupancy grid and geodesic fields to every usable object
     train/shard_00000.npz ...   episode arrays (see EPISODE_ARRAYS)
     val/shard_00000.npz ...
+    minival/shard_00000.npz ... (when the dataset has a minival split)
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
+import re
+import warnings
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
 from conav_jax import activities as activities_lib
 from conav_jax import motion as motion_lib
 from conav_jax.arrayio import load_npz, save_json, save_npz, sha256_file
-from conav_jax.config import DatasetConfig
+from conav_jax.config import SPLITS, DatasetConfig
 from conav_jax.navigation import (
     OccupancyGrid,
     descend,
@@ -39,7 +44,7 @@ from conav_jax.navigation import (
     occupancy_grid,
     smooth_path,
 )
-from conav_jax.scene import Scene, load_scene
+from conav_jax.scene import Scene, load_scene, scene_from_json_dict
 from conav_jax.scenegen import generate_scene
 
 MANIFEST = "manifest.json"
@@ -77,6 +82,13 @@ class DatasetError(ValueError):
     """A dataset directory that is missing, incomplete or corrupt."""
 
 
+class BlockedStandingPoint(UserWarning):
+    """Scene objects left out of episode sampling because the robot cannot reach their standing
+    point (an occupied cell, or outside the scene's main free region). One warning per scene,
+    naming each object; silence it with
+    `warnings.filterwarnings("ignore", category=BlockedStandingPoint)`."""
+
+
 # -- navigation per scene ----------------------------------------------------------------------
 
 
@@ -107,25 +119,52 @@ class SceneNav:
 
 def scene_nav(scene: Scene, cfg: DatasetConfig) -> SceneNav:
     """Grid for the robot radius; a field for every object whose standing point the robot
-    can reach within the apartment's main free region."""
+    can reach within the apartment's main free region. Objects left out are named in one
+    BlockedStandingPoint warning."""
+    nav, blocked = _scene_nav(scene, cfg)
+    _warn_blocked(scene, blocked)
+    return nav
+
+
+def _scene_nav(scene: Scene, cfg: DatasetConfig) -> tuple[SceneNav, list[tuple[int, str]]]:
+    """scene_nav without the warning: the nav and (object index, why) of each object left out."""
     task = cfg.task
     grid = occupancy_grid(scene, task.robot_radius_m, cfg.nav.cell_m, task.robot_height_m)
     main = largest_component(grid)
-    fields, objs, poses = [], [], []
+    fields, objs, poses, blocked = [], [], [], []
     for i, o in enumerate(scene.objects):
         pose = o.standing_pose(cfg.scenes.standing_offset_m)
         cell = grid.to_cell(pose[:2])
-        if not (grid.is_free(pose[:2]) and main[cell]):
+        if not grid.is_free(pose[:2]):
+            blocked.append((i, "not free for the robot"))
+            continue
+        if not main[cell]:
+            blocked.append((i, "outside the main free region"))
             continue
         fields.append(geodesic_field(grid, pose[:2]))
         objs.append(i)
         poses.append(pose)
     ny, nx = grid.shape
-    return SceneNav(
+    nav = SceneNav(
         grid,
         np.asarray(fields, np.float32).reshape(-1, ny, nx),
         np.asarray(objs, np.int32),
         np.asarray(poses, np.float32).reshape(-1, 3),
+    )
+    return nav, blocked
+
+
+def _warn_blocked(scene: Scene, blocked: list[tuple[int, str]], stacklevel: int = 3) -> None:
+    """One warning per scene; `stacklevel` 3 points at scene_nav's caller."""
+    if not blocked:
+        return
+    listed = "; ".join(f"objects[{i}] ({scene.objects[i].category}) {why}" for i, why in blocked)
+    warnings.warn(
+        BlockedStandingPoint(
+            f"scene {scene.name}: {len(blocked)} of {len(scene.objects)} objects dropped from episode sampling, "
+            f"standing point blocked: {listed}"
+        ),
+        stacklevel=stacklevel,
     )
 
 
@@ -213,19 +252,45 @@ def _scene_seed(seed: int, scene_index: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([seed, scene_index]))
 
 
-def _build_scene(args):
-    """Worker: generate scene `scene_index` and its `n_episodes` episodes."""
-    cfg, scene_index, name, n_episodes = args
+class _SceneJob(NamedTuple):
+    """One scene to build: generated from its seed (`scene` None) or given (a scene file's)."""
+
+    cfg: DatasetConfig
+    scene_index: int  # position in the manifest's scene list; with the dataset seed, the scene's seed
+    name: str
+    n_episodes: int
+    scene: Scene | None = None
+    source: str = ""  # the given scene's file, for error messages
+
+
+def _build_scene(job: _SceneJob):
+    """Worker: the job's scene (generated, or the given one), its nav, its `n_episodes` episodes
+    and the objects its nav leaves out (warned about by the caller, once, in the main process)."""
+    cfg, scene_index, name, n_episodes = job.cfg, job.scene_index, job.name, job.n_episodes
     rng = _scene_seed(cfg.seed, scene_index)
     graph = activities_lib.load_activity_graph()
-    for _ in range(20):  # a scene too cramped to host any activity pair is drawn again
-        scene = generate_scene(rng, cfg.scenes, name)
-        nav = scene_nav(scene, cfg)
-        probe = np.random.default_rng(0)
-        if any(_episode(probe, scene, nav, graph, cfg) is not None for _ in range(5)):
-            break
+    if job.scene is None:
+        for _ in range(20):  # a scene too cramped to host any activity pair is drawn again
+            scene = generate_scene(rng, cfg.scenes, name)
+            nav, blocked = _scene_nav(scene, cfg)
+            probe = np.random.default_rng(0)
+            if any(_episode(probe, scene, nav, graph, cfg) is not None for _ in range(5)):
+                break
+        else:
+            raise RuntimeError(f"could not generate a usable scene {name}")
+        where = f"scene {name}"
     else:
-        raise RuntimeError(f"could not generate a usable scene {name}")
+        scene = job.scene
+        nav, blocked = _scene_nav(scene, cfg)
+        where = f"{job.source}: scene {name}"
+        usable = {}
+        for k in nav.field_object:
+            usable[scene.objects[k].category] = usable.get(scene.objects[k].category, 0) + 1
+        if not activities_lib.available_links(graph, usable):
+            raise ValueError(
+                f"{where}: no activity link joins two of its reachable objects' categories, so it hosts no "
+                f"episode (reachable: {', '.join(f'{c} x{n}' for c, n in sorted(usable.items())) or 'none'})"
+            )
     episodes = []
     misses = 0
     while len(episodes) < n_episodes:
@@ -233,11 +298,15 @@ def _build_scene(args):
         if ep is None:
             misses += 1
             if misses > 50 * (n_episodes + 1):
-                raise RuntimeError(f"scene {name}: too few valid episodes ({len(episodes)}/{n_episodes})")
+                # A given scene is the user's to fix (ValueError); a generated one is a generator bug.
+                raise (RuntimeError if job.scene is None else ValueError)(
+                    f"{where}: too few valid episodes ({len(episodes)}/{n_episodes}); activity B's spot must be "
+                    f"at least {MIN_HUMAN_PATH_M} m (geodesic) from activity A's, with a free robot start near the human"
+                )
             continue
         ep["scene_index"] = scene_index
         episodes.append(ep)
-    return scene, nav, episodes
+    return scene, nav, episodes, blocked
 
 
 def _split_counts(total: int, parts: int) -> list[int]:
@@ -265,43 +334,138 @@ def stack_episodes(episodes: list[dict], t_max: int | None = None) -> dict[str, 
     return out
 
 
+def dataset_content_hash(manifest: dict) -> str:
+    """The dataset's content hash: sha256 of the sorted, concatenated sha256 digests of every
+    file the manifest lists (scene JSON, scene nav, episode shards). The writer stores it in the
+    manifest; the reader recomputes it, so an edited manifest does not pass for the dataset."""
+    digests = sorted(
+        [s["sha256_json"] for s in manifest["scenes"]]
+        + [s["sha256_nav"] for s in manifest["scenes"]]
+        + [sh["sha256"] for sp in manifest["splits"].values() for sh in sp["shards"]]
+    )
+    return hashlib.sha256("".join(digests).encode()).hexdigest()
+
+
+def _check_split_size(split: str, n_scenes: int, n_eps: int) -> None:
+    if n_scenes < 1 or n_eps < n_scenes:
+        raise ValueError(f"{split}: need at least one scene and one episode per scene, got {n_scenes}, {n_eps}")
+
+
 def generate_dataset(
     cfg: DatasetConfig,
     out_dir: str | os.PathLike,
     workers: int = 1,
     progress: Callable[[Iterable], Iterable] | None = None,
 ) -> dict:
-    """Generate the dataset `cfg` describes into `out_dir`; returns the manifest."""
+    """Generate the dataset `cfg` describes (procedural scenes) into `out_dir`; returns the
+    manifest. Splits are built in SPLITS order, minival only when cfg has minival scenes."""
+    jobs = []
+    for split, (n_scenes, n_eps) in cfg.split_sizes().items():
+        _check_split_size(split, n_scenes, n_eps)
+        for k, n in enumerate(_split_counts(n_eps, n_scenes)):
+            jobs.append((split, _SceneJob(cfg, len(jobs), f"{split}_{k:03d}", n)))
+    return _write_dataset(cfg, jobs, out_dir, workers, progress, scene_source="procedural")
+
+
+_SCENE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+
+
+def generate_from_scenes(
+    scene_paths_by_split: Mapping[str, Sequence[str | os.PathLike]],
+    episodes_per_split: Mapping[str, int],
+    cfg: DatasetConfig,
+    out_dir: str | os.PathLike,
+    workers: int = 1,
+    progress: Callable[[Iterable], Iterable] | None = None,
+) -> dict:
+    """A dataset from the user's own scene files (conav_jax.scene format) into `out_dir`;
+    returns the manifest. Same layout, determinism and atomicity as `generate_dataset`.
+
+    `scene_paths_by_split` maps split names (of SPLITS; any non-empty subset) to scene files,
+    each file in one split only; `episodes_per_split` gives each split's episode count, spread
+    over its scenes as evenly as possible. `cfg` supplies the seed, task, motion and navigation
+    settings (its scene-generation settings are unused); the manifest records it with the split
+    sizes replaced by the ones given. Scene seeds follow the order of SPLITS, then of the files
+    in each split. ValueError for an unknown split, a file in two splits, two scenes of one
+    name, a name unfit for a file name, or a scene that can host no episode; SceneFormatError
+    (naming the file and field) for an invalid scene file."""
+    unknown = sorted(set(scene_paths_by_split) - set(SPLITS))
+    if unknown:
+        raise ValueError(f"unknown split(s) {', '.join(map(repr, unknown))}; splits are {', '.join(SPLITS)}")
+    if set(episodes_per_split) != set(scene_paths_by_split):
+        raise ValueError(
+            f"episodes_per_split names splits {sorted(episodes_per_split)}, scene_paths_by_split "
+            f"{sorted(scene_paths_by_split)}: give an episode count for each split with scenes"
+        )
+    if not scene_paths_by_split:
+        raise ValueError("no scene files given")
+    seen_files: dict[Path, str] = {}
+    seen_names: dict[str, str] = {}
+    sizes: dict[str, int] = {}
+    jobs = []
+    for split in SPLITS:
+        if split not in scene_paths_by_split:
+            continue
+        paths = [Path(p) for p in scene_paths_by_split[split]]
+        n_eps = episodes_per_split[split]
+        _check_split_size(split, len(paths), n_eps)
+        sizes[f"{split}_scenes"], sizes[f"{split}_episodes"] = len(paths), n_eps
+        for path, n in zip(paths, _split_counts(n_eps, len(paths))):
+            key = path.resolve()
+            if key in seen_files:
+                raise ValueError(f"{path}: listed in split {seen_files[key]!r} and in {split!r}; splits must not share scenes")
+            seen_files[key] = split
+            # Through the JSON form the dataset stores, so the stored file is the scene used.
+            scene = scene_from_json_dict(load_scene(path).to_json_dict(), source=str(path))
+            if not _SCENE_NAME.fullmatch(scene.name):
+                raise ValueError(
+                    f"{path}: name: {scene.name!r} cannot name the dataset's scene files; "
+                    "use letters, digits, '_', '.' and '-', starting with a letter or digit"
+                )
+            if scene.name in seen_names:
+                raise ValueError(f"{path}: name: {scene.name!r} is also the name of {seen_names[scene.name]}")
+            seen_names[scene.name] = str(path)
+            jobs.append((split, _SceneJob(cfg, len(jobs), scene.name, n, scene, str(path))))
+    sizes.update({f"{sp}_{what}": 0 for sp in SPLITS if sp not in scene_paths_by_split for what in ("scenes", "episodes")})
+    cfg = dataclasses.replace(cfg, **sizes)
+    jobs = [(split, job._replace(cfg=cfg)) for split, job in jobs]
+    return _write_dataset(cfg, jobs, out_dir, workers, progress, scene_source="files")
+
+
+def _write_dataset(
+    cfg: DatasetConfig,
+    jobs: list[tuple[str, _SceneJob]],
+    out_dir: str | os.PathLike,
+    workers: int,
+    progress: Callable[[Iterable], Iterable] | None,
+    scene_source: str,
+) -> dict:
+    """Build every (split, job) and write the dataset: scene files, nav, shards, then the
+    manifest last. The one writer behind generate_dataset and generate_from_scenes."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if (out / MANIFEST).exists():
         (out / MANIFEST).unlink()  # the old dataset stops being valid before any file changes
-    splits = {"train": (cfg.train_scenes, cfg.train_episodes), "val": (cfg.val_scenes, cfg.val_episodes)}
-    jobs, split_of = [], []
-    for split, (n_scenes, n_eps) in splits.items():
-        if n_scenes < 1 or n_eps < n_scenes:
-            raise ValueError(f"{split}: need at least one scene and one episode per scene, got {n_scenes}, {n_eps}")
-        for k, n in enumerate(_split_counts(n_eps, n_scenes)):
-            idx = len(jobs)
-            jobs.append((cfg, idx, f"{split}_{k:03d}", n))
-            split_of.append(split)
     progress = progress or (lambda it: it)
+    scene_jobs = [job for _, job in jobs]
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
-            results = list(progress(pool.map(_build_scene, jobs)))
+            results = list(progress(pool.map(_build_scene, scene_jobs)))
     else:
-        results = list(progress(map(_build_scene, jobs)))
+        results = list(progress(map(_build_scene, scene_jobs)))
 
     manifest: dict = {
         "format": DATASET_FORMAT,
         "version": DATASET_VERSION,
         "config": cfg.to_dict(),
+        "scene_source": scene_source,
         "scenes": [],
         "splits": {},
         "arrays": {k: {"per_step": v[0], "dtype": v[1], "meaning": v[2]} for k, v in EPISODE_ARRAYS.items()},
     }
-    by_split: dict[str, list[dict]] = {"train": [], "val": []}
-    for (scene, nav, eps), split in zip(results, split_of):
+    by_split: dict[str, list[dict]] = {split: [] for split in SPLITS if any(sp == split for sp, _ in jobs)}
+    for (scene, nav, eps, blocked), (split, _) in zip(results, jobs):
+        _warn_blocked(scene, blocked, stacklevel=4)  # at the caller of generate_dataset / _from_scenes
         scene_file = f"scenes/{scene.name}.json"
         nav_file = f"scenes/{scene.name}.nav.npz"
         manifest["scenes"].append(
@@ -330,12 +494,7 @@ def generate_dataset(
             "mean_length_steps": round(float(lengths.mean()), 2),
             "max_length_steps": int(lengths.max()),
         }
-    digests = sorted(
-        [s["sha256_json"] for s in manifest["scenes"]]
-        + [s["sha256_nav"] for s in manifest["scenes"]]
-        + [sh["sha256"] for sp in manifest["splits"].values() for sh in sp["shards"]]
-    )
-    manifest["content_hash"] = hashlib.sha256("".join(digests).encode()).hexdigest()
+    manifest["content_hash"] = dataset_content_hash(manifest)
     save_json(out / MANIFEST, manifest)
     return manifest
 
@@ -372,6 +531,9 @@ class EpisodeSplit:
 
 
 def read_manifest(data_dir: str | os.PathLike) -> dict:
+    """The manifest of the dataset in `data_dir`, checked: format, version, and the content hash
+    recomputed from the file digests it lists (DatasetError naming the directory otherwise).
+    The files themselves are checked against those digests when load_split reads them."""
     import json
 
     data_dir = Path(data_dir)
@@ -384,19 +546,32 @@ def read_manifest(data_dir: str | os.PathLike) -> dict:
         m = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise DatasetError(f"{path}: corrupt manifest ({e})") from e
-    if m.get("format") != DATASET_FORMAT or m.get("version") != DATASET_VERSION:
+    if not isinstance(m, dict) or m.get("format") != DATASET_FORMAT or m.get("version") != DATASET_VERSION:
         raise DatasetError(f"{path}: not a {DATASET_FORMAT} v{DATASET_VERSION} manifest")
+    try:
+        expected = dataset_content_hash(m)
+    except (KeyError, TypeError, AttributeError) as e:
+        raise DatasetError(f"{path}: corrupt manifest: malformed file list ({e!r})") from e
+    if m.get("content_hash") != expected:
+        raise DatasetError(
+            f"{data_dir}: the manifest's content_hash {str(m.get('content_hash'))[:16]}... does not match the file "
+            f"digests it lists ({expected[:16]}...): the manifest was edited or is corrupt"
+        )
     return m
 
 
 def load_split(
     data_dir: str | os.PathLike, split: str, max_episodes: int | None = None, verify: bool = True
 ) -> EpisodeSplit:
-    """Load one split; with `verify`, every file read is checked against the manifest's sha256."""
+    """Load one split ("train", "val" or, when the dataset has it, "minival"); with `verify`,
+    every file read is checked against the manifest's sha256."""
     data_dir = Path(data_dir)
     m = read_manifest(data_dir)
     if split not in m["splits"]:
-        raise DatasetError(f"{data_dir}: no split {split!r}; has {sorted(m['splits'])}")
+        hint = ""
+        if split == "minival":
+            hint = " (generated without a minival split: DatasetConfig.minival_scenes was 0; generate it again to add one)"
+        raise DatasetError(f"{data_dir}: no split {split!r}; has {sorted(m['splits'])}{hint}")
 
     def checked(rel: str, digest: str) -> Path:
         p = data_dir / rel

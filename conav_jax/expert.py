@@ -16,14 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage
 
-from conav_jax.planning import field_cell, field_value
+from conav_jax.geometry import unit, wrap_angle
+from conav_jax.planning import cell_centres, descent_chain, field_cell, field_value
 
 # Phases of the expert's plan, in order.
 APPROACH, OBSERVE, GO = 0, 1, 2
-
-# The 8 neighbour offsets (dy, dx) and their lengths in cells.
-_OFFSETS = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)], np.int32)
-_LENGTHS = np.sqrt((_OFFSETS**2).sum(-1)).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -102,15 +99,6 @@ def clearance_map(free: np.ndarray, cell_m: float) -> np.ndarray:
     return ((ndimage.distance_transform_edt(free) - ndimage.distance_transform_edt(~free)) * cell_m).astype(np.float32)
 
 
-def _wrap(a: jax.Array) -> jax.Array:
-    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
-
-
-def _unit(v: jax.Array) -> jax.Array:
-    n = jnp.linalg.norm(v)
-    return jnp.where(n > 1e-6, v / jnp.maximum(n, 1e-6), 0.0)
-
-
 def _cross(a: jax.Array, b: jax.Array) -> jax.Array:
     """z of a x b for 2-vectors (broadcasting): > 0 when b is left of a."""
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
@@ -120,9 +108,9 @@ def _drive(cfg: ExpertConfig, yaw: jax.Array, direction: jax.Array, speed: jax.A
     """Action toward world `direction` (unit (2,); zero: stand still) at `speed` in [0, 1]:
     turn by the heading error, drive slower the larger it is. `reversible`: drive backwards
     when the direction is behind."""
-    err = _wrap(jnp.arctan2(direction[1], direction[0]) - yaw)
+    err = wrap_angle(jnp.arctan2(direction[1], direction[0]) - yaw)
     back = reversible & (jnp.cos(err) < 0.0)
-    err = jnp.where(back, _wrap(err + jnp.pi), err)
+    err = jnp.where(back, wrap_angle(err + jnp.pi), err)
     v = speed * jnp.clip(1.0 - jnp.abs(err) / cfg.drive_error_rad, 0.0, 1.0) * jnp.where(back, -1.0, 1.0)
     w = jnp.clip(cfg.heading_gain * err, -1.0, 1.0)
     return jnp.where(jnp.linalg.norm(direction) > 0.0, jnp.stack([v, w]), 0.0)
@@ -133,30 +121,13 @@ def _free_direction(
 ) -> jax.Array:
     """Unit world direction (2,) along the geodesic path down `field`, through free cells only.
 
-    The simulator's fields give blocked cells near free space "nearest free value + straight
-    distance", so a plain descent (conav_jax.planning.field_direction) may cut a door's corner
-    through them and push the robot into the jamb. Here the steepest-descent chain skips cells
-    with clearance <= 0 (unless it starts in one: then it may leave through any), runs
-    `lookahead` cells, and the robot aims at the farthest chain cell it can reach in a straight
+    The steepest-descent chain keeps to cells of positive clearance (planning.descent_chain, so
+    it does not cut a door's corner into the jamb), runs `lookahead` cells, and the robot aims at the farthest chain cell it can reach in a straight
     line through free cells (string pulling: no 45-degree zig-zag). Zero at the goal."""
-    ny, nx = field.shape
-    f = field.astype(jnp.float32)
-    offsets, lengths = jnp.asarray(_OFFSETS), jnp.asarray(_LENGTHS) * cell_m
     start = field_cell(field, origin, cell_m, xy)
     start_blocked = clearance[start] <= 0.0
-
-    def downhill(cell, _):
-        iy, ix = cell
-        ny_ = jnp.clip(iy + offsets[:, 0], 0, ny - 1)
-        nx_ = jnp.clip(ix + offsets[:, 1], 0, nx - 1)
-        ok = (clearance[ny_, nx_] > 0.0) | start_blocked
-        k = jnp.argmin(jnp.where(ok, f[ny_, nx_] + lengths, jnp.inf))
-        better = ok[k] & (f[ny_[k], nx_[k]] < f[iy, ix])
-        nxt = (jnp.where(better, ny_[k], iy), jnp.where(better, nx_[k], ix))
-        return nxt, jnp.stack(nxt)
-
-    _, chain = jax.lax.scan(downhill, start, None, length=lookahead)  # (lookahead, 2) (iy, ix)
-    targets = origin + (chain[:, ::-1] + 0.5) * cell_m  # (lookahead, 2) world xy
+    chain = descent_chain(field, origin, cell_m, xy, lookahead, clearance)  # (lookahead, 2) (iy, ix)
+    targets = cell_centres(origin, cell_m, chain)  # (lookahead, 2) world xy
     # Straight-line reachability of each chain cell, sampled every ~half cell.
     frac = (jnp.arange(2 * lookahead) + 1.0) / (2 * lookahead)
     pts = xy + frac[None, :, None] * (targets - xy)[:, None, :]  # (lookahead, samples, 2)
@@ -164,7 +135,7 @@ def _free_direction(
     seen = jnp.all(clearance[cells] > 0.0, axis=-1) | start_blocked
     j = jnp.where(seen.any(), lookahead - 1 - jnp.argmax(seen[::-1]), 0)
     moved = jnp.any(chain[j] != jnp.stack(start))
-    return jnp.where(moved, _unit(targets[j] - xy), 0.0)
+    return jnp.where(moved, unit(targets[j] - xy), 0.0)
 
 
 def _wall_push(grid: jax.Array, origin: jax.Array, cell_m: float, xy: jax.Array) -> jax.Array:
@@ -174,7 +145,7 @@ def _wall_push(grid: jax.Array, origin: jax.Array, cell_m: float, xy: jax.Array)
     g = grid.astype(jnp.float32)
     dx = g[iy, jnp.minimum(ix + 1, nx - 1)] - g[iy, jnp.maximum(ix - 1, 0)]
     dy = g[jnp.minimum(iy + 1, ny - 1), ix] - g[jnp.maximum(iy - 1, 0), ix]
-    return _unit(jnp.stack([dx, dy]))
+    return unit(jnp.stack([dx, dy]))
 
 
 def _closest_on_path(points: jax.Array, xy: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -231,7 +202,7 @@ def expert_action(
     origin = maps.origin
 
     # Where the current phase leads.
-    to_human = _unit(rel[0])
+    to_human = unit(rel[0])
     use_field = human_at_a & jnp.isfinite(field_value(maps.approach_field, origin, cell_m, xy))
     approach_dir = jnp.where(
         use_field, _free_direction(maps.approach_field, maps.clearance, origin, cell_m, xy, cfg.lookahead_cells), to_human
@@ -259,11 +230,11 @@ def expert_action(
 
     def slide(d):
         into = touching & (d @ normal < 0.0)
-        return jnp.where(into, _unit(d - (d @ normal) * normal), d)
+        return jnp.where(into, unit(d - (d @ normal) * normal), d)
 
     wall = jnp.clip((cfg.wall_margin_m - clear) / cfg.wall_margin_m, 0.0, 1.0)
     heading = heading + cfg.wall_gain * wall * normal
-    heading = jnp.where(jnp.linalg.norm(task_dir) > 0.0, slide(_unit(heading)), 0.0)
+    heading = jnp.where(jnp.linalg.norm(task_dir) > 0.0, slide(unit(heading)), 0.0)
 
     # Slow down for a human ahead on the chosen heading.
     ahead = (rel @ heading > 0.0) & (jnp.abs(_cross(heading, rel)) < cfg.corridor_m)
@@ -279,15 +250,15 @@ def expert_action(
     # the roomier side when exactly on it; from a standing one, straight back.
     closest, gap = _closest_on_path(human_xy, xy)
     walk = human_xy[-1] - human_xy[0]
-    line = _unit(walk)
+    line = unit(walk)
     off = xy - closest
     lateral = off - (off @ line) * line
     perp = jnp.stack([-line[1], line[0]])
     room = field_value(maps.clearance, origin, cell_m, xy + 0.5 * perp) - field_value(
         maps.clearance, origin, cell_m, xy - 0.5 * perp
     )
-    sideways = jnp.where(jnp.linalg.norm(lateral) > 1e-3, _unit(lateral), jnp.where(room >= 0.0, perp, -perp))
-    back = jnp.where(jnp.linalg.norm(off) > 0.0, _unit(off), -to_human)
+    sideways = jnp.where(jnp.linalg.norm(lateral) > 1e-3, unit(lateral), jnp.where(room >= 0.0, perp, -perp))
+    back = jnp.where(jnp.linalg.norm(off) > 0.0, unit(off), -to_human)
     away = slide(jnp.where(jnp.linalg.norm(walk) > cfg.walking_m, sideways, back))
     yield_action = _drive(cfg, yaw, away, jnp.float32(cfg.yield_speed), True)
     action = jnp.where(gap < cfg.yield_m, yield_action, action)

@@ -2,7 +2,7 @@
 
 A field is a (ny, nx) array of shortest-path metres to a goal over a grid with the given origin
 and cell size (conav_jax.navigation). These functions run inside jit/vmap: the simulator's
-reward and SPL, the expert, and the oracle-pathfinder baselines all use them.
+reward, the expert and the oracle-pathfinder baselines all use them.
 """
 
 from __future__ import annotations
@@ -30,33 +30,41 @@ def field_value(field: jax.Array, origin: jax.Array, cell_m: float, xy: jax.Arra
     return field[iy, ix].astype(jnp.float32)
 
 
-def field_direction(field: jax.Array, origin: jax.Array, cell_m: float, xy: jax.Array, lookahead: int = 4) -> jax.Array:
-    """Unit world direction (2,) that leads downhill toward the goal.
+def descent_chain(
+    field: jax.Array, origin: jax.Array, cell_m: float, xy: jax.Array, steps: int, clearance: jax.Array | None = None
+) -> jax.Array:
+    """Cells (steps, 2) int32 (iy, ix) of the next `steps` cells down the field's steepest-descent
+    chain from the cell holding xy: each move goes to the 8-neighbour minimising value + step
+    length, if that is lower than the current value; at a minimum the chain repeats its cell.
 
-    Follows the field's steepest-descent chain `lookahead` cells ahead and points at the cell
-    it ends in, which smooths the 45-degree zig-zag of a grid path. Zero at the goal or where
-    no neighbour is lower."""
+    With `clearance` (a signed wall-clearance grid on the same cells) the chain only enters
+    cells of positive clearance, unless it starts in a blocked one (then it may leave through
+    any): the simulator's fields give blocked cells near free space "nearest free value +
+    straight distance", so an unconstrained descent may cut a door's corner through them."""
     ny, nx = field.shape
     f = field.astype(jnp.float32)
     offsets = jnp.asarray(_OFFSETS)
     lengths = jnp.asarray(_LENGTHS) * cell_m
+    start = field_cell(field, origin, cell_m, xy)
+    start_blocked = False if clearance is None else clearance[start] <= 0.0
 
     def downhill(cell, _):
         iy, ix = cell
-        ny_ = jnp.clip(iy + offsets[:, 0], 0, ny - 1)
-        nx_ = jnp.clip(ix + offsets[:, 1], 0, nx - 1)
-        cand = f[ny_, nx_] + lengths
-        k = jnp.argmin(cand)
-        better = f[ny_[k], nx_[k]] < f[iy, ix]
-        return (jnp.where(better, ny_[k], iy), jnp.where(better, nx_[k], ix)), None
+        cy = jnp.clip(iy + offsets[:, 0], 0, ny - 1)
+        cx = jnp.clip(ix + offsets[:, 1], 0, nx - 1)
+        ok = True if clearance is None else (clearance[cy, cx] > 0.0) | start_blocked
+        k = jnp.argmin(jnp.where(ok, f[cy, cx] + lengths, jnp.inf))
+        better = (f[cy[k], cx[k]] < f[iy, ix]) & (True if clearance is None else ok[k])
+        nxt = (jnp.where(better, cy[k], iy), jnp.where(better, cx[k], ix))
+        return nxt, jnp.stack(nxt)
 
-    start = field_cell(field, origin, cell_m, xy)
-    (iy, ix), _ = jax.lax.scan(downhill, start, None, length=lookahead)
-    target = jnp.stack([origin[0] + (ix + 0.5) * cell_m, origin[1] + (iy + 0.5) * cell_m])
-    delta = target - xy
-    norm = jnp.linalg.norm(delta)
-    moved = (iy != start[0]) | (ix != start[1])
-    return jnp.where(moved & (norm > 1e-6), delta / jnp.maximum(norm, 1e-6), 0.0)
+    _, chain = jax.lax.scan(downhill, start, None, length=steps)
+    return chain
+
+
+def cell_centres(origin: jax.Array, cell_m: float, cells: jax.Array) -> jax.Array:
+    """World xy (..., 2) of the centres of grid cells (..., 2) given as (iy, ix)."""
+    return origin + (cells[..., ::-1].astype(jnp.float32) + 0.5) * cell_m
 
 
 def fill_blocked(field: np.ndarray, free: np.ndarray, cell_m: float, reach_m: float = 0.5) -> np.ndarray:

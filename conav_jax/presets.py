@@ -1,6 +1,13 @@
 """Named dataset presets: `tiny` (seconds on a laptop CPU, for tests and the demo), `small`
 (enough to train and compare agents on one GPU) and `paper` (the paper's split sizes: 49 scenes,
-37 train / 12 val, 20,293 / 4,962 episodes, mean episode length near 539 steps)."""
+37 train / 12 val, 20,293 / 4,962 episodes, mean episode length near 539 steps).
+
+Every preset adds a `minival` split on scenes of its own, disjoint from train and val, for
+choosing hyper-parameters without touching the reported val split: tiny 1 scene / 6 episodes
+(one scene is all a smoke test needs), small 2 / 200 and paper 4 / 1,000 (a handful of scenes
+so a choice does not fit one apartment; episodes per scene near val's: small 100 vs 125, paper
+250 vs ~414). Its scenes are generated after val's, so train and val are the same with or
+without it (paper: still 37 / 12 scenes and 20,293 / 4,962 episodes)."""
 
 from __future__ import annotations
 
@@ -15,6 +22,8 @@ PRESETS: dict[str, DatasetConfig] = {
         val_scenes=1,
         train_episodes=12,
         val_episodes=6,
+        minival_scenes=1,
+        minival_episodes=6,
         scenes=SceneGenConfig(rooms=(3, 4)),
         motion=MotionConfig(activity_clip_s=(4.0, 6.0)),
     ),
@@ -24,6 +33,8 @@ PRESETS: dict[str, DatasetConfig] = {
         val_scenes=4,
         train_episodes=2000,
         val_episodes=500,
+        minival_scenes=2,
+        minival_episodes=200,
     ),
     "paper": DatasetConfig(
         name="paper",
@@ -31,6 +42,8 @@ PRESETS: dict[str, DatasetConfig] = {
         val_scenes=12,
         train_episodes=20293,
         val_episodes=4962,
+        minival_scenes=4,
+        minival_episodes=1000,
         scenes=SceneGenConfig(rooms=(4, 7), objects_per_room=(5, 8)),
         # Looping activity clips brings the mean episode length to the paper's ~539 steps.
         motion=MotionConfig(activity_loops=(2, 4)),

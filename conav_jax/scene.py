@@ -156,95 +156,111 @@ class Scene:
 
 
 class SceneFormatError(ValueError):
-    """A scene file that does not follow the format; the message names the field."""
+    """A scene that does not follow the format. The message is `SOURCE: FIELD: PROBLEM`:
+    `source` names the file (or dict), `field` the offending field as a path into the document
+    (`objects[3].category`; empty when the document itself is at fault)."""
+
+    def __init__(self, source: str, field: str, problem: str):
+        self.source, self.field, self.problem = source, field, problem
+        super().__init__(f"{source}: {field}: {problem}" if field else f"{source}: {problem}")
+
+    def __reduce__(self):  # picklable across worker processes despite the three-argument init
+        return type(self), (self.source, self.field, self.problem)
 
 
-def _field(d: dict, key: str, where: str) -> Any:
+def _join(where: str, key: str) -> str:
+    return f"{where}.{key}" if where else key
+
+
+def _field(d: dict, key: str, source: str, where: str = "") -> Any:
+    """`d[key]`; `where` is the path of `d` in the document ("" for the document itself)."""
     if not isinstance(d, dict):
-        raise SceneFormatError(f"{where}: expected an object, got {type(d).__name__}")
+        raise SceneFormatError(source, where, f"expected an object, got {type(d).__name__}")
     if key not in d:
-        raise SceneFormatError(f"{where}: missing field {key!r}")
+        raise SceneFormatError(source, _join(where, key), "required field is missing")
     return d[key]
 
 
-def _numbers(v: Any, n: int, where: str) -> tuple[float, ...]:
+def _numbers(v: Any, n: int, source: str, field: str) -> tuple[float, ...]:
     if not isinstance(v, (list, tuple)) or len(v) != n:
-        raise SceneFormatError(f"{where}: expected a list of {n} numbers, got {v!r}")
+        raise SceneFormatError(source, field, f"expected a list of {n} numbers, got {v!r}")
     out = []
     for x in v:
         if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
-            raise SceneFormatError(f"{where}: expected finite numbers, got {v!r}")
+            raise SceneFormatError(source, field, f"expected finite numbers, got {v!r}")
         out.append(float(x))
     return tuple(out)
 
 
+def _list(d: dict, key: str, source: str) -> list:
+    v = _field(d, key, source)
+    if not isinstance(v, list):
+        raise SceneFormatError(source, key, f"expected a list, got {type(v).__name__}")
+    return v
+
+
 def scene_from_json_dict(d: dict[str, Any], source: str = "scene") -> Scene:
-    """Parse and validate a scene dict; raises SceneFormatError naming the offending field."""
+    """Parse and validate a scene dict; raises SceneFormatError naming the source and the field."""
     fmt = _field(d, "format", source)
     if fmt != SCENE_FORMAT:
-        raise SceneFormatError(f"{source}: field 'format' must be {SCENE_FORMAT!r}, got {fmt!r}")
+        raise SceneFormatError(source, "format", f"must be {SCENE_FORMAT!r}, got {fmt!r}")
     version = _field(d, "version", source)
     if version != SCENE_VERSION:
-        raise SceneFormatError(f"{source}: unsupported 'version' {version!r} (this reader knows {SCENE_VERSION})")
+        raise SceneFormatError(source, "version", f"unsupported version {version!r} (this reader knows {SCENE_VERSION})")
     name = _field(d, "name", source)
     if not isinstance(name, str) or not name:
-        raise SceneFormatError(f"{source}: field 'name' must be a non-empty string")
-    bounds = _numbers(_field(d, "bounds_m", source), 4, f"{source}.bounds_m")
+        raise SceneFormatError(source, "name", f"must be a non-empty string, got {name!r}")
+    bounds = _numbers(_field(d, "bounds_m", source), 4, source, "bounds_m")
     if not (bounds[0] < bounds[2] and bounds[1] < bounds[3]):
-        raise SceneFormatError(f"{source}.bounds_m: need x_min < x_max and y_min < y_max, got {bounds}")
-    wall_height = _numbers([_field(d, "wall_height_m", source)], 1, f"{source}.wall_height_m")[0]
+        raise SceneFormatError(source, "bounds_m", f"need x_min < x_max and y_min < y_max, got {bounds}")
+    wall_height = _numbers([_field(d, "wall_height_m", source)], 1, source, "wall_height_m")[0]
     if wall_height <= 0:
-        raise SceneFormatError(f"{source}.wall_height_m: must be positive, got {wall_height}")
+        raise SceneFormatError(source, "wall_height_m", f"must be positive, got {wall_height}")
 
-    rooms_raw = _field(d, "rooms", source)
-    if not isinstance(rooms_raw, list):
-        raise SceneFormatError(f"{source}.rooms: expected a list")
     rooms = []
-    for i, r in enumerate(rooms_raw):
-        where = f"{source}.rooms[{i}]"
-        rtype = _field(r, "type", where)
+    for i, r in enumerate(_list(d, "rooms", source)):
+        where = f"rooms[{i}]"
+        rtype = _field(r, "type", source, where)
         if rtype not in ROOM_TYPES:
-            raise SceneFormatError(f"{where}.type: unknown room type {rtype!r}; known: {', '.join(ROOM_TYPES)}")
-        rooms.append(Room(rtype, _numbers(_field(r, "rect_m", where), 4, f"{where}.rect_m")))
+            raise SceneFormatError(
+                source, f"{where}.type", f"unknown room type {rtype!r}; valid room types: {', '.join(ROOM_TYPES)}"
+            )
+        rooms.append(Room(rtype, _numbers(_field(r, "rect_m", source, where), 4, source, f"{where}.rect_m")))
 
-    walls_raw = _field(d, "walls", source)
-    if not isinstance(walls_raw, list):
-        raise SceneFormatError(f"{source}.walls: expected a list")
     walls = []
-    for i, w in enumerate(walls_raw):
-        where = f"{source}.walls[{i}]"
-        c = _numbers(_field(w, "center_m", where), 3, f"{where}.center_m")
-        h = _numbers(_field(w, "half_extents_m", where), 3, f"{where}.half_extents_m")
+    for i, w in enumerate(_list(d, "walls", source)):
+        where = f"walls[{i}]"
+        c = _numbers(_field(w, "center_m", source, where), 3, source, f"{where}.center_m")
+        h = _numbers(_field(w, "half_extents_m", source, where), 3, source, f"{where}.half_extents_m")
         if min(h) <= 0:
-            raise SceneFormatError(f"{where}.half_extents_m: must be positive, got {h}")
+            raise SceneFormatError(source, f"{where}.half_extents_m", f"must be positive, got {h}")
         walls.append(Box(c, h))
 
-    objects_raw = _field(d, "objects", source)
-    if not isinstance(objects_raw, list):
-        raise SceneFormatError(f"{source}.objects: expected a list")
     objects = []
-    for i, o in enumerate(objects_raw):
-        where = f"{source}.objects[{i}]"
-        cat = _field(o, "category", where)
-        if cat not in CATEGORY_INDEX:
-            raise SceneFormatError(f"{where}.category: unknown category {cat!r}")
-        c = _numbers(_field(o, "center_m", where), 3, f"{where}.center_m")
-        size = _numbers(_field(o, "size_m", where), 3, f"{where}.size_m")
+    for i, o in enumerate(_list(d, "objects", source)):
+        where = f"objects[{i}]"
+        cat = _field(o, "category", source, where)
+        if not isinstance(cat, str) or cat not in CATEGORY_INDEX:
+            raise SceneFormatError(
+                source, f"{where}.category", f"unknown category {cat!r}; valid categories: {', '.join(sorted(CATEGORY_INDEX))}"
+            )
+        c = _numbers(_field(o, "center_m", source, where), 3, source, f"{where}.center_m")
+        size = _numbers(_field(o, "size_m", source, where), 3, source, f"{where}.size_m")
         if min(size) <= 0:
-            raise SceneFormatError(f"{where}.size_m: must be positive, got {size}")
-        yaw = _field(o, "yaw_deg", where)
+            raise SceneFormatError(source, f"{where}.size_m", f"must be positive, got {size}")
+        yaw = _field(o, "yaw_deg", source, where)
         if isinstance(yaw, bool) or not isinstance(yaw, (int, float)) or yaw % 90 != 0:
-            raise SceneFormatError(f"{where}.yaw_deg: must be a multiple of 90, got {yaw!r}")
+            raise SceneFormatError(source, f"{where}.yaw_deg", f"must be a multiple of 90, got {yaw!r}")
         room = o.get("room", -1)
-        if not isinstance(room, int) or not (-1 <= room < len(rooms)):
-            raise SceneFormatError(f"{where}.room: must be -1 or an index into rooms, got {room!r}")
+        if isinstance(room, bool) or not isinstance(room, int) or not (-1 <= room < len(rooms)):
+            raise SceneFormatError(source, f"{where}.room", f"must be -1 or an index into rooms, got {room!r}")
         rgb = o.get("rgb", list(category(cat).rgb))
         if (
             not isinstance(rgb, list)
             or len(rgb) != 3
             or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in rgb)
         ):
-            raise SceneFormatError(f"{where}.rgb: expected three integers 0-255, got {rgb!r}")
+            raise SceneFormatError(source, f"{where}.rgb", f"expected three integers 0-255, got {rgb!r}")
         objects.append(SceneObject(cat, c, size, int(yaw) % 360, room, tuple(rgb)))
 
     scene = Scene(name, bounds, wall_height, tuple(rooms), tuple(walls), tuple(objects))
@@ -259,33 +275,41 @@ def _overlap(a: Box, b: Box) -> bool:
 
 
 def validate_geometry(scene: Scene, source: str = "scene") -> None:
-    """Reject boxes outside the bounds or below the floor and objects that interpenetrate."""
+    """Reject boxes outside the bounds or below the floor and objects that interpenetrate; a
+    misplaced box names its `center_m`, an overlap the two boxes."""
     x0, y0, x1, y1 = scene.bounds
-    named = [(f"walls[{i}]", w) for i, w in enumerate(scene.walls)]
-    named += [(f"objects[{i}] ({o.category})", o.box) for i, o in enumerate(scene.objects)]
+    named = [(f"walls[{i}]", "wall", w) for i, w in enumerate(scene.walls)]
+    named += [(f"objects[{i}]", o.category, o.box) for i, o in enumerate(scene.objects)]
     tol = OVERLAP_TOLERANCE_M
-    for name, b in named:
+    for name, what, b in named:
         (cx, cy, _), (hx, hy, _) = b.center, b.half_extents
         if cx - hx < x0 - tol or cx + hx > x1 + tol or cy - hy < y0 - tol or cy + hy > y1 + tol:
-            raise SceneFormatError(f"{source}.{name}: footprint lies outside bounds_m {scene.bounds}")
+            raise SceneFormatError(
+                source,
+                f"{name}.center_m",
+                f"{what} footprint x {cx - hx:.3f}..{cx + hx:.3f} m, y {cy - hy:.3f}..{cy + hy:.3f} m "
+                f"lies outside bounds_m {list(scene.bounds)}",
+            )
         if b.z_min < -tol:
-            raise SceneFormatError(f"{source}.{name}: extends below the floor (z_min {b.z_min:.3f} m)")
-    obj_named = named[len(scene.walls):]
-    for i, (na, a) in enumerate(obj_named):
-        for nb, b in named[: len(scene.walls)] + obj_named[:i]:
+            raise SceneFormatError(source, f"{name}.center_m", f"{what} extends below the floor (z_min {b.z_min:.3f} m)")
+    walls, objs = named[: len(scene.walls)], named[len(scene.walls) :]
+    for i, (na, what, a) in enumerate(objs):
+        for nb, what_b, b in walls + objs[:i]:
             if _overlap(a, b):
-                raise SceneFormatError(f"{source}.{na}: overlaps {nb}")
+                other = nb if what_b == "wall" else f"{nb} ({what_b})"
+                raise SceneFormatError(source, na, f"{what} overlaps {other}")
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
-    """Read and validate a scene JSON file."""
+    """Read and validate a scene JSON file; errors read `FILE: FIELD: problem`
+    (e.g. `apt.json: objects[3].category: unknown category 'sofa2'; valid categories: ...`)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"scene file not found: {path}")
     try:
         d = json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise SceneFormatError(f"{path}: not valid JSON ({e})") from e
+        raise SceneFormatError(str(path), "", f"not valid JSON ({e})") from e
     return scene_from_json_dict(d, source=str(path))
 
 

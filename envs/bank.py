@@ -21,6 +21,7 @@ from conav_jax.categories import FLOOR_RGB, NUM_CATEGORIES
 from conav_jax.episodes import EpisodeSplit
 from conav_jax.planning import fill_blocked
 from conav_jax.scene import scene_boxes
+from envs.metrics import shortest_path_steps
 
 PAD_Z_M = -10.0  # padding boxes live here, below the floor
 
@@ -51,6 +52,7 @@ class EpisodeBank:
     goal_xy: jax.Array  # (N, 2)
     robot_start: jax.Array  # (N, 3)
     geodesic_start_goal_m: jax.Array  # (N,)
+    shortest_path_steps: jax.Array  # (N,) float32: SPL's l, the fewest control steps to the goal radius
     t_arrive: jax.Array
     t_end: jax.Array
     root_xy: jax.Array  # (N, T, 2)
@@ -101,7 +103,8 @@ def _pad_boxes(boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray]], slots: in
 
 def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int = 1) -> EpisodeBank:
     """Stack a loaded split (all of the dataset's scenes, this split's episodes) for the device."""
-    robot_h = split.config.task.robot_height_m
+    task = split.config.task
+    robot_h = task.robot_height_m
     col, vis = [], []
     for scene in split.scenes:
         b = scene_boxes(scene, robot_h)
@@ -151,6 +154,8 @@ def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int =
         goal_xy=jnp.asarray(e["goal_xy"]),
         robot_start=jnp.asarray(e["robot_start"]),
         geodesic_start_goal_m=jnp.asarray(e["geodesic_start_goal_m"]),
+        shortest_path_steps=jnp.asarray(shortest_path_steps(
+            e["geodesic_start_goal_m"], task.success_radius_m, task.v_max_mps * task.control_dt_s), jnp.float32),
         t_arrive=jnp.asarray(e["t_arrive"]),
         t_end=jnp.asarray(e["t_end"]),
         root_xy=jnp.asarray(e["root_xy"]),

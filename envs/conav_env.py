@@ -12,9 +12,10 @@ It subclasses `brax.envs.base.Env` rather than `PipelineEnv`: PipelineEnv holds 
 `sys` and steps it with brax's pipeline, while each CoNav episode needs its own scene geometry
 in the MJX model and mocap poses set between substeps.
 
-After an episode ends (the robot reached the goal, or the human finished activity B) further
-steps leave the state unchanged, so a fixed-length `lax.scan` over a batch of episodes of
-different lengths reads every episode's result at its end.
+An episode ends when the human finishes activity B (`t_end`), or, with
+`EnvConfig.end_at_reach`, when the robot first reaches the goal. After it ends further steps
+leave the state unchanged, so a fixed-length `lax.scan` over a batch of episodes of different
+lengths reads every episode's result at its end.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from conav_jax.activities import NUM_ACTIVITIES
 from conav_jax.categories import NUM_CATEGORIES
 from conav_jax.config import TaskConfig
 from conav_jax.episodes import EpisodeSplit, load_split
+from conav_jax.geometry import to_frame, wrap_angle
 from conav_jax.planning import field_value
 from envs import contact
 from envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
@@ -40,17 +42,6 @@ from envs.mjcf import UD, GeomLayout, build_model, robot_body_id
 from envs.panorama import colourise, fast_depth_ids, front_view, legacy_depth_ids, reference_depth_ids
 
 ROBOT_RGB = np.array([0.3, 0.3, 0.32], np.float32)
-
-
-def wrap_angle(a: jax.Array) -> jax.Array:
-    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
-
-
-def to_frame(xy: jax.Array, origin_xy: jax.Array, yaw: jax.Array) -> jax.Array:
-    """Points (..., 2) expressed in the frame at origin_xy rotated by yaw."""
-    c, s = jnp.cos(yaw), jnp.sin(yaw)
-    d = xy - origin_xy
-    return jnp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
 class ConavEnv(Env):
@@ -175,15 +166,19 @@ class ConavEnv(Env):
         ud = ud.at[UD["t"]].set(t.astype(jnp.float32))
         ud = ud.at[UD["reached"]].set(reached.astype(jnp.float32))
         ud = ud.at[UD["t_reach"]].set(jnp.where(first_reach, t.astype(jnp.float32), ud0[UD["t_reach"]]))
-        ud = ud.at[UD["collided"]].max(human_touch.astype(jnp.float32))
+        # CR counts touches up to the first reach, its step included; CR_full every touch.
+        ud = ud.at[UD["collided"]].max((human_touch & ~reached_before).astype(jnp.float32))
         # A touch at the step the robot arrives does not count as "before t_reach".
         ud = ud.at[UD["collided_before_reach"]].max((human_touch & ~reached).astype(jnp.float32))
+        ud = ud.at[UD["collided_full"]].max(human_touch.astype(jnp.float32))
+        ud = ud.at[UD["human_touch"]].set(human_touch.astype(jnp.float32))
+        ud = ud.at[UD["wall_touch"]].set(wall_touch.astype(jnp.float32))
         ud = ud.at[UD["path_length_m"]].add(jnp.where(reached_before, 0.0, step_len))
         ud = ud.at[UD["prev_geodesic_m"]].set(geo)
         ud = ud.at[UD["human_contact_steps"]].add(human_touch.astype(jnp.float32))
         ud = ud.at[UD["wall_contact_steps"]].add(wall_touch.astype(jnp.float32))
         ud = ud.at[UD["nan_actions"]].add(is_nan.astype(jnp.float32))
-        done = reached | (t >= b.t_end[episode])
+        done = (reached & self.config.end_at_reach) | (t >= b.t_end[episode])
         ud = ud.at[UD["done"]].set(done.astype(jnp.float32))
         d = d.replace(userdata=ud)
 
@@ -352,8 +347,12 @@ class ConavEnv(Env):
     def _metrics(self, d: mjx.Data, episode: jax.Array) -> dict[str, jax.Array]:
         """Per-episode accumulators plus the episode constants the metrics need (all scalars)."""
         ud, b = d.userdata, self.bank
-        out = {name: ud[i] for name, i in UD.items() if name != "prev_geodesic_m"}
+        per_step = ("prev_geodesic_m", "human_touch", "wall_touch")
+        out = {name: ud[i] for name, i in UD.items() if name not in per_step}
+        if self.config.end_at_reach:  # the episode stops at the first reach: no CR_full
+            del out["collided_full"]
         out["t_arrive"] = b.t_arrive[episode].astype(jnp.float32)
         out["t_end"] = b.t_end[episode].astype(jnp.float32)
         out["geodesic_start_goal_m"] = b.geodesic_start_goal_m[episode]
+        out["shortest_path_steps"] = b.shortest_path_steps[episode]
         return out

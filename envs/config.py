@@ -140,3 +140,8 @@ class EnvConfig:
     # Ground-truth intention observations (activity/object one-hots, future trajectory), as the
     # paper feeds them during training; agents replace them with predictions at evaluation.
     intention_obs: bool = True
+    # False (the benchmark): an episode runs to t_end, the robot acting after it reached, so
+    # CR_full sees what happens once it parks at the human's destination; success, SPL and AS
+    # keep their first-reach definitions. True: the episode ends at the first reach (the
+    # imitation and PPO training rollouts, whose data and rewards stop there).
+    end_at_reach: bool = False

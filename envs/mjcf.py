@@ -29,13 +29,16 @@ USERDATA_FIELDS = (
     "done",  # 1 once the episode has ended (reached, or t reached t_end)
     "reached",  # 1 once the robot has been within the success radius
     "t_reach",  # first step within the success radius, -1 before
-    "collided",  # 1 once the robot has touched the human
-    "collided_before_reach",  # 1 if that happened before t_reach
+    "collided",  # 1 once the robot has touched the human at or before its first reach
+    "collided_before_reach",  # 1 if that happened before t_reach (the reaching step excluded)
+    "collided_full",  # 1 once the robot has touched the human at any step (up to t_end)
     "path_length_m",  # robot path length up to t_reach
     "prev_geodesic_m",  # geodesic distance to the goal after the previous step
     "human_contact_steps",
     "wall_contact_steps",
     "nan_actions",  # steps whose action had a NaN (treated as a zero action)
+    "human_touch",  # 1 if the robot touched the human in the last step (rollout traces)
+    "wall_touch",  # 1 if it touched a wall or furniture in the last step
 )
 UD = {name: i for i, name in enumerate(USERDATA_FIELDS)}
 

@@ -1,6 +1,6 @@
 """Batched rollouts: any agent through the env, `lax.scan` over time, `vmap` over episodes.
 
-An `Agent` acts for ONE environment (the rollout vmaps it): `init(key, episode) -> carry` and
+An `Agent` (envs.agents.base) acts for ONE environment (the rollout vmaps it): `init(key, episode) -> carry` and
 `act(state, carry, key) -> (action (2,), carry)`, where `state` is the env's brax State, so an
 agent reads `state.obs` and, if it is privileged (an oracle baseline, the expert), the env's
 constants through a closure and `state.pipeline_state` / `state.info`. Learned agents close over
@@ -20,22 +20,29 @@ from brax.envs.base import State
 from jax.sharding import Mesh
 
 from conav_jax.parallel import constrain_batch, replicate, round_up, shard_batch, to_host
+from envs.agents.base import Agent
 from envs.conav_env import ConavEnv
-
-
-class Agent(NamedTuple):
-    name: str
-    init: Callable[[jax.Array, jax.Array], Any]  # (key, episode index) -> carry
-    act: Callable[[State, Any, jax.Array], tuple[jax.Array, Any]]  # (state, carry, key) -> (action, carry)
+from envs.mjcf import UD
 
 
 class Trace(NamedTuple):
-    """Per-step records of a rollout, (B, T, ...)."""
+    """Per-step records of a rollout, (B, T, ...): enough to recompute every metric by hand
+    (envs.metrics) beside the episode's constants."""
 
-    robot_pose: jax.Array  # (x, y, yaw) world
+    robot_pose: jax.Array  # (x, y, yaw) world, after the step
     action: jax.Array  # the agent's action in [-1, 1]
     reward: jax.Array
     done: jax.Array
+    human_contact: jax.Array  # 1 if the robot touched the human in this step
+    wall_contact: jax.Array  # 1 if it touched a wall or furniture in this step
+
+
+def trace_step(state: State, action: jax.Array) -> Trace:
+    """The Trace entry of one step (of one env, or a batch of them): the state after it and the
+    action that led there."""
+    ud = state.pipeline_state.userdata
+    return Trace(state.pipeline_state.qpos, action, state.reward, state.done, ud[..., UD["human_touch"]],
+                 ud[..., UD["wall_touch"]])
 
 
 def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_steps: int, record: bool = False):
@@ -57,7 +64,7 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
             state = env.step(state, action)
             out = None
             if record:
-                out = Trace(state.pipeline_state.qpos, action, state.reward, state.done)
+                out = trace_step(state, action)
             return (state, carry), out
 
         (state, _), trace = jax.lax.scan(body, (state, carry), jnp.arange(num_steps))
@@ -124,6 +131,27 @@ def map_episodes(
     return jax.tree.map(lambda *xs: np.concatenate(xs), *chunks)
 
 
+class Lanes(NamedTuple):
+    """The pool's parallel lanes, each (slots, ...): the env state, the agent's carry, the
+    episode's step key and the step count within the episode."""
+
+    state: State
+    carry: Any
+    key: jax.Array
+    step: jax.Array
+
+
+class Pool(NamedTuple):
+    """The refilling evaluator's while-loop carry."""
+
+    lanes: Lanes
+    position: jax.Array  # (slots,) the queue position each lane runs
+    active: jax.Array  # (slots,) bool: the lane runs an episode whose result is still to come
+    results: dict  # final metrics by queue position, (Q,) each
+    next_position: jax.Array  # () the next queue position to hand out
+    trace: Trace  # queue[0]'s steps (trace_steps, ...)
+
+
 def make_pool_rollout(
     env: ConavEnv,
     agent_fn: Callable[[Any], Agent],
@@ -157,39 +185,42 @@ def make_pool_rollout(
     def run(params, key, queue, n):
         agent = agent_fn(params)
         q = queue.shape[0]
-        start = jax.vmap(lambda ep: _start(env, agent, key, ep))
+
+        def start(episodes):
+            state, carry, k_run = jax.vmap(lambda ep: _start(env, agent, key, ep))(episodes)
+            return Lanes(state, carry, k_run, jnp.zeros(episodes.shape, jnp.int32))
+
         lanes = jnp.arange(slots)
-        lane = start(queue[jnp.minimum(lanes, q - 1)]) + (jnp.zeros(slots, jnp.int32),)  # state, carry, key, step
-        lane = constrain_batch(lane, mesh)
-        out = jax.tree.map(lambda m: jnp.zeros((q,) + m.shape[1:], m.dtype), lane[0].metrics)
-        trace = Trace(jnp.zeros((trace_steps, 3)), jnp.zeros((trace_steps, 2)), jnp.zeros(trace_steps), jnp.zeros(trace_steps))
+        lane = constrain_batch(start(queue[jnp.minimum(lanes, q - 1)]), mesh)
+        out = jax.tree.map(lambda m: jnp.zeros((q,) + m.shape[1:], m.dtype), lane.state.metrics)
+        trace = jax.tree.map(lambda x: jnp.zeros((trace_steps,) + x.shape[1:], x.dtype),
+                             jax.eval_shape(lambda l: trace_step(l.state, jnp.zeros((slots, 2))), lane))
 
         def one_step(c, _):
             lane, trace, tracing = c
-            state, carry, k_run, i = lane
-            action, carry = jax.vmap(agent.act)(state, carry, jax.vmap(jax.random.fold_in)(k_run, i))
-            state = jax.vmap(env.step)(state, action)
+            action, carry = jax.vmap(agent.act)(lane.state, lane.carry, jax.vmap(jax.random.fold_in)(lane.key, lane.step))
+            state = jax.vmap(env.step)(lane.state, action)
             if trace_steps:  # lane 0 while it runs queue[0]; other steps write out of range (dropped)
-                at = jnp.where(tracing, i[0], trace_steps)
-                now = Trace(state.pipeline_state.qpos[0], action[0], state.reward[0], state.done[0])
+                at = jnp.where(tracing, lane.step[0], trace_steps)
+                now = jax.tree.map(lambda x: x[0], trace_step(state, action))
                 trace = jax.tree.map(lambda buf, x: buf.at[at].set(x.astype(buf.dtype), mode="drop"), trace, now)
-            return ((state, carry, k_run, i + 1), trace, tracing), None
+            return (Lanes(state, carry, lane.key, lane.step + 1), trace, tracing), None
 
-        def body(c):
-            lane, pos, active, out, next_pos, trace = c
-            (lane, trace, _), _ = jax.lax.scan(one_step, (lane, trace, pos[0] == 0), None, length=chunk)
-            finished = active & (lane[0].done > 0)
-            out = jax.tree.map(lambda o, m: o.at[jnp.where(finished, pos, q)].set(m, mode="drop"), out, lane[0].metrics)
-            new_pos = next_pos + jnp.cumsum(finished) - 1
+        def body(c: Pool) -> Pool:
+            (lane, trace, _), _ = jax.lax.scan(one_step, (c.lanes, c.trace, c.position[0] == 0), None, length=chunk)
+            finished = c.active & (lane.state.done > 0)
+            out = jax.tree.map(lambda o, m: o.at[jnp.where(finished, c.position, q)].set(m, mode="drop"),
+                               c.results, lane.state.metrics)
+            new_pos = c.next_position + jnp.cumsum(finished) - 1
             take = finished & (new_pos < n)
-            refill = lambda lane: pick(take, start(queue[jnp.clip(new_pos, 0, q - 1)]) + (jnp.zeros_like(lane[3]),), lane)
+            refill = lambda lane: pick(take, start(queue[jnp.clip(new_pos, 0, q - 1)]), lane)
             lane = constrain_batch(jax.lax.cond(take.any(), refill, lambda lane: lane, lane), mesh)
-            pos = jnp.where(take, new_pos, pos)
-            return lane, pos, take | (active & ~finished), out, next_pos + finished.sum(), trace
+            return Pool(lane, jnp.where(take, new_pos, c.position), take | (c.active & ~finished), out,
+                        c.next_position + finished.sum(), trace)
 
-        c = (lane, lanes, lanes < n, out, jnp.minimum(jnp.int32(slots), n), trace)
-        c = jax.lax.while_loop(lambda c: c[2].any(), body, c)
-        return (c[3], c[5]) if trace_steps else c[3]
+        c = Pool(lane, lanes, lanes < n, out, jnp.minimum(jnp.int32(slots), n), trace)
+        c = jax.lax.while_loop(lambda c: c.active.any(), body, c)
+        return (c.results, c.trace) if trace_steps else c.results
 
     return run
 

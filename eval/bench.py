@@ -19,7 +19,8 @@ import time
 
 from conav_jax.parallel import add_devices_arg
 from envs.bench import parse_resolution
-from eval.agents import AGENTS, check_agent
+from envs.agents.registry import AGENTS, check_agent
+from eval.sweep import add_intention_args, intention_kwargs_from_args
 
 
 def add_bench_eval(sub: argparse._SubParsersAction) -> None:
@@ -28,6 +29,7 @@ def add_bench_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", default="val")
     p.add_argument("--agent", default="pioneer", help=f"one of {', '.join(AGENTS)}")
     p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    add_intention_args(p)
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--resolution", type=parse_resolution, default=(112, 448))
     p.add_argument("--sensor", choices=["auto", "fast", "pallas", "legacy", "reference"], default="auto",
@@ -119,12 +121,16 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
 
 
 def run_bench_eval(args: argparse.Namespace) -> int:
-    check_agent(args.agent, args.checkpoint)
+    spec = check_agent(args.agent, args.checkpoint)
+    predictors = intention_kwargs_from_args(args)
+    if predictors and not spec.takes_intentions:
+        raise ValueError(f"agent {args.agent!r} reads no intention inputs (--intention / --trajectory / "
+                         "--ground-truth-intentions)")
     if args.batch < 1 or args.repeats < 1 or (args.episodes is not None and args.episodes < 1):
         raise ValueError("--batch, --repeats and --episodes must be at least 1")
     from conav_jax.parallel import check_divisible, make_mesh
     from envs import ConavEnv, EnvConfig, SensorConfig
-    from eval.agents import make_agent
+    from envs.agents.registry import make_agent
 
     mesh = make_mesh(args.devices)
     check_divisible(args.batch, mesh, "--batch")
@@ -139,7 +145,7 @@ def run_bench_eval(args: argparse.Namespace) -> int:
         generate_dataset(preset("tiny"), data)
     h, w = args.resolution
     env = ConavEnv(data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w, kind=args.sensor)))
-    agent = make_agent(args.agent, env, args.checkpoint)
+    agent = make_agent(args.agent, env, args.checkpoint, **predictors)
     res = {"agent": args.agent, "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind}
     if args.mode == "sweep":
         res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, mesh))

@@ -17,7 +17,7 @@ def add_curve(sub) -> None:
 
 def run_curve(args) -> int:
     from eval.plots import learning_curve  # matplotlib and jax: only when the command runs
-    from train.loop import LOG_FILE, read_log
+    from conav_jax.runs import LOG_FILE, read_log
 
     runs = {}
     for spec in args.runs:

@@ -35,7 +35,7 @@ def demo_commands(out: Path, seed: int, resolution: str) -> list[list[str]]:
          "--trajectory", str(runs / "trajectory"), "--resolution", resolution, "--steps", "150", "--batch", "8",
          "--dagger-rounds", "1", "--dagger-steps", "100", "--val-every", "150", "--ckpt-every", "150",
          "--seed", str(seed), *quick],
-        ["eval", "--data", str(data), "--split", "val", "--agent", "random,follower,objectgoal,pioneer,expert,conav",
+        ["eval", "--data", str(data), "--split", "val", "--agent", "random,follower,objectgoal-planner,pioneer,expert,conav",
          "--checkpoint", str(runs / "policy"), "--resolution", resolution, "--seed", str(seed), "--out", str(out / "eval")],
         ["view", "--data", str(data), "--split", "val", "--episode", "0", "--agent", "conav", "--checkpoint",
          str(runs / "policy"), "--resolution", resolution, "--out", str(out / "episode0.rrd")],

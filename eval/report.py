@@ -12,11 +12,14 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from envs.metrics import METRIC_NAMES, episode_outcomes
+from envs.metrics import episode_outcomes, reported_metrics
 
 Z_95 = 1.959963984540054  # standard normal quantile of 0.975
-RATES = ("FASR", "RASR", "CR")  # 0/1 per episode: Wilson intervals
-HIGHER_IS_BETTER = {"FASR": True, "RASR": True, "FASPL": True, "RASPL": True, "CR": False, "AS": False}
+RATES = ("FASR", "RASR", "CR", "CR_full")  # 0/1 per episode: Wilson intervals
+HIGHER_IS_BETTER = {"FASR": True, "RASR": True, "FASPL": True, "RASPL": True, "CR": False, "AS": False,
+                    "CR_full": False, "FASPL_m": True, "RASPL_m": True}
+# Table columns: the paper's, with CR_full beside CR and the metre SPLs last.
+TABLE_ORDER = ("FASR", "RASR", "FASPL", "RASPL", "CR", "CR_full", "AS", "FASPL_m", "RASPL_m")
 
 
 def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
@@ -50,7 +53,7 @@ def summarize_with_ci(metrics: Mapping[str, np.ndarray], seed: int = 0) -> dict[
     arrays over episodes). Rates and SPLs in percent, AS in steps, as in the paper's tables."""
     out = episode_outcomes(metrics)
     summary = {}
-    for name in METRIC_NAMES:
+    for name in reported_metrics(out):
         v = out[name]
         scale = 1.0 if name == "AS" else 100.0
         if name in RATES:
@@ -67,16 +70,23 @@ def format_cell(entry: Mapping[str, float], digits: int = 1) -> str:
     return f"{entry['value']:.{digits}f} ± {(entry['hi'] - entry['lo']) / 2.0:.{digits}f}"
 
 
-def _header() -> str:
-    arrows = [f"{m}{'↑' if HIGHER_IS_BETTER[m] else '↓'}" for m in METRIC_NAMES]
+def table_columns(summaries: Sequence[Mapping[str, object]]) -> tuple[str, ...]:
+    """The metrics every summary holds, in TABLE_ORDER (CR_full only where episodes ran to t_end)."""
+    return tuple(m for m in TABLE_ORDER if all(m in s for s in summaries))
+
+
+def _header(columns: Sequence[str]) -> str:
+    arrows = [f"{m}{'↑' if HIGHER_IS_BETTER[m] else '↓'}" for m in columns]
     return "| " + " | ".join(arrows) + " |"
 
 
 def table2_markdown(rows: Sequence[tuple[str, Mapping[str, Mapping[str, float]]]]) -> str:
-    """The paper's Table 2: one row per agent (title, summary from summarize_with_ci)."""
-    lines = ["| Methods " + _header(), "|---" + "|---:" * len(METRIC_NAMES) + "|"]
+    """The paper's Table 2: one row per agent (title, summary from summarize_with_ci), the
+    paper's columns with ours beside them."""
+    cols = table_columns([s for _, s in rows])
+    lines = ["| Methods " + _header(cols), "|---" + "|---:" * len(cols) + "|"]
     for title, summary in rows:
-        lines.append(f"| {title} | " + " | ".join(format_cell(summary[m]) for m in METRIC_NAMES) + " |")
+        lines.append(f"| {title} | " + " | ".join(format_cell(summary[m]) for m in cols) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -89,11 +99,12 @@ def table3_markdown(
 ) -> str:
     """The paper's Table 3: one row per ablation (name, (intended activity, intended object,
     intended trajectory) inputs used, '?' where unknown, summary)."""
+    cols = table_columns([s for _, _, s in rows])
     lines = [
-        "| Exp. | Activity | Object | Trajectory " + _header(),
-        "|---|:---:|:---:|:---:" + "|---:" * len(METRIC_NAMES) + "|",
+        "| Exp. | Activity | Object | Trajectory " + _header(cols),
+        "|---|:---:|:---:|:---:" + "|---:" * len(cols) + "|",
     ]
     for name, flags, summary in rows:
         marks = " | ".join(_mark(f) for f in flags)
-        lines.append(f"| {name} | {marks} | " + " | ".join(format_cell(summary[m]) for m in METRIC_NAMES) + " |")
+        lines.append(f"| {name} | {marks} | " + " | ".join(format_cell(summary[m]) for m in cols) + " |")
     return "\n".join(lines) + "\n"

@@ -85,7 +85,7 @@ fi
 if want eval; then
   EVAL=(--data "$DATA" --split val --resolution "$RES" --batch 500 --seed "$SEED")
   stamp eval
-  conav eval "${EVAL[@]}" --agent random,follower,pioneer,objectgoal,expert,conav --checkpoint "$OUT/dagger" \
+  conav eval "${EVAL[@]}" --agent random,follower,pioneer,objectgoal-planner,expert,conav --checkpoint "$OUT/dagger" \
     --ablation-checkpoints "none=$OUT/bc_none,all=$OUT/bc_all" --out "$OUT/eval"
   stamp "eval, ground-truth intentions"
   conav eval "${EVAL[@]}" --agent conav --checkpoint "$OUT/dagger" --ground-truth-intentions \

@@ -24,7 +24,7 @@ import numpy as np
 
 from conav_jax.parallel import add_devices_arg
 from envs.bench import parse_resolution
-from eval.agents import AGENTS, check_agent
+from envs.agents.registry import AGENTS, check_agent
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")  # ablation names become file names
 _INPUT_KEYS = ("use_activity", "use_object", "use_trajectory")
@@ -39,7 +39,8 @@ class EvalPlan:
     content_hash: str
     agents: tuple[str, ...]
     checkpoint: str | None
-    learned_kwargs: dict = field(default_factory=dict)  # intention_run / trajectory_run
+    # intention_run / trajectory_run / ground_truth, for the agents that read intention inputs
+    intention_kwargs: dict = field(default_factory=dict)
     ablations: tuple[tuple[str, str], ...] = ()  # (name, run dir)
     episodes: int | None = None  # the first N episodes, None for all
     batch: int = 256  # parallel lanes (envs.rollout.make_evaluator)
@@ -55,10 +56,7 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", default="val")
     p.add_argument("--agent", required=True, help=f"comma-separated agent names: {', '.join(AGENTS)}")
     p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
-    p.add_argument("--intention-checkpoint", default=None, help="conav: intention predictor run (default: the one the policy run names)")
-    p.add_argument("--trajectory-checkpoint", default=None, help="conav: trajectory predictor run (default: the one the policy run names)")
-    p.add_argument("--ground-truth-intentions", action="store_true",
-                   help="conav: feed the env's ground-truth intentions instead of predictions (privileged upper bound)")
+    add_intention_args(p)
     p.add_argument(
         "--ablation-checkpoints",
         default=None,
@@ -72,6 +70,35 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output directory")
     add_devices_arg(p)
     p.set_defaults(func=run_eval)
+
+
+def add_intention_args(p: argparse.ArgumentParser) -> None:
+    """--intention / --trajectory / --ground-truth-intentions for agents that read intention inputs."""
+    p.add_argument("--intention", default=None, metavar="RUN",
+                   help="conav/ppo: intention predictor run (`conav train intention`; default for conav: the one "
+                   "the policy run names)")
+    p.add_argument("--trajectory", default=None, metavar="RUN",
+                   help="conav/ppo: trajectory predictor run (`conav train trajectory`; default for conav: the "
+                   "one the policy run names)")
+    p.add_argument("--ground-truth-intentions", action="store_true",
+                   help="conav/ppo: feed the env's ground-truth intentions instead of predictions (privileged "
+                   "upper bound, labelled so in every output)")
+
+
+def intention_kwargs_from_args(args: argparse.Namespace) -> dict:
+    """The intention keyword arguments of envs.agents.registry.make_agent from the flags of
+    `add_intention_args`; ValueError for a missing run directory or ground truth beside runs."""
+    out = {}
+    for key, run in (("intention_run", args.intention), ("trajectory_run", args.trajectory)):
+        if run is not None:
+            if not Path(run).is_dir():
+                raise ValueError(f"--{key.removesuffix('_run')} run directory not found: {run}")
+            out[key] = run
+    if args.ground_truth_intentions:
+        if out:
+            raise ValueError("--ground-truth-intentions excludes --intention / --trajectory")
+        out["ground_truth"] = True
+    return out
 
 
 def _parse_ablations(text: str | None) -> tuple[tuple[str, str], ...]:
@@ -106,19 +133,11 @@ def plan_eval(args: argparse.Namespace) -> EvalPlan:
         raise ValueError(f"--agent lists an agent twice: {args.agent}")
     for name in names:
         check_agent(name, args.checkpoint)
-    learned = {}
-    for key, run in (("intention_run", args.intention_checkpoint), ("trajectory_run", args.trajectory_checkpoint)):
-        if run is not None:
-            if not Path(run).is_dir():
-                raise ValueError(f"{key.replace('_run', '')} checkpoint run directory not found: {run}")
-            learned[key] = run
-    if args.ground_truth_intentions:
-        if learned:
-            raise ValueError("--ground-truth-intentions excludes --intention-checkpoint / --trajectory-checkpoint")
-        learned["ground_truth"] = True
+    learned = intention_kwargs_from_args(args)
     ablations = _parse_ablations(args.ablation_checkpoints)
-    if learned and not ablations and not any(AGENTS[n].takes_predictors for n in names):
-        raise ValueError("--intention-checkpoint / --trajectory-checkpoint / --ground-truth-intentions only apply to the conav agent and ablations")
+    if learned and not ablations and not any(AGENTS[n].takes_intentions for n in names):
+        raise ValueError("--intention / --trajectory / --ground-truth-intentions only apply to agents that read "
+                         "intention inputs (conav, ppo) and ablations")
     for _, run in ablations:
         check_agent("conav", run)
     if args.episodes is not None and args.episodes < 1:
@@ -136,7 +155,7 @@ def plan_eval(args: argparse.Namespace) -> EvalPlan:
         content_hash=manifest["content_hash"],
         agents=names,
         checkpoint=args.checkpoint,
-        learned_kwargs=learned,
+        intention_kwargs=learned,
         ablations=ablations,
         episodes=args.episodes,
         batch=args.batch,
@@ -167,17 +186,17 @@ def load_env(plan: EvalPlan):
 
 
 def compiled_evaluator(env, name: str, checkpoint: str | None, batch: int, seed: int, mesh=None, **kwargs) -> Callable:
-    """The evaluator (envs.rollout.make_evaluator with trace_first) of agent `name`, built once
-    per env, agent, batch, seed and mesh (building loads the agent; nothing compiles until the
-    first call)."""
+    """(agent, evaluator): agent `name` and its evaluator (envs.rollout.make_evaluator with
+    trace_first), built once per env, agent, batch, seed and mesh (building loads the agent;
+    nothing compiles until the first call)."""
+    from envs.agents.registry import make_agent
     from envs.rollout import make_evaluator
-    from eval.agents import make_agent
 
     per_env = _EVALUATORS.setdefault(env, {})
     key = (name, checkpoint, batch, seed, mesh, tuple(sorted(kwargs.items())))
     if key not in per_env:
         agent = make_agent(name, env, checkpoint, **kwargs)
-        per_env[key] = make_evaluator(env, lambda _: agent, batch, seed, mesh, trace_first=True)
+        per_env[key] = agent, make_evaluator(env, lambda _: agent, batch, seed, mesh, trace_first=True)
     return per_env[key]
 
 
@@ -188,8 +207,9 @@ def run_agent(evaluator: Callable, episodes: np.ndarray) -> tuple[dict, int, np.
     return metrics, first, np.asarray(trace.robot_pose)
 
 
-def episode_records(split, metrics: dict) -> list[dict]:
-    """One CSV row per episode: identity, human timing, robot outcome (envs.metrics rules)."""
+def episode_records(split, metrics: dict, given: dict) -> list[dict]:
+    """One CSV row per episode: what the agent was given (`given`: envs.agents.base.describe),
+    the episode's identity, human timing, robot outcome (envs.metrics rules)."""
     from conav_jax.activities import load_activity_graph
     from conav_jax.categories import CATEGORY_NAMES
     from envs.metrics import episode_outcomes
@@ -198,25 +218,36 @@ def episode_records(split, metrics: dict) -> list[dict]:
     e = split.episodes
     out = episode_outcomes(metrics)
     rows = []
+    privileged = ";".join(given["privileged"])
     for j, i in enumerate(np.asarray(metrics["episode"])):
-        rows.append(
-            {
-                "episode": int(i),
-                "scene": split.scenes[int(e["scene_index"][i])].name,
-                "activity_a": graph.activity(int(e["activity_a"][i])).name,
-                "activity_b": graph.activity(int(e["activity_b"][i])).name,
-                "object_b": CATEGORY_NAMES[int(e["object_b"][i])],
-                "t_arrive": int(metrics["t_arrive"][j]),
-                "t_end": int(metrics["t_end"][j]),
-                "t_reach": int(metrics["t_reach"][j]),
-                "FASR": int(out["FASR"][j]),
-                "RASR": int(out["RASR"][j]),
-                "FASPL": f"{out['FASPL'][j]:.4f}",
-                "RASPL": f"{out['RASPL'][j]:.4f}",
-                "collided": int(out["CR"][j]),
-                "AS": int(out["AS"][j]),
-            }
-        )
+        row = {
+            "agent": given["agent"],
+            "intention_source": given["intention_source"],
+            "privileged": privileged,
+            "episode": int(i),
+            "scene": split.scenes[int(e["scene_index"][i])].name,
+            "activity_a": graph.activity(int(e["activity_a"][i])).name,
+            "activity_b": graph.activity(int(e["activity_b"][i])).name,
+            "object_b": CATEGORY_NAMES[int(e["object_b"][i])],
+            "t_arrive": int(metrics["t_arrive"][j]),
+            "t_end": int(metrics["t_end"][j]),
+            "t_reach": int(metrics["t_reach"][j]),
+            "shortest_path_steps": int(metrics["shortest_path_steps"][j]),
+            "geodesic_start_goal_m": f"{float(metrics['geodesic_start_goal_m'][j]):.4f}",
+            "path_length_m": f"{float(metrics['path_length_m'][j]):.4f}",
+            "FASR": int(out["FASR"][j]),
+            "RASR": int(out["RASR"][j]),
+            "FASPL": f"{out['FASPL'][j]:.4f}",
+            "RASPL": f"{out['RASPL'][j]:.4f}",
+            "FASPL_m": f"{out['FASPL_m'][j]:.4f}",
+            "RASPL_m": f"{out['RASPL_m'][j]:.4f}",
+            "collided_before_reach": int(metrics["collided_before_reach"][j] > 0.5),
+            "collided": int(out["CR"][j]),
+            "AS": int(out["AS"][j]),
+        }
+        if "CR_full" in out:
+            row["collided_full"] = int(out["CR_full"][j])
+        rows.append(row)
     return rows
 
 
@@ -258,24 +289,32 @@ def _rounded(summary: dict) -> dict:
     return {m: {k: round(v, 4) for k, v in entry.items()} for m, entry in summary.items()}
 
 
-def _report_md(plan: EvalPlan, n: int, table2: str, table3: str | None, maps: list[tuple[str, str]]) -> str:
+def _report_md(plan: EvalPlan, n: int, table2: str, table3: str | None, given: list[dict],
+               maps: list[tuple[str, str]]) -> str:
     h, w = plan.resolution
     lines = [
         "# CoNav evaluation",
         "",
-        f"Data `{plan.data}` (content hash {plan.content_hash[:16]}), split `{plan.split}`, {n} episodes; "
-        f"seed {plan.seed}, batch {plan.batch}, panorama {h}x{w}. CoNav policies' intention inputs: "
-        + ("ground truth (privileged)." if plan.learned_kwargs.get("ground_truth") else
-           "predicted (the predictor runs given, else those each policy run names; ground truth where it names none)."),
+        f"Data `{plan.data}` (content hash {plan.content_hash[:16]}), split `{plan.split}`, {n} episodes "
+        f"(each run to the human's end of activity B); seed {plan.seed}, batch {plan.batch}, panorama {h}x{w}.",
         "",
         "## Agents (paper Table 2)",
         "",
         table2,
-        "Rates and SPLs in percent, AS in steps (0.1 s). `±` is half the width of the 95% interval: "
-        "Wilson for FASR, RASR and CR, a percentile bootstrap (2000 resamples, the run's seed) for "
-        "FASPL, RASPL and AS; exact bounds in metrics.json.",
+        "Rates and SPLs in percent, AS in steps (0.1 s). FASPL/RASPL weigh success by the paper's "
+        "l / max(l, p) in control steps; FASPL_m/RASPL_m by metres. CR counts contacts up to the "
+        "first reach (the paper's), CR_full up to the human's end of activity B. `±` is half the "
+        "width of the 95% interval: Wilson for the rates, a percentile bootstrap (2000 resamples, "
+        "the run's seed) for the SPLs and AS; exact bounds in metrics.json.",
         "",
+        "What each row was given (privileged inputs are what a robot with the paper's sensors lacks):",
+        "",
+        "| row | intention inputs | privileged inputs |",
+        "|---|---|---|",
     ]
+    for g in given:
+        lines.append(f"| {g['title']} | {g['intention_source']} | {', '.join(g['privileged']) or 'none'} |")
+    lines.append("")
     if table3 is not None:
         lines += ["## Ablations of the intention inputs (paper Table 3)", "", table3, "`?`: the run does not say which inputs it uses.", ""]
     lines += ["## Figures", "", "![success by step](success_over_time.png)", ""]
@@ -289,27 +328,34 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
     device), with a progress bar over the agents if `progress`. Returns the metrics.json content."""
     from tqdm import tqdm
 
+    from envs.agents.base import describe
     from eval import plots
     from eval.report import summarize_with_ci, table2_markdown, table3_markdown
 
+    if env.config.end_at_reach:
+        raise ValueError("the benchmark runs episodes to t_end: build the env with EnvConfig(end_at_reach=False)")
     plan.out.mkdir(parents=True, exist_ok=True)
     episodes = np.arange(env.num_episodes)
-    runs = [(name, AGENTS[name].title, name, plan.checkpoint if AGENTS[name].needs_checkpoint else None) for name in plan.agents]
-    runs += [(f"ablation_{n}", n, "conav", run) for n, run in plan.ablations]
+    runs = [(name, name, plan.checkpoint if AGENTS[name].needs_checkpoint else None) for name in plan.agents]
+    runs += [(f"ablation_{n}", "conav", run) for n, run in plan.ablations]
     # Build every agent (loading checkpoints) before the first compile, so a bad run fails fast.
-    evaluators = [compiled_evaluator(env, name, ckpt, plan.batch, plan.seed, mesh,
-                                     **(plan.learned_kwargs if AGENTS[name].takes_predictors else {}))
-                  for _, _, name, ckpt in runs]
-    results, summaries, maps = {}, {}, []
+    built = [compiled_evaluator(env, name, ckpt, plan.batch, plan.seed, mesh,
+                                **(plan.intention_kwargs if AGENTS[name].takes_intentions else {}))
+             for _, name, ckpt in runs]
+    results, summaries, given, maps = {}, {}, {}, []
     bar = tqdm(total=len(runs), desc="eval", unit="agent", disable=not progress, dynamic_ncols=True)
-    for (key, title, _, _), evaluator in zip(runs, evaluators):
+    for (key, _, _), (agent, evaluator) in zip(runs, built):
         bar.set_postfix_str(f"{key} ({len(episodes)} episodes, compile + run)")
         metrics, i, first_path = run_agent(evaluator, episodes)
         j = int(np.flatnonzero(metrics["episode"] == i)[0])
         bar.update(1)
+        given[key] = describe(agent)
+        if key.startswith("ablation_"):
+            given[key]["title"] = f"{key.removeprefix('ablation_')}: {given[key]['title']}"
+        title = given[key]["title"]
         results[key] = (title, metrics)
         summaries[key] = summarize_with_ci(metrics, seed=plan.seed)
-        write_csv(plan.out / f"episodes_{key}.csv", episode_records(env.split, metrics))
+        write_csv(plan.out / f"episodes_{key}.csv", episode_records(env.split, metrics, given[key]))
         ep = {k: env.split.episodes[k][i] for k in ("root_xy", "phase", "goal_xy", "robot_start", "t_end")}
         start = np.asarray(ep["robot_start"])[None]
         png = f"map_{key}.png"
@@ -340,14 +386,16 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
         "seed": plan.seed,
         "batch": plan.batch,
         "resolution": f"{h}x{w}",
-        "agents": {k: {"title": results[k][0], "metrics": _rounded(summaries[k])} for k in agent_keys},
+        "agents": {k: {**given[k], "metrics": _rounded(summaries[k])} for k in agent_keys},
         "ablations": {
-            k: {"title": results[k][0], "run": run, "inputs": dict(zip(("activity", "object", "trajectory"), flags[k])), "metrics": _rounded(summaries[k])}
+            k: {**given[k], "run": run, "inputs": dict(zip(("activity", "object", "trajectory"), flags[k])),
+                "metrics": _rounded(summaries[k])}
             for k, (_, run) in zip(ablation_keys, plan.ablations)
         },
     }
     (plan.out / "metrics.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (plan.out / "report.md").write_text(_report_md(plan, env.num_episodes, table2, table3, maps))
+    (plan.out / "report.md").write_text(_report_md(plan, env.num_episodes, table2, table3,
+                                                   [given[k] for k in agent_keys + ablation_keys], maps))
     return doc
 
 

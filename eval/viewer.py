@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from envs.bench import parse_resolution
-from eval.agents import AGENTS, check_agent
+from envs.agents.registry import AGENTS, check_agent
+from eval.sweep import add_intention_args, intention_kwargs_from_args
 
 # Carry entries a learned agent may expose (same names and shapes as the env's ground-truth
 # observations): activity probs (107,), object probs (51,), future trajectory (5, 2) robot frame.
@@ -34,10 +35,7 @@ def add_view(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episode", type=int, required=True, help="episode index within the split")
     p.add_argument("--agent", default="pioneer", help=f"who drives the robot: {', '.join(AGENTS)}")
     p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
-    p.add_argument("--intention-checkpoint", default=None, help="conav: intention predictor run (default: the one the policy run names)")
-    p.add_argument("--trajectory-checkpoint", default=None, help="conav: trajectory predictor run (default: the one the policy run names)")
-    p.add_argument("--ground-truth-intentions", action="store_true",
-                   help="conav: feed the env's ground-truth intentions instead of predictions")
+    add_intention_args(p)
     p.add_argument("--resolution", type=parse_resolution, default=(56, 224), help="panorama HxW (default 56x224)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output .rrd file")
@@ -232,20 +230,10 @@ def run_view(args: argparse.Namespace) -> int:
     if not 0 <= args.episode < n:
         raise ValueError(f"--episode must be in [0, {n}) for split {args.split!r}, got {args.episode}")
     spec = check_agent(args.agent, args.checkpoint)
-    predictors = {}
-    for key, run in (("intention_run", args.intention_checkpoint), ("trajectory_run", args.trajectory_checkpoint)):
-        if run is not None:
-            if not spec.takes_predictors:
-                raise ValueError(f"agent {args.agent!r} takes no predictor runs (--{key.replace('_run', '')}-checkpoint)")
-            if not Path(run).is_dir():
-                raise ValueError(f"{key.replace('_run', '')} checkpoint run directory not found: {run}")
-            predictors[key] = run
-    if args.ground_truth_intentions:
-        if not spec.takes_predictors:
-            raise ValueError(f"agent {args.agent!r} takes no intention inputs (--ground-truth-intentions)")
-        if predictors:
-            raise ValueError("--ground-truth-intentions excludes --intention-checkpoint / --trajectory-checkpoint")
-        predictors["ground_truth"] = True
+    predictors = intention_kwargs_from_args(args)
+    if predictors and not spec.takes_intentions:
+        raise ValueError(f"agent {args.agent!r} reads no intention inputs (--intention / --trajectory / "
+                         "--ground-truth-intentions)")
     out = Path(args.out)
     if out.suffix != ".rrd":
         raise ValueError(f"--out must name a .rrd file, got {out}")
@@ -254,7 +242,7 @@ def run_view(args: argparse.Namespace) -> int:
     import rerun as rr
 
     from envs import ConavEnv, EnvConfig, SensorConfig
-    from eval.agents import make_agent
+    from envs.agents.registry import make_agent
 
     h, w = args.resolution
     env = ConavEnv(args.data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w)), max_episodes=args.episode + 1)

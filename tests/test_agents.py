@@ -8,10 +8,13 @@ import numpy as np
 import pytest
 
 from conav_jax.episodes import EpisodeSplit
-from eval.agents import AGENTS, AgentSpec, BaselineConfig, check_agent, make_agent
+from envs.agents.baselines import BaselineConfig
+from envs.agents.base import row_title
+from envs.agents.registry import check_agent, make_agent
+from envs.rollout import trace_step
 from worlds import ROOM, make_split
 
-BASELINES = ("random", "pioneer", "follower", "objectgoal")
+BASELINES = ("random", "pioneer", "follower", "objectgoal-planner")
 T_ARRIVE, T_END = 120, 160  # the human walks 7.25 m from step 60 to 120 (1.2 m/s)
 
 # The hall with a partition at x = 5 from the south wall to y = 2.6: the way east is the 1.3 m
@@ -60,12 +63,12 @@ def runs():
             outs = [a.act(state, cr, k) for a, cr in zip(agents, carries)]
             action = jnp.stack([o[0] for o in outs])[which]
             nxt = env.step(state, action)
-            return (nxt, tuple(o[1] for o in outs)), (nxt.pipeline_state.qpos, action)
+            return (nxt, tuple(o[1] for o in outs)), (nxt.pipeline_state.qpos, action, trace_step(nxt, action).wall_contact)
 
         carries = tuple(a.init(key, episode) for a in agents)
-        (state, _), (poses, actions) = jax.lax.scan(body, (state, carries), jax.random.split(key, T_END))
+        (state, _), (poses, actions, walls) = jax.lax.scan(body, (state, carries), jax.random.split(key, T_END))
         start = env.reset_to_episode(key, episode).pipeline_state.qpos
-        return jnp.concatenate([start[None], poses]), actions, state.metrics
+        return jnp.concatenate([start[None], poses]), actions, {**state.metrics, "wall_contact": walls}
 
     n = env.num_episodes
     episodes = jnp.tile(jnp.arange(n, dtype=jnp.int32), len(agents))
@@ -76,9 +79,10 @@ def runs():
 
 
 def _sel(runs, agent, episode):
+    """(poses (T+1, 3), actions (T, 2), final metrics as floats plus "wall_contact" (T,) per step)."""
     _, poses, actions, metrics = runs
     r = BASELINES.index(agent) * 4 + episode
-    return poses[r], actions[r], {k: float(v[r]) for k, v in metrics.items()}
+    return poses[r], actions[r], {k: float(v[r]) if v[r].ndim == 0 else v[r] for k, v in metrics.items()}
 
 
 def test_baselines_run_jitted_over_mixed_scenes_with_bounded_actions(runs):
@@ -91,13 +95,13 @@ def test_baselines_run_jitted_over_mixed_scenes_with_bounded_actions(runs):
 
 
 def test_objectgoal_reaches_the_goal_before_the_human_in_the_hall(runs):
-    _, _, m = _sel(runs, "objectgoal", 0)
+    _, _, m = _sel(runs, "objectgoal-planner", 0)
     assert 0 <= m["t_reach"] <= T_ARRIVE and m["collided_before_reach"] == 0.0
-    assert m["wall_contact_steps"] == 0.0
+    assert m["wall_contact"][: int(m["t_reach"])].sum() == 0.0  # no wall touched on the way
 
 
 def test_objectgoal_goes_round_the_partition(runs):
-    poses, _, m = _sel(runs, "objectgoal", 3)  # starts south-west of the partition
+    poses, _, m = _sel(runs, "objectgoal-planner", 3)  # starts south-west of the partition
     assert 0 <= m["t_reach"] <= T_ARRIVE
     crossing = poses[np.argmax(poses[:, 0] > 5.0), :2]
     assert crossing[1] > 2.6  # it crossed x = 5 through the gap north of the partition
@@ -131,13 +135,23 @@ def test_unknown_agent_names_the_choices():
 
 def test_learned_agents_need_an_existing_run_dir(tmp_path):
     for name in ("conav", "ppo"):
-        with pytest.raises(ValueError, match="needs a trained run|not available yet"):
+        with pytest.raises(ValueError, match=f"agent '{name}' needs a trained run: pass --checkpoint RUN_DIR"):
             check_agent(name, None)
-        with pytest.raises(ValueError, match="run directory not found|not available yet"):
+        with pytest.raises(ValueError, match=f"checkpoint run directory not found for agent '{name}'"):
             check_agent(name, tmp_path / "missing")
 
 
-def test_an_agent_whose_module_has_not_landed_is_reported_as_not_available(monkeypatch):
-    monkeypatch.setitem(AGENTS, "future", AgentSpec("Future", lambda env, ckpt: None, "train.not_written_yet", True))
-    with pytest.raises(ValueError, match=r"'future' is not available yet: its module train.not_written_yet does not exist"):
-        check_agent("future", ".")
+def test_every_agent_names_what_it_is_given(runs):
+    env = runs[0]
+    given = {n: make_agent(n, env) for n in BASELINES + ("expert",)}
+    assert {n: (a.intention_source, a.privileged) for n, a in given.items()} == {
+        "random": ("none", ()),
+        "pioneer": ("none", ("candidate goal points", "oracle map")),
+        "follower": ("none", ("oracle map",)),
+        "objectgoal-planner": ("none", ("oracle goal category", "oracle map")),
+        "expert": ("none", ("oracle goal point", "oracle map", "future human positions", "human activity phase")),
+    }
+    assert row_title(given["objectgoal-planner"]) == "Object-goal planner (oracle goal category + oracle map)"
+    assert row_title(given["random"]) == "Random Agent"
+    with pytest.raises(ValueError, match="reads no intention inputs"):
+        make_agent("pioneer", env, ground_truth=True)

@@ -112,6 +112,9 @@ def test_touching_the_human_is_counted_and_robot_does_not_pass_through(hall):
     states = _run(hall, 1, [(1.0, 0.0)] * 8)
     m = states[-1].metrics
     assert float(m["collided"]) == 1.0 and float(m["human_contact_steps"]) >= 1
+    # Each step's own contact flag (what rollout traces record) adds up to the count.
+    per_step = [float(s.pipeline_state.userdata[UD["human_touch"]]) for s in states[1:]]
+    assert sum(per_step) == float(m["human_contact_steps"]) and per_step[0] == 0.0
     human_x = float(hall[0].bank.root_xy[1, 0, 0])
     assert float(states[-1].pipeline_state.qpos[0]) > human_x  # pushed back, not through
 
@@ -187,3 +190,56 @@ def test_gps_compass_and_human_position_frames(hall):
     s = step(s, jnp.array([-0.5, 0.0]))  # backwards 0.05 m: +x in the world, -x in the start frame
     assert float(s.obs["gps_compass"][0]) == pytest.approx(-0.05, abs=0.01)
 
+
+
+def test_touching_the_human_before_reaching_voids_success(hall):
+    # Episode 1: drive into the human at the fridge (a touch before t_reach), then be put 0.8 m
+    # short of the goal: reached in time, but neither FASR nor RASR counts it.
+    env = hall[0]
+    goal = np.asarray(goal_of(env.split)) - np.array([0.8, 0.0])
+    touched = _run(hall, 1, [(1.0, 0.0)] * 8 + [(0.0, 0.0)] * 4, teleport=(8, goal))
+    m = {k: np.asarray(v)[None] for k, v in touched[-1].metrics.items()}
+    assert float(m["t_reach"][0]) == 9 and float(m["collided_before_reach"][0]) == 1.0
+    s = summarize(m)
+    assert s["FASR"] == 0.0 and s["RASR"] == 0.0 and s["CR"] == 100.0
+    # The same reach without the touch succeeds.
+    clean = _run(hall, 1, [(0.0, 0.0)] * 12, teleport=(8, goal))
+    s = summarize({k: np.asarray(v)[None] for k, v in clean[-1].metrics.items()})
+    assert s["FASR"] == 100.0 and s["CR"] == 0.0
+
+
+def test_the_episode_runs_to_t_end_and_cr_full_counts_contacts_after_the_reach():
+    # The robot is put 0.8 m west of the goal at step 5, on the human's walking line: reached at
+    # step 6, then the human (walking at 1.45 m/s in steps 50-100) runs into the parked robot.
+    split = make_split([(1.6, 3.3, 0.0)], t_arrive=100, t_end=120)
+    env = ConavEnv(episodes=split, config=SMALL)
+    fns = (env, jax.jit(env.reset_to_episode), jax.jit(env.step))
+    goal = np.asarray(goal_of(split)) - np.array([0.8, 0.0])
+    states = _run(fns, 0, [(0.0, 0.0)] * 121, teleport=(5, goal))
+    m = {k: np.asarray(v)[None] for k, v in states[-1].metrics.items()}
+    assert float(m["t_reach"][0]) == 6 and float(states[6].done) == 0.0 and float(states[-1].done) == 1.0
+    assert float(m["human_contact_steps"][0]) > 0 and float(m["t"][0]) == 120
+    s = summarize(m)
+    assert s["FASR"] == 100.0 and s["CR"] == 0.0 and s["CR_full"] == 100.0
+
+
+def test_with_end_at_reach_the_episode_stops_at_the_first_reach_and_reports_no_cr_full():
+    env, reset, step = _hall_env(dataclasses.replace(SMALL, end_at_reach=True))
+    goal = np.asarray(goal_of(env.split)) - np.array([0.8, 0.0])
+    states = _run((env, reset, step), 3, [(0.0, 0.0)] * 12, teleport=(5, goal))
+    assert float(states[6].done) == 1.0 and float(states[-1].metrics["human_contact_steps"]) == 0.0
+    assert "CR_full" not in summarize({k: np.asarray(v)[None] for k, v in states[-1].metrics.items()})
+
+
+def test_spl_in_steps_weighs_a_waiting_robot_below_a_direct_one(hall):
+    # Episode 2: 2 m west of the goal facing it (l = 10 steps). Driving at once reaches it in
+    # about 11 steps; waiting 3 steps first (gone before the walking human comes by), 3 later.
+    # In metres both paths are ~1 m.
+    direct = _run(hall, 2, [(1.0, 0.0)] * 30)
+    waiting = _run(hall, 2, [(0.0, 0.0)] * 3 + [(1.0, 0.0)] * 27)
+    out = [summarize({k: np.asarray(v)[None] for k, v in s[-1].metrics.items()}) for s in (direct, waiting)]
+    l = float(direct[-1].metrics["shortest_path_steps"])
+    t = [float(s[-1].metrics["t_reach"]) for s in (direct, waiting)]
+    assert l == 10.0 and t[1] == t[0] + 3
+    assert out[0]["FASPL"] == pytest.approx(100 * l / t[0]) and out[1]["FASPL"] == pytest.approx(100 * l / t[1])
+    assert out[0]["FASPL_m"] == pytest.approx(100.0) and out[1]["FASPL_m"] == pytest.approx(100.0)

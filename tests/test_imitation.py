@@ -1,8 +1,10 @@
-"""train.imitation, train.policy and eval.learned in the simulator (the hand-built hall, 8x32
-panoramas): the expert reaches the goal without touching the human, rollouts repeat bit for bit
-for a seed, the policy overfits expert actions, DAgger aggregates the expert's labels of the
-policy's own states, and policy_agent loads a run (rejecting wrong ones) and runs in evaluate."""
+"""train.imitation, train.policy and envs.agents.policy in the simulator (the hand-built hall,
+8x32 panoramas): the expert reaches the goal without touching the human, rollouts repeat bit
+for bit for a seed, the policy overfits expert actions, DAgger aggregates the expert's labels
+of the policy's own states, and policy_agent loads a run (rejecting wrong ones, refusing to
+read ground truth unless asked), feeds the policy its predictors' outputs and runs in evaluate."""
 
+import dataclasses
 import functools
 from types import SimpleNamespace
 
@@ -20,7 +22,8 @@ from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.metrics import summarize
 from envs.mjcf import UD
 from envs.rollout import evaluate
-from eval.learned import policy_agent
+from envs.agents.expert import make_expert_step
+from envs.agents.policy import make_policy_step, policy_agent, predictor_runs
 from train import imitation as im
 from train.loop import TrainConfig
 from train.policy import ImitationConfig, check_recordable, run_config, train_policy
@@ -29,7 +32,7 @@ from worlds import make_split
 # For the small jits. The MJX rollout keeps XLA's default: at level 0 its run time costs more
 # than compiling saves.
 FAST = {"xla_backend_optimization_level": 0}
-SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32))
+SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)  # as training runs it
 PCFG = PolicyConfig(
     image_hw=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16, intention_dim=8, hidden=32
 )
@@ -169,7 +172,7 @@ def test_policy_overfits_expert_actions(trained):
 @functools.partial(jax.jit, static_argnums=0, compiler_options=FAST)
 def _relabel(env, poses):
     """The pure expert replayed along recorded poses (B, T, 3) of episodes 0..B-1 -> (B, T, 2)."""
-    step = im.make_expert_step(env)
+    step = make_expert_step(env)
 
     def one(episode, poses):
         def body(carry, x):
@@ -199,16 +202,31 @@ def test_dagger_aggregates_expert_labels_of_the_policys_states(hall, bc, trained
     np.testing.assert_array_equal(data["label"][n_old:], new["label"])
 
 
+def _fake_intention(activity: int, obj: int):
+    """A stand-in intention predictor that always names `activity` and `obj` (and counts its calls)."""
+    return SimpleNamespace(
+        init=lambda: jnp.int32(0),
+        step=lambda carry, front: (jax.nn.one_hot(activity, 107), jax.nn.one_hot(obj, 51), carry + 1),
+    )
+
+
+# "The human stays 7 m ahead", wherever they are.
+FAKE_TRAJECTORY = SimpleNamespace(predict=lambda history: jnp.full(history.shape[:-2] + (PCFG.horizon, 2), 7.0))
+
+
 def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0, tmp_path):
-    # A stand-in trajectory predictor: "the human stays 7 m ahead", wherever it is.
-    fake = SimpleNamespace(predict=lambda history: jnp.full(history.shape[:-2] + (PCFG.horizon, 2), 7.0))
-    rollout = jax.jit(im.make_rollout_fn(hall.env, PCFG, trajectory=fake, record_predicted=True, num_steps=24))
-    for beta in (1.0, 0.0):  # the predictor follows the expert's steps and the policy's alike
+    rollout = jax.jit(im.make_rollout_fn(hall.env, PCFG, intention=_fake_intention(9, 11), trajectory=FAKE_TRAJECTORY,
+                                         record_predicted=True, num_steps=24))
+    for beta in (1.0, 0.0):  # the predictors follow the expert's steps and the policy's alike
         _, recs = jax.tree.map(np.asarray, rollout(params0, jax.random.PRNGKey(0), hall.episodes, beta))
         np.testing.assert_array_equal(recs.obs["future_traj"], 7.0)
-        np.testing.assert_array_equal(recs.obs["activity_probs"].argmax(-1), 4)  # no predictor: ground truth
-    with pytest.raises(ValueError, match="needs an intention or trajectory predictor"):
+        np.testing.assert_array_equal(recs.obs["activity_probs"].argmax(-1), 9)  # the truth is 4
+        np.testing.assert_array_equal(recs.obs["object_probs"].argmax(-1), 11)
+    with pytest.raises(ValueError, match="needs the predictor of every intention input"):
         im.make_rollout_fn(hall.env, PCFG, record_predicted=True)
+    # A policy never reads predictions for one input and ground truth for another.
+    with pytest.raises(ValueError, match=r"no intention predictor is given \(--intention RUN\)"):
+        im.make_rollout_fn(hall.env, PCFG, trajectory=FAKE_TRAJECTORY, record_predicted=True)
     # `conav train policy --train-intentions predicted` names the missing predictor runs up front.
     with pytest.raises(ValueError, match="predictor runs --intention, --trajectory"):
         train_policy(tmp_path / "no_data", tmp_path / "run", TrainConfig(steps=1, warmup_steps=0),
@@ -217,15 +235,46 @@ def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0,
         ImitationConfig(train_intentions="oracle")
 
 
-def test_policy_agent_runs_in_evaluate(hall, trained):
-    agent = policy_agent(hall.env, trained.run)
-    assert agent.name == "conav"
+def test_policy_agent_runs_in_evaluate_with_ground_truth_only_when_asked(hall, trained):
+    agent = policy_agent(hall.env, trained.run, ground_truth=True)
+    assert agent.name == "conav" and agent.intention_source == "ground_truth"
+    assert agent.privileged == ("ground-truth intentions", "future human positions", "oracle segmentation")
     m = evaluate(hall.env, agent, batch=3)
-    assert set(summarize(m)) == {"FASR", "RASR", "FASPL", "RASPL", "CR", "AS"}
+    assert {"FASR", "RASR", "FASPL", "RASPL", "CR", "AS"} <= set(summarize(m))
     assert (m["nan_actions"] == 0).all()
     # The same policy through imitation's own rollout (how training validates) acts alike.
     ours, _ = _run(hall, trained.params, 0.0, seed=1)
     np.testing.assert_allclose(m["path_length_m"], ours["path_length_m"], atol=0.05)
+
+
+def test_the_conav_agent_refuses_to_run_without_predictors(hall, trained):
+    # The run names no predictor runs and none are given: no silent ground truth.
+    with pytest.raises(ValueError, match="pass --intention RUN \\(or --ground-truth-intentions"):
+        policy_agent(hall.env, trained.run)
+
+
+def test_at_evaluation_the_policy_reads_the_predictors_outputs_not_the_truth(hall, trained, tmp_path, monkeypatch):
+    from envs.agents import policy as agent_policy
+
+    runs = [tmp_path / "intention", tmp_path / "trajectory"]
+    for r in runs:
+        r.mkdir()
+    fakes = (_fake_intention(9, 11), FAKE_TRAJECTORY)
+    monkeypatch.setattr(agent_policy, "load_predictors", lambda i, t: fakes if (i, t) == tuple(map(str, runs)) else None)
+    agent = policy_agent(hall.env, trained.run, intention_run=runs[0], trajectory_run=runs[1])
+    assert agent.intention_source == "predicted" and agent.privileged == ("oracle segmentation",)
+    state = hall.env.reset_to_episode(jax.random.PRNGKey(0), 0)
+    action, carry = agent.act(state, agent.init(jax.random.PRNGKey(0), 0), jax.random.PRNGKey(1))
+    assert int(carry.predicted["activity_probs"].argmax()) == 9 != int(state.obs["activity_probs"].argmax())
+    assert int(carry.predicted["object_probs"].argmax()) == 11 != int(state.obs["object_probs"].argmax())
+    np.testing.assert_array_equal(carry.predicted["future_traj"], 7.0)
+    # The action is the policy's on the predictions, and not what the truth would give.
+    pol = make_policy_step(PCFG, *fakes)
+    inputs, _ = pol.predict(state.obs, pol.init())
+    expected, _ = pol.act(trained.params, inputs, pol.init())
+    truth, _ = make_policy_step(PCFG).step(trained.params, state.obs, make_policy_step(PCFG).init())
+    np.testing.assert_allclose(action, expected, atol=1e-6)
+    assert not np.allclose(action, truth, atol=1e-4)
 
 
 def test_policy_agent_rejects_wrong_runs_before_compiling(hall, trained, tmp_path):
@@ -240,26 +289,28 @@ def test_policy_agent_rejects_wrong_runs_before_compiling(hall, trained, tmp_pat
         policy_agent(hall.env, other)
     wide = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=SensorConfig(height=16, width=64)))
     with pytest.raises(ValueError, match="8x32 panoramas but the env renders 16x64"):
-        policy_agent(wide, trained.run)
+        policy_agent(wide, trained.run, ground_truth=True)
     blind = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=SMALL.sensor, intention_obs=False))
     with pytest.raises(ValueError, match="intention_obs=True"):
-        policy_agent(blind, trained.run)
+        policy_agent(blind, trained.run, ground_truth=True)
 
 
 def test_predictor_runs_default_to_the_ones_the_policy_run_names(tmp_path):
-    from eval.learned import predictor_runs
-
     intention, trajectory = tmp_path / "intention", tmp_path / "trajectory"
     intention.mkdir()
     trajectory.mkdir()
-    config = {"intention_run": str(intention), "trajectory_run": str(trajectory)}
-    assert predictor_runs("run", config, None, None, False) == (str(intention), str(trajectory))
-    assert predictor_runs("run", config, str(trajectory), None, False) == (str(trajectory), str(trajectory))
-    assert predictor_runs("run", {"intention_run": None, "trajectory_run": None}, None, None, False) == (None, None)
-    assert predictor_runs("run", config, None, None, True) == (None, None)  # ground truth asked for
-    with pytest.raises(ValueError, match="exclude"):
-        predictor_runs("run", config, str(intention), None, True)
-    with pytest.raises(ValueError, match="named by policy run run"):
-        predictor_runs("run", {"intention_run": str(tmp_path / "gone")}, None, None, False)
+    named = {"intention_run": str(intention), "trajectory_run": str(trajectory)}
+    assert predictor_runs(PCFG, "run", named) == (str(intention), str(trajectory))
+    assert predictor_runs(PCFG, "run", named, str(trajectory)) == (str(trajectory), str(trajectory))
+    assert predictor_runs(PCFG, "run", named, ground_truth=True) == (None, None)  # ground truth asked for
+    # An ablation that reads no trajectory needs no trajectory run, named or not.
+    no_traj = dataclasses.replace(PCFG, use_trajectory=False)
+    assert predictor_runs(no_traj, "run", {"intention_run": str(intention)}) == (str(intention), None)
+    with pytest.raises(ValueError, match="excludes --intention / --trajectory"):
+        predictor_runs(PCFG, "run", named, str(intention), None, True)
+    with pytest.raises(ValueError, match="reads trajectory predictions and no trajectory predictor run is given"):
+        predictor_runs(PCFG, "run", {"intention_run": str(intention)})
+    with pytest.raises(ValueError, match="named by run"):
+        predictor_runs(PCFG, "run", {"intention_run": str(tmp_path / "gone"), "trajectory_run": str(trajectory)})
     with pytest.raises(ValueError, match=r"\(given\) not found"):
-        predictor_runs("run", config, str(tmp_path / "gone"), None, False)
+        predictor_runs(PCFG, "run", named, str(tmp_path / "gone"))

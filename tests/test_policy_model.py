@@ -213,7 +213,7 @@ def test_saliency_sectors_must_divide_the_width():
 
 
 def test_checkpoint_configs_from_before_the_saliency_channel_load_without_it():
-    from train.policy import policy_config_from_dict
+    from envs.agents.policy import policy_config_from_dict
 
     old = {k: v for k, v in dataclasses.asdict(CONFIG).items() if k != "object_saliency"}
     assert policy_config_from_dict(old).object_saliency is False

@@ -23,6 +23,7 @@ from conav_jax.models.policy import PolicyConfig
 from conav_jax.optim import adam
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.metrics import METRIC_NAMES
+from envs.agents.ppo import ppo_agent
 from train import ppo
 from train.ppo import PPOConfig
 
@@ -187,15 +188,18 @@ def test_init_from_loads_the_imitation_policy_and_rejects_bad_runs(tmp_path):
     with pytest.raises(FileNotFoundError, match="not found"):
         ppo.load_policy_init(tmp_path / "missing")
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
-        ppo.ppo_agent(None, tmp_path)
+        ppo_agent(None, tmp_path)
     with pytest.raises(ValueError, match="'policy' run, expected 'ppo'"):
-        ppo.ppo_agent(None, tmp_path / "bc")
+        ppo_agent(None, tmp_path / "bc")
     # A PPO run's checkpoint (same layout) against an env rendering another resolution.
     save_checkpoint(checkpoint_path(tmp_path / "rl8x32", 1), params=params, opt_state=None, step=1,
                     config={"kind": "ppo", "model": dataclasses.asdict(TINY), "ppo": dataclasses.asdict(PPOConfig())})
     wide = SimpleNamespace(config=EnvConfig(sensor=SensorConfig(height=8, width=64)))
-    with pytest.raises(ValueError, match="trained at 8x32 panoramas; the env renders 8x64"):
-        ppo.ppo_agent(wide, tmp_path / "rl8x32")
+    with pytest.raises(ValueError, match="trained on 8x32 panoramas but the env renders 8x64"):
+        ppo_agent(wide, tmp_path / "rl8x32", ground_truth=True)
+    # PPO trains on ground-truth intentions; evaluated, it reads predictors or says it was given the truth.
+    with pytest.raises(ValueError, match="pass --intention RUN \\(or --ground-truth-intentions"):
+        ppo_agent(wide, tmp_path / "rl8x32")
 
 
 def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, tiny_data):
@@ -213,7 +217,8 @@ def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, 
     assert [r["env_steps"] for r in train] == [128, 256, 384]
     assert all(np.isfinite(r["loss"]) and r["steps_per_s"] > 0 for r in train)
     (val,) = [r for r in records if r["split"] == "val"]
-    assert set(METRIC_NAMES) <= set(val) and val == {"step": 3, "env_steps": 384, "split": "val", **result.val}
+    assert set(METRIC_NAMES) <= set(val)
+    assert val == {"step": 3, "env_steps": 384, "split": "val", "intention_source": "ground_truth", **result.val}
 
     last = latest_checkpoint(tmp_path / "rl")
     assert last == checkpoint_path(tmp_path / "rl", 3)
@@ -222,10 +227,11 @@ def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, 
     assert ckpt.config["env"]["sensor_hw"] == [8, 32] and ckpt.extra["val"] == result.val
     jax.tree.map(np.testing.assert_array_equal, ckpt.params, result.params)
 
-    # The validation above is ppo_agent(val env, this run dir) run through envs.rollout.evaluate
-    # (one compile of the val rollout; a second would double this test's time).
+    # The validation above is ppo_agent(val env, this run dir, ground truth) run through
+    # envs.rollout.evaluate (one compile of the val rollout; a second would double this test's time).
     val_env = ConavEnv(str(tiny_data), "val", EnvConfig(sensor=SensorConfig(height=8, width=32)))
-    assert ppo.ppo_agent(val_env, tmp_path / "rl").name == "ppo"
+    agent = ppo_agent(val_env, tmp_path / "rl", ground_truth=True)
+    assert agent.name == "ppo" and agent.intention_source == "ground_truth" and "ground-truth intentions" in agent.privileged
 
 
 def test_no_flax_or_optax_imports_in_our_packages():

@@ -9,7 +9,7 @@ import pytest
 
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.rollout import Agent, evaluate, make_evaluator
-from eval.agents import make_agent
+from envs.agents.registry import make_agent
 from worlds import make_split
 
 T_ARRIVE, T_END = 140, 160  # the human walks from the fridge to the table in steps 70-140
@@ -18,7 +18,9 @@ T_ARRIVE, T_END = 140, 160  # the human walks from the fridge to the table in st
 @pytest.fixture(scope="module")
 def env():
     starts = [(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0), (6.0, 2.5, 0.5)]
-    return ConavEnv(episodes=make_split(starts, t_arrive=T_ARRIVE, t_end=T_END), config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
+    # Episodes end at the first reach here, so they end at different steps and lanes refill.
+    config = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)
+    return ConavEnv(episodes=make_split(starts, t_arrive=T_ARRIVE, t_end=T_END), config=config)
 
 
 @pytest.fixture(scope="module")
@@ -62,3 +64,23 @@ def test_evaluate_rejects_bad_episode_lists(env, noisy_expert):
     for bad in (np.array([], int), np.array([[0, 1]]), np.array([0, 6]), np.array([-1])):
         with pytest.raises(ValueError, match="episode"):
             evaluate(env, noisy_expert, bad)
+
+
+def test_trace_step_reads_the_contacts_of_one_env_and_of_a_batch():
+    from types import SimpleNamespace
+
+    from envs.mjcf import UD
+    from envs.rollout import trace_step
+
+    ud = np.zeros((3, len(UD)), np.float32)
+    ud[1, UD["human_touch"]], ud[2, UD["wall_touch"]] = 1.0, 1.0
+
+    def state(k):
+        ps = SimpleNamespace(userdata=ud[k], qpos=np.zeros(ud[k].shape[:-1] + (3,)))
+        return SimpleNamespace(pipeline_state=ps, reward=np.zeros(ud[k].shape[:-1]), done=np.zeros(ud[k].shape[:-1]))
+
+    batch = trace_step(state(slice(None)), np.zeros((3, 2)))
+    np.testing.assert_array_equal(batch.human_contact, [0, 1, 0])
+    np.testing.assert_array_equal(batch.wall_contact, [0, 0, 1])
+    one = trace_step(state(2), np.zeros(2))
+    assert float(one.human_contact) == 0.0 and float(one.wall_contact) == 1.0

@@ -67,19 +67,22 @@ def _mutated(path, value):
 @pytest.mark.parametrize(
     "path, value, message",
     [
-        (("objects", 0, "category"), "hovercraft", "objects[0].category: unknown category 'hovercraft'"),
-        (("objects", 1, "center_m"), KeyError, "objects[1]: missing field 'center_m'"),
-        (("name",), KeyError, "missing field 'name'"),
-        (("objects", 0, "yaw_deg"), 45, "objects[0].yaw_deg: must be a multiple of 90"),
-        (("objects", 0, "size_m"), [1, -1, 1], "objects[0].size_m: must be positive"),
-        (("objects", 0, "center_m"), [1, "a", 1], "objects[0].center_m: expected finite numbers"),
-        (("objects", 1, "center_m"), [5.9, 2, 0.375], "objects[1] (table): footprint lies outside bounds_m"),
-        (("objects", 1, "center_m"), [1.2, 0.8, 0.375], "objects[1] (table): overlaps objects[0] (fridge)"),
-        (("objects", 0, "center_m"), [1, 0.42, 0.9], "objects[0] (fridge): overlaps walls[0]"),
-        (("objects", 0, "room"), 3, "objects[0].room: must be -1 or an index into rooms"),
-        (("rooms", 0, "type"), "ballroom", "rooms[0].type: unknown room type 'ballroom'"),
-        (("version",), 7, "unsupported 'version' 7"),
-        (("objects", 0, "rgb"), [300, 0, 0], "objects[0].rgb: expected three integers 0-255"),
+        (("objects", 0, "category"), "hovercraft", "s: objects[0].category: unknown category 'hovercraft'; valid categories: "),
+        (("objects", 1, "center_m"), KeyError, "s: objects[1].center_m: required field is missing"),
+        (("name",), KeyError, "s: name: required field is missing"),
+        (("objects", 0, "yaw_deg"), 45, "s: objects[0].yaw_deg: must be a multiple of 90"),
+        (("objects", 0, "size_m"), [1, -1, 1], "s: objects[0].size_m: must be positive"),
+        (("objects", 0, "center_m"), [1, "a", 1], "s: objects[0].center_m: expected finite numbers"),
+        (("objects", 1, "center_m"), [5.9, 2, 0.375], "s: objects[1].center_m: table footprint x 5.450..6.350 m"),
+        (("objects", 1, "center_m"), [4, 2, -0.2], "s: objects[1].center_m: table extends below the floor"),
+        (("objects", 1, "center_m"), [1.2, 0.8, 0.375], "s: objects[1]: table overlaps objects[0] (fridge)"),
+        (("objects", 0, "center_m"), [1, 0.42, 0.9], "s: objects[0]: fridge overlaps walls[0]"),
+        (("objects", 0, "room"), 3, "s: objects[0].room: must be -1 or an index into rooms"),
+        (("rooms", 0, "type"), "ballroom", "s: rooms[0].type: unknown room type 'ballroom'; valid room types: "),
+        (("version",), 7, "s: version: unsupported version 7"),
+        (("objects", 0, "rgb"), [300, 0, 0], "s: objects[0].rgb: expected three integers 0-255"),
+        (("objects",), {}, "s: objects: expected a list"),
+        (("objects", 1), "table", "s: objects[1]: expected an object, got str"),
     ],
 )
 def test_loader_rejects_bad_scene_naming_the_field(path, value, message):
@@ -88,13 +91,38 @@ def test_loader_rejects_bad_scene_naming_the_field(path, value, message):
     assert message in str(e.value)
 
 
+def test_unknown_category_lists_every_valid_category_and_names_the_file(tmp_path):
+    from conav_jax.categories import CATEGORY_INDEX
+
+    d = _mutated(("objects", 1, "category"), "sofa2")
+    p = tmp_path / "apt.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(SceneFormatError) as e:
+        load_scene(p)
+    assert str(e.value).startswith(f"{p}: objects[1].category: unknown category 'sofa2'; valid categories: ")
+    assert (e.value.source, e.value.field) == (str(p), "objects[1].category")
+    listed = str(e.value).split("valid categories: ", 1)[1].split(", ")
+    assert sorted(listed) == sorted(CATEGORY_INDEX) and len(listed) == 51
+
+
+def test_out_of_bounds_object_names_its_center_field(tmp_path):
+    p = tmp_path / "apt.json"
+    p.write_text(json.dumps(_mutated(("objects", 1, "center_m"), [5.9, 2, 0.375])))
+    with pytest.raises(SceneFormatError) as e:
+        load_scene(p)
+    assert e.value.field == "objects[1].center_m"
+    assert str(e.value).startswith(f"{p}: objects[1].center_m: table footprint")
+    assert "lies outside bounds_m [0.0, 0.0, 6.0, 4.0]" in str(e.value)
+
+
 def test_loader_reports_missing_file_and_bad_json(tmp_path):
     with pytest.raises(FileNotFoundError):
         load_scene(tmp_path / "nope.json")
     p = tmp_path / "bad.json"
     p.write_text("{not json")
-    with pytest.raises(SceneFormatError, match="not valid JSON"):
+    with pytest.raises(SceneFormatError) as e:
         load_scene(p)
+    assert str(e.value).startswith(f"{p}: not valid JSON")
 
 
 def test_generator_is_deterministic():

@@ -30,7 +30,8 @@ def _loop_losses(tmp: Path, mesh) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from train.loop import TrainConfig, read_log, train
+    from conav_jax.runs import read_log
+    from train.loop import TrainConfig, train
 
     rng = np.random.default_rng(0)
     data = {"x": rng.normal(size=(32, 3)).astype(np.float32), "y": rng.normal(size=(32, 2)).astype(np.float32)}
@@ -58,7 +59,7 @@ def _evaluate_metrics(mesh) -> dict:
     each env rollout compiles for ~25 s here."""
     from envs import ConavEnv, EnvConfig, SensorConfig
     from envs.rollout import evaluate
-    from eval.agents import make_agent
+    from envs.agents.registry import make_agent
     from worlds import make_split
 
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0)])

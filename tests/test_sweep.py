@@ -2,6 +2,7 @@
 determinism, and input errors raised before anything is compiled."""
 
 import argparse
+import csv
 import json
 
 import numpy as np
@@ -13,13 +14,15 @@ from eval.report import bootstrap_interval, summarize_with_ci, table2_markdown, 
 
 def _metrics(rows):
     """Env-style final metrics from (t_reach, t_arrive, t_end, collided_before_reach, collided,
-    geodesic l, path p) per episode."""
-    names = ("t_reach", "t_arrive", "t_end", "collided_before_reach", "collided", "geodesic_start_goal_m", "path_length_m")
+    shortest path steps l, geodesic metres, path metres) per episode."""
+    names = ("t_reach", "t_arrive", "t_end", "collided_before_reach", "collided", "shortest_path_steps",
+             "geodesic_start_goal_m", "path_length_m")
     return {n: np.array([r[i] for r in rows], np.float32) for i, n in enumerate(names)}
 
 
-# First before the human (SPL 5 / 6.25 = 0.8), after the human but in time (SPL 1), never with a touch.
-THREE = _metrics([(10, 20, 40, 0, 0, 5.0, 6.25), (30, 20, 40, 0, 0, 4.0, 4.0), (-1, 20, 50, 0, 1, 3.0, 9.0)])
+# First before the human (SPL 8 / 10 steps = 0.8; 5 / 6.25 m = 0.8), after the human but in time
+# (SPL 1), never with a touch.
+THREE = _metrics([(10, 20, 40, 0, 0, 8, 5.0, 6.25), (30, 20, 40, 0, 0, 30, 4.0, 4.0), (-1, 20, 50, 0, 1, 20, 3.0, 9.0)])
 
 
 def test_wilson_interval_matches_hand_computed_endpoints():
@@ -41,8 +44,10 @@ def test_metrics_of_three_known_episodes():
     assert s["AS"]["value"] == pytest.approx(30.0)  # (10 + 30 + 50) / 3: t_end when never reached
     assert (s["FASR"]["lo"], s["FASR"]["hi"]) == pytest.approx((6.149, 79.234), abs=1e-2)
     assert (s["RASR"]["lo"], s["RASR"]["hi"]) == pytest.approx((20.766, 93.851), abs=1e-2)
-    for name in ("FASPL", "RASPL", "AS"):  # bootstrap: seeded, brackets the mean
-        assert s[name]["lo"] <= s[name]["value"] <= s[name]["hi"]
+    # Bootstrap: the 2.5 / 97.5 percentiles of 2000 seeded resamples of the episode values.
+    rng = np.random.default_rng(0)
+    means = np.array([0.8, 0.0, 0.0])[rng.integers(0, 3, size=(2000, 3))].mean(axis=1)
+    assert (s["FASPL"]["lo"], s["FASPL"]["hi"]) == pytest.approx(tuple(100 * np.percentile(means, [2.5, 97.5])))
     assert summarize_with_ci(THREE, seed=0) == s
 
 
@@ -55,7 +60,7 @@ def test_bootstrap_is_seeded_and_degenerate_for_constants():
 def test_tables_are_laid_out_like_the_paper():
     s = summarize_with_ci(THREE, seed=0)
     t2 = table2_markdown([("Pioneer Agent (Oracle Pathfinder)", s)]).splitlines()
-    assert t2[0] == "| Methods | FASR↑ | RASR↑ | FASPL↑ | RASPL↑ | CR↓ | AS↓ |"
+    assert t2[0] == "| Methods | FASR↑ | RASR↑ | FASPL↑ | RASPL↑ | CR↓ | AS↓ | FASPL_m↑ | RASPL_m↑ |"
     half = (79.234 - 6.149) / 2
     assert t2[2].startswith(f"| Pioneer Agent (Oracle Pathfinder) | 33.3 ± {half:.1f} | 66.7 ± ")
     assert "| 30.0 ± " in t2[2]
@@ -77,43 +82,50 @@ def two_sweeps(tiny_data, tmp_path_factory):
     full-length batch: tests/test_rollout.py checks it against refilled lanes)."""
     outs = [tmp_path_factory.mktemp(f"sweep{k}") for k in range(2)]
     for out in outs:
-        argv = ["--data", str(tiny_data), "--agent", "objectgoal", "--episodes", "3", "--batch", "4", "--resolution", "8x32", "--seed", "1", "--out", str(out)]
+        argv = ["--data", str(tiny_data), "--agent", "objectgoal-planner", "--episodes", "3", "--batch", "4", "--resolution", "8x32", "--seed", "1", "--out", str(out)]
         assert sweep.run_eval(_args(*argv)) == 0
     return outs
 
 
 def test_sweep_writes_records_metrics_report_and_figures(two_sweeps):
     out = two_sweeps[0]
-    for name in ("episodes_objectgoal.csv", "metrics.json", "report.md", "success_over_time.png", "map_objectgoal.png"):
+    for name in ("episodes_objectgoal-planner.csv", "metrics.json", "report.md", "success_over_time.png", "map_objectgoal-planner.png"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
-    rows = (out / "episodes_objectgoal.csv").read_text().splitlines()
-    assert rows[0] == "episode,scene,activity_a,activity_b,object_b,t_arrive,t_end,t_reach,FASR,RASR,FASPL,RASPL,collided,AS"
-    assert len(rows) == 4 and [r.split(",")[0] for r in rows[1:]] == ["0", "1", "2"]
+    rows = list(csv.DictReader((out / "episodes_objectgoal-planner.csv").open()))
+    assert [r["episode"] for r in rows] == ["0", "1", "2"]
+    # Every row says what the agent was given.
+    assert {(r["agent"], r["intention_source"], r["privileged"]) for r in rows} == {
+        ("objectgoal-planner", "none", "oracle goal category;oracle map")}
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["episodes"] == 3 and doc["ablations"] == {}
-    m = doc["agents"]["objectgoal"]["metrics"]
-    assert set(m) == {"FASR", "RASR", "FASPL", "RASPL", "CR", "AS"}
-    assert all(e["lo"] <= e["value"] <= e["hi"] for e in m.values())
+    entry = doc["agents"]["objectgoal-planner"]
+    assert entry["title"] == "Object-goal planner (oracle goal category + oracle map)"
+    assert entry["intention_source"] == "none" and entry["privileged"] == ["oracle goal category", "oracle map"]
+    # The metrics are the per-episode records' means, CR_full included (episodes run to t_end).
+    m = entry["metrics"]
+    for name, column in (("FASR", "FASR"), ("FASPL", "FASPL"), ("CR", "collided"), ("CR_full", "collided_full")):
+        assert m[name]["value"] == pytest.approx(100 * np.mean([float(r[column]) for r in rows]), abs=1e-3), name
     report = (out / "report.md").read_text()
-    assert "| Object-goal Agent (Oracle Goal Object) |" in report and "![success by step](success_over_time.png)" in report
-    assert (out / "map_objectgoal.png").read_bytes()[:4] == b"\x89PNG"
+    assert "| Object-goal planner (oracle goal category + oracle map) |" in report
+    assert "| CR↓ | CR_full↓ |" in report and "![success by step](success_over_time.png)" in report
+    assert (out / "map_objectgoal-planner.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_same_seed_gives_identical_metrics_bytes(two_sweeps):
     a, b = two_sweeps
     assert (a / "metrics.json").read_bytes() == (b / "metrics.json").read_bytes()
-    assert (a / "episodes_objectgoal.csv").read_bytes() == (b / "episodes_objectgoal.csv").read_bytes()
+    assert (a / "episodes_objectgoal-planner.csv").read_bytes() == (b / "episodes_objectgoal-planner.csv").read_bytes()
 
 
 def test_every_agent_is_built_before_the_first_rollout(two_sweeps, tiny_data, tmp_path):
     # An existing but empty run dir passes the cheap checks; loading it fails, and it must fail
-    # before the agent listed first (objectgoal) is evaluated.
+    # before the agent listed first (objectgoal-planner) is evaluated.
     (tmp_path / "empty_run").mkdir()
     out = tmp_path / "o"
-    argv = ["--data", str(tiny_data), "--agent", "objectgoal,conav", "--checkpoint", str(tmp_path / "empty_run")]
+    argv = ["--data", str(tiny_data), "--agent", "objectgoal-planner,conav", "--checkpoint", str(tmp_path / "empty_run")]
     with pytest.raises((ValueError, FileNotFoundError)):
         sweep.run_eval(_args(*argv, "--episodes", "3", "--batch", "2", "--resolution", "8x32", "--out", str(out)))
-    assert not (out / "episodes_objectgoal.csv").exists()
+    assert not (out / "episodes_objectgoal-planner.csv").exists()
 
 
 @pytest.mark.parametrize(

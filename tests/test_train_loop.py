@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint
-from train.loop import NonFiniteLoss, TrainConfig, read_log, train
+from conav_jax.runs import read_log
+from train.loop import NonFiniteLoss, TrainConfig, train
 
 FAST = {"xla_backend_optimization_level": 0}
 CONFIG = {"kind": "linear", "model": {"inputs": 3}}
@@ -120,7 +121,7 @@ def test_resume_accepts_changes_to_the_keys_it_is_told_to_ignore_and_no_others(t
     """What `conav train policy` relies on to resume a finished BC run with another DAgger
     round length (train.policy.RESUME_CHANGEABLE)."""
     from conav_jax.checkpoints import save_checkpoint
-    from train.loop import resume
+    from conav_jax.runs import resume
     from train.policy import RESUME_CHANGEABLE
 
     params = init_params()

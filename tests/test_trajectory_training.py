@@ -10,11 +10,12 @@ import pytest
 from conav_jax.episodes import PHASE_ACTIVITY_A, PHASE_ACTIVITY_B, PHASE_DONE, PHASE_WALK
 from conav_jax.models import trajectory as traj_model
 from conav_jax.models.trajectory import TrajectoryConfig
-from train.loop import TrainConfig, read_log, train
+from conav_jax.runs import read_log
+from envs.agents.predictors import load_trajectory_predictor
+from train.loop import TrainConfig, train
 from train.trajectory import (
     TrajectoryDataConfig,
     add_train_trajectory,
-    load_trajectory_predictor,
     make_val_fn,
     run_config,
     trajectory_loss,

@@ -20,7 +20,7 @@ def recording(tiny_data, tmp_path_factory):
     import rerun.chunk
 
     out = tmp_path_factory.mktemp("view") / "episode.rrd"
-    args = _args("--data", str(tiny_data), "--episode", "1", "--agent", "objectgoal", "--resolution", "8x32", "--out", str(out))
+    args = _args("--data", str(tiny_data), "--episode", "1", "--agent", "objectgoal-planner", "--resolution", "8x32", "--out", str(out))
     assert viewer.run_view(args) == 0
     return rerun.chunk.RrdReader(str(out)).stream().collect()
 
@@ -77,7 +77,7 @@ def test_predictions_are_read_from_an_agents_carry():
     assert set(viewer.agent_predictions({"object_probs": 1, "future_traj": 2, "h": 3})) == {"object_probs", "future_traj"}
     assert set(viewer.agent_predictions(_Carry((), np.zeros(3)))) == {"activity_probs"}
     # The CoNav policy's carry holds what its predictors produced under `predicted`.
-    from train.imitation import PolicyCarry
+    from envs.agents.policy import PolicyCarry
 
     carry = PolicyCarry((), None, {"future_traj": np.zeros((5, 2))})
     assert set(viewer.agent_predictions(carry)) == {"future_traj"}

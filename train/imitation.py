@@ -1,177 +1,33 @@
-"""Imitation learning for the CoNav policy: the expert in the simulator, its data, BC and DAgger.
+"""Imitation learning for the CoNav policy: the expert's and the policy's rollouts, their data, BC.
 
 `make_rollout_fn` runs the env with the expert and the policy side by side (a share `beta` of
 the steps is acted by the expert: 1 for behaviour cloning, 0 for DAgger's own-policy rounds);
 the expert labels every visited state. Records -> `sequences` (fixed-length windows with a
 burn-in, compact uint8/float16 panoramas) -> `bc_loss` (paper's L2 on (v_lin, v_ang)), trained
-by train.loop. train/policy.py drives the rounds; eval/learned.py builds the agent from a run.
+by train.loop. train/policy.py drives the rounds; envs.agents.policy steps the policy and
+builds the evaluated agent from a run.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from conav_jax.episodes import PHASE_ACTIVITY_A
-from conav_jax.expert import ExpertCarry, ExpertConfig, ExpertMaps, clearance_map, expert_action, initial_carry
+from conav_jax.expert import ExpertConfig, initial_carry
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
-from conav_jax.nn.lstm import LSTMState
 from conav_jax.parallel import replicate
+from envs.agents.expert import make_expert_step
+from envs.agents.policy import INTENTION_KEYS, PREDICTED, check_policy_env, make_policy_step
 from envs.conav_env import ConavEnv
-from envs.mjcf import UD
-from envs.rollout import Agent, map_episodes
+from envs.rollout import map_episodes
 
-INTENTION_KEYS = ("activity_probs", "object_probs", "future_traj")
 # What a rollout records per step (besides the panorama, kept as "rgb" uint8 and "depth" f16).
 RECORDED_KEYS = ("gps_compass", "human_pos") + INTENTION_KEYS
-
-
-# -- the expert in the simulator ------------------------------------------------------------------
-
-
-def _clearance_grids(env: ConavEnv) -> jax.Array:
-    """(S, ny, nx) signed wall clearance (m) of every scene, on the bank's field grid."""
-    b = env.bank
-    _, _, ny, nx = b.fields.shape
-    out = np.full((len(env.split.navs), ny, nx), -b.cell_m, np.float32)  # padding reads as blocked
-    for s, nav in enumerate(env.split.navs):
-        gy, gx = nav.grid.shape
-        out[s, :gy, :gx] = clearance_map(nav.grid.free, nav.grid.cell_m)
-    return jnp.asarray(out)
-
-
-def make_expert_step(env: ConavEnv, cfg: ExpertConfig = ExpertConfig()) -> Callable:
-    """`(state, carry) -> (action (2,), carry)`: conav_jax.expert acting on one env's brax State.
-    Privileged: it reads the episode's fields, the human's upcoming positions and phase."""
-    b = env.bank
-    clearance = _clearance_grids(env)
-    look = jnp.asarray(cfg.human_lookahead_steps, jnp.int32)
-
-    def step(state, carry: ExpertCarry):
-        ep = state.info["episode"]
-        s = b.scene_index[ep]
-        t = state.pipeline_state.userdata[UD["t"]].astype(jnp.int32)
-        ts = jnp.clip(t + look, 0, b.max_steps - 1)
-        maps = ExpertMaps(b.fields[s, b.field_b[ep]], b.fields[s, b.field_a[ep]], clearance[s], b.field_origin[s])
-        at_a = b.phase[ep, ts[0]] == PHASE_ACTIVITY_A
-        return expert_action(cfg, maps, b.cell_m, state.pipeline_state.qpos, b.root_xy[ep, ts], at_a, carry)
-
-    return step
-
-
-def expert_agent(env: ConavEnv, cfg: ExpertConfig = ExpertConfig()) -> Agent:
-    """The expert as an envs.rollout.Agent named "expert": the imitation teacher, and the
-    ceiling a learned policy is measured against."""
-    step = make_expert_step(env, cfg)
-    return Agent("expert", lambda key, episode: initial_carry(), lambda state, carry, key: step(state, carry))
-
-
-# -- the policy acting in one env -----------------------------------------------------------------
-
-
-class PolicyCarry(NamedTuple):
-    """The acting policy's memory: its LSTM state ((hidden,) each), the intention predictor's
-    carry (None without one) and `predicted`, the predictors' latest outputs the policy read,
-    by observation key (activity_probs / object_probs / future_traj; {} without predictors),
-    which the viewer (eval.viewer) shows."""
-
-    lstm: LSTMState
-    intention: Any
-    predicted: dict
-
-
-class PolicyStep(NamedTuple):
-    """`init() -> PolicyCarry`; `step(params, obs, carry) -> (action (2,), carry)` for one env,
-    which is `act(params, *predict(obs, carry))`: `predict` runs the predictors (the policy's
-    inputs, with predicted intentions where a predictor is given), `act` the network."""
-
-    init: Callable[[], PolicyCarry]
-    step: Callable[[dict, dict, PolicyCarry], tuple[jax.Array, PolicyCarry]]
-    predict: Callable[[dict, PolicyCarry], tuple[dict, PolicyCarry]]
-    act: Callable[[dict, dict, PolicyCarry], tuple[jax.Array, PolicyCarry]]
-
-
-def policy_inputs(cfg: PolicyConfig) -> tuple[str, ...]:
-    """The observation keys the policy reads: the panorama, pose, human position and the
-    intention inputs its ablation keeps."""
-    on = (cfg.use_activity, cfg.use_object, cfg.use_trajectory)
-    return ("rgbd", "gps_compass", "human_pos") + tuple(k for k, use in zip(INTENTION_KEYS, on) if use)
-
-
-def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None) -> PolicyStep:
-    """The LSTM policy acting for one env. Intention inputs come from the observation (the
-    env's ground truth) unless predictors are given: `intention` (train.intention's
-    IntentionPredictor) replaces activity/object probabilities with its predictions from the
-    front view, `trajectory` (train.trajectory's TrajectoryPredictor) the future trajectory with
-    its prediction from the human's history. Inputs the ablation drops are never computed."""
-    use_intention = intention is not None and (cfg.use_activity or cfg.use_object)
-    use_trajectory = trajectory is not None and cfg.use_trajectory
-    keys = policy_inputs(cfg)
-
-    predicted_keys = (("activity_probs", "object_probs") if use_intention else ()) + (
-        ("future_traj",) if use_trajectory else ())
-
-    def init() -> PolicyCarry:
-        lstm = jax.tree.map(lambda x: x[0], policy.initial_carry(cfg, 1))
-        shapes = {"activity_probs": (cfg.num_activities,), "object_probs": (cfg.num_objects,),
-                  "future_traj": (cfg.horizon, 2)}
-        predicted = {k: jnp.zeros(shapes[k], jnp.float32) for k in predicted_keys}
-        return PolicyCarry(lstm, intention.init() if use_intention else None, predicted)
-
-    def predict(obs: dict, carry: PolicyCarry) -> tuple[dict, PolicyCarry]:
-        inputs = {k: obs[k] for k in keys if k in obs}
-        icarry = carry.intention
-        if use_intention:
-            activity, obj, icarry = intention.step(icarry, obs["front"])
-            inputs.update(activity_probs=activity, object_probs=obj)
-        if use_trajectory:
-            inputs["future_traj"] = trajectory.predict(obs["human_history"])
-        predicted = {k: inputs[k].astype(jnp.float32).reshape(carry.predicted[k].shape) for k in predicted_keys}
-        return inputs, carry._replace(intention=icarry, predicted=predicted)
-
-    def act(params, inputs: dict, carry: PolicyCarry):
-        batched = {k: inputs[k][None] for k in keys}
-        lstm = jax.tree.map(lambda x: x[None], carry.lstm)
-        action, _, lstm = policy.apply(params, cfg, batched, lstm)
-        return action[0], carry._replace(lstm=jax.tree.map(lambda x: x[0], lstm))
-
-    def step(params, obs: dict, carry: PolicyCarry):
-        return act(params, *predict(obs, carry))
-
-    return PolicyStep(init, step, predict, act)
-
-
-def check_policy_env(env: ConavEnv, cfg: PolicyConfig, source: str, intention=None, trajectory=None) -> None:
-    """ValueError unless `env` renders the policy's resolution and observes the ground-truth
-    intention inputs the policy reads without a predictor."""
-    hw = (env.config.sensor.height, env.config.sensor.width)
-    if hw != tuple(cfg.image_hw):
-        h, w = cfg.image_hw
-        raise ValueError(
-            f"{source} was trained on {h}x{w} panoramas but the env renders {hw[0]}x{hw[1]}; "
-            f"build the env with SensorConfig(height={h}, width={w})"
-        )
-    ground_truth = [k for k in policy_inputs(cfg) if k in INTENTION_KEYS]
-    if intention is not None:
-        ground_truth = [k for k in ground_truth if k == "future_traj"]
-    if trajectory is not None:
-        ground_truth = [k for k in ground_truth if k != "future_traj"]
-    if ground_truth and not env.config.intention_obs:
-        raise ValueError(
-            f"{source} reads {', '.join(ground_truth)} and no predictor supplies them; build the env "
-            "with EnvConfig(intention_obs=True) or pass the predictor runs"
-        )
-
-
-def policy_agent_from_params(params, cfg: PolicyConfig, intention=None, trajectory=None, name: str = "conav") -> Agent:
-    """An envs.rollout.Agent acting with these policy parameters (closed over)."""
-    pol = make_policy_step(cfg, intention, trajectory)
-    return Agent(name, lambda key, episode: pol.init(), lambda state, carry, key: pol.step(params, state.obs, carry))
 
 
 # -- rollouts and their records ---------------------------------------------------------------
@@ -232,13 +88,13 @@ def make_rollout_fn(
     With `record_predicted` the records hold the predictors' outputs in place of the ground-truth
     intention inputs they replace (the predictors run at every step, also while the expert acts),
     so a policy trains on what it will read at evaluation."""
-    check_policy_env(env, policy_cfg, "the policy", intention, trajectory)
+    pol = make_policy_step(policy_cfg, intention, trajectory)  # ValueError for a predictor missing beside another
+    check_policy_env(env, policy_cfg, "the policy", pol.source)
     if record and not env.config.intention_obs:
         raise ValueError("recording imitation data needs the ground-truth intentions: EnvConfig(intention_obs=True)")
-    if record_predicted and intention is None and trajectory is None:
-        raise ValueError("record_predicted needs an intention or trajectory predictor")
+    if record_predicted and pol.source != PREDICTED:
+        raise ValueError("record_predicted needs the predictor of every intention input the policy reads")
     expert = make_expert_step(env, expert_cfg)
-    pol = make_policy_step(policy_cfg, intention, trajectory)
     steps = num_steps or env.bank.max_steps
 
     def one(params, key, episode, beta):

@@ -14,8 +14,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import json
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,15 +26,15 @@ import numpy as np
 from jax.sharding import Mesh
 from tqdm import tqdm
 
-from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
 from conav_jax.optim import Optimizer, adam, clip_by_global_norm, warmup_cosine
 from conav_jax.parallel import add_devices_arg, check_divisible, constrain_batch, replicate, replicated
+from conav_jax.runs import LOG_FILE, append_log, finite_or_none, resume
 
 PyTree = Any
 # loss_fn(params, batch, key) -> (scalar loss, dict of scalar metrics to log). `batch` is `data`
 # indexed on its leading axis by `batch` sample indices; `key` is for per-sample randomness.
 LossFn = Callable[[PyTree, dict, jax.Array], tuple[jax.Array, dict]]
-LOG_FILE = "log.jsonl"
 # Fields that only change how often things happen, not the trained weights: they may differ
 # between a run and its resumption.
 CADENCE_FIELDS = ("log_every", "val_every", "ckpt_every")
@@ -185,45 +183,6 @@ def _next_boundary(step: int, cfg: TrainConfig) -> int:
     return min(*nxt, cfg.steps)
 
 
-def trim_log(path: Path, step: int) -> None:
-    """Keep only records up to `step` (and those without one): a resumed run re-logs what came
-    after its checkpoint."""
-    if not path.is_file():
-        return
-    keep = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
-    path.write_text("".join(line + "\n" for line in keep))
-
-
-def resume(run_dir: Path, config: dict, params: PyTree, opt_state: PyTree, ignore: tuple[str, ...] = ()):
-    """The latest checkpoint of `run_dir`, loaded against `config` and the state's structure,
-    with the run's log trimmed to its step; None for a fresh run (whose stale log, belonging to
-    no state we can continue, is removed). ValueError naming the first difference when the
-    checkpoint is of another config (`ignore`: dotted config keys a resumed run may change)."""
-    log_path = Path(run_dir) / LOG_FILE
-    found = latest_checkpoint(run_dir)
-    if found is None:
-        log_path.unlink(missing_ok=True)
-        return None
-    try:
-        ckpt = load_checkpoint(found, config=config, params_like=params, opt_state_like=opt_state, ignore=ignore)
-    except ValueError as e:
-        raise ValueError(f"cannot resume {run_dir}: {e}") from None
-    trim_log(log_path, ckpt.step)
-    return ckpt
-
-
-def append_log(path: Path, record: dict) -> None:
-    """Append one JSON record (a line) to a run's log."""
-    with open(path, "a") as f:
-        f.write(json.dumps(record) + "\n")
-
-
-def finite_or_none(x) -> float | None:
-    """`float(x)`, or None where it is inf/NaN (JSON has no NaN)."""
-    v = float(x)
-    return v if math.isfinite(v) else None
-
-
 def train(
     run_dir: str | Path,
     loss_fn: LossFn,
@@ -323,23 +282,6 @@ def train(
     if val_fn is not None and not val:  # resumed at or past the end: still report metrics
         validate(step)
     return TrainResult(params, opt_state, step, val, run_dir)
-
-
-def read_log(run_dir: str | Path) -> list[dict]:
-    """The records of `run_dir/log.jsonl`, in order."""
-    path = Path(run_dir) / LOG_FILE
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-
-
-def load_run(run_dir: str | Path, kind: str):
-    """The latest checkpoint of a run of `kind`; FileNotFoundError / ValueError otherwise."""
-    found = latest_checkpoint(run_dir)
-    if found is None:
-        raise FileNotFoundError(f"no checkpoint in {run_dir}")
-    ckpt = load_checkpoint(found)
-    if ckpt.config.get("kind") != kind:
-        raise ValueError(f"{found} is a {ckpt.config.get('kind')!r} run, expected {kind!r}")
-    return ckpt
 
 
 # -- CLI helpers shared by the `conav train` sub-commands ----------------------------------------

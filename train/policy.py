@@ -4,7 +4,7 @@ Round 0 records the expert on the train split; each DAgger round rolls out the c
 the expert labels the states it visits, and the aggregated windows (RUN/data/round_R.npz)
 train it further. Validation runs the policy in the simulator on the val split. RUN/log.jsonl
 holds the expert's val metrics (the ceiling), losses, and validations; RUN/ckpt_*.npz the
-policy (read by eval.learned.policy_agent and train.ppo's --init-from); runs resume. With a
+policy (read by envs.agents.policy.policy_agent and train.ppo's --init-from); runs resume. With a
 device mesh (conav_jax.parallel) every update's windows and every simulator batch are split
 over the devices, parameters replicated.
 """
@@ -18,10 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
-from train.loop import TrainConfig, add_train_args, append_log, resume, train_config_from_args
+from conav_jax import runs
+from conav_jax.runs import append_log, resume
+from train.loop import TrainConfig, add_train_args, train_config_from_args
 
-KIND = "policy"
-LOG_FILE = "log.jsonl"
+KIND = runs.POLICY
 # ImitationConfig fields a resumed run may change: more DAgger rounds continue a finished run;
 # batching and the val subset do not change the weights.
 RESUME_FREE = ("dagger_rounds", "rollout_batch", "val_episodes")
@@ -78,8 +79,8 @@ class PolicyResult(NamedTuple):
 
 def run_config(model, imitation: ImitationConfig, expert, content_hash: str, intention_run, trajectory_run) -> dict:
     """The checkpoint's config: "kind", the PolicyConfig as "model" (what train.ppo's
-    --init-from and eval.learned rebuild the network from), the sensor resolution, the data
-    and the predictor runs validation used."""
+    --init-from and envs.agents.policy rebuild the network from), the sensor resolution, the
+    data and the predictor runs validation used."""
     return {
         "kind": KIND,
         "model": dataclasses.asdict(model),
@@ -98,42 +99,6 @@ def policy_model(imitation: ImitationConfig):
 
     base = PolicyConfig(image_hw=tuple(imitation.resolution), object_saliency=imitation.object_saliency)
     return ablation_config(base, imitation.ablation)
-
-
-def policy_config_from_dict(d: dict):
-    """PolicyConfig from a checkpoint's JSON "model" (lists back to tuples)."""
-    from conav_jax.models.policy import PolicyConfig
-
-    names = {f.name for f in dataclasses.fields(PolicyConfig)}
-    d = {"object_saliency": False, **d}  # checkpoints from before the saliency channel had none
-    if set(d) - names:
-        raise ValueError(f"checkpoint model config has unknown PolicyConfig fields {sorted(set(d) - names)}")
-    return PolicyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
-
-
-def load_policy_run(run_dir: str | Path):
-    """(params, PolicyConfig, config dict) of a policy run's latest checkpoint.
-    FileNotFoundError for a missing run or checkpoint, ValueError for another kind of run or
-    params that do not fit the saved PolicyConfig."""
-    import jax
-
-    from conav_jax.checkpoints import latest_checkpoint, load_checkpoint
-    from conav_jax.models import policy
-    from train.loop import load_run
-
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise FileNotFoundError(f"policy run directory not found: {run_dir}")
-    try:
-        ckpt = load_run(run_dir, KIND)
-    except ValueError as e:
-        raise ValueError(f"{e} (the CoNav agent needs a `conav train policy` run)") from None
-    if "model" not in ckpt.config or "sensor_hw" not in ckpt.config:
-        raise ValueError(f"{run_dir}: policy checkpoint without model/sensor config")
-    cfg = policy_config_from_dict(ckpt.config["model"])
-    template = jax.eval_shape(lambda k: policy.init(k, cfg), jax.random.PRNGKey(0))
-    params = load_checkpoint(latest_checkpoint(run_dir), params_like=template).params
-    return params, cfg, ckpt.config
 
 
 def window_indices(seed: int, step: int, n: int, batch: int):
@@ -239,6 +204,7 @@ def train_policy(
     from conav_jax.optim import adam, warmup_cosine
     from conav_jax.parallel import check_divisible, replicate
     from envs import ConavEnv, EnvConfig, SensorConfig
+    from envs.agents.policy import intention_source, load_predictors
     from envs.metrics import summarize
     from train import imitation as im
     from train.loop import NonFiniteLoss
@@ -260,9 +226,9 @@ def train_policy(
         return jax.device_put(tree) if mesh is None else replicate(tree, mesh)
 
     run_dir = Path(run_dir)
+    content_hash = read_manifest(data_dir)["content_hash"]  # before any mkdir: a bad --data leaves nothing
     (run_dir / "data").mkdir(parents=True, exist_ok=True)
-    log_path = run_dir / LOG_FILE
-    content_hash = read_manifest(data_dir)["content_hash"]
+    log_path = run_dir / runs.LOG_FILE
     model = policy_model(imitation)
     config = {**run_config(model, imitation, expert, content_hash, intention_run, trajectory_run), "train": cfg.optimisation()}
     round_steps = [cfg.steps] + [imitation.dagger_steps or cfg.steps] * imitation.dagger_rounds
@@ -278,23 +244,19 @@ def train_policy(
         log(f"resuming {run_dir} at update {step}")
 
     h, w = imitation.resolution
-    env_cfg = EnvConfig(sensor=SensorConfig(height=h, width=w))
+    # Imitation data and validation stop at the first reach (the expert's demonstrations end there).
+    env_cfg = EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True)
     train_env = ConavEnv(data_dir, "train", env_cfg, max_episodes=imitation.episodes)
     val_env = ConavEnv(data_dir, "val", env_cfg, max_episodes=imitation.val_episodes)
-    intention = trajectory = None
-    if intention_run is not None:
-        from train.intention import load_intention_predictor
-
-        intention = load_intention_predictor(intention_run)
-    if trajectory_run is not None:
-        from train.trajectory import load_trajectory_predictor
-
-        trajectory = load_trajectory_predictor(trajectory_run)
+    intention, trajectory = load_predictors(intention_run, trajectory_run)
     jit = lambda f: jax.jit(f, compiler_options=compiler_options)  # noqa: E731
     predicted = imitation.train_intentions == "predicted" and (intention is not None or trajectory is not None)
     record = jit(im.make_rollout_fn(train_env, model, expert, record=True, record_predicted=predicted,
                                     **({"intention": intention, "trajectory": trajectory} if predicted else {})))
     validate = jit(im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory))
+    # Where validation's intention inputs come from, logged with each validation (ground truth
+    # when no predictor run is given: a training-time check, not a benchmark result).
+    val_source = intention_source(model, intention, trajectory)
     update = make_update(model, cfg, compiler_options, mesh, remat)
     train_eps, val_eps = np.arange(train_env.num_episodes), np.arange(val_env.num_episodes)
     val_key = jax.random.PRNGKey(cfg.seed + 1)
@@ -372,7 +334,8 @@ def train_policy(
                 losses, t_log = [], time.perf_counter()
             if step % cfg.val_every == 0 or step == end:
                 val = val_metrics(params, 0.0)
-                append_log(log_path, {"step": step, "round": r, "split": "val", "agent": "policy", **val})
+                append_log(log_path, {"step": step, "round": r, "split": "val", "agent": "policy",
+                                      "intention_source": val_source, **val})
                 bar.write(f"update {step} (round {r}): policy on val: {_rates(val)}")
             if step % cfg.ckpt_every == 0 or step == end:
                 checkpoint(r)

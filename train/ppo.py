@@ -47,7 +47,8 @@ from brax.envs.wrappers import training as brax_training
 from jax.sharding import Mesh
 from tqdm import tqdm
 
-from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax import runs
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nn.lstm import LSTMState
@@ -55,12 +56,11 @@ from conav_jax.optim import Optimizer, adam, clip_by_global_norm
 from conav_jax.parallel import add_devices_arg, batch_sharding, check_divisible, make_mesh, replicated
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.metrics import summarize
-from envs.rollout import Agent, make_evaluator
-from train.loop import append_log, finite_or_none
-from train.policy import load_policy_run, policy_config_from_dict
+from conav_jax.runs import append_log, finite_or_none
+from envs.agents.policy import check_policy_env, intention_source, load_policy_run, policy_agent_from_params
+from envs.rollout import make_evaluator
 
-KIND = "ppo"
-LOG_FILE = "log.jsonl"
+KIND = runs.PPO
 LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -456,62 +456,9 @@ def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig, mesh: Me
 # -- agents and checkpoints ------------------------------------------------------------------------
 
 
-def make_ppo_agent(params: dict, policy_config: PolicyConfig, recurrent: bool) -> Agent:
-    """The deterministic agent (mean action) of a PPO policy, acting for one env."""
-
-    def init(key, episode):
-        return policy.initial_carry(policy_config, 1)
-
-    def act(state, carry, key):
-        obs = {k: v[None] for k, v in policy_obs(state.obs, policy_config).items()}
-        mean, _, new_carry = policy.apply(params, policy_config, obs, carry)
-        return mean[0], (new_carry if recurrent else carry)
-
-    return Agent("ppo", init, act)
-
-
-def _check_env(env: ConavEnv, policy_config: PolicyConfig, source: str) -> None:
-    hw = (env.config.sensor.height, env.config.sensor.width)
-    if hw != tuple(policy_config.image_hw):
-        h, w = policy_config.image_hw
-        raise ValueError(f"{source} was trained at {h}x{w} panoramas; the env renders {hw[0]}x{hw[1]} "
-                         f"(build it with SensorConfig(height={h}, width={w}))")
-    uses = policy_config.use_activity or policy_config.use_object or policy_config.use_trajectory
-    if uses and not env.config.intention_obs:
-        raise ValueError(f"{source} reads intention observations; build the env with intention_obs=True")
-
-
-def _load_ppo_run(run_dir: str | Path):
-    """(checkpoint with validated params, PolicyConfig) of a PPO run's latest checkpoint."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise FileNotFoundError(f"run directory not found: {run_dir}")
-    found = latest_checkpoint(run_dir)
-    if found is None:
-        raise FileNotFoundError(f"no checkpoint (ckpt_*.npz) in {run_dir}")
-    ckpt = load_checkpoint(found)
-    if ckpt.config.get("kind") != KIND:
-        raise ValueError(f"{found} is a {ckpt.config.get('kind')!r} run, expected {KIND!r} "
-                         "(use the agent of that kind, e.g. --agent conav for a policy run)")
-    if "model" not in ckpt.config:
-        raise ValueError(f"{found} holds no model config")
-    policy_config = policy_config_from_dict(ckpt.config["model"])
-    template = jax.eval_shape(lambda k: policy.init(k, policy_config), jax.random.PRNGKey(0))
-    return load_checkpoint(found, params_like=template), policy_config
-
-
-def ppo_agent(env: ConavEnv, run_dir: str | Path) -> Agent:
-    """The latest checkpoint of a `conav train rl` run as a deterministic envs.rollout.Agent.
-    FileNotFoundError for a missing run or checkpoint, ValueError for another kind of run or an
-    env it cannot read (resolution, intention observations); all before any compile."""
-    ckpt, policy_config = _load_ppo_run(run_dir)
-    _check_env(env, policy_config, f"PPO run {run_dir}")
-    return make_ppo_agent(ckpt.params, policy_config, bool(ckpt.config["ppo"]["recurrent"]))
-
-
 def load_policy_init(run_dir: str | Path) -> tuple[dict, PolicyConfig]:
-    """An imitation run's latest policy (actor, value head, log_std) and its PolicyConfig, read
-    by train.policy, which owns that format. FileNotFoundError / ValueError as it raises them."""
+    """An imitation run's latest policy (actor, value head, log_std) and its PolicyConfig.
+    FileNotFoundError / ValueError as envs.agents.policy.load_policy_run raises them."""
     params, policy_config, _ = load_policy_run(run_dir)
     return params, policy_config
 
@@ -565,19 +512,22 @@ def train_ppo(
         src = f"the policy of {init_from}" if init_from is not None else "policy_config"
         raise ValueError(f"{src} reads {policy_config.image_hw[0]}x{policy_config.image_hw[1]} panoramas but "
                          f"the PPO resolution is {hw[0]}x{hw[1]}; pass --resolution to match")
-    env_config = EnvConfig(sensor=SensorConfig(height=hw[0], width=hw[1]))
+    # Training and validation episodes end at the first reach: the reach bonus ends an episode.
+    env_config = EnvConfig(sensor=SensorConfig(height=hw[0], width=hw[1]), end_at_reach=True)
     env = brax.envs.get_environment("conav", data_dir=str(data_dir), split="train", config=env_config)
-    _check_env(env, policy_config, "the policy")
+    # PPO trains on the env's ground-truth intention observations (privileged), as imitation does.
+    check_policy_env(env, policy_config, "the policy", intention_source(policy_config))
     episode_length = config.episode_length or env.bank.max_steps + 1
     config = resolve_reset_every(config, min(episode_length, env.bank.max_steps + 1))
     wrapped = brax_training.wrap(env, episode_length=episode_length)
     val_env = ConavEnv(str(data_dir), "val", env_config) if config.eval_every else None
     recurrent = config.recurrent
     evaluator = None if val_env is None else make_evaluator(
-        val_env, lambda p: make_ppo_agent(p, policy_config, recurrent), config.eval_batch, config.seed, mesh)
+        val_env, lambda p: policy_agent_from_params(p, policy_config, name="ppo", recurrent=recurrent),
+        config.eval_batch, config.seed, mesh)
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    log_path = run_dir / LOG_FILE
+    log_path = run_dir / runs.LOG_FILE
     log_path.unlink(missing_ok=True)  # a log without a checkpoint belongs to no run we can continue
     run_config = {
         "kind": KIND,
@@ -604,10 +554,12 @@ def train_ppo(
     def validate(it: int) -> None:
         nonlocal val
         episodes = None if config.eval_episodes is None else np.arange(min(config.eval_episodes, val_env.num_episodes))
-        # The deterministic agent `conav eval --agent ppo` builds, on the params just saved;
-        # params are an argument of the compiled rollout, so only the first validation compiles.
+        # The deterministic agent `conav eval --agent ppo --ground-truth-intentions` builds, on the
+        # params just saved; params are an argument of the compiled rollout, so only the first
+        # validation compiles.
         val = summarize(evaluator(runner.params, episodes))
-        append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "val", **val})
+        append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "val",
+                              "intention_source": intention_source(policy_config), **val})
 
     bar = tqdm(total=n_iter * per_iter, disable=not progress, unit="step", dynamic_ncols=True)
     start = time.perf_counter()

@@ -1,30 +1,29 @@
-"""Training the short-term intention (trajectory) predictor, and loading it for agents.
+"""Training the short-term intention (trajectory) predictor.
 
 episodes' `root_xy` -> windows of k past + 5 future positions (mostly while walking, some
 standing), relative to the last past point -> train/loop.py on an L2 loss -> val ADE/FDE (m)
-against constant velocity -> `load_trajectory_predictor(run_dir).predict(history) -> future`.
+against constant velocity -> a run that envs.agents.predictors loads for agents.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-from collections.abc import Callable
 from pathlib import Path
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
+from conav_jax import runs
 from conav_jax.episodes import PHASE_WALK, load_split, read_manifest
 from conav_jax.models import trajectory as traj_model
 from conav_jax.models.trajectory import TrajectoryConfig
 from conav_jax.parallel import make_mesh
-from train.loop import NonFiniteLoss, TrainConfig, TrainResult, add_train_args, load_run, train, train_config_from_args
+from train.loop import NonFiniteLoss, TrainConfig, TrainResult, add_train_args, train, train_config_from_args
 
-KIND = "trajectory"
+KIND = runs.TRAJECTORY
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,30 +151,6 @@ def train_trajectory(
         run_dir, loss, params, train_w, cfg, run_config(model, data, content_hash),
         val_fn=make_val_fn(model, val_w, compiler_options), progress=progress, compiler_options=compiler_options, mesh=mesh,
     )
-
-
-class TrajectoryPredictor(NamedTuple):
-    """A trained trajectory model, params closed over. `predict(history (..., k, 2) m) ->
-    (..., horizon, 2) m` in the same frame (e.g. the robot's); jittable and vmappable."""
-
-    config: TrajectoryConfig
-    predict: Callable[[jax.Array], jax.Array]
-
-
-def load_trajectory_predictor(run_dir: str | Path) -> TrajectoryPredictor:
-    """The latest checkpoint of a `conav train trajectory` run as a predictor."""
-    ckpt = load_run(run_dir, KIND)
-    config = TrajectoryConfig(**ckpt.config["model"])
-    params = ckpt.params
-
-    def predict(history: jax.Array) -> jax.Array:
-        if history.shape[-2:] != (config.history, 2):
-            raise ValueError(f"history must be (..., {config.history}, 2), got {history.shape}")
-        last = history[..., -1:, :]
-        # Trained on histories relative to their last point: predict there, shift back.
-        return traj_model.apply(params, config, history - last) + last
-
-    return TrajectoryPredictor(config, predict)
 
 
 # -- CLI -----------------------------------------------------------------------------------------

@@ -1,28 +1,24 @@
-"""Baseline agents of the paper's Table 2 as `envs.rollout.Agent`s, and the registry of all agents.
+"""The paper's scripted Table 2 baselines, and our oracle object-goal planner, as Agents.
 
-Each baseline acts for one environment and is jittable: it reads the brax state (robot pose in
-`pipeline_state.qpos`, observations, the episode index in `info`) and, where it is an oracle, the
-env's episode bank through a closure. Data flow: state -> target direction (world, unit) ->
-`steer` -> action (v_lin, v_ang) in [-1, 1]. Learned agents (expert, conav, ppo) live in other
-modules and are imported only when asked for, so this registry works before they exist.
+Each acts for one environment and is jittable: it reads the brax state (robot pose in
+`pipeline_state.qpos`, observations, the episode index in `info`) and, where it is an oracle,
+the env's episode bank through a closure; every such read is named in the Agent's
+`privileged`. Data flow: state -> target direction (world, unit) -> `steer` -> action
+(v_lin, v_ang) in [-1, 1].
 """
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import math
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from conav_jax.planning import field_cell, field_value
+from conav_jax.geometry import to_world, wrap_angle
+from conav_jax.planning import cell_centres, descent_chain, field_value
+from envs.agents.base import CANDIDATE_GOAL_POINTS, ORACLE_GOAL_CATEGORY, ORACLE_MAP, Agent
 from envs.mjcf import UD
-from envs.rollout import Agent
 
 
 @dataclass(frozen=True)
@@ -54,46 +50,16 @@ class BaselineConfig:
     follow_stride_steps: int = 2  # spacing (env steps) of the trail points the follower aims at
 
 
-# The 8 grid neighbours (dy, dx) a descent chain steps to.
-_NEIGHBOURS = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)], np.int32)
-
-
-def _wrap(a: jax.Array) -> jax.Array:
-    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
-
-
 def steer(pose: jax.Array, direction: jax.Array, speed: jax.Array, env, cfg: BaselineConfig) -> jax.Array:
     """Action (2,) that turns the robot at pose (x, y, yaw) toward the unit world `direction`
     (2,) and drives at `speed` (fraction of v_max) once roughly facing it; zero for a zero
     direction (nothing to do)."""
     task = env.task
-    err = _wrap(jnp.arctan2(direction[1], direction[0]) - pose[2])
+    err = wrap_angle(jnp.arctan2(direction[1], direction[0]) - pose[2])
     w = jnp.clip(err / (cfg.turn_time_s * task.w_max_radps), -1.0, 1.0)
     forward = jnp.where(jnp.abs(err) < cfg.max_drive_error_rad, jnp.cos(err), 0.0)
     active = jnp.linalg.norm(direction) > 1e-6
     return jnp.where(active, jnp.stack([speed * forward, w]), 0.0)
-
-
-def _descent_chain(field: jax.Array, origin: jax.Array, cell_m: float, xy: jax.Array, n: int) -> jax.Array:
-    """World centres (n, 2) of the next n cells down the field's steepest-descent chain from xy
-    (8-neighbour moves, each to the neighbour minimising value + step length, as
-    planning.field_direction walks it); the chain repeats its last cell at a minimum."""
-    ny, nx = field.shape
-    f = field.astype(jnp.float32)
-    offsets = jnp.asarray(_NEIGHBOURS)
-    lengths = jnp.asarray(np.sqrt((_NEIGHBOURS**2).sum(-1)), jnp.float32) * cell_m
-
-    def downhill(cell, _):
-        iy, ix = cell
-        cy = jnp.clip(iy + offsets[:, 0], 0, ny - 1)
-        cx = jnp.clip(ix + offsets[:, 1], 0, nx - 1)
-        k = jnp.argmin(f[cy, cx] + lengths)
-        better = f[cy[k], cx[k]] < f[iy, ix]
-        nxt = (jnp.where(better, cy[k], iy), jnp.where(better, cx[k], ix))
-        return nxt, jnp.stack([origin[0] + (nxt[1] + 0.5) * cell_m, origin[1] + (nxt[0] + 0.5) * cell_m])
-
-    _, centres = jax.lax.scan(downhill, field_cell(field, origin, cell_m, xy), None, length=n)
-    return centres
 
 
 def _clearance(env, scene: jax.Array, p: jax.Array) -> jax.Array:
@@ -128,15 +94,9 @@ def _field_dir(env, cfg: BaselineConfig, scene: jax.Array, k: jax.Array, xy: jax
     """Unit direction (2,) along field k of `scene` from xy (the oracle pathfinder); zero when
     k < 0 (no target)."""
     b = env.bank
-    chain = _descent_chain(b.fields[scene, jnp.maximum(k, 0)], b.field_origin[scene], b.cell_m, xy, cfg.path_lookahead_cells)
+    cells = descent_chain(b.fields[scene, jnp.maximum(k, 0)], b.field_origin[scene], b.cell_m, xy, cfg.path_lookahead_cells)
+    chain = cell_centres(b.field_origin[scene], b.cell_m, cells)
     return jnp.where(k >= 0, _pursue(env, cfg, scene, xy, chain), 0.0)
-
-
-def _to_world(p_robot: jax.Array, pose: jax.Array) -> jax.Array:
-    """Points (..., 2) in the robot frame -> world, for the robot at pose (x, y, yaw)."""
-    c, s = jnp.cos(pose[2]), jnp.sin(pose[2])
-    x, y = p_robot[..., 0], p_robot[..., 1]
-    return jnp.stack([c * x - s * y, s * x + c * y], axis=-1) + pose[:2]
 
 
 # -- baselines ---------------------------------------------------------------------------------
@@ -148,7 +108,7 @@ def random_agent(env) -> Agent:
     def act(state, carry, key):
         return jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0), carry
 
-    return Agent("random", lambda key, episode: (), act)
+    return Agent("random", lambda key, episode: (), act, title="Random Agent")
 
 
 def pioneer_agent(env, cfg: BaselineConfig | None = None) -> Agent:
@@ -174,7 +134,7 @@ def pioneer_agent(env, cfg: BaselineConfig | None = None) -> Agent:
         del key
         pose = state.pipeline_state.qpos
         scene = b.scene_index[state.info["episode"]]
-        hist = _to_world(state.obs["human_history"], pose)  # (n_hist, 2), oldest first
+        hist = to_world(state.obs["human_history"], pose)  # (n_hist, 2), oldest first
         vel = (hist[-1] - hist[0]) / ((n_hist - 1) * dt)
         waypoint = hist[-1] + vel * cfg.pioneer_horizon_s
         gap = jnp.linalg.norm(b.field_stand[scene, :, :2] - waypoint, axis=-1)
@@ -183,13 +143,15 @@ def pioneer_agent(env, cfg: BaselineConfig | None = None) -> Agent:
         k = jnp.where(moving, jnp.argmin(gap).astype(jnp.int32), carry)
         return steer(pose, _field_dir(env, cfg, scene, k, pose[:2]), 1.0, env, cfg), k
 
-    return Agent("pioneer", lambda key, episode: jnp.int32(-1), act)
+    return Agent("pioneer", lambda key, episode: jnp.int32(-1), act, title="Pioneer Agent",
+                 privileged=(CANDIDATE_GOAL_POINTS, ORACLE_MAP))
 
 
 def follower_agent(env, cfg: BaselineConfig | None = None) -> Agent:
     """Human follower, after Habitat 3.0's social-navigation agent: keep ~1 m behind the human.
 
-    Pursues the human's own path (privileged: the episode's root positions up to now), so it
+    Pursues the human's own path (the episode's root positions up to now: what `human_pos`
+    shows the robot step by step), so it
     goes around furniture the way the human did: the trail ends at the latest past position at
     least `follow_distance_m` from the human (the human itself if they have not moved that far),
     and the robot aims along the trail from the trail point nearest to it. Full speed while the
@@ -221,11 +183,12 @@ def follower_agent(env, cfg: BaselineConfig | None = None) -> Agent:
         direction = jnp.where(close, face, _pursue(env, cfg, b.scene_index[episode], xy, points))
         return steer(pose, direction, speed, env, cfg), carry
 
-    return Agent("follower", lambda key, episode: (), act)
+    return Agent("follower", lambda key, episode: (), act, title="Human-following Agent", privileged=(ORACLE_MAP,))
 
 
-def objectgoal_agent(env, cfg: BaselineConfig | None = None) -> Agent:
-    """Object-goal navigation with the oracle goal category (the paper's Table 2 row marked †).
+def objectgoal_planner_agent(env, cfg: BaselineConfig | None = None) -> Agent:
+    """An object-goal planner with the oracle goal category and the oracle map: privileged, ours,
+    not the paper's learned object-goal agent (ZSON reads only its camera and the category).
 
     At the start it picks, among the scene's objects of the episode's object-B category, the
     one whose standing point is nearest by geodesic distance from the robot's start (the
@@ -250,70 +213,5 @@ def objectgoal_agent(env, cfg: BaselineConfig | None = None) -> Agent:
         scene = b.scene_index[state.info["episode"]]
         return steer(pose, _field_dir(env, cfg, scene, carry, pose[:2]), 1.0, env, cfg), carry
 
-    return Agent("objectgoal", init, act)
-
-
-# -- registry ----------------------------------------------------------------------------------
-
-
-class AgentSpec(NamedTuple):
-    """How to build one agent. `module`: the module it needs (None: always present);
-    `needs_checkpoint`: it loads a run directory."""
-
-    title: str  # the row name in reports, after the paper's Table 2
-    build: Callable[..., Agent]  # (env, checkpoint, **kwargs) -> Agent
-    module: str | None = None
-    needs_checkpoint: bool = False
-    takes_predictors: bool = False  # accepts intention_run / trajectory_run keyword arguments
-
-
-def _lazy(module: str, function: str, with_checkpoint: bool) -> Callable[..., Agent]:
-    def build(env, checkpoint, **kwargs):
-        fn = getattr(importlib.import_module(module), function, None)
-        if fn is None:
-            raise ValueError(f"{module} has no {function}(); the agent cannot be built")
-        return fn(env, checkpoint, **kwargs) if with_checkpoint else fn(env, **kwargs)
-
-    return build
-
-
-AGENTS: dict[str, AgentSpec] = {
-    "random": AgentSpec("Random Agent", lambda env, ckpt, **kw: random_agent(env, **kw)),
-    "pioneer": AgentSpec("Pioneer Agent (Oracle Pathfinder)", lambda env, ckpt, **kw: pioneer_agent(env, **kw)),
-    "follower": AgentSpec("Human-following Agent", lambda env, ckpt, **kw: follower_agent(env, **kw)),
-    "objectgoal": AgentSpec("Object-goal Agent (Oracle Goal Object)", lambda env, ckpt, **kw: objectgoal_agent(env, **kw)),
-    "expert": AgentSpec("Expert (imitation teacher)", _lazy("train.imitation", "expert_agent", False), "train.imitation"),
-    "conav": AgentSpec("CoNav Agent (Ours)", _lazy("eval.learned", "policy_agent", True), "eval.learned", True, True),
-    "ppo": AgentSpec("PPO Agent", _lazy("train.ppo", "ppo_agent", True), "train.ppo", True),
-}
-
-
-def _module_exists(name: str) -> bool:
-    try:
-        return importlib.util.find_spec(name) is not None
-    except ModuleNotFoundError:  # the parent package itself is missing
-        return False
-
-
-def check_agent(name: str, checkpoint: str | Path | None = None) -> AgentSpec:
-    """The spec of agent `name`, after checking it can be built; ValueError otherwise.
-
-    Cheap (no env, no compile, no heavy import): sweeps call it for every agent first."""
-    spec = AGENTS.get(name)
-    if spec is None:
-        raise ValueError(f"unknown agent {name!r}; choose from {', '.join(AGENTS)}")
-    if spec.module is not None and not _module_exists(spec.module):
-        raise ValueError(f"agent {name!r} is not available yet: its module {spec.module} does not exist")
-    if spec.needs_checkpoint:
-        if checkpoint is None:
-            raise ValueError(f"agent {name!r} needs a trained run: pass --checkpoint RUN_DIR")
-        if not Path(checkpoint).is_dir():
-            raise ValueError(f"checkpoint run directory not found for agent {name!r}: {checkpoint}")
-    return spec
-
-
-def make_agent(name: str, env, checkpoint: str | Path | None = None, **kwargs: Any) -> Agent:
-    """Build agent `name` for `env`. `checkpoint`: the run directory of a learned agent (ignored
-    by the others); `kwargs` go to the agent's constructor (e.g. `cfg=BaselineConfig(...)`)."""
-    spec = check_agent(name, checkpoint)
-    return spec.build(env, None if checkpoint is None else str(checkpoint), **kwargs)
+    return Agent("objectgoal-planner", init, act, title="Object-goal planner",
+                 privileged=(ORACLE_GOAL_CATEGORY, ORACLE_MAP))

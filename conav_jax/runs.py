@@ -1,0 +1,97 @@
+"""Run directories: what `conav train ...` writes and everything downstream reads back.
+
+A run directory holds `ckpt_<step>.npz` checkpoints (conav_jax.checkpoints; the config inside
+names the run's `kind`) and `log.jsonl`, one JSON record per line (train losses, validations).
+Training resumes from the latest checkpoint of the same config (`resume`, which also trims
+the log back to that step); agents and predictors load the latest checkpoint of a run of the
+kind they expect (`load_run`). No JAX computation here: paths, JSON and checkpoints only.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from conav_jax.checkpoints import Checkpoint, latest_checkpoint, load_checkpoint
+
+PyTree = Any
+LOG_FILE = "log.jsonl"
+
+# The kinds of run, as recorded in each checkpoint's config["kind"].
+INTENTION = "intention"  # conav train intention: the Perceiver intention predictor
+TRAJECTORY = "trajectory"  # conav train trajectory: the human trajectory predictor
+POLICY = "policy"  # conav train policy: the LSTM policy by imitation (BC, DAgger)
+PPO = "ppo"  # conav train rl: PPO on the brax env
+RUN_KINDS = (INTENTION, TRAJECTORY, POLICY, PPO)
+
+
+def append_log(path: str | Path, record: dict) -> None:
+    """Append one JSON record (a line) to a run's log."""
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def read_log(run_dir: str | Path) -> list[dict]:
+    """The records of `run_dir/log.jsonl`, in order; FileNotFoundError naming the run if absent."""
+    path = Path(run_dir) / LOG_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"no {LOG_FILE} in {run_dir}")
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def trim_log(path: Path, step: int) -> None:
+    """Keep only records up to `step` (and those without one): a resumed run re-logs what came
+    after its checkpoint."""
+    if not path.is_file():
+        return
+    keep = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
+    path.write_text("".join(line + "\n" for line in keep))
+
+
+def finite_or_none(x) -> float | None:
+    """`float(x)`, or None where it is inf/NaN (JSON has no NaN)."""
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+def resume(run_dir: str | Path, config: dict, params: PyTree, opt_state: PyTree,
+           ignore: tuple[str, ...] = ()) -> Checkpoint | None:
+    """The latest checkpoint of `run_dir`, loaded against `config` and the state's structure,
+    with the run's log trimmed to its step; None for a fresh run (whose stale log, belonging to
+    no state we can continue, is removed). ValueError naming the first difference when the
+    checkpoint is of another config (`ignore`: dotted config keys a resumed run may change)."""
+    log_path = Path(run_dir) / LOG_FILE
+    found = latest_checkpoint(run_dir)
+    if found is None:
+        log_path.unlink(missing_ok=True)
+        return None
+    try:
+        ckpt = load_checkpoint(found, config=config, params_like=params, opt_state_like=opt_state, ignore=ignore)
+    except ValueError as e:
+        raise ValueError(f"cannot resume {run_dir}: {e}") from None
+    trim_log(log_path, ckpt.step)
+    return ckpt
+
+
+def load_run(run_dir: str | Path, kind: str, params_like: PyTree = None) -> Checkpoint:
+    """The latest checkpoint of a run of `kind` (params checked against `params_like` if
+    given). FileNotFoundError for a missing directory or checkpoint, ValueError for a run of
+    another kind, naming the kind found and the command that makes the one expected."""
+    if kind not in RUN_KINDS:
+        raise ValueError(f"unknown run kind {kind!r}; expected one of {RUN_KINDS}")
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"{kind} run directory not found: {run_dir}")
+    found = latest_checkpoint(run_dir)
+    if found is None:
+        raise FileNotFoundError(f"no checkpoint (ckpt_*.npz) in {run_dir}")
+    ckpt = load_checkpoint(found)
+    got = ckpt.config.get("kind")
+    if got != kind:
+        command = {INTENTION: "train intention", TRAJECTORY: "train trajectory", POLICY: "train policy", PPO: "train rl"}
+        raise ValueError(f"{found} is a {got!r} run, expected {kind!r} (a `conav {command[kind]}` run)")
+    if params_like is not None:
+        ckpt = load_checkpoint(found, params_like=params_like)
+    return ckpt

@@ -1,0 +1,13 @@
+"""Everything that acts in the CoNav env, in one place below training and evaluation.
+
+`base` (the Agent interface and the names of privileged inputs) <- `baselines` (the paper's
+scripted Table 2 rows and our oracle planner), `expert` (the imitation teacher), `predictors`
+(the intention and trajectory predictors of trained runs), `policy` (the CoNav LSTM policy
+stepping in the env, and its agent from a run), `ppo` (a PPO run's agent) <- `registry` (agents
+by name, as `conav eval` and `conav view` build them). Training imports the pieces it steps
+(expert, policy); evaluation builds agents through the registry.
+"""
+
+from envs.agents.base import Agent, row_title
+
+__all__ = ["Agent", "row_title"]

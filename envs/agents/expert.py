@@ -1,0 +1,59 @@
+"""The imitation teacher in the simulator: conav_jax.expert acting on one env's brax State.
+
+The expert is privileged by design: it reads the episode's geodesic fields (its goal and the
+human's start), the wall clearance of the scene, the human's upcoming positions and whether the
+human is still at activity A. train.imitation records it; `conav eval --agent expert` reports
+it as the ceiling a learned policy is measured against.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from conav_jax.episodes import PHASE_ACTIVITY_A
+from conav_jax.expert import ExpertCarry, ExpertConfig, ExpertMaps, clearance_map, expert_action, initial_carry
+from envs.agents.base import FUTURE_HUMAN_POSITIONS, HUMAN_PHASE, ORACLE_GOAL_POINT, ORACLE_MAP, Agent
+from envs.mjcf import UD
+
+
+def clearance_grids(env) -> jax.Array:
+    """(S, ny, nx) signed wall clearance (m) of every scene, on the bank's field grid."""
+    b = env.bank
+    _, _, ny, nx = b.fields.shape
+    out = np.full((len(env.split.navs), ny, nx), -b.cell_m, np.float32)  # padding reads as blocked
+    for s, nav in enumerate(env.split.navs):
+        gy, gx = nav.grid.shape
+        out[s, :gy, :gx] = clearance_map(nav.grid.free, nav.grid.cell_m)
+    return jnp.asarray(out)
+
+
+def make_expert_step(env, cfg: ExpertConfig = ExpertConfig()) -> Callable:
+    """`(state, carry) -> (action (2,), carry)`: conav_jax.expert acting on one env's brax State.
+    Privileged: it reads the episode's fields, the human's upcoming positions and phase."""
+    b = env.bank
+    clearance = clearance_grids(env)
+    look = jnp.asarray(cfg.human_lookahead_steps, jnp.int32)
+
+    def step(state, carry: ExpertCarry):
+        ep = state.info["episode"]
+        s = b.scene_index[ep]
+        t = state.pipeline_state.userdata[UD["t"]].astype(jnp.int32)
+        ts = jnp.clip(t + look, 0, b.max_steps - 1)
+        maps = ExpertMaps(b.fields[s, b.field_b[ep]], b.fields[s, b.field_a[ep]], clearance[s], b.field_origin[s])
+        at_a = b.phase[ep, ts[0]] == PHASE_ACTIVITY_A
+        return expert_action(cfg, maps, b.cell_m, state.pipeline_state.qpos, b.root_xy[ep, ts], at_a, carry)
+
+    return step
+
+
+def expert_agent(env, cfg: ExpertConfig = ExpertConfig()) -> Agent:
+    """The expert as an Agent named "expert": the imitation teacher, and the ceiling a learned
+    policy is measured against."""
+    step = make_expert_step(env, cfg)
+    return Agent("expert", lambda key, episode: initial_carry(), lambda state, carry, key: step(state, carry),
+                 title="Expert (imitation teacher)",
+                 privileged=(ORACLE_GOAL_POINT, ORACLE_MAP, FUTURE_HUMAN_POSITIONS, HUMAN_PHASE))

@@ -1,0 +1,256 @@
+"""The CoNav LSTM policy acting in the env, and the CoNav (and PPO) agent of a trained run.
+
+obs -> `predict` (the policy's intention inputs: the predictors' outputs, or the env's ground
+truth) -> `act` (conav_jax.models.policy) -> action (2,). Where the intention inputs come from
+is decided once, by `intention_source`, and recorded on the agent: all of them from predictors
+(`predicted`), all from the env (`ground_truth`, privileged: training data, upper bounds), or
+none (the ablation reads none). A policy never mixes the two, and an agent built for
+evaluation never reads the ground truth unless it was asked to.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from conav_jax import runs
+from conav_jax.models import policy
+from conav_jax.models.policy import PolicyConfig
+from conav_jax.nn.lstm import LSTMState
+from envs.agents.base import (
+    FUTURE_HUMAN_POSITIONS,
+    GROUND_TRUTH,
+    GROUND_TRUTH_INTENTIONS,
+    NO_INTENTIONS,
+    ORACLE_SEGMENTATION,
+    PREDICTED,
+    Agent,
+)
+from envs.agents.predictors import load_intention_predictor, load_trajectory_predictor
+
+INTENTION_KEYS = ("activity_probs", "object_probs", "future_traj")
+# How to ask for each intention input on the command line, for error messages.
+PREDICTOR_FLAGS = {"intention": "--intention RUN", "trajectory": "--trajectory RUN"}
+GROUND_TRUTH_FLAG = "--ground-truth-intentions"
+
+
+class PolicyCarry(NamedTuple):
+    """The acting policy's memory: its LSTM state ((hidden,) each), the intention predictor's
+    carry (None without one) and `predicted`, the predictors' latest outputs the policy read,
+    by observation key (activity_probs / object_probs / future_traj; {} without predictors),
+    which the viewer shows."""
+
+    lstm: LSTMState
+    intention: Any
+    predicted: dict
+
+
+class PolicyStep(NamedTuple):
+    """`init() -> PolicyCarry`; `step(params, obs, carry) -> (action (2,), carry)` for one env,
+    which is `act(params, *predict(obs, carry))`: `predict` gathers the policy's inputs (with
+    the predictors' outputs where `source` is "predicted"), `act` runs the network."""
+
+    init: Callable[[], PolicyCarry]
+    step: Callable[[dict, dict, PolicyCarry], tuple[jax.Array, PolicyCarry]]
+    predict: Callable[[dict, PolicyCarry], tuple[dict, PolicyCarry]]
+    act: Callable[[dict, dict, PolicyCarry], tuple[jax.Array, PolicyCarry]]
+    source: str  # envs.agents.base intention source: predicted / ground_truth / none
+
+
+def policy_inputs(cfg: PolicyConfig) -> tuple[str, ...]:
+    """The observation keys the policy reads: the panorama, pose, human position and the
+    intention inputs its ablation keeps."""
+    on = (cfg.use_activity, cfg.use_object, cfg.use_trajectory)
+    return ("rgbd", "gps_compass", "human_pos") + tuple(k for k, use in zip(INTENTION_KEYS, on) if use)
+
+
+def needed_predictors(cfg: PolicyConfig) -> tuple[str, ...]:
+    """The predictors ("intention", "trajectory") the policy's intention inputs need."""
+    return (("intention",) if cfg.use_activity or cfg.use_object else ()) + (("trajectory",) if cfg.use_trajectory else ())
+
+
+def intention_source(cfg: PolicyConfig, intention=None, trajectory=None) -> str:
+    """Where the policy's intention inputs come from given these predictors: "none" when it
+    reads none, "predicted" when every one it reads has its predictor, "ground_truth" when none
+    is given. ValueError for a mix, naming the predictor that is missing: a policy never reads
+    ground truth for one input and predictions for another."""
+    needed = needed_predictors(cfg)
+    if not needed:
+        return NO_INTENTIONS
+    given = {"intention": intention is not None, "trajectory": trajectory is not None}
+    if not any(given[k] for k in needed):
+        return GROUND_TRUTH
+    missing = [k for k in needed if not given[k]]
+    if missing:
+        flags = " and ".join(PREDICTOR_FLAGS[k] for k in missing)
+        raise ValueError(f"the policy reads {' and '.join(needed)} predictions but no {' or '.join(missing)} "
+                         f"predictor is given ({flags}); it never mixes predictions with ground truth")
+    return PREDICTED
+
+
+def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None, recurrent: bool = True) -> PolicyStep:
+    """The LSTM policy acting for one env. With predictors (envs.agents.predictors) its
+    intention inputs are their outputs: `intention` replaces activity/object probabilities from
+    the front view, `trajectory` the future trajectory from the human's history; without any,
+    they are the env's ground-truth observations (how the paper trains). `intention_source`
+    decides which, and refuses a mix. Inputs the ablation drops are never computed. With
+    `recurrent=False` the LSTM carry stays at zero (PPO's feed-forward policies)."""
+    source = intention_source(cfg, intention, trajectory)
+    use_intention = source == PREDICTED and (cfg.use_activity or cfg.use_object)
+    use_trajectory = source == PREDICTED and cfg.use_trajectory
+    keys = policy_inputs(cfg)
+    predicted_keys = (("activity_probs", "object_probs") if use_intention else ()) + (
+        ("future_traj",) if use_trajectory else ())
+
+    def init() -> PolicyCarry:
+        lstm = jax.tree.map(lambda x: x[0], policy.initial_carry(cfg, 1))
+        shapes = {"activity_probs": (cfg.num_activities,), "object_probs": (cfg.num_objects,),
+                  "future_traj": (cfg.horizon, 2)}
+        predicted = {k: jnp.zeros(shapes[k], jnp.float32) for k in predicted_keys}
+        return PolicyCarry(lstm, intention.init() if use_intention else None, predicted)
+
+    def predict(obs: dict, carry: PolicyCarry) -> tuple[dict, PolicyCarry]:
+        inputs = {k: obs[k] for k in keys if k not in predicted_keys}
+        icarry = carry.intention
+        if use_intention:
+            activity, obj, icarry = intention.step(icarry, obs["front"])
+            inputs.update(activity_probs=activity, object_probs=obj)
+        if use_trajectory:
+            inputs["future_traj"] = trajectory.predict(obs["human_history"])
+        predicted = {k: inputs[k].astype(jnp.float32).reshape(carry.predicted[k].shape) for k in predicted_keys}
+        return inputs, carry._replace(intention=icarry, predicted=predicted)
+
+    def act(params, inputs: dict, carry: PolicyCarry):
+        batched = {k: inputs[k][None] for k in keys}
+        lstm = jax.tree.map(lambda x: x[None], carry.lstm)
+        action, _, new = policy.apply(params, cfg, batched, lstm)
+        if not recurrent:
+            return action[0], carry
+        return action[0], carry._replace(lstm=jax.tree.map(lambda x: x[0], new))
+
+    def step(params, obs: dict, carry: PolicyCarry):
+        return act(params, *predict(obs, carry))
+
+    return PolicyStep(init, step, predict, act, source)
+
+
+def check_policy_env(env, cfg: PolicyConfig, source_name: str, intention_source_: str) -> None:
+    """ValueError unless `env` renders the policy's resolution and, when the policy reads
+    ground-truth intentions, observes them."""
+    hw = (env.config.sensor.height, env.config.sensor.width)
+    if hw != tuple(cfg.image_hw):
+        h, w = cfg.image_hw
+        raise ValueError(
+            f"{source_name} was trained on {h}x{w} panoramas but the env renders {hw[0]}x{hw[1]}; "
+            f"build the env with SensorConfig(height={h}, width={w})"
+        )
+    if intention_source_ == GROUND_TRUTH and not env.config.intention_obs:
+        read = [k for k in policy_inputs(cfg) if k in INTENTION_KEYS]
+        raise ValueError(f"{source_name} reads ground-truth {', '.join(read)}; build the env with "
+                         "EnvConfig(intention_obs=True) or give the predictor runs")
+
+
+def privileged_inputs(cfg: PolicyConfig, source: str) -> tuple[str, ...]:
+    """The privileged inputs a policy with this config reads when its intentions come from `source`."""
+    out = []
+    if source == GROUND_TRUTH:
+        out.append(GROUND_TRUTH_INTENTIONS)
+        if cfg.use_trajectory:
+            out.append(FUTURE_HUMAN_POSITIONS)  # the true future trajectory is where the human will be
+    if cfg.use_object and cfg.object_saliency:
+        out.append(ORACLE_SEGMENTATION)  # each pixel's category from its render colour
+    return tuple(out)
+
+
+def policy_agent_from_params(
+    params, cfg: PolicyConfig, intention=None, trajectory=None, name: str = "conav", title: str = "CoNav Agent",
+    recurrent: bool = True,
+) -> Agent:
+    """An Agent acting with these policy parameters (closed over), its intention source and
+    privileged inputs recorded."""
+    pol = make_policy_step(cfg, intention, trajectory, recurrent)
+    if pol.source == NO_INTENTIONS:
+        title = f"{title}, no intention inputs"
+    return Agent(name, lambda key, episode: pol.init(), lambda state, carry, key: pol.step(params, state.obs, carry),
+                 title=title, intention_source=pol.source, privileged=privileged_inputs(cfg, pol.source)).check()
+
+
+# -- agents from runs ----------------------------------------------------------------------------
+
+
+def policy_config_from_dict(d: dict) -> PolicyConfig:
+    """PolicyConfig from a checkpoint's JSON "model" (lists back to tuples)."""
+    names = {f.name for f in dataclasses.fields(PolicyConfig)}
+    d = {"object_saliency": False, **d}  # checkpoints from before the saliency channel had none
+    if set(d) - names:
+        raise ValueError(f"checkpoint model config has unknown PolicyConfig fields {sorted(set(d) - names)}")
+    return PolicyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+def load_policy_run(run_dir: str | Path, kind: str = runs.POLICY):
+    """(params, PolicyConfig, config dict) of the latest checkpoint of a policy (or PPO) run.
+    FileNotFoundError for a missing run or checkpoint, ValueError for another kind of run or
+    params that do not fit the saved PolicyConfig."""
+    ckpt = runs.load_run(run_dir, kind)
+    if "model" not in ckpt.config:
+        raise ValueError(f"{run_dir}: {kind} checkpoint without a model config")
+    cfg = policy_config_from_dict(ckpt.config["model"])
+    template = jax.eval_shape(lambda k: policy.init(k, cfg), jax.random.PRNGKey(0))
+    params = runs.load_run(run_dir, kind, params_like=template).params
+    return params, cfg, ckpt.config
+
+
+def predictor_runs(cfg: PolicyConfig, source_name: str, named: dict, intention_run=None, trajectory_run=None,
+                   ground_truth: bool = False) -> tuple[str | None, str | None]:
+    """The (intention, trajectory) predictor runs an evaluated policy reads: those given, else
+    those `named` ({"intention_run": ..., "trajectory_run": ...}, from the policy run's config),
+    only for the inputs the policy reads; (None, None) with `ground_truth`. ValueError, before
+    anything is built, when a run the policy needs is missing and ground truth was not asked for
+    (the message names `--intention/--trajectory` and `--ground-truth-intentions`), when a named
+    run directory does not exist, or when ground truth is asked for beside predictor runs."""
+    if ground_truth:
+        if intention_run is not None or trajectory_run is not None:
+            raise ValueError(f"{GROUND_TRUTH_FLAG} excludes --intention / --trajectory")
+        return None, None
+    out = {}
+    for kind, given in (("intention", intention_run), ("trajectory", trajectory_run)):
+        run = given if given is not None else named.get(f"{kind}_run")
+        if kind not in needed_predictors(cfg):
+            out[kind] = None
+            continue
+        if run is None:
+            raise ValueError(
+                f"{source_name} reads {kind} predictions and no {kind} predictor run is given: pass "
+                f"{PREDICTOR_FLAGS[kind]} (or {GROUND_TRUTH_FLAG} for the privileged upper bound)")
+        if not Path(run).is_dir():
+            origin = "given" if given is not None else f"named by {source_name}"
+            raise ValueError(f"{kind} predictor run {run} ({origin}) not found; pass {PREDICTOR_FLAGS[kind]} "
+                             f"or {GROUND_TRUTH_FLAG}")
+        out[kind] = str(run)
+    return out["intention"], out["trajectory"]
+
+
+def load_predictors(intention_run, trajectory_run):
+    """(IntentionPredictor | None, TrajectoryPredictor | None) of the given runs."""
+    return (None if intention_run is None else load_intention_predictor(intention_run),
+            None if trajectory_run is None else load_trajectory_predictor(trajectory_run))
+
+
+def policy_agent(env, run_dir: str | Path, intention_run: str | Path | None = None,
+                 trajectory_run: str | Path | None = None, ground_truth: bool = False) -> Agent:
+    """The latest policy of a `conav train policy` run as the Agent "conav". Its intention
+    inputs are the predictors' outputs (the runs given, else those the policy run names), or the
+    env's ground truth only with `ground_truth=True` (privileged, recorded as such). Errors
+    before anything is compiled: FileNotFoundError for a missing run or checkpoint, ValueError
+    for a run of another kind, missing predictor runs, or an env the policy cannot read."""
+    params, cfg, config = load_policy_run(run_dir)
+    name = f"policy run {run_dir}"
+    intention, trajectory = load_predictors(
+        *predictor_runs(cfg, name, config, intention_run, trajectory_run, ground_truth))
+    agent = policy_agent_from_params(params, cfg, intention, trajectory, name="conav")
+    check_policy_env(env, cfg, name, agent.intention_source)
+    return agent

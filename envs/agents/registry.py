@@ -1,0 +1,89 @@
+"""Agents by name: what `conav eval`, `conav view` and `conav bench eval` build.
+
+name -> AgentSpec (does it load a trained run? does it read intention inputs?) -> `check_agent`
+(cheap: no env, no compile, run directories checked) -> `make_agent(name, env, ...)` -> Agent.
+Agents that read intention inputs (conav, ppo) take predictor runs, or `ground_truth=True` for
+the env's ground truth; they refuse to run with neither (envs.agents.policy).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable, NamedTuple
+
+from envs.agents.base import Agent
+
+
+class AgentSpec(NamedTuple):
+    """How to build one agent."""
+
+    build: Callable[..., Agent]  # (env, checkpoint, **kwargs) -> Agent
+    summary: str  # one line for the command line's help
+    needs_checkpoint: bool = False  # loads a trained run directory
+    takes_intentions: bool = False  # reads intention inputs: predictor runs or ground truth
+
+
+def _baseline(name: str) -> Callable[..., Agent]:
+    def build(env, checkpoint, **kwargs):
+        from envs.agents import baselines
+
+        return {"random": baselines.random_agent, "pioneer": baselines.pioneer_agent,
+                "follower": baselines.follower_agent, "objectgoal-planner": baselines.objectgoal_planner_agent}[name](env, **kwargs)
+
+    return build
+
+
+def _expert(env, checkpoint, **kwargs):
+    from envs.agents.expert import expert_agent
+
+    return expert_agent(env, **kwargs)
+
+
+def _conav(env, checkpoint, **kwargs):
+    from envs.agents.policy import policy_agent
+
+    return policy_agent(env, checkpoint, **kwargs)
+
+
+def _ppo(env, checkpoint, **kwargs):
+    from envs.agents.ppo import ppo_agent
+
+    return ppo_agent(env, checkpoint, **kwargs)
+
+
+AGENTS: dict[str, AgentSpec] = {
+    "random": AgentSpec(_baseline("random"), "uniform random actions"),
+    "pioneer": AgentSpec(_baseline("pioneer"), "extrapolates the human to the nearest object standing point and drives "
+                         "there on the oracle geodesic field (privileged)"),
+    "follower": AgentSpec(_baseline("follower"), "stays about 1 m behind the human"),
+    "objectgoal-planner": AgentSpec(_baseline("objectgoal-planner"), "oracle goal category + oracle map: the nearest "
+                                    "instance along its geodesic field (privileged)"),
+    "expert": AgentSpec(_expert, "the imitation teacher (privileged: goal, map, the human's future)"),
+    "conav": AgentSpec(_conav, "the trained CoNav policy (--checkpoint: a `conav train policy` run)", True, True),
+    "ppo": AgentSpec(_ppo, "a PPO policy (--checkpoint: a `conav train rl` run)", True, True),
+}
+
+
+def check_agent(name: str, checkpoint: str | Path | None = None) -> AgentSpec:
+    """The spec of agent `name`, after checking it can be built; ValueError otherwise.
+    Cheap (no env, no compile, no heavy import): sweeps call it for every agent first."""
+    spec = AGENTS.get(name)
+    if spec is None:
+        raise ValueError(f"unknown agent {name!r}; choose from {', '.join(AGENTS)}")
+    if spec.needs_checkpoint:
+        if checkpoint is None:
+            raise ValueError(f"agent {name!r} needs a trained run: pass --checkpoint RUN_DIR")
+        if not Path(checkpoint).is_dir():
+            raise ValueError(f"checkpoint run directory not found for agent {name!r}: {checkpoint}")
+    return spec
+
+
+def make_agent(name: str, env, checkpoint: str | Path | None = None, **kwargs: Any) -> Agent:
+    """Build agent `name` for `env`. `checkpoint`: the run directory of a learned agent (ignored
+    by the others); `kwargs` go to the agent's constructor (e.g. `cfg=BaselineConfig(...)`, or
+    `intention_run=`, `trajectory_run=`, `ground_truth=` for agents that read intentions)."""
+    spec = check_agent(name, checkpoint)
+    intention_keys = {"intention_run", "trajectory_run", "ground_truth"} & set(kwargs)
+    if intention_keys and not spec.takes_intentions:
+        raise ValueError(f"agent {name!r} reads no intention inputs; it takes no {sorted(intention_keys)}")
+    return spec.build(env, None if checkpoint is None else str(checkpoint), **kwargs).check()
