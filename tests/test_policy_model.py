@@ -191,20 +191,26 @@ def test_saliency_bearing_finds_the_sector_and_depth_of_the_salient_pixels():
 
 
 def test_the_policy_reads_where_the_predicted_object_is(params):
-    """Same panorama, same probabilities: moving the predicted object's pixels to the other
-    side of the panorama changes the action (the object input is read spatially)."""
+    """One panorama with categories 1 and 8 painted in different columns; only `object_probs`
+    changes, from category 1 to category 8. With the object vector's own weights zeroed, the
+    saliency channel alone can tell the two apart, and the action changes; with the saliency
+    channel's weights zeroed too, it cannot (so the difference is the channel's)."""
     obs = _obs((1,))
-    obs["object_probs"] = np.eye(51, dtype=np.float32)[None, 1]  # category 1 is painted at column 3
-    moved = {k: v.copy() for k, v in obs.items()}
-    moved["rgbd"][..., 4:12, 3:6, :3] = moved["rgbd"][..., 4:12, 6:9, :3]
-    moved["rgbd"][..., 4:12, 35:38, :3] = _colour(CATEGORIES[1].rgb)
+    one_hot = np.eye(51, dtype=np.float32)
     carry = policy.initial_carry(CONFIG, 1)
-    a, _, _ = STEP(params, CONFIG, obs, carry)
-    b, _, _ = STEP(params, CONFIG, moved, carry)
+
+    def zero(tree):
+        return jax.tree.map(jnp.zeros_like, tree)
+
+    blind = {**params, "intentions": {**params["intentions"], "object_probs": zero(params["intentions"]["object_probs"])}}
+    a, _, _ = STEP(blind, CONFIG, {**obs, "object_probs": one_hot[None, 1]}, carry)
+    b, _, _ = STEP(blind, CONFIG, {**obs, "object_probs": one_hot[None, 8]}, carry)
     assert not np.allclose(a, b, atol=1e-6)
-    # Without the saliency channel, the object input is a vector and nothing else.
-    flat = ablation_config(CONFIG, "object")
-    assert "saliency" not in jax.eval_shape(lambda k: policy.init(k, dataclasses.replace(flat, object_saliency=False)), jax.random.PRNGKey(0))
+    first = dict(params["convs"][0], w=params["convs"][0]["w"].at[:, :, 4, :].set(0.0))  # the saliency channel's kernel
+    no_channel = {**blind, "convs": [first, *params["convs"][1:]], "saliency": zero(params["saliency"])}
+    a, _, _ = STEP(no_channel, CONFIG, {**obs, "object_probs": one_hot[None, 1]}, carry)
+    b, _, _ = STEP(no_channel, CONFIG, {**obs, "object_probs": one_hot[None, 8]}, carry)
+    np.testing.assert_allclose(a, b, atol=1e-7)
 
 
 def test_saliency_sectors_must_divide_the_width():
