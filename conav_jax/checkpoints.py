@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conav_jax.arrayio import fsync_dir
+from conav_jax.data.arrayio import fsync_dir
 
 FORMAT_VERSION = 1
 META_MEMBER = "meta.json"
@@ -226,6 +226,22 @@ def _restore_like(name: str, loaded: PyTree, like: PyTree) -> PyTree:
         sharding = getattr(tmpl, "sharding", None)
         leaves.append(jax.device_put(arr, sharding) if sharding is not None else jnp.asarray(arr))
     return jax.tree_util.tree_unflatten(want_def, leaves)
+
+
+def read_checkpoint_meta(path: str | os.PathLike) -> dict:
+    """The metadata of a checkpoint (format version, step, config, extra) without its arrays.
+    FileNotFoundError for a missing path, ValueError for a corrupt file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}")
+    try:
+        with zipfile.ZipFile(path, "r") as zf:
+            meta = json.loads(zf.read(META_MEMBER))
+    except (zipfile.BadZipFile, KeyError, ValueError) as e:
+        raise ValueError(f"corrupt checkpoint {path}: {type(e).__name__}: {e}") from e
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise ValueError(f"corrupt checkpoint {path}: unsupported format {meta.get('format_version')!r}")
+    return meta
 
 
 def load_checkpoint(

@@ -35,7 +35,7 @@ class TaskConfig:
 
 @dataclass(frozen=True)
 class MotionConfig:
-    """Humanoid motion: activity clips and walking (conav_jax.motion)."""
+    """Humanoid motion: activity clips, walking and the turns between them (conav_jax.motion)."""
 
     control_dt_s: float = 0.1  # keyframes are stored at the control rate
     walk_speed_mps: tuple[float, float] = (1.0, 1.3)
@@ -46,11 +46,51 @@ class MotionConfig:
     transition_s: float = 0.5  # blend between activity pose and gait
     humanml3d_fps: float = 20.0  # HumanML3D `new_joints` frame rate
     human_radius_m: float = 0.25  # clearance of the walking human from furniture
+    # Transitions turn the body in place no faster than this; a bigger turn takes longer than
+    # transition_s.
+    turn_in_place_max_radps: float = 4.0
+
+    # Walking gait (conav_jax.motion.gait). Step length grows with speed, as people's does:
+    # walk_step_length_m * (speed / walk_step_ref_speed_mps) ** walk_step_speed_exponent, with
+    # speeds below walk_step_min_speed_mps taking that speed's step; the cadence (steps/s) is
+    # speed / step length. A stride is two steps, snapped so the path holds a whole number.
+    walk_step_length_m: float = 0.56
+    walk_step_ref_speed_mps: float = 1.2
+    walk_step_speed_exponent: float = 0.6
+    walk_step_min_speed_mps: float = 0.2
+    walk_step_width_m: float = 0.105  # footprint's distance sideways from the path
+    walk_arm_swing_rad: float = 0.3  # arm pitch amplitude, forward with the opposite leg
+    walk_arm_hang_scale: float = 0.97  # wrist-to-shoulder distance vs rest: elbows a little bent
+    # Per-walker style within these ranges when the walk has an rng (every episode does): a step
+    # length multiplier, the arm swing and the step width. The averages above otherwise.
+    walk_step_length_scale_range: tuple[float, float] = (0.93, 1.07)
+    walk_arm_swing_range_rad: tuple[float, float] = (0.22, 0.38)
+    walk_step_width_range_m: tuple[float, float] = (0.09, 0.12)
+    # A foot's cycle as shares of a stride. The stance share is on the short side, so that the
+    # swinging foot (whose speed is speed / (1 - stance)) moves at most ~0.3 m per 0.1 s frame
+    # at 1.3 m/s. Within stance: flat by walk_foot_flat_share after heel strike, heel off and
+    # rolling on the toe after walk_heel_off_share.
+    walk_stance_share: float = 0.5
+    walk_foot_flat_share: float = 0.12
+    walk_heel_off_share: float = 0.33
+    walk_heel_strike_pitch_rad: float = -0.25  # toe up at heel strike
+    walk_toe_off_pitch_rad: float = 0.9  # toe down at toe off
+    walk_ankle_ahead_share: float = 0.4  # ankle ahead of the hip at heel strike, share of a step
+    walk_clearance_m: float = 0.06  # swing foot's lift at mid-swing
+    walk_pelvis_height_m: float = 0.93  # mean, a little below standing (knees soft)
+    walk_pelvis_bob_m: float = 0.015  # up and down, highest at each mid-stance
+    walk_pelvis_twist_rad: float = 0.07  # yaw: the hip of the leading leg forward
+    walk_pelvis_roll_rad: float = 0.03
+    walk_spine_twist_rad: float = 0.1  # yaw: the shoulders counter-rotate against the pelvis
+    walk_spine_lean_rad: float = 0.06  # forward
+    walk_head_pitch_rad: float = 0.05  # looking slightly down
+    # The walking heading turns a right-angle corner over +-this much arc (more for sharper turns).
+    walk_turn_half_arc_m: float = 0.6
 
 
 @dataclass(frozen=True)
 class SceneGenConfig:
-    """Procedural apartments (conav_jax.scenegen)."""
+    """Procedural apartments (conav_jax.data.scenegen)."""
 
     rooms: tuple[int, int] = (3, 5)  # inclusive range of rooms per apartment
     room_size_m: tuple[float, float] = (3.0, 5.5)
@@ -64,7 +104,7 @@ class SceneGenConfig:
 
 @dataclass(frozen=True)
 class NavConfig:
-    """Occupancy grid and geodesic fields (conav_jax.navigation)."""
+    """Occupancy grid and geodesic fields (conav_jax.nav.navigation)."""
 
     cell_m: float = 0.1
     unreachable_m: float = 1.0e4  # geodesic value of cells no path reaches
@@ -72,7 +112,7 @@ class NavConfig:
 
 @dataclass(frozen=True)
 class DatasetConfig:
-    """Episode dataset generation (conav_jax.episodes); presets in conav_jax.presets."""
+    """Episode dataset generation (conav_jax.data.episodes); presets in conav_jax.data.presets."""
 
     name: str = "tiny"
     train_scenes: int = 2

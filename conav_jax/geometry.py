@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def wrap_angle(angle_rad: jax.Array) -> jax.Array:
@@ -34,3 +35,10 @@ def unit(v: jax.Array) -> jax.Array:
     """`v` (..., 2) scaled to length 1; zero where it is (nearly) zero."""
     n = jnp.linalg.norm(v, axis=-1, keepdims=True)
     return jnp.where(n > 1e-6, v / jnp.maximum(n, 1e-6), 0.0)
+
+
+def wrap_angle_np(angle_rad: np.ndarray) -> np.ndarray:
+    """Angles wrapped to [-pi, pi) radians, in numpy: the twin of `wrap_angle` that offline data
+    generation (conav_jax.motion) uses. A modulo rather than arctan2: the recorded episode
+    datasets were generated with exactly this formula, and must keep their bytes."""
+    return (np.asarray(angle_rad) + np.pi) % (2 * np.pi) - np.pi

@@ -10,7 +10,6 @@ from this repository: envs, train and eval use it.
 
 from __future__ import annotations
 
-import argparse
 import os
 from typing import Any
 
@@ -134,9 +133,3 @@ def maybe_initialize_distributed() -> bool:
         jax.distributed.initialize()
         return True
     return False
-
-
-def add_devices_arg(p: argparse.ArgumentParser) -> None:
-    """The `--devices N` flag of the data-parallel commands (`make_mesh(args.devices)`)."""
-    p.add_argument("--devices", type=int, default=None, metavar="N",
-                   help="devices each batch is split over (default: all visible, every host's in a multi-host run)")

@@ -14,7 +14,12 @@ import math
 from pathlib import Path
 from typing import Any
 
-from conav_jax.checkpoints import Checkpoint, latest_checkpoint, load_checkpoint
+from conav_jax.checkpoints import (
+    Checkpoint,
+    latest_checkpoint,
+    load_checkpoint,
+    read_checkpoint_meta,
+)
 
 PyTree = Any
 LOG_FILE = "log.jsonl"
@@ -75,10 +80,7 @@ def resume(run_dir: str | Path, config: dict, params: PyTree, opt_state: PyTree,
     return ckpt
 
 
-def load_run(run_dir: str | Path, kind: str, params_like: PyTree = None) -> Checkpoint:
-    """The latest checkpoint of a run of `kind` (params checked against `params_like` if
-    given). FileNotFoundError for a missing directory or checkpoint, ValueError for a run of
-    another kind, naming the kind found and the command that makes the one expected."""
+def _latest(run_dir: str | Path, kind: str) -> Path:
     if kind not in RUN_KINDS:
         raise ValueError(f"unknown run kind {kind!r}; expected one of {RUN_KINDS}")
     run_dir = Path(run_dir)
@@ -87,11 +89,32 @@ def load_run(run_dir: str | Path, kind: str, params_like: PyTree = None) -> Chec
     found = latest_checkpoint(run_dir)
     if found is None:
         raise FileNotFoundError(f"no checkpoint (ckpt_*.npz) in {run_dir}")
-    ckpt = load_checkpoint(found)
-    got = ckpt.config.get("kind")
+    return found
+
+
+def _check_kind(found: Path, config: dict, kind: str) -> None:
+    got = config.get("kind")
     if got != kind:
         command = {INTENTION: "train intention", TRAJECTORY: "train trajectory", POLICY: "train policy", PPO: "train rl"}
         raise ValueError(f"{found} is a {got!r} run, expected {kind!r} (a `conav {command[kind]}` run)")
+
+
+def run_config(run_dir: str | Path, kind: str) -> dict:
+    """The config of the latest checkpoint of a run of `kind`, read without its arrays (cheap:
+    for checks before anything is built). Errors as `load_run`."""
+    found = _latest(run_dir, kind)
+    config = read_checkpoint_meta(found)["config"]
+    _check_kind(found, config, kind)
+    return config
+
+
+def load_run(run_dir: str | Path, kind: str, params_like: PyTree = None) -> Checkpoint:
+    """The latest checkpoint of a run of `kind` (params checked against `params_like` if
+    given). FileNotFoundError for a missing directory or checkpoint, ValueError for a run of
+    another kind, naming the kind found and the command that makes the one expected."""
+    found = _latest(run_dir, kind)
+    ckpt = load_checkpoint(found)
+    _check_kind(found, ckpt.config, kind)
     if params_like is not None:
         ckpt = load_checkpoint(found, params_like=params_like)
     return ckpt

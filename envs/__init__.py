@@ -14,8 +14,8 @@ with _contextlib.redirect_stdout(_io.StringIO()):
 
 from brax import envs as _brax_envs
 
-from envs.config import EnvConfig, PhysicsConfig, RewardConfig, SensorConfig
 from envs.conav_env import ConavEnv
+from envs.config import EnvConfig, PhysicsConfig, RewardConfig, SensorConfig
 
 _brax_envs.register_environment("conav", ConavEnv)
 

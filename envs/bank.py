@@ -16,11 +16,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conav_jax.activities import NUM_ACTIVITIES
-from conav_jax.categories import FLOOR_RGB, NUM_CATEGORIES
-from conav_jax.episodes import EpisodeSplit
-from conav_jax.planning import fill_blocked
-from conav_jax.scene import scene_boxes
+from conav_jax.data.activities import NUM_ACTIVITIES
+from conav_jax.data.categories import FLOOR_RGB, NUM_CATEGORIES
+from conav_jax.data.episodes import EpisodeSplit
+from conav_jax.data.scene import scene_boxes
+from conav_jax.nav.planning import fill_blocked
 from envs.metrics import shortest_path_steps
 
 PAD_Z_M = -10.0  # padding boxes live here, below the floor

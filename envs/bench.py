@@ -1,4 +1,4 @@
-"""`conav bench sim`: env steps per second of step + sensors, compile time and memory.
+"""`conav bench sim`'s measurements: env steps per second of step + sensors, compile time and memory.
 
 A batch of episodes is reset and stepped with random actions inside one jitted `lax.scan`;
 after a compile-and-warm-up call, the median of repeated timed calls (block_until_ready around
@@ -13,66 +13,13 @@ step against H100 rates (FP32 non-tensor throughput, HBM bandwidth).
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
-import tempfile
 import time
 
 import jax
 import jax.numpy as jnp
 
-from conav_jax.parallel import add_devices_arg, check_divisible, constrain_batch, make_mesh
-
-
-def parse_resolution(text: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"resolution must look like 112x448, got {text!r}") from None
-    return h, w
-
-
-def add_bench_sim(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("sim", help="simulator throughput: env steps/s with sensors")
-    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
-    p.add_argument("--split", default="val")
-    p.add_argument("--batch", type=int, nargs="+", default=[1024])
-    p.add_argument("--resolution", type=parse_resolution, nargs="+", default=[(112, 448)])
-    p.add_argument("--sensor", nargs="+", choices=["auto", "fast", "pallas", "legacy", "reference", "both"], default=["auto"],
-                   help="sensor kinds to time (both = fast and reference)")
-    p.add_argument("--fast-min", choices=["reduce", "unroll"], default=None, help="fast caster: min over geoms as")
-    p.add_argument("--steps", type=int, default=20, help="env steps per timed call")
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--geoms-per-pass", type=int, default=None, help="fast caster geoms per pass")
-    p.add_argument("--what", choices=["step", "sensor", "breakdown"], default="step",
-                   help="step: full env steps (physics, humanoid, sensors); sensor: panoramas only; "
-                   "breakdown: physics, humanoid, sensors and the full step timed separately, plus the floor")
-    p.add_argument("--pallas-block-w", type=int, default=None, help="pallas caster: columns per program")
-    p.add_argument("--pallas-num-warps", type=int, default=None, help="pallas caster: warps per program")
-    p.add_argument("--physics", type=parse_physics_override, nargs="+", default=[], metavar="NAME=VALUE",
-                   help="PhysicsConfig fields to override, e.g. timestep_s=0.02 solver_iterations=2 substep_unroll=10")
-    p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
-    add_devices_arg(p)
-    p.set_defaults(func=run_bench_sim)
-
-
-def parse_physics_override(text: str) -> tuple[str, object]:
-    """`NAME=VALUE` for a field of envs.config.PhysicsConfig, VALUE converted to the field's type."""
-    import dataclasses
-
-    from envs.config import PhysicsConfig
-
-    fields = {f.name: f for f in dataclasses.fields(PhysicsConfig)}
-    name, sep, value = text.partition("=")
-    if not sep or name not in fields:
-        raise argparse.ArgumentTypeError(
-            f"physics override must be NAME=VALUE with NAME one of {sorted(fields)}, got {text!r}")
-    kind = type(getattr(PhysicsConfig(), name))
-    try:
-        return name, kind(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"physics {name} needs a {kind.__name__}, got {value!r}") from None
+from conav_jax.parallel import check_divisible, constrain_batch
 
 
 def _memory_bytes() -> int | None:
@@ -269,62 +216,3 @@ def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mes
         ("env_steps_per_s" if what == "step" else "frames_per_s"): round(rate, 1),
         "peak_bytes_in_use": _memory_bytes(),
     }
-
-
-def run_bench_sim(args: argparse.Namespace) -> int:
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.config import PhysicsConfig
-
-    physics = PhysicsConfig(**dict(args.physics))
-
-    data = args.data
-    tmp = None
-    if data is None:
-        from conav_jax.episodes import generate_dataset
-        from conav_jax.presets import preset
-
-        tmp = tempfile.TemporaryDirectory()
-        data = tmp.name
-        generate_dataset(preset("tiny"), data)
-    # The breakdown times single-device stages; the other modes split the batch over the mesh.
-    mesh = make_mesh(args.devices) if args.devices != 1 and args.what != "breakdown" else None
-    kinds = []
-    for k in args.sensor:
-        for kk in (["fast", "reference"] if k == "both" else [k]):
-            if kk not in kinds:
-                kinds.append(kk)
-    for (h, w) in args.resolution:
-        for kind in kinds:
-            extra = {} if args.geoms_per_pass is None else {"geoms_per_pass": args.geoms_per_pass}
-            for name in ("fast_min", "pallas_block_w", "pallas_num_warps"):
-                if getattr(args, name) is not None:
-                    extra[name] = getattr(args, name)
-            cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra), physics=physics)
-            env = ConavEnv(data, args.split, cfg)
-            kind = env.config.sensor.kind  # what "auto" became here
-            if kind == "pallas" and mesh is not None and mesh.size > 1:
-                raise ValueError("the pallas caster runs on one device (XLA cannot partition a Pallas call): "
-                                 "use --sensor fast with several devices, or --devices 1")
-            for batch in args.batch:
-                res = {"sensor": kind, "resolution": f"{h}x{w}",
-                       **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh)}
-                if args.physics:
-                    res["physics"] = dict(args.physics)
-                if kind == "fast":
-                    res["fast_min"] = env.config.sensor.fast_min
-                if kind == "pallas":
-                    res["pallas"] = {"block_w": cfg.sensor.pallas_block_w, "num_warps": cfg.sensor.pallas_num_warps}
-                if args.json or args.what == "breakdown":
-                    print(json.dumps(res), flush=True)
-                else:
-                    rate = res.get("env_steps_per_s", res.get("frames_per_s"))
-                    unit = "env steps/s" if args.what == "step" else "panoramas/s"
-                    print(
-                        f"{res['device']} sensor={kind} res={h}x{w} batch={batch}: "
-                        f"{rate:,.0f} {unit} (median of {args.repeats}), "
-                        f"compile {res['compile_and_first_call_s']} s, peak mem {res['peak_bytes_in_use']}",
-                        flush=True,
-                    )
-    if tmp is not None:
-        tmp.cleanup()
-    return 0

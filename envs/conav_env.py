@@ -28,18 +28,24 @@ import numpy as np
 from brax.envs.base import Env, State
 from mujoco import mjx
 
-from conav_jax.activities import NUM_ACTIVITIES
-from conav_jax.categories import NUM_CATEGORIES
 from conav_jax.config import TaskConfig
-from conav_jax.episodes import EpisodeSplit, load_split
+from conav_jax.data.activities import NUM_ACTIVITIES
+from conav_jax.data.categories import NUM_CATEGORIES
+from conav_jax.data.episodes import EpisodeSplit, load_split
 from conav_jax.geometry import to_frame, wrap_angle
-from conav_jax.planning import field_value
+from conav_jax.nav.planning import field_value
 from envs import contact
 from envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
 from envs.config import EnvConfig, resolve_sensor_kind
 from envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_poses, quat_z_to
 from envs.mjcf import UD, GeomLayout, build_model, robot_body_id
-from envs.panorama import colourise, fast_depth_ids, front_view, legacy_depth_ids, reference_depth_ids
+from envs.panorama import (
+    SceneGeometry,
+    caster_for,
+    colourise,
+    front_view,
+    reference_depth_ids,
+)
 
 ROBOT_RGB = np.array([0.3, 0.3, 0.32], np.float32)
 
@@ -280,7 +286,9 @@ class ConavEnv(Env):
         )
 
     def panorama(self, m: mjx.Model, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(depth (H, W) metres, geom ids (H, W)) from the configured sensor."""
+        """(depth (H, W) metres, geom ids (H, W)) from the configured sensor: mjx.ray in the
+        render model for "reference", else its caster over the episode's boxes and the humanoid's
+        capsules at the data's step, as a SceneGeometry."""
         cfg, b = self.config.sensor, self.bank
         cam = jnp.array([d.qpos[0], d.qpos[1], self.task.camera_height_m])
         yaw = d.qpos[2]
@@ -290,24 +298,18 @@ class ConavEnv(Env):
         s = b.scene_index[episode]
         t = d.userdata[UD["t"]].astype(jnp.int32)
         _, _, ends = capsule_poses(self.human_joints(episode, t))
-        if cfg.kind == "pallas":
-            from envs.panorama_pallas import pallas_depth_ids as caster
-        else:
-            caster = legacy_depth_ids if cfg.kind == "legacy" else fast_depth_ids
-        return caster(
-            cfg,
-            cam,
-            yaw,
-            jnp.concatenate([b.col_lo[s], b.vis_lo[s]]),
-            jnp.concatenate([b.col_hi[s], b.vis_hi[s]]),
-            self._box_ids,
-            jnp.concatenate([b.col_valid[s], b.vis_valid[s]]),
-            ends[0],
-            ends[1],
-            self._cap_r,
-            self._cap_ids,
-            self.layout.floor,
+        geometry = SceneGeometry(
+            box_lo_m=jnp.concatenate([b.col_lo[s], b.vis_lo[s]]),
+            box_hi_m=jnp.concatenate([b.col_hi[s], b.vis_hi[s]]),
+            box_ids=self._box_ids,
+            box_valid=jnp.concatenate([b.col_valid[s], b.vis_valid[s]]),
+            capsule_p0_m=ends[0],
+            capsule_p1_m=ends[1],
+            capsule_radius_m=self._cap_r,
+            capsule_ids=self._cap_ids,
+            floor_id=self.layout.floor,
         )
+        return caster_for(cfg.kind)(cfg, cam, yaw, geometry)
 
     def render_at(self, episode: jax.Array, robot_pose: jax.Array, t: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(rgbd (H, W, 4), geom ids (H, W)): the panorama the robot's camera sees from

@@ -8,8 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-
-SENSOR_KINDS = ("auto", "fast", "pallas", "legacy", "reference")
+SENSOR_KINDS = ("auto", "fast", "pallas", "reference")
 
 
 def resolve_sensor_kind(kind: str) -> str:
@@ -36,17 +35,14 @@ class SensorConfig:
     width: int = 448
     max_depth_m: float = 10.0  # farther hits and no hit read as max_depth and sky colour
     # "fast": our column caster, one fused min over all geoms (nothing of size geoms x H x W
-    # reaches memory); "pallas": the same math as a Pallas (Triton) GPU kernel; "legacy": the
-    # previous caster, in passes of `geoms_per_pass` geoms; "reference": mujoco.mjx.ray per pixel;
-    # "auto": pallas on one GPU, else fast (resolve_sensor_kind).
+    # reaches memory); "pallas": the same math as a Pallas (Triton) GPU kernel; "reference":
+    # mujoco.mjx.ray per pixel; "auto": pallas on one GPU, else fast (resolve_sensor_kind).
     kind: str = "auto"
     # Fast caster: how the min over geoms is written for XLA. "unroll": a running min unrolled
     # over geoms, elementwise chains that XLA fuses whole (only (H, W) buffers; checked in the
     # CPU HLO); "reduce": min-reductions over (geoms, H, W) expressions, which rely on XLA fusing
     # the producer into the reduction (the CPU backend does not for the boxes).
     fast_min: str = "unroll"
-    # Legacy caster only: geoms per pass; memory per env is geoms_per_pass x H x W keys.
-    geoms_per_pass: int = 8
     # Pallas caster: image columns per kernel program (a power of two), Triton warps per program,
     # and whether to run the kernel through the Pallas interpreter (any backend; CPU tests).
     pallas_block_w: int = 16
@@ -60,8 +56,6 @@ class SensorConfig:
             raise ValueError(f"fast_min must be 'reduce' or 'unroll', got {self.fast_min!r}")
         if self.pallas_block_w < 1 or self.pallas_block_w & (self.pallas_block_w - 1):
             raise ValueError(f"pallas_block_w must be a power of two, got {self.pallas_block_w}")
-        if self.geoms_per_pass < 1:
-            raise ValueError(f"geoms_per_pass must be at least 1, got {self.geoms_per_pass}")
         if self.height < 4 or self.width < 8 or self.width % 8:
             raise ValueError(f"panorama must be at least 4x8 with width a multiple of 8, got {self.height}x{self.width}")
 

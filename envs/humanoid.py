@@ -1,6 +1,6 @@
 """The humanoid in the simulator: capsule body parts posed from keyframe joints, in JAX.
 
-Keyframes (22 HumanML3D joints) -> capsule segments (conav_jax.skeleton.capsule_segments) ->
+Keyframes (22 HumanML3D joints) -> capsule segments (conav_jax.motion.skeleton.capsule_segments) ->
 mocap body poses for MJX and segment ends for the fast caster and the contact test. A capsule
 keeps the length of its rest-pose segment (an MJX geom's size is fixed), centred on the
 segment's midpoint and aligned with it, so sensors, contacts and physics see the same shape.
@@ -12,7 +12,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conav_jax.skeleton import CAPSULE_BONES, HEAD_CAPSULE, JOINT_NAMES, REST_POSE, capsule_segments
+from conav_jax.motion.skeleton import (
+    CAPSULE_BONES,
+    HEAD_CAPSULE,
+    JOINT_NAMES,
+    REST_POSE,
+    capsule_segments,
+)
 
 _SKIN, _SHIRT, _TROUSERS = (0.87, 0.68, 0.55), (0.85, 0.25, 0.2), (0.18, 0.22, 0.45)
 

@@ -1,13 +1,15 @@
 """The fast caster as one Pallas (Triton) GPU kernel: SensorConfig(kind="pallas").
 
-Same math as `envs.panorama.fast_depth_ids` (the per-geom column and row terms come from the
-same functions, computed in XLA; the per-pixel key functions are called inside the kernel), so
-keys agree with it bit for bit. The kernel runs over a grid (env, column block): a program
-holds the running min key of its (H_pad, block_w) pixels in registers and loops over boxes and
-capsules; nothing of size geoms x H x W ever reaches memory. A geom that no column of the
-block can see is skipped with a branch (a uniform `lax.cond` per program): boxes whose 2-D
-footprint all the block's columns miss, and capsules outside the block's azimuth range, which
-in most blocks is every capsule of the humanoid.
+A caster like `envs.panorama.fast_depth_ids` (same arguments, a SceneGeometry, and results) with
+the same math: the per-geom column and row terms come from the same functions, computed in XLA;
+the per-pixel key functions (`box_pixel_keys`, `capsule_pixel_keys`, packing with
+`pack_depth_id`) are called inside the kernel, so keys agree with it bit for bit. The kernel
+runs over a grid (env, column block): a program holds the running min key of its
+(H_pad, block_w) pixels in registers and loops over boxes and capsules; nothing of size
+geoms x H x W ever reaches memory. A geom that no column of the block can see is skipped
+with a branch (a uniform `lax.cond` per program): boxes whose 2-D footprint all the block's
+columns miss, and capsules outside the block's azimuth range, which in most blocks is every
+capsule of the humanoid.
 
 Triton constraints respected: every block dimension is a power of two (H padded to the next
 power of two, W to a multiple of block_w, geoms to a power of two); per-geom rows are read with
@@ -27,9 +29,8 @@ from jax.experimental import pallas as pl
 
 from envs.config import SensorConfig
 from envs.panorama import (
-    _NO_HIT,
-    _scale,
-    _unpack,
+    NO_HIT_KEY,
+    SceneGeometry,
     box_pixel_keys,
     box_terms,
     capsule_pixel_keys,
@@ -37,6 +38,7 @@ from envs.panorama import (
     elevation_terms,
     floor_row_keys,
     ray_angles,
+    unpack_depth_id,
 )
 
 # Order of the per-capsule scalars in the kernel's (C_pad, 8) table.
@@ -53,15 +55,16 @@ def _pad(x, shape, value):
     return jnp.pad(x, [(0, s - d) for s, d in zip(shape, x.shape)], constant_values=value)
 
 
-def capsule_column_mask(cfg: SensorConfig, cam, yaw, cap_p0, cap_p1, cap_r) -> jax.Array:
+def capsule_column_mask(cfg: SensorConfig, cam_xyz_m, yaw_rad, geometry: SceneGeometry) -> jax.Array:
     """(C, W) float, 1 where column w's rays may hit capsule c (conservative): the column's
     azimuth lies within the angle that the capsule's bounding circle in the ground plane
     subtends from the camera, or the camera is inside that circle."""
+    cap_p0, cap_p1 = geometry.capsule_p0_m, geometry.capsule_p1_m
     az, _ = ray_angles(cfg)
-    a = yaw + jnp.asarray(az)  # (W,)
+    a = yaw_rad + jnp.asarray(az)  # (W,)
     mid = (cap_p0[:, :2] + cap_p1[:, :2]) / 2.0
-    radius = jnp.linalg.norm(cap_p1[:, :2] - cap_p0[:, :2], axis=-1) / 2.0 + cap_r
-    rel = mid - cam[None, :2]
+    radius = jnp.linalg.norm(cap_p1[:, :2] - cap_p0[:, :2], axis=-1) / 2.0 + geometry.capsule_radius_m
+    rel = mid - cam_xyz_m[None, :2]
     dist = jnp.linalg.norm(rel, axis=-1)
     inside = dist <= radius * 1.001 + 1e-4
     half = jnp.arcsin(jnp.clip(radius / jnp.maximum(dist, 1e-9), 0.0, 1.0)) + _AZ_SLACK
@@ -71,7 +74,7 @@ def capsule_column_mask(cfg: SensorConfig, cam, yaw, cap_p0, cap_p1, cap_r) -> j
     return (inside[:, None] | (diff <= half[:, None])).astype(jnp.float32)
 
 
-def _kernel(n_box: int, n_cap: int, scale: float, maxd: float,
+def _kernel(n_box: int, n_cap: int, max_depth_m: float,
             floor_ref, inv_cos_ref, ce_ref, se_ref,
             col_in_ref, col_out_ref, row_in_ref, row_out_ref, box_id_ref,
             u_ref, v_ref, cmask_ref, cscal_ref, cap_id_ref,
@@ -85,7 +88,7 @@ def _kernel(n_box: int, n_cap: int, scale: float, maxd: float,
 
         def hit(keys):
             k = box_pixel_keys(ci[None, :], col_out_ref[g, :][None, :], row_in_ref[g, :][:, None],
-                               row_out_ref[g, :][:, None], inv_cos, box_id_ref[g], scale, maxd)
+                               row_out_ref[g, :][:, None], inv_cos, box_id_ref[g], max_depth_m)
             return jnp.minimum(keys, k)
 
         # Every column of the block misses the footprint: nothing to do (col_in is inf there).
@@ -99,7 +102,7 @@ def _kernel(n_box: int, n_cap: int, scale: float, maxd: float,
             def hit(keys):
                 s = {name: cscal_ref[c, i] for i, name in enumerate(_CAP_SCALARS)}
                 k = capsule_pixel_keys(u_ref[c, :][None, :], v_ref[c, :][None, :], ce, se, s,
-                                       cap_id_ref[c], scale, maxd)
+                                       cap_id_ref[c], max_depth_m)
                 return jnp.minimum(keys, k)
 
             return jax.lax.cond(jnp.max(cmask_ref[c, :]) > 0.0, hit, lambda k: k, keys)
@@ -109,47 +112,38 @@ def _kernel(n_box: int, n_cap: int, scale: float, maxd: float,
 
 
 def pallas_depth_ids(
-    cfg: SensorConfig,
-    cam: jax.Array,
-    yaw: jax.Array,
-    box_lo: jax.Array,
-    box_hi: jax.Array,
-    box_ids: jax.Array,
-    box_valid: jax.Array,
-    cap_p0: jax.Array,
-    cap_p1: jax.Array,
-    cap_r: jax.Array,
-    cap_ids: jax.Array,
-    floor_id: int,
+    cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, geometry: SceneGeometry
 ) -> tuple[jax.Array, jax.Array]:
-    """`envs.panorama.fast_depth_ids` (same arguments and results) as a Pallas kernel."""
+    """`envs.panorama.fast_depth_ids` (same arguments and results) as a Pallas kernel: depth
+    (H, W) metres and geom ids (H, W) for one camera at `cam_xyz_m` facing `yaw_rad`."""
     h, w, bw = cfg.height, cfg.width, cfg.pallas_block_w
     hp, wp = _pow2(h), -(-w // bw) * bw
-    n_box, n_cap = int(box_lo.shape[0]), int(cap_p0.shape[0])
+    n_box, n_cap = int(geometry.box_lo_m.shape[0]), int(geometry.capsule_p0_m.shape[0])
     gp, cp = _pow2(max(n_box, 1)), _pow2(max(n_cap, 1))
-    scale, maxd = _scale(cfg), float(cfg.max_depth_m)
+    maxd = float(cfg.max_depth_m)
     inf = jnp.inf
+    no_hit = np.uint32(NO_HIT_KEY)
 
     inv_cos, ce, se = elevation_terms(cfg)
-    col_in, col_out, row_in, row_out = box_terms(cfg, cam, yaw, box_lo, box_hi, box_valid)
+    col_in, col_out, row_in, row_out = box_terms(cfg, cam_xyz_m, yaw_rad, geometry)
     # Padding rows / columns / geoms never hit (their results are cropped anyway).
     rows = lambda x, v: _pad(x, (hp,), v)
     args = [
-        _pad(floor_row_keys(cfg, cam, floor_id), (hp,), np.uint32(_NO_HIT)),
+        _pad(floor_row_keys(cfg, cam_xyz_m, geometry.floor_id), (hp,), no_hit),
         rows(inv_cos, 1.0), rows(ce, 1.0), rows(se, 0.0),
         _pad(col_in, (gp, wp), inf), _pad(col_out, (gp, wp), -inf),
         _pad(row_in, (gp, hp), inf), _pad(row_out, (gp, hp), -inf),
-        _pad(box_ids.astype(jnp.uint32), (gp,), np.uint32(_NO_HIT)),
+        _pad(geometry.box_ids.astype(jnp.uint32), (gp,), no_hit),
     ]
     if n_cap:
-        u, v, s = capsule_terms(cfg, cam, yaw, cap_p0, cap_p1, cap_r)
-        mask = capsule_column_mask(cfg, cam, yaw, cap_p0, cap_p1, cap_r)
+        u, v, s = capsule_terms(cfg, cam_xyz_m, yaw_rad, geometry)
+        mask = capsule_column_mask(cfg, cam_xyz_m, yaw_rad, geometry)
         table = jnp.stack([s[k] for k in _CAP_SCALARS] + [jnp.zeros_like(s["c"])], axis=-1)  # (C, 8)
         args += [_pad(u, (cp, wp), 0.0), _pad(v, (cp, wp), 0.0), _pad(mask, (cp, wp), 0.0),
-                 _pad(table, (cp, 8), 0.0), _pad(cap_ids.astype(jnp.uint32), (cp,), np.uint32(_NO_HIT))]
+                 _pad(table, (cp, 8), 0.0), _pad(geometry.capsule_ids.astype(jnp.uint32), (cp,), no_hit)]
     else:
         args += [jnp.zeros((cp, wp)), jnp.zeros((cp, wp)), jnp.zeros((cp, wp)), jnp.zeros((cp, 8)),
-                 jnp.full((cp,), _NO_HIT, jnp.uint32)]
+                 jnp.full((cp,), NO_HIT_KEY, jnp.uint32)]
 
     whole = lambda x: pl.BlockSpec(x.shape, lambda j: (0,) * x.ndim)
     cols = lambda x: pl.BlockSpec((x.shape[0], bw), lambda j: (0, j))
@@ -164,7 +158,7 @@ def pallas_depth_ids(
 
         compiler_params = plgpu.CompilerParams(num_warps=cfg.pallas_num_warps, num_stages=1)
     keys = pl.pallas_call(
-        functools.partial(_kernel, n_box, n_cap, scale, maxd),
+        functools.partial(_kernel, n_box, n_cap, maxd),
         out_shape=jax.ShapeDtypeStruct((hp, wp), jnp.uint32),
         grid=(wp // bw,),
         in_specs=in_specs,
@@ -173,4 +167,4 @@ def pallas_depth_ids(
         compiler_params=compiler_params,
         name="panorama_caster",
     )(*args)
-    return _unpack(keys[:h, :w], cfg)
+    return unpack_depth_id(keys[:h, :w], maxd)

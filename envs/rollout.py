@@ -19,7 +19,13 @@ import numpy as np
 from brax.envs.base import State
 from jax.sharding import Mesh
 
-from conav_jax.parallel import constrain_batch, replicate, round_up, shard_batch, to_host
+from conav_jax.parallel import (
+    constrain_batch,
+    replicate,
+    round_up,
+    shard_batch,
+    to_host,
+)
 from envs.agents.base import Agent
 from envs.conav_env import ConavEnv
 from envs.mjcf import UD

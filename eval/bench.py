@@ -1,4 +1,4 @@
-"""`conav bench eval`: evaluation throughput, val episodes per minute for one agent.
+"""`conav bench eval`'s measurements: evaluation throughput, val episodes per minute for one agent.
 
 `--mode sweep` (default): the whole split (or its first `--episodes`) through the evaluator
 `conav eval` uses (envs.rollout.make_evaluator: `batch` lanes, each taking the next episode as
@@ -11,36 +11,8 @@ seconds * 60 and env steps/s. With `--devices N` the lanes (batch) are split ove
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
-import tempfile
 import time
-
-from conav_jax.parallel import add_devices_arg
-from envs.bench import parse_resolution
-from envs.agents.registry import AGENTS, check_agent
-from eval.sweep import add_intention_args, intention_kwargs_from_args
-
-
-def add_bench_eval(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("eval", help="evaluation throughput: val episodes/min for one agent")
-    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
-    p.add_argument("--split", default="val")
-    p.add_argument("--agent", default="pioneer", help=f"one of {', '.join(AGENTS)}")
-    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
-    add_intention_args(p)
-    p.add_argument("--batch", type=int, default=256)
-    p.add_argument("--resolution", type=parse_resolution, default=(112, 448))
-    p.add_argument("--sensor", choices=["auto", "fast", "pallas", "legacy", "reference"], default="auto",
-                   help="panorama caster (envs.SensorConfig.kind; auto: pallas on one GPU, else fast)")
-    p.add_argument("--mode", choices=["sweep", "fixed"], default="sweep",
-                   help="sweep: the split through conav eval's evaluator; fixed: one full-length batch")
-    p.add_argument("--episodes", type=int, default=None, help="sweep mode: the first N episodes (default: all)")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--json", action="store_true", help="print one JSON line")
-    add_devices_arg(p)
-    p.set_defaults(func=run_bench_eval)
 
 
 def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
@@ -118,57 +90,3 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
         "median_sweep_s": round(med, 3),
         "episodes_per_min": round(n / med * 60.0, 1),
     }
-
-
-def run_bench_eval(args: argparse.Namespace) -> int:
-    spec = check_agent(args.agent, args.checkpoint)
-    predictors = intention_kwargs_from_args(args)
-    if predictors and not spec.takes_intentions:
-        raise ValueError(f"agent {args.agent!r} reads no intention inputs (--intention / --trajectory / "
-                         "--ground-truth-intentions)")
-    if args.batch < 1 or args.repeats < 1 or (args.episodes is not None and args.episodes < 1):
-        raise ValueError("--batch, --repeats and --episodes must be at least 1")
-    from conav_jax.parallel import check_divisible, make_mesh
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.agents.registry import make_agent
-
-    mesh = make_mesh(args.devices)
-    check_divisible(args.batch, mesh, "--batch")
-
-    tmp, data = None, args.data
-    if data is None:
-        from conav_jax.episodes import generate_dataset
-        from conav_jax.presets import preset
-
-        tmp = tempfile.TemporaryDirectory()
-        data = tmp.name
-        generate_dataset(preset("tiny"), data)
-    h, w = args.resolution
-    env = ConavEnv(data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w, kind=args.sensor)))
-    agent = make_agent(args.agent, env, args.checkpoint, **predictors)
-    res = {"agent": args.agent, "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind}
-    if args.mode == "sweep":
-        res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, mesh))
-    else:
-        res.update(bench_eval(env, agent, args.batch, args.repeats, mesh))
-    if args.json:
-        print(json.dumps(res), flush=True)
-    elif args.mode == "sweep":
-        print(
-            f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={res['sensor']} lanes={args.batch}: "
-            f"{res['episodes']} episodes (mean {res['mean_episode_steps']} steps, longest {res['longest_episode_steps']}) "
-            f"in {res['median_sweep_s']} s = {res['episodes_per_min']:,.1f} episodes/min (median of {args.repeats}); "
-            f"compile + first sweep {res['compile_and_first_sweep_s']} s",
-            flush=True,
-        )
-    else:
-        print(
-            f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={res['sensor']} batch={args.batch} "
-            f"({res['steps_per_episode']} steps/episode): {res['episodes_per_min']:,.1f} episodes/min = "
-            f"{res['env_steps_per_s']:,.0f} env steps/s ({res['env_steps_per_s_per_device']:,.0f} per device; "
-            f"median of {args.repeats}), compile {res['compile_and_first_call_s']} s",
-            flush=True,
-        )
-    if tmp is not None:
-        tmp.cleanup()
-    return 0

@@ -1,60 +1,810 @@
-"""The `conav` command: one dispatcher over every stage's sub-commands.
+"""The `conav` command: the whole command line, at the top of the dependency graph.
 
-Each stage registers its own sub-commands; heavy modules are imported only by the sub-command
-that runs, so `conav --help` stays instant. Commands with `--devices` (data-parallel) first join
-a multi-host run if the environment describes one (conav_jax.parallel).
+argv -> argparse (every sub-command's flags are here and only here) -> frozen configs -> the
+stage's plain function (conav_jax.data.episodes, train.*, eval.*, envs.bench) -> a summary on stdout.
+Stage modules are imported only by the sub-command that runs, so `conav --help` stays quick.
+Before any command runs, JAX's persistent compilation cache is switched on (`--compile-cache`),
+so a second run of a command recompiles nothing. Data-parallel commands (`--devices`) first
+join a multi-host run if the environment describes one (conav_jax.parallel).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
+import os
+import shlex
 import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
 
 from conav_jax import __version__
-from conav_jax.cli import add_generate
+
+COMPILE_CACHE_ENV = "CONAV_COMPILE_CACHE"  # a directory, or "off"
+
+
+# -- shared argument types and groups ----------------------------------------------------------
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    """`HxW` (e.g. 112x448) -> (H, W)."""
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"resolution must look like 112x448, got {text!r}") from None
+    if h < 1 or w < 1:
+        raise argparse.ArgumentTypeError(f"resolution must be positive, got {text!r}")
+    return h, w
+
+
+def parse_physics_override(text: str) -> tuple[str, object]:
+    """`NAME=VALUE` for a field of envs.config.PhysicsConfig, VALUE converted to the field's type."""
+    from envs.config import PhysicsConfig
+
+    fields = {f.name for f in dataclasses.fields(PhysicsConfig)}
+    name, sep, value = text.partition("=")
+    if not sep or name not in fields:
+        raise argparse.ArgumentTypeError(
+            f"physics override must be NAME=VALUE with NAME one of {sorted(fields)}, got {text!r}")
+    kind = type(getattr(PhysicsConfig(), name))
+    try:
+        return name, kind(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"physics {name} needs a {kind.__name__}, got {value!r}") from None
+
+
+def _resolution_arg(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--resolution", type=parse_resolution, default=None, metavar="HxW",
+                   help=f"panorama HxW {what} (default: the paper's 112x448, envs.config.SensorConfig)")
+
+
+def _devices_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--devices", type=int, default=None, metavar="N",
+                   help="devices each batch is split over (default: all visible, every host's in a multi-host run)")
+
+
+def _intention_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--intention", default=None, metavar="RUN",
+                   help="conav/ppo: intention predictor run (`conav train intention`; default for conav: the one "
+                   "the policy run names)")
+    p.add_argument("--trajectory", default=None, metavar="RUN",
+                   help="conav/ppo: trajectory predictor run (`conav train trajectory`; default for conav: the "
+                   "one the policy run names)")
+    p.add_argument("--ground-truth-intentions", action="store_true",
+                   help="conav/ppo: feed the env's ground-truth intentions instead of predictions (privileged "
+                   "upper bound, labelled so in every output)")
+
+
+def _intention_kwargs(args: argparse.Namespace) -> dict:
+    """envs.agents.registry.make_agent's intention keywords from `_intention_args`' flags."""
+    out = {}
+    for key, run in (("intention_run", args.intention), ("trajectory_run", args.trajectory)):
+        if run is not None:
+            if not Path(run).is_dir():
+                raise ValueError(f"--{key.removesuffix('_run')} run directory not found: {run}")
+            out[key] = run
+    if args.ground_truth_intentions:
+        if out:
+            raise ValueError("--ground-truth-intentions excludes --intention / --trajectory")
+        out["ground_truth"] = True
+    return out
+
+
+def _train_args(p: argparse.ArgumentParser, defaults) -> None:
+    """--data, --out, the TrainConfig fields (with this command's defaults), --no-progress, --devices."""
+    from train.loop import TrainConfig
+
+    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
+    p.add_argument("--out", required=True, help="run dir: log.jsonl and checkpoints (resumed if present)")
+    for f in dataclasses.fields(TrainConfig):
+        default = getattr(defaults, f.name)
+        p.add_argument("--" + f.name.replace("_", "-"), type=type(default), default=default,
+                       help=f"TrainConfig.{f.name} (default {default})")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _devices_arg(p)
+
+
+def _train_config(args: argparse.Namespace):
+    from train.loop import TrainConfig
+
+    return TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
+
+
+def _mesh(args: argparse.Namespace):
+    from conav_jax.parallel import make_mesh
+
+    return make_mesh(args.devices)
+
+
+def _tiny_dataset() -> tempfile.TemporaryDirectory:
+    """The tiny preset in a temporary directory (benchmarks run without --data)."""
+    from conav_jax.data.episodes import generate_dataset
+    from conav_jax.data.presets import preset
+
+    tmp = tempfile.TemporaryDirectory()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        generate_dataset(preset("tiny"), tmp.name)
+    return tmp
+
+
+# -- conav generate ------------------------------------------------------------------------------
+
+_GENERATE_EPILOG = """\
+scene source:
+  procedural (default)   the preset's apartments: train, val and minival scenes of their own
+  --scenes DIR           every DIR/*.json scene file (the conav_jax.data.scene format), split by name:
+                         --val-scenes and --minival-scenes take comma-separated scene file names
+                         without .json (e.g. --val-scenes apt_3,apt_7); every other file is train.
+                         Each split gets --episodes-per-scene episodes per scene. --preset, when
+                         given, supplies the task, motion and navigation settings (default: the
+                         DatasetConfig defaults); its scene counts and scene generation are unused.
+
+examples:
+  conav generate --preset small --out data/small
+  conav generate --scenes my_scenes --val-scenes flat_2 --minival-scenes flat_5 \\
+      --episodes-per-scene 200 --out data/mine --seed 1
+"""
+
+
+def _add_generate(sub) -> None:
+    from conav_jax.data.presets import PRESETS
+
+    p = sub.add_parser(
+        "generate",
+        help="generate a CoNav episode dataset from a preset or from your own scene files",
+        description="Generate a CoNav episode dataset (manifest, scene nav fields, episode shards); "
+        "the same seed gives the same bytes.",
+        epilog=_GENERATE_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--preset", choices=sorted(PRESETS), default=None,
+                   help="dataset preset (default: tiny); with --scenes, only its task, motion and navigation settings")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--seed", type=int, default=None, help="dataset seed (default: the preset's, 0)")
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
+    own = p.add_argument_group("own scenes")
+    own.add_argument("--scenes", default=None, metavar="DIR", help="build episodes in DIR/*.json instead of generated apartments")
+    own.add_argument("--episodes-per-scene", type=int, default=None, metavar="N", help="episodes per scene (needed with --scenes)")
+    own.add_argument("--val-scenes", default="", metavar="NAME,...", help="scene files (names without .json) for val")
+    own.add_argument("--minival-scenes", default="", metavar="NAME,...", help="scene files (names without .json) for minival")
+    own.add_argument("--name", default=None, help="dataset name recorded in the manifest (default: DIR's name)")
+    p.set_defaults(func=_run_generate)
+
+
+def scene_split_from_args(scenes_dir: str | os.PathLike, val: str, minival: str) -> dict[str, list[Path]]:
+    """split -> scene files: the named files to val and minival, the rest of DIR/*.json to train.
+    ValueError for a name that is not a file in DIR or a file named twice."""
+    directory = Path(scenes_dir)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"--scenes: directory not found: {directory}")
+    files = {p.stem: p for p in sorted(directory.glob("*.json"))}
+    if not files:
+        raise ValueError(f"--scenes: no *.json scene files in {directory}")
+    named: dict[str, str] = {}
+    split: dict[str, list[Path]] = {"train": [], "val": [], "minival": []}
+    for which, spec in (("val", val), ("minival", minival)):
+        for name in (n.strip() for n in spec.split(",")):
+            if not name:
+                continue
+            name = name.removesuffix(".json")
+            if name not in files:
+                raise ValueError(f"--{which}-scenes: no scene file {name}.json in {directory}; has {', '.join(files)}")
+            if name in named:
+                raise ValueError(f"--{which}-scenes: {name} is already in {named[name]}; splits must not share scenes")
+            named[name] = which
+            split[which].append(files[name])
+    split["train"] = [p for stem, p in files.items() if stem not in named]
+    return {k: v for k, v in split.items() if v}
+
+
+def _run_generate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from conav_jax.config import DatasetConfig
+    from conav_jax.data.episodes import (
+        BlockedStandingPoint,
+        generate_dataset,
+        generate_from_scenes,
+    )
+    from conav_jax.data.presets import preset
+
+    if args.workers < 1:
+        raise ValueError("--workers must be at least 1")
+    own_flags = [f for f, v in (("--episodes-per-scene", args.episodes_per_scene), ("--val-scenes", args.val_scenes),
+                                ("--minival-scenes", args.minival_scenes), ("--name", args.name)) if v]
+    if args.scenes is None and own_flags:
+        raise ValueError(f"{', '.join(own_flags)} only apply with --scenes DIR")
+
+    def bar(total: int, name: str):
+        return lambda it: tqdm(it, total=total, desc=f"generate {name}", unit="scene")
+
+    t0 = time.perf_counter()
+    # Scenes whose objects the robot cannot reach print one line each, after the progress bar.
+    with warnings.catch_warnings(record=True) as caught:
+        try:
+            if args.scenes is None:
+                cfg = preset(args.preset or "tiny", args.seed)
+                n_scenes = sum(n for n, _ in cfg.split_sizes().values())
+                m = generate_dataset(cfg, args.out, workers=args.workers, progress=bar(n_scenes, cfg.name))
+            else:
+                if args.episodes_per_scene is None or args.episodes_per_scene < 1:
+                    raise ValueError("--scenes needs --episodes-per-scene N (N >= 1)")
+                by_split = scene_split_from_args(args.scenes, args.val_scenes, args.minival_scenes)
+                base = preset(args.preset, args.seed) if args.preset else DatasetConfig()
+                name = args.name or Path(args.scenes).resolve().name
+                cfg = dataclasses.replace(base, name=name, seed=base.seed if args.seed is None else args.seed)
+                episodes = {split: args.episodes_per_scene * len(paths) for split, paths in by_split.items()}
+                n_scenes = sum(len(v) for v in by_split.values())
+                m = generate_from_scenes(by_split, episodes, cfg, args.out, workers=args.workers, progress=bar(n_scenes, name))
+        finally:
+            for w in caught:
+                if issubclass(w.category, BlockedStandingPoint):
+                    print(f"warning: {w.message}", file=sys.stderr)
+                else:
+                    warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    dt = time.perf_counter() - t0
+    for split, s in m["splits"].items():
+        print(f"{split}: {s['episodes']} episodes in {len(s['scenes'])} scenes, "
+              f"mean length {s['mean_length_steps']} steps (max {s['max_length_steps']})")
+    print(f"wrote {args.out} in {dt:.1f} s, content hash {m['content_hash'][:16]}")
+    return 0
+
+
+# -- conav train ---------------------------------------------------------------------------------
+
+
+def _add_train(sub) -> None:
+    from conav_jax.models.perceiver import PerceiverConfig
+    from conav_jax.models.policy import ABLATIONS, PolicyConfig
+    from conav_jax.models.trajectory import TrajectoryConfig
+    from train.intention import IntentionDataConfig
+    from train.loop import TrainConfig
+    from train.policy import TRAIN_INTENTIONS, ImitationConfig
+    from train.ppo import PPOConfig
+
+    train = sub.add_parser("train", help="train the intention / trajectory predictors, the policy, PPO")
+    models = train.add_subparsers(dest="model", metavar="MODEL", required=True)
+
+    p = models.add_parser("intention", help="train the intention (activity/object B) Perceiver")
+    _train_args(p, TrainConfig(steps=3000, batch=64, lr=3e-4, weight_decay=0.01))
+    p.add_argument("--frames", type=int, default=IntentionDataConfig.frames, help="frames per episode (F)")
+    p.add_argument("--sensor", type=parse_resolution, default=IntentionDataConfig.sensor_hw, metavar="HxW",
+                   help="panorama HxW rendered, front view H x W/4 (default 32x128)")
+    p.add_argument("--image", type=parse_resolution, default=PerceiverConfig.image_hw, metavar="HxW",
+                   help="Perceiver input HxW; front views are resized to it (default 32x32)")
+    p.add_argument("--no-activity-a-head", dest="activity_a_head", action="store_false",
+                   help="predict B with the direct heads only (no activity-A head, no activity graph)")
+    p.add_argument("--graph-mix", type=float, default=PerceiverConfig.graph_mix,
+                   help=f"weight of the activity-graph route in the predictions (default {PerceiverConfig.graph_mix})")
+    p.set_defaults(func=_run_train_intention)
+
+    p = models.add_parser("trajectory", help="train the trajectory (short-term intention) predictor")
+    _train_args(p, TrainConfig(steps=3000, batch=256, lr=2e-3))
+    p.add_argument("--hidden", type=int, default=TrajectoryConfig.hidden, help="LSTM/MLP width")
+    p.set_defaults(func=_run_train_trajectory)
+
+    p = models.add_parser("policy", help="imitation-train the CoNav policy from the expert (BC, then DAgger)")
+    _train_args(p, TrainConfig(steps=2000, batch=16, lr=3e-4, warmup_steps=100, val_every=1000, ckpt_every=500))
+    d = ImitationConfig()
+    p.add_argument("--intention", default=None, metavar="RUN",
+                   help="intention run (conav train intention): validate with its predictions")
+    p.add_argument("--trajectory", default=None, metavar="RUN",
+                   help="trajectory run (conav train trajectory): validate with its predictions")
+    p.add_argument("--ablation", choices=sorted(ABLATIONS), default="all", help="intention inputs kept (Table 3 row; default all)")
+    p.add_argument("--dagger-rounds", type=int, default=d.dagger_rounds,
+                   help="DAgger rounds after behaviour cloning (a finished run resumes with more)")
+    p.add_argument("--dagger-steps", type=int, default=None,
+                   help="updates per DAgger round (default: --steps); a resumed run may change it for the rounds to come")
+    _resolution_arg(p, "rendered and read by the policy")
+    p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
+    p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
+    p.add_argument("--val-split", default=d.val_split, help=f"split validated on (default {d.val_split}: hyper-parameters "
+                   "are chosen there, never on the reported val split)")
+    p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
+    p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
+    p.add_argument("--rollout-batch", type=int, default=d.rollout_batch, help="episodes per simulator call")
+    p.add_argument("--remat", action="store_true",
+                   help="recompute the CNN per window step in the backward pass: less memory (112x448 windows "
+                   "at batch >= 256 need it on an H100), ~1.7x the update time")
+    p.add_argument("--train-intentions", choices=TRAIN_INTENTIONS, default=d.train_intentions,
+                   help="intention inputs in the training data: ground truth (the paper) or the predictor runs' outputs")
+    p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
+                   help="with the object input, also read it as a saliency map over the panorama (default: on; "
+                   "--no-object-saliency reads the object distribution as a vector only)")
+    p.set_defaults(func=_run_train_policy)
+
+    d = PPOConfig()
+    p = models.add_parser("rl", help="train the policy with PPO in the simulator")
+    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
+    p.add_argument("--out", required=True, help="new run dir: log.jsonl and checkpoints")
+    p.add_argument("--init-from", default=None, metavar="POLICY_RUN",
+                   help="start from an imitation policy run (its network, weights and value head)")
+    p.add_argument("--num-envs", type=int, default=d.num_envs, help=f"parallel envs (default {d.num_envs})")
+    p.add_argument("--steps", type=int, default=d.total_env_steps, help=f"total env steps (default {d.total_env_steps})")
+    p.add_argument("--rollout-steps", type=int, default=d.rollout_steps, help=f"steps per env per iteration (default {d.rollout_steps})")
+    p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr})")
+    p.add_argument("--reset-every", type=int, default=None,
+                   help="iterations between re-resets onto new episodes (default: enough for the longest episode)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--recurrent", dest="recurrent", action="store_true", default=d.recurrent,
+                      help="LSTM carry through time (default)")
+    mode.add_argument("--feedforward", dest="recurrent", action="store_false", help="zero LSTM carry every step")
+    _resolution_arg(p, "of a new network (with --init-from: the imitation run's)")
+    p.add_argument("--hidden", type=int, default=None,
+                   help=f"LSTM width of a new network (default {PolicyConfig.hidden}; not with --init-from)")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--eval-every", type=int, default=d.eval_every, help="iterations between val evaluations (0: none)")
+    p.add_argument("--eval-split", default=d.eval_split, help=f"split evaluated on while training (default {d.eval_split})")
+    p.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="iterations between checkpoints")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _devices_arg(p)
+    p.set_defaults(func=_run_train_rl)
+
+
+def _run_train_intention(args: argparse.Namespace) -> int:
+    from conav_jax.models.perceiver import PerceiverConfig
+    from train.intention import IntentionDataConfig, train_intention
+    from train.loop import NonFiniteLoss
+
+    data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames)
+    model = PerceiverConfig(image_hw=args.image, activity_a_head=args.activity_a_head, graph_mix=args.graph_mix)
+    try:
+        result = train_intention(args.data, args.out, _train_config(args), model, data, progress=not args.no_progress,
+                                 mesh=_mesh(args))
+    except NonFiniteLoss as e:
+        print(f"conav train intention: {e}")
+        return 1
+    v = result.val
+    print(f"intention run: {result.run_dir} ({result.step} steps)")
+    for head in ("activity", "object"):
+        print(f"val {head}: top-1 {v[f'{head}_top1']:.3f}, top-5 {v[f'{head}_top5']:.3f} "
+              f"(prior {v[f'prior_{head}_top1']:.3f} / {v[f'prior_{head}_top5']:.3f}, "
+              f"chance {v[f'chance_{head}_top1']:.3f} / {v[f'chance_{head}_top5']:.3f})")
+    if "activity_a_top1" in v:
+        print(f"val watched activity A: top-1 {v['activity_a_top1']:.3f} (chance {1 / model.num_activities:.3f})")
+    print(f"val frames showing the human: {v['val_frames_with_human']:.1%}")
+    return 0
+
+
+def _run_train_trajectory(args: argparse.Namespace) -> int:
+    from conav_jax.models.trajectory import TrajectoryConfig
+    from train.loop import NonFiniteLoss
+    from train.trajectory import train_trajectory
+
+    try:
+        result = train_trajectory(args.data, args.out, _train_config(args), TrajectoryConfig(hidden=args.hidden),
+                                  progress=not args.no_progress, mesh=_mesh(args))
+    except NonFiniteLoss as e:
+        print(f"conav train trajectory: {e}")
+        return 1
+    v = result.val
+    print(f"trajectory run: {result.run_dir} ({result.step} steps)")
+    print(f"val ADE {v['ade_m']:.3f} m, FDE {v['fde_m']:.3f} m "
+          f"(constant velocity: ADE {v['cv_ade_m']:.3f} m, FDE {v['cv_fde_m']:.3f} m)")
+    return 0
+
+
+def _policy_model(args: argparse.Namespace):
+    """The PolicyConfig a `conav train policy` command asks for."""
+    from conav_jax.models.policy import PolicyConfig, ablation_config
+    from envs.agents.registry import run_resolution
+
+    h, w = run_resolution([], args.resolution)
+    return ablation_config(PolicyConfig(image_hw=(h, w), object_saliency=args.object_saliency), args.ablation)
+
+
+def _run_train_policy(args: argparse.Namespace) -> int:
+    from train.loop import NonFiniteLoss
+    from train.policy import ImitationConfig, train_policy
+
+    imitation = ImitationConfig(
+        episodes=args.episodes, val_episodes=args.val_episodes, val_split=args.val_split,
+        dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps, seq_len=args.seq_len, burn_in=args.burn_in,
+        rollout_batch=args.rollout_batch, train_intentions=args.train_intentions,
+    )
+    for flag, run in (("--intention", args.intention), ("--trajectory", args.trajectory)):
+        if run is not None and not Path(run).is_dir():
+            raise FileNotFoundError(f"{flag} run directory not found: {run}")
+    try:
+        result = train_policy(args.data, args.out, _train_config(args), _policy_model(args), imitation,
+                              intention_run=args.intention, trajectory_run=args.trajectory,
+                              progress=not args.no_progress, mesh=_mesh(args), remat=args.remat)
+    except NonFiniteLoss as e:
+        print(f"conav train policy: {e}")
+        return 1
+    rates = lambda m: f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"  # noqa: E731
+    print(f"policy run: {result.run_dir}")
+    print(f"{imitation.val_split} expert (ceiling): {rates(result.expert_val)}")
+    print(f"{imitation.val_split} policy:           {rates(result.val)}")
+    return 0
+
+
+def _run_train_rl(args: argparse.Namespace) -> int:
+    from conav_jax.models.policy import PolicyConfig
+    from envs.agents.registry import run_resolution
+    from train.ppo import PPOConfig, train_ppo
+
+    config = PPOConfig(
+        num_envs=args.num_envs, rollout_steps=args.rollout_steps, reset_every=args.reset_every,
+        total_env_steps=args.steps, lr=args.lr, recurrent=args.recurrent, seed=args.seed,
+        eval_every=args.eval_every, eval_split=args.eval_split, ckpt_every=args.ckpt_every,
+    )
+    policy_config = None
+    if args.init_from:
+        if args.hidden is not None or args.resolution is not None:
+            raise ValueError("--hidden and --resolution size a new network; with --init-from the network is the imitation run's")
+    else:
+        policy_config = PolicyConfig(image_hw=run_resolution([], args.resolution), hidden=args.hidden or PolicyConfig.hidden)
+    try:
+        result = train_ppo(args.data, args.out, config, policy_config, args.init_from, progress=not args.no_progress,
+                           mesh=_mesh(args))
+    except FloatingPointError as e:
+        print(f"conav train rl: {e}")
+        return 1
+    print(f"ppo run: {result.run_dir} ({result.env_steps} env steps)")
+    if result.val:
+        print(f"{config.eval_split} " + ", ".join(f"{k} {v:.1f}" for k, v in result.val.items()))
+    return 0
+
+
+# -- conav eval, view, curve ---------------------------------------------------------------------
+
+
+def _add_eval(sub) -> None:
+    from envs.agents.registry import AGENTS
+
+    p = sub.add_parser("eval", help="evaluate agents on a split: per-episode records, metrics with CIs, Table 2/3 report")
+    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
+    p.add_argument("--split", default="val")
+    p.add_argument("--agent", required=True,
+                   help="comma-separated agent names: " + "; ".join(f"{k} ({s.summary})" for k, s in AGENTS.items()))
+    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    _intention_args(p)
+    p.add_argument("--ablation-checkpoints", default=None, metavar="NAME=RUN,...",
+                   help="conav runs for the Table 3 ablation; the names none, activity, object, "
+                   "activity_object, all mark which intention inputs a run uses")
+    p.add_argument("--episodes", type=int, default=None, help="evaluate only the first N episodes")
+    p.add_argument("--batch", type=int, default=256, help="parallel lanes: episodes in flight at once")
+    p.add_argument("--seed", type=int, default=0, help="rollout keys and bootstrap resampling")
+    _resolution_arg(p, "(default with a trained run: the run's)")
+    p.add_argument("--out", required=True, help="output directory")
+    _devices_arg(p)
+    p.set_defaults(func=_run_eval)
+
+
+def parse_ablations(text: str | None) -> tuple[tuple[str, str], ...]:
+    """`name=RUN,...` -> ((name, run), ...)."""
+    if not text:
+        return ()
+    out = []
+    for item in text.split(","):
+        name, sep, run = item.strip().partition("=")
+        if not sep or not name or not run:
+            raise ValueError(f"--ablation-checkpoints entries look like name=RUN_DIR, got {item!r}")
+        out.append((name, run))
+    return tuple(out)
+
+
+def _run_eval(args: argparse.Namespace) -> int:
+    from eval import sweep
+
+    plan = sweep.plan_eval(
+        args.data, args.split, tuple(n.strip() for n in args.agent.split(",") if n.strip()), args.out,
+        checkpoint=args.checkpoint, intention_kwargs=_intention_kwargs(args),
+        ablations=parse_ablations(args.ablation_checkpoints), episodes=args.episodes, batch=args.batch,
+        seed=args.seed, resolution=args.resolution, devices=args.devices,
+    )
+    mesh = _mesh(args)
+    env = sweep.load_env(plan)
+    doc = sweep.sweep(plan, env, progress=True, mesh=mesh)
+    print((plan.out / "report.md").read_text().split("## Figures")[0].rstrip())
+    print(f"wrote {plan.out} ({len(doc['agents'])} agents, {len(doc['ablations'])} ablations, {env.num_episodes} "
+          f"episodes, {mesh.size} device(s))")
+    return 0
+
+
+def _add_view(sub) -> None:
+    from envs.agents.registry import AGENTS
+
+    p = sub.add_parser("view", help="record one episode as a rerun .rrd (scene, human, robot, panorama, intentions)")
+    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
+    p.add_argument("--split", default="val")
+    p.add_argument("--episode", type=int, required=True, help="episode index within the split")
+    p.add_argument("--agent", default="pioneer", help=f"who drives the robot: {', '.join(AGENTS)}")
+    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    _intention_args(p)
+    _resolution_arg(p, "(default with a trained run: the run's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output .rrd file")
+    p.add_argument("--spawn", action="store_true", help="also stream to a spawned rerun viewer")
+    p.set_defaults(func=_run_view)
+
+
+def _run_view(args: argparse.Namespace) -> int:
+    from eval.viewer import view_episode
+
+    print(view_episode(args.data, args.split, args.episode, args.agent, args.out, args.checkpoint,
+                       _intention_kwargs(args), args.resolution, args.seed, args.spawn))
+    return 0
+
+
+def _add_curve(sub) -> None:
+    p = sub.add_parser("curve", help="PPO learning curve (success vs env steps) from run logs, as PNG")
+    p.add_argument("runs", nargs="+", metavar="[TITLE=]RUN", help="`conav train rl` run dirs")
+    p.add_argument("--out", required=True, help="output .png")
+    p.add_argument("--window", type=int, default=None,
+                   help="training iterations pooled per point (default: each run's reset cycle, else 4)")
+    p.set_defaults(func=_run_curve)
+
+
+def _run_curve(args: argparse.Namespace) -> int:
+    from conav_jax.runs import read_log
+    from eval.plots import learning_curve
+
+    if args.window is not None and args.window < 1:
+        raise ValueError(f"--window must be at least 1, got {args.window}")
+    logs = {}
+    for spec in args.runs:
+        title, _, run = spec.rpartition("=")
+        logs[title or Path(run).name] = read_log(run)
+    print(f"wrote {learning_curve(logs, args.out, args.window)}")
+    return 0
+
+
+# -- conav demo ----------------------------------------------------------------------------------
+
+
+def _add_demo(sub) -> None:
+    p = sub.add_parser("demo", help="the whole pipeline on the tiny preset (CPU, minutes)")
+    p.add_argument("--out", required=True, help="output directory (data, runs, eval, episode.rrd)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resolution", default="16x64", type=parse_resolution, metavar="HxW",
+                   help="panorama HxW used throughout (small: CPU; default 16x64)")
+    p.set_defaults(func=_run_demo)
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from eval.demo import demo_commands
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    for argv in demo_commands(out, args.seed, "x".join(map(str, args.resolution))):
+        print(f"\n$ conav {shlex.join(argv)}", flush=True)
+        t0 = time.perf_counter()
+        rc = main(argv, compile_cache=False)  # the cache was set up once, for the demo as a whole
+        if rc:
+            print(f"conav demo: stage `{argv[0]}` failed (exit {rc})")
+            return rc
+        print(f"[{' '.join(argv[:2]) if argv[0] == 'train' else argv[0]}] done in {time.perf_counter() - t0:.0f} s",
+              flush=True)
+    print(f"\ndemo finished in {time.perf_counter() - t_start:.0f} s: report {out / 'eval' / 'report.md'}, "
+          f"recording {out / 'episode0.rrd'} (open with `rerun {out / 'episode0.rrd'}`)")
+    return 0
+
+
+# -- conav bench -----------------------------------------------------------------------------------
+
+
+def _add_bench(sub) -> None:
+    from envs.agents.registry import AGENTS
+    from envs.config import SENSOR_KINDS
+    from train.bench import DEFAULT_BATCH, SETUPS
+
+    bench = sub.add_parser("bench", help="throughput benchmarks (run them on a GPU)")
+    what = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
+
+    p = what.add_parser("sim", help="simulator throughput: env steps/s with sensors")
+    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
+    p.add_argument("--split", default="val")
+    p.add_argument("--batch", type=int, nargs="+", default=[1024])
+    p.add_argument("--resolution", type=parse_resolution, nargs="+", default=[(112, 448)], metavar="HxW")
+    p.add_argument("--sensor", nargs="+", choices=[*SENSOR_KINDS, "both"], default=["auto"],
+                   help="sensor kinds to time (both = fast and reference)")
+    p.add_argument("--fast-min", choices=["reduce", "unroll"], default=None, help="fast caster: min over geoms as")
+    p.add_argument("--steps", type=int, default=20, help="env steps per timed call")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--what", choices=["step", "sensor", "breakdown"], default="step",
+                   help="step: full env steps (physics, humanoid, sensors); sensor: panoramas only; "
+                   "breakdown: physics, humanoid, sensors and the full step timed separately, plus the floor")
+    p.add_argument("--pallas-block-w", type=int, default=None, help="pallas caster: columns per program")
+    p.add_argument("--pallas-num-warps", type=int, default=None, help="pallas caster: warps per program")
+    p.add_argument("--physics", type=parse_physics_override, nargs="+", default=[], metavar="NAME=VALUE",
+                   help="PhysicsConfig fields to override, e.g. timestep_s=0.02 solver_iterations=2 substep_unroll=10")
+    p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
+    _devices_arg(p)
+    p.set_defaults(func=_run_bench_sim)
+
+    p = what.add_parser("train", help="training throughput: samples/s of a model's jitted update")
+    p.add_argument("--model", choices=sorted(SETUPS), required=True)
+    p.add_argument("--batch", type=int, nargs="+", default=None, help=f"samples per update (default {DEFAULT_BATCH})")
+    p.add_argument("--resolution", type=parse_resolution, default=(112, 448), metavar="HxW", help="policy panorama HxW")
+    p.add_argument("--steps", type=int, default=10, help="updates per timed call")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--remat", action="store_true",
+                   help="policy: encode one time step at a time under jax.checkpoint (less memory, more compute)")
+    p.add_argument("--json", action="store_true", help="print one JSON line per batch size")
+    _devices_arg(p)
+    p.set_defaults(func=_run_bench_train)
+
+    p = what.add_parser("eval", help="evaluation throughput: val episodes/min for one agent")
+    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
+    p.add_argument("--split", default="val")
+    p.add_argument("--agent", default="pioneer", help=f"one of {', '.join(AGENTS)}")
+    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    _intention_args(p)
+    p.add_argument("--batch", type=int, default=256)
+    _resolution_arg(p, "(default with a trained run: the run's)")
+    p.add_argument("--sensor", choices=SENSOR_KINDS, default="auto",
+                   help="panorama caster (envs.SensorConfig.kind; auto: pallas on one GPU, else fast)")
+    p.add_argument("--mode", choices=["sweep", "fixed"], default="sweep",
+                   help="sweep: the split through conav eval's evaluator; fixed: one full-length batch")
+    p.add_argument("--episodes", type=int, default=None, help="sweep mode: the first N episodes (default: all)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--json", action="store_true", help="print one JSON line")
+    _devices_arg(p)
+    p.set_defaults(func=_run_bench_eval)
+
+
+def _run_bench_sim(args: argparse.Namespace) -> int:
+    from conav_jax.parallel import make_mesh
+    from envs import ConavEnv, EnvConfig, SensorConfig
+    from envs.bench import bench_sim
+    from envs.config import PhysicsConfig
+
+    physics = PhysicsConfig(**dict(args.physics))
+    tmp = None if args.data is not None else _tiny_dataset()
+    data = args.data or tmp.name
+    # The breakdown times single-device stages; the other modes split the batch over the mesh.
+    mesh = make_mesh(args.devices) if args.devices != 1 and args.what != "breakdown" else None
+    kinds = []
+    for k in args.sensor:
+        for kk in (["fast", "reference"] if k == "both" else [k]):
+            if kk not in kinds:
+                kinds.append(kk)
+    for (h, w) in args.resolution:
+        for kind in kinds:
+            extra = {name: getattr(args, name) for name in ("fast_min", "pallas_block_w", "pallas_num_warps")
+                     if getattr(args, name) is not None}
+            cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra), physics=physics)
+            env = ConavEnv(data, args.split, cfg)
+            kind = env.config.sensor.kind  # what "auto" became here
+            if kind == "pallas" and mesh is not None and mesh.size > 1:
+                raise ValueError("the pallas caster runs on one device (XLA cannot partition a Pallas call): "
+                                 "use --sensor fast with several devices, or --devices 1")
+            for batch in args.batch:
+                res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh)}
+                if args.physics:
+                    res["physics"] = dict(args.physics)
+                if kind == "fast":
+                    res["fast_min"] = env.config.sensor.fast_min
+                if kind == "pallas":
+                    res["pallas"] = {"block_w": cfg.sensor.pallas_block_w, "num_warps": cfg.sensor.pallas_num_warps}
+                if args.json or args.what == "breakdown":
+                    print(json.dumps(res), flush=True)
+                else:
+                    rate = res.get("env_steps_per_s", res.get("frames_per_s"))
+                    unit = "env steps/s" if args.what == "step" else "panoramas/s"
+                    print(f"{res['device']} sensor={kind} res={h}x{w} batch={batch}: {rate:,.0f} {unit} (median of "
+                          f"{args.repeats}), compile {res['compile_and_first_call_s']} s, peak mem {res['peak_bytes_in_use']}",
+                          flush=True)
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
+
+
+def _run_bench_train(args: argparse.Namespace) -> int:
+    from conav_jax.parallel import make_mesh
+    from train.bench import DEFAULT_BATCH, bench_train
+
+    mesh = make_mesh(args.devices) if args.devices != 1 else None
+    for batch in args.batch or [DEFAULT_BATCH[args.model]]:
+        res = bench_train(args.model, batch, args.resolution, args.steps, args.repeats, mesh, args.remat)
+        if args.json:
+            print(json.dumps(res), flush=True)
+        else:
+            shape = ", ".join(f"{k}={res[k]}" for k in ("resolution", "frames", "sequence", "history") if k in res)
+            print(f"{res['device']} {res['model']} batch={batch} {shape}: {res['samples_per_s']:,.0f} samples/s "
+                  f"({res['updates_per_s']:.1f} updates/s, median of {args.repeats}; "
+                  f"compile + first call {res['compile_and_first_call_s']} s)", flush=True)
+    return 0
+
+
+def _run_bench_eval(args: argparse.Namespace) -> int:
+    from conav_jax.parallel import check_divisible
+    from envs import ConavEnv, EnvConfig, SensorConfig
+    from envs.agents.registry import check_agent, make_agent, run_resolution
+    from eval.bench import bench_eval, bench_sweep
+
+    spec = check_agent(args.agent, args.checkpoint)
+    predictors = _intention_kwargs(args)
+    if predictors and not spec.takes_intentions:
+        raise ValueError(f"agent {args.agent!r} reads no intention inputs (--intention / --trajectory / "
+                         "--ground-truth-intentions)")
+    if args.batch < 1 or args.repeats < 1 or (args.episodes is not None and args.episodes < 1):
+        raise ValueError("--batch, --repeats and --episodes must be at least 1")
+    h, w = run_resolution([(args.agent, args.checkpoint)] if spec.needs_checkpoint else [], args.resolution)
+    mesh = _mesh(args)
+    check_divisible(args.batch, mesh, "--batch")
+    tmp = None if args.data is not None else _tiny_dataset()
+    env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w, kind=args.sensor)))
+    agent = make_agent(args.agent, env, args.checkpoint, **predictors)
+    res = {"agent": args.agent, "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind}
+    if args.mode == "sweep":
+        res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, mesh))
+    else:
+        res.update(bench_eval(env, agent, args.batch, args.repeats, mesh))
+    if args.json:
+        print(json.dumps(res), flush=True)
+    elif args.mode == "sweep":
+        print(f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={res['sensor']} lanes={args.batch}: "
+              f"{res['episodes']} episodes (mean {res['mean_episode_steps']} steps, longest {res['longest_episode_steps']}) "
+              f"in {res['median_sweep_s']} s = {res['episodes_per_min']:,.1f} episodes/min (median of {args.repeats}); "
+              f"compile + first sweep {res['compile_and_first_sweep_s']} s", flush=True)
+    else:
+        print(f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={res['sensor']} batch={args.batch} "
+              f"({res['steps_per_episode']} steps/episode): {res['episodes_per_min']:,.1f} episodes/min = "
+              f"{res['env_steps_per_s']:,.0f} env steps/s ({res['env_steps_per_s_per_device']:,.0f} per device; "
+              f"median of {args.repeats}), compile {res['compile_and_first_call_s']} s", flush=True)
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
+
+
+# -- the dispatcher --------------------------------------------------------------------------------
+
+
+def default_compile_cache_dir() -> Path:
+    """Where compiled XLA programs are kept between runs: $XDG_CACHE_HOME/conav_jax/xla (or ~/.cache/...)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "conav_jax" / "xla"
+
+
+def enable_compile_cache(setting: str | None) -> Path | None:
+    """Turn on JAX's persistent compilation cache: `setting` a directory, "off", or None for
+    $CONAV_COMPILE_CACHE, else the default directory. Returns the directory (None when off).
+    Every program is kept, whatever its compile time: a CPU run compiles many small ones."""
+    setting = setting or os.environ.get(COMPILE_CACHE_ENV) or str(default_compile_cache_dir())
+    if setting.lower() in ("off", "none", "0", ""):
+        return None
+    import jax
+
+    path = Path(setting).expanduser()
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from envs.bench import add_bench_sim
-    from eval.bench import add_bench_eval
-    from eval.demo import add_demo
-    from eval.curve import add_curve
-    from eval.sweep import add_eval
-    from eval.viewer import add_view
-    from train.bench import add_bench_train
-    from train.intention import add_train_intention
-    from train.policy import add_train_policy
-    from train.ppo import add_train_rl
-    from train.trajectory import add_train_trajectory
-
     parser = argparse.ArgumentParser(
-        prog="conav", description="CoNav: batched human-centered collaborative navigation in MuJoCo MJX"
-    )
+        prog="conav", description="CoNav: batched human-centered collaborative navigation in MuJoCo MJX")
     parser.add_argument("--version", action="version", version=f"conav_jax {__version__}")
+    parser.add_argument("--compile-cache", default=None, metavar="DIR|off",
+                        help=f"keep compiled programs in DIR between runs (default: ${COMPILE_CACHE_ENV}, else "
+                        f"{default_compile_cache_dir()}); off: compile every time")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    add_generate(sub)
-    train = sub.add_parser("train", help="train the intention / trajectory predictors, the policy, PPO")
-    train_sub = train.add_subparsers(dest="model", metavar="MODEL", required=True)
-    for add in (add_train_intention, add_train_trajectory, add_train_policy, add_train_rl):
-        add(train_sub)
-    add_eval(sub)
-    add_view(sub)
-    add_demo(sub)
-    add_curve(sub)
-    bench = sub.add_parser("bench", help="throughput benchmarks (run them on the GPU machine)")
-    bench_sub = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
-    for add in (add_bench_sim, add_bench_train, add_bench_eval):
-        add(bench_sub)
+    for add in (_add_generate, _add_train, _add_eval, _add_view, _add_demo, _add_curve, _add_bench):
+        add(sub)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, compile_cache: bool = True) -> int:
+    """Run one `conav` command; its exit code. `compile_cache=False` leaves JAX's cache as it is
+    (the demo's stages run inside one command)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not hasattr(args, "func"):
         parser.print_help()
         return 2
     try:
+        if compile_cache:
+            enable_compile_cache(args.compile_cache)
         if hasattr(args, "devices"):  # a data-parallel command: join a multi-host run first
             from conav_jax.parallel import maybe_initialize_distributed
 

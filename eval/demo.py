@@ -1,28 +1,17 @@
-"""`conav demo`: the whole pipeline on the tiny preset, on CPU, in minutes.
+"""`conav demo`'s stages: the whole pipeline on the tiny preset, as the `conav` command lines a
+user would type (the command line runs them one after another and prints each).
 
 generate -> train intention -> train trajectory -> train policy (BC + one DAgger round) ->
-evaluate every agent (report, plots) -> one rerun recording. Each stage is the same `conav`
-sub-command a user would run, so the demo doubles as a worked example of the command line;
-the commands are printed as they run.
+evaluate every agent (report, plots) -> one rerun recording.
 """
 
 from __future__ import annotations
 
-import argparse
-import shlex
-import time
 from pathlib import Path
 
 
-def add_demo(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="the whole pipeline on the tiny preset (CPU, minutes)")
-    p.add_argument("--out", required=True, help="output directory (data, runs, eval, episode.rrd)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--resolution", default="16x64", help="panorama HxW used throughout (small: CPU)")
-    p.set_defaults(func=run_demo)
-
-
 def demo_commands(out: Path, seed: int, resolution: str) -> list[list[str]]:
+    """The demo's `conav` argument lists, writing under `out` (data/, runs/, eval/, episode0.rrd)."""
     data, runs = out / "data", out / "runs"
     quick = ["--log-every", "25", "--no-progress"]
     return [
@@ -35,29 +24,9 @@ def demo_commands(out: Path, seed: int, resolution: str) -> list[list[str]]:
          "--trajectory", str(runs / "trajectory"), "--resolution", resolution, "--steps", "150", "--batch", "8",
          "--dagger-rounds", "1", "--dagger-steps", "100", "--val-every", "150", "--ckpt-every", "150",
          "--seed", str(seed), *quick],
-        ["eval", "--data", str(data), "--split", "val", "--agent", "random,follower,objectgoal-planner,pioneer,expert,conav",
-         "--checkpoint", str(runs / "policy"), "--resolution", resolution, "--seed", str(seed), "--out", str(out / "eval")],
+        ["eval", "--data", str(data), "--split", "val", "--agent",
+         "random,follower,objectgoal-planner,pioneer,expert,conav", "--checkpoint", str(runs / "policy"),
+         "--seed", str(seed), "--out", str(out / "eval")],
         ["view", "--data", str(data), "--split", "val", "--episode", "0", "--agent", "conav", "--checkpoint",
-         str(runs / "policy"), "--resolution", resolution, "--out", str(out / "episode0.rrd")],
+         str(runs / "policy"), "--out", str(out / "episode0.rrd")],
     ]
-
-
-def run_demo(args: argparse.Namespace) -> int:
-    from eval.cli import main
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t_start = time.perf_counter()
-    for argv in demo_commands(out, args.seed, args.resolution):
-        print(f"\n$ conav {shlex.join(argv)}", flush=True)
-        t0 = time.perf_counter()
-        rc = main(argv)
-        if rc:
-            print(f"conav demo: stage `{argv[0]}` failed (exit {rc})")
-            return rc
-        print(f"[{argv[0]} {argv[1] if argv[0] == 'train' else ''}] done in {time.perf_counter() - t0:.0f} s", flush=True)
-    print(
-        f"\ndemo finished in {time.perf_counter() - t_start:.0f} s: report {out / 'eval' / 'report.md'}, "
-        f"recording {out / 'episode0.rrd'} (open with `rerun {out / 'episode0.rrd'}`)"
-    )
-    return 0

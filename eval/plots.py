@@ -1,7 +1,7 @@
 """Evaluation figures (matplotlib, Agg backend, PNG files): success over episode time, episode maps.
 
 Per-episode results (t_reach, t_arrive, ...) -> cumulative success curves per agent against the
-humans' arrival; a scene (conav_jax.scene.Scene) + one episode's arrays + a recorded robot path
+humans' arrival; a scene (conav_jax.data.scene.Scene) + one episode's arrays + a recorded robot path
 -> a top-down map. Nothing here runs the simulator.
 """
 
@@ -17,9 +17,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
-from conav_jax.categories import CATEGORY_NAMES  # noqa: E402
-from conav_jax.episodes import PHASE_ACTIVITY_A, PHASE_ACTIVITY_B, PHASE_WALK  # noqa: E402
-from conav_jax.scene import STRUCTURE_WALL, Scene, scene_boxes  # noqa: E402
+from conav_jax.data.categories import CATEGORY_NAMES  # noqa: E402
+from conav_jax.data.scene import STRUCTURE_WALL, Scene, scene_boxes  # noqa: E402
+from conav_jax.motion.phases import PHASE_ACTIVITY_A, PHASE_ACTIVITY_B, PHASE_WALK  # noqa: E402
 from envs.metrics import episode_outcomes  # noqa: E402
 
 PHASE_STYLE = {PHASE_ACTIVITY_A: ("activity A", "tab:blue"), PHASE_WALK: ("walk", "tab:orange"), PHASE_ACTIVITY_B: ("activity B", "tab:purple")}
@@ -139,7 +139,8 @@ def learning_curve(runs: Mapping[str, list[dict]], path: str | Path, window: int
     iterations (None: each run's reset cycle, `reset_every` in its records, else 4): PPO
     re-resets its batch every `reset_every` iterations and the episodes ending first after a
     reset are the quick successes, so a per-iteration rate swings with that cycle. Markers:
-    the val sweeps' FASR (circles) and RASR (squares). ValueError if a run has no PPO
+    the evaluation sweeps' FASR (circles) and RASR (squares), labelled with their split
+    (minival while training; older runs: val). ValueError if a run has no PPO
     training records."""
     path = Path(path)
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
@@ -150,10 +151,10 @@ def learning_curve(runs: Mapping[str, list[dict]], path: str | Path, window: int
         colour = f"C{i}"
         x, rate = pooled_reach_rate(train, window or train[-1].get("reset_every") or 4)
         ax.plot(x, 100.0 * rate, "-", color=colour, label=f"{title}: train episodes reached")
-        val = [r for r in records if r.get("split") == "val" and "env_steps" in r]
+        val = [r for r in records if r.get("split") not in (None, "train") and "env_steps" in r and "FASR" in r]
         if val:
-            vx = [r["env_steps"] for r in val]
-            ax.plot(vx, [r["FASR"] for r in val], "o", color=colour, label=f"{title}: val FASR")
-            ax.plot(vx, [r["RASR"] for r in val], "s", color=colour, mfc="none", label=f"{title}: val RASR")
+            vx, split = [r["env_steps"] for r in val], val[-1]["split"]
+            ax.plot(vx, [r["FASR"] for r in val], "o", color=colour, label=f"{title}: {split} FASR")
+            ax.plot(vx, [r["RASR"] for r in val], "s", color=colour, mfc="none", label=f"{title}: {split} RASR")
     return _save_percent_plot(fig, ax, path, "env steps", "PPO learning curve")
 

@@ -10,20 +10,16 @@ checkpoints), success_over_time.png and map_<agent>.png.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import re
 import weakref
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from conav_jax.parallel import add_devices_arg
-from envs.bench import parse_resolution
 from envs.agents.registry import AGENTS, check_agent
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")  # ablation names become file names
@@ -45,124 +41,78 @@ class EvalPlan:
     episodes: int | None = None  # the first N episodes, None for all
     batch: int = 256  # parallel lanes (envs.rollout.make_evaluator)
     seed: int = 0
-    resolution: tuple[int, int] = (112, 448)
+    resolution: tuple[int, int] = (112, 448)  # the env's panorama (H, W): the trained runs' or SensorConfig's
     out: Path = Path("eval_out")
     devices: int | None = None  # devices the lanes are split over (None: all visible)
 
 
-def add_eval(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("eval", help="evaluate agents on a split: per-episode records, metrics with CIs, Table 2/3 report")
-    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
-    p.add_argument("--split", default="val")
-    p.add_argument("--agent", required=True, help=f"comma-separated agent names: {', '.join(AGENTS)}")
-    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
-    add_intention_args(p)
-    p.add_argument(
-        "--ablation-checkpoints",
-        default=None,
-        help="name=RUN,... conav runs for the Table 3 ablation; the names none, activity, object, "
-        "activity_object, all mark which intention inputs a run uses",
-    )
-    p.add_argument("--episodes", type=int, default=None, help="evaluate only the first N episodes")
-    p.add_argument("--batch", type=int, default=256, help="parallel lanes: episodes in flight at once")
-    p.add_argument("--seed", type=int, default=0, help="rollout keys and bootstrap resampling")
-    p.add_argument("--resolution", type=parse_resolution, default=(112, 448), help="panorama HxW (default 112x448)")
-    p.add_argument("--out", required=True, help="output directory")
-    add_devices_arg(p)
-    p.set_defaults(func=run_eval)
+def plan_eval(
+    data: str | Path,
+    split: str,
+    agents: tuple[str, ...],
+    out: str | Path,
+    checkpoint: str | None = None,
+    intention_kwargs: dict | None = None,
+    ablations: tuple[tuple[str, str], ...] = (),
+    episodes: int | None = None,
+    batch: int = 256,
+    seed: int = 0,
+    resolution: tuple[int, int] | None = None,
+    devices: int | None = None,
+) -> EvalPlan:
+    """Check every input of an evaluation (dataset, split, agents, checkpoints, sizes) without
+    building an env or compiling anything; ValueError naming the first problem. `resolution`
+    None: the trained runs' (every learned agent's run must agree), else SensorConfig's default;
+    given, it must match every trained run's."""
+    from conav_jax.data.episodes import read_manifest
+    from envs.agents.registry import run_resolution
 
-
-def add_intention_args(p: argparse.ArgumentParser) -> None:
-    """--intention / --trajectory / --ground-truth-intentions for agents that read intention inputs."""
-    p.add_argument("--intention", default=None, metavar="RUN",
-                   help="conav/ppo: intention predictor run (`conav train intention`; default for conav: the one "
-                   "the policy run names)")
-    p.add_argument("--trajectory", default=None, metavar="RUN",
-                   help="conav/ppo: trajectory predictor run (`conav train trajectory`; default for conav: the "
-                   "one the policy run names)")
-    p.add_argument("--ground-truth-intentions", action="store_true",
-                   help="conav/ppo: feed the env's ground-truth intentions instead of predictions (privileged "
-                   "upper bound, labelled so in every output)")
-
-
-def intention_kwargs_from_args(args: argparse.Namespace) -> dict:
-    """The intention keyword arguments of envs.agents.registry.make_agent from the flags of
-    `add_intention_args`; ValueError for a missing run directory or ground truth beside runs."""
-    out = {}
-    for key, run in (("intention_run", args.intention), ("trajectory_run", args.trajectory)):
-        if run is not None:
-            if not Path(run).is_dir():
-                raise ValueError(f"--{key.removesuffix('_run')} run directory not found: {run}")
-            out[key] = run
-    if args.ground_truth_intentions:
-        if out:
-            raise ValueError("--ground-truth-intentions excludes --intention / --trajectory")
-        out["ground_truth"] = True
-    return out
-
-
-def _parse_ablations(text: str | None) -> tuple[tuple[str, str], ...]:
-    if not text:
-        return ()
-    out, seen = [], set()
-    for item in text.split(","):
-        name, sep, run = item.strip().partition("=")
-        if not sep or not name or not run:
-            raise ValueError(f"--ablation-checkpoints entries look like name=RUN_DIR, got {item!r}")
-        if not _NAME_RE.match(name):
-            raise ValueError(f"ablation name {name!r} may only hold letters, digits, '_', '.', '-'")
-        if name in seen:
-            raise ValueError(f"ablation name {name!r} is given twice")
-        seen.add(name)
-        out.append((name, run))
-    return tuple(out)
-
-
-def plan_eval(args: argparse.Namespace) -> EvalPlan:
-    """Check every input of `conav eval` (dataset, split, agents, checkpoints, sizes) without
-    building an env or compiling anything; ValueError naming the first problem."""
-    from conav_jax.episodes import read_manifest
-
-    manifest = read_manifest(args.data)
-    if args.split not in manifest["splits"]:
-        raise ValueError(f"{args.data}: no split {args.split!r}; has {sorted(manifest['splits'])}")
-    names = tuple(n.strip() for n in args.agent.split(",") if n.strip())
-    if not names:
+    manifest = read_manifest(data)
+    if split not in manifest["splits"]:
+        raise ValueError(f"{data}: no split {split!r}; has {sorted(manifest['splits'])}")
+    if not agents:
         raise ValueError("--agent needs at least one agent name")
-    if len(set(names)) != len(names):
-        raise ValueError(f"--agent lists an agent twice: {args.agent}")
-    for name in names:
-        check_agent(name, args.checkpoint)
-    learned = intention_kwargs_from_args(args)
-    ablations = _parse_ablations(args.ablation_checkpoints)
-    if learned and not ablations and not any(AGENTS[n].takes_intentions for n in names):
+    if len(set(agents)) != len(agents):
+        raise ValueError(f"--agent lists an agent twice: {','.join(agents)}")
+    for name in agents:
+        check_agent(name, checkpoint)
+    learned = dict(intention_kwargs or {})
+    if learned and not ablations and not any(AGENTS[n].takes_intentions for n in agents):
         raise ValueError("--intention / --trajectory / --ground-truth-intentions only apply to agents that read "
                          "intention inputs (conav, ppo) and ablations")
-    for _, run in ablations:
+    names = set()
+    for name, run in ablations:
+        if not _NAME_RE.match(name):
+            raise ValueError(f"ablation name {name!r} may only hold letters, digits, '_', '.', '-'")
+        if name in names:
+            raise ValueError(f"ablation name {name!r} is given twice")
+        names.add(name)
         check_agent("conav", run)
-    if args.episodes is not None and args.episodes < 1:
-        raise ValueError(f"--episodes must be at least 1, got {args.episodes}")
-    if args.batch < 1:
-        raise ValueError(f"--batch must be at least 1, got {args.batch}")
-    if args.devices is not None and args.devices < 1:
-        raise ValueError(f"--devices must be at least 1, got {args.devices}")
-    out = Path(args.out)
+    if episodes is not None and episodes < 1:
+        raise ValueError(f"--episodes must be at least 1, got {episodes}")
+    if batch < 1:
+        raise ValueError(f"--batch must be at least 1, got {batch}")
+    if devices is not None and devices < 1:
+        raise ValueError(f"--devices must be at least 1, got {devices}")
+    out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} exists and is not a directory")
+    trained = [(name, checkpoint) for name in agents if AGENTS[name].needs_checkpoint]
+    trained += [("conav", run) for _, run in ablations]
     return EvalPlan(
-        data=Path(args.data),
-        split=args.split,
+        data=Path(data),
+        split=split,
         content_hash=manifest["content_hash"],
-        agents=names,
-        checkpoint=args.checkpoint,
+        agents=tuple(agents),
+        checkpoint=checkpoint,
         intention_kwargs=learned,
-        ablations=ablations,
-        episodes=args.episodes,
-        batch=args.batch,
-        seed=args.seed,
-        resolution=tuple(args.resolution),
+        ablations=tuple(ablations),
+        episodes=episodes,
+        batch=batch,
+        seed=seed,
+        resolution=run_resolution(trained, resolution),
         out=out,
-        devices=args.devices,
+        devices=devices,
     )
 
 
@@ -210,8 +160,8 @@ def run_agent(evaluator: Callable, episodes: np.ndarray) -> tuple[dict, int, np.
 def episode_records(split, metrics: dict, given: dict) -> list[dict]:
     """One CSV row per episode: what the agent was given (`given`: envs.agents.base.describe),
     the episode's identity, human timing, robot outcome (envs.metrics rules)."""
-    from conav_jax.activities import load_activity_graph
-    from conav_jax.categories import CATEGORY_NAMES
+    from conav_jax.data.activities import load_activity_graph
+    from conav_jax.data.categories import CATEGORY_NAMES
     from envs.metrics import episode_outcomes
 
     graph = load_activity_graph()
@@ -260,29 +210,17 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 
 def ablation_flags(name: str, run: str) -> tuple[bool | None, bool | None, bool | None]:
     """(activity, object, trajectory) intention inputs of an ablation: from its name when it is
-    one of the policy's ABLATIONS, else from the run's latest checkpoint config, else unknown."""
-    from conav_jax.checkpoints import META_MEMBER, latest_checkpoint
+    one of the policy's ABLATIONS, else from the run's model config, else unknown."""
+    from conav_jax import runs
     from conav_jax.models.policy import ABLATIONS
 
     if name in ABLATIONS:
         return ABLATIONS[name]
-    found: dict[str, bool] = {}
-
-    def search(node):
-        if isinstance(node, dict):
-            for k, v in node.items():
-                if k in _INPUT_KEYS and isinstance(v, bool):
-                    found.setdefault(k, v)
-                search(v)
-
-    ckpt = latest_checkpoint(run)
-    if ckpt is not None:
-        try:
-            with zipfile.ZipFile(ckpt) as zf:
-                search(json.loads(zf.read(META_MEMBER)).get("config", {}))
-        except (zipfile.BadZipFile, KeyError, json.JSONDecodeError):
-            pass  # unreadable metadata: the marks stay unknown, the evaluation itself will complain
-    return tuple(found.get(k) for k in _INPUT_KEYS)
+    try:
+        model = runs.run_config(run, runs.POLICY).get("model", {})
+    except (FileNotFoundError, ValueError):
+        model = {}  # unreadable: the marks stay unknown, the evaluation itself will complain
+    return tuple(model.get(k) if isinstance(model.get(k), bool) else None for k in _INPUT_KEYS)
 
 
 def _rounded(summary: dict) -> dict:
@@ -397,18 +335,3 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
     (plan.out / "report.md").write_text(_report_md(plan, env.num_episodes, table2, table3,
                                                    [given[k] for k in agent_keys + ablation_keys], maps))
     return doc
-
-
-def run_eval(args: argparse.Namespace) -> int:
-    """`conav eval`: validate everything, then build the env, evaluate and write the outputs."""
-    from conav_jax.parallel import make_mesh
-
-    plan = plan_eval(args)
-    mesh = make_mesh(plan.devices)
-    env = load_env(plan)
-    n = env.num_episodes
-    doc = sweep(plan, env, progress=True, mesh=mesh)
-    print((plan.out / "report.md").read_text().split("## Figures")[0].rstrip())
-    print(f"wrote {plan.out} ({len(doc['agents'])} agents, {len(doc['ablations'])} ablations, {n} episodes, "
-          f"{mesh.size} device(s))")
-    return 0

@@ -11,36 +11,20 @@ slows the step. Everything time-varying shares the "step" timeline (one step = 0
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from envs.bench import parse_resolution
-from envs.agents.registry import AGENTS, check_agent
-from eval.sweep import add_intention_args, intention_kwargs_from_args
+from conav_jax.geometry import to_world
+from envs.agents.base import row_title
+from envs.agents.registry import check_agent
 
 # Carry entries a learned agent may expose (same names and shapes as the env's ground-truth
 # observations): activity probs (107,), object probs (51,), future trajectory (5, 2) robot frame.
 PREDICTION_KEYS = ("activity_probs", "object_probs", "future_traj")
 TOP_K = 5
-
-
-def add_view(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("view", help="record one episode as a rerun .rrd (scene, human, robot, panorama, intentions)")
-    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
-    p.add_argument("--split", default="val")
-    p.add_argument("--episode", type=int, required=True, help="episode index within the split")
-    p.add_argument("--agent", default="pioneer", help=f"who drives the robot: {', '.join(AGENTS)}")
-    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
-    add_intention_args(p)
-    p.add_argument("--resolution", type=parse_resolution, default=(56, 224), help="panorama HxW (default 56x224)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True, help="output .rrd file")
-    p.add_argument("--spawn", action="store_true", help="also stream to a spawned rerun viewer")
-    p.set_defaults(func=run_view)
 
 
 def agent_predictions(carry: Any) -> dict[str, Any]:
@@ -112,20 +96,14 @@ def _mesh3d(mesh):
     )
 
 
-def _to_world(p_robot: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    x, y = p_robot[..., 0], p_robot[..., 1]
-    return np.stack([c * x - s * y, s * x + c * y], axis=-1) + pose[:2]
-
-
 def log_scene(rec, scene, robot_height_m: float) -> None:
     """Static geometry: floor, walls (one mesh), furniture (a mesh per object, category colours)
     and a label point above each object."""
     import rerun as rr
     import trimesh
 
-    from conav_jax.categories import CATEGORY_NAMES, FLOOR_RGB, WALL_RGB
-    from conav_jax.scene import STRUCTURE_WALL, scene_boxes
+    from conav_jax.data.categories import CATEGORY_NAMES, FLOOR_RGB, WALL_RGB
+    from conav_jax.data.scene import STRUCTURE_WALL, scene_boxes
 
     x0, y0, x1, y1 = scene.bounds
     rec.log("world/scene/floor", _mesh3d(_box_mesh(((x0 + x1) / 2, (y0 + y1) / 2, -0.01), ((x1 - x0) / 2, (y1 - y0) / 2, 0.01), FLOOR_RGB)), static=True)
@@ -153,9 +131,9 @@ def log_episode(rec, env, episode: int, frames: dict[str, np.ndarray], sources: 
     """Everything of one recorded episode on the "step" timeline (plus the static scene)."""
     import rerun as rr
 
-    from conav_jax.activities import load_activity_graph
-    from conav_jax.categories import CATEGORY_NAMES
-    from conav_jax.skeleton import PARENTS
+    from conav_jax.data.activities import load_activity_graph
+    from conav_jax.data.categories import CATEGORY_NAMES
+    from conav_jax.motion.skeleton import PARENTS
 
     split, task = env.split, env.task
     e = split.episodes
@@ -213,30 +191,46 @@ def log_episode(rec, env, episode: int, frames: dict[str, np.ndarray], sources: 
                 rec.log(f"{path}/top5", rr.BarChart(np.sort(probs)[::-1][:TOP_K]))
                 rec.log(f"{path}/text", rr.TextDocument(_top_k_text(title, probs, names, sources[key])))
         if "future_traj" in sources:
-            future = _to_world(np.asarray(frames["future_traj"][t]), pose[t])
+            future = np.asarray(to_world(np.asarray(frames["future_traj"][t]), pose[t]))
             strip = np.c_[np.vstack([root[min(t, len(root) - 1)], future]), np.full(len(future) + 1, 0.05)]
             rec.log(f"world/human/future_traj/{sources['future_traj']}", rr.LineStrips3D([strip], radii=0.02, colors=[[250, 200, 0]], labels=[f"5-step trajectory ({sources['future_traj'].replace('_', ' ')})"]))
     rec.log("info", rr.TextDocument(f"episode {episode} of {split.name} in {scene.name}; agent {agent_name}; robot episode ended at step {ended}"), static=True)
 
 
-def run_view(args: argparse.Namespace) -> int:
-    """`conav view`: validate, record the episode jitted, then write (and optionally stream) it."""
-    from conav_jax.episodes import read_manifest
+def view_episode(
+    data: str | Path,
+    split: str,
+    episode: int,
+    agent: str,
+    out: str | Path,
+    checkpoint: str | None = None,
+    intention_kwargs: dict | None = None,
+    resolution: tuple[int, int] | None = None,
+    seed: int = 0,
+    spawn: bool = False,
+) -> str:
+    """Record `episode` of `split` driven by `agent` into the rerun file `out` (and stream it to
+    a spawned viewer with `spawn`); returns a one-line summary. Inputs are checked before
+    anything is built: ValueError naming the first problem. `resolution` None: the trained
+    run's, else SensorConfig's default."""
+    from conav_jax.data.episodes import read_manifest
+    from envs.agents.registry import run_resolution
 
-    manifest = read_manifest(args.data)
-    if args.split not in manifest["splits"]:
-        raise ValueError(f"{args.data}: no split {args.split!r}; has {sorted(manifest['splits'])}")
-    n = int(manifest["splits"][args.split]["episodes"])
-    if not 0 <= args.episode < n:
-        raise ValueError(f"--episode must be in [0, {n}) for split {args.split!r}, got {args.episode}")
-    spec = check_agent(args.agent, args.checkpoint)
-    predictors = intention_kwargs_from_args(args)
+    manifest = read_manifest(data)
+    if split not in manifest["splits"]:
+        raise ValueError(f"{data}: no split {split!r}; has {sorted(manifest['splits'])}")
+    n = int(manifest["splits"][split]["episodes"])
+    if not 0 <= episode < n:
+        raise ValueError(f"--episode must be in [0, {n}) for split {split!r}, got {episode}")
+    spec = check_agent(agent, checkpoint)
+    predictors = dict(intention_kwargs or {})
     if predictors and not spec.takes_intentions:
-        raise ValueError(f"agent {args.agent!r} reads no intention inputs (--intention / --trajectory / "
+        raise ValueError(f"agent {agent!r} reads no intention inputs (--intention / --trajectory / "
                          "--ground-truth-intentions)")
-    out = Path(args.out)
+    out = Path(out)
     if out.suffix != ".rrd":
         raise ValueError(f"--out must name a .rrd file, got {out}")
+    h, w = run_resolution([(agent, checkpoint)] if spec.needs_checkpoint else [], resolution)
     out.parent.mkdir(parents=True, exist_ok=True)
 
     import rerun as rr
@@ -244,20 +238,18 @@ def run_view(args: argparse.Namespace) -> int:
     from envs import ConavEnv, EnvConfig, SensorConfig
     from envs.agents.registry import make_agent
 
-    h, w = args.resolution
-    env = ConavEnv(args.data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w)), max_episodes=args.episode + 1)
-    agent = make_agent(args.agent, env, args.checkpoint, **predictors)
-    frames, sources = record_episode(env, agent, args.episode, args.seed)
+    env = ConavEnv(data, split, EnvConfig(sensor=SensorConfig(height=h, width=w)), max_episodes=episode + 1)
+    built = make_agent(agent, env, checkpoint, **predictors)
+    frames, sources = record_episode(env, built, episode, seed)
 
-    rec = rr.RecordingStream("conav_view", recording_id=f"{args.split}-{args.episode}-{args.agent}")
-    if args.spawn:
+    rec = rr.RecordingStream("conav_view", recording_id=f"{split}-{episode}-{agent}")
+    if spawn:
         rr.spawn(connect=False, recording=rec)
         rec.set_sinks(rr.FileSink(str(out)), rr.GrpcSink())
     else:
         rec.save(str(out))
-    log_episode(rec, env, args.episode, frames, sources, args.agent)
+    log_episode(rec, env, episode, frames, sources, row_title(built))
     rec.flush()
     rec.disconnect()
-    print(f"wrote {out}: episode {args.episode} ({args.split}), agent {args.agent}, {len(frames['pose'])} steps, panorama {h}x{w}; intentions: "
-          + (", ".join(f"{k} {v}" for k, v in sources.items()) or "none"))
-    return 0
+    return (f"wrote {out}: episode {episode} ({split}), agent {row_title(built)}, {len(frames['pose'])} steps, "
+            f"panorama {h}x{w}; intentions: " + (", ".join(f"{k} {v}" for k, v in sources.items()) or "none"))

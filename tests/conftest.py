@@ -6,6 +6,8 @@ import sys
 # Compile-time, not run-time, dominates this suite on a 2-core CPU: XLA's cheapest backend
 # optimisation level compiles several times faster. Set before JAX initialises its backend.
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+# Commands run by the tests compile afresh and write nothing under the user's cache directory.
+os.environ["CONAV_COMPILE_CACHE"] = "off"
 
 import pytest  # noqa: E402
 
@@ -16,8 +18,8 @@ sys.path.insert(0, os.path.dirname(__file__))  # tests/worlds.py
 def tiny_data(tmp_path_factory):
     import warnings
 
-    from conav_jax.episodes import BlockedStandingPoint, generate_dataset
-    from conav_jax.presets import preset
+    from conav_jax.data.episodes import BlockedStandingPoint, generate_dataset
+    from conav_jax.data.presets import preset
 
     out = tmp_path_factory.mktemp("tiny")
     with warnings.catch_warnings():  # the tiny preset drops a carpet or two: tests/test_episodes.py checks it

@@ -10,7 +10,7 @@ from typing import Any, Callable
 import numpy as np
 import pytest
 
-from conav_jax.activities import (
+from conav_jax.data.activities import (
     DEFAULT_GRAPH_PATH,
     NUM_ACTIVITIES,
     ActivityGraph,
@@ -18,8 +18,8 @@ from conav_jax.activities import (
     load_activity_graph,
     sample_activity_pair,
 )
-from conav_jax.categories import CATEGORY_INDEX, CATEGORY_NAMES
-from conav_jax.primitives import MOTION_PRIMITIVES
+from conav_jax.data.categories import CATEGORY_INDEX, CATEGORY_NAMES
+from conav_jax.motion.primitives import MOTION_PRIMITIVES
 
 # A sample of the paper's appendix table (tab:activity): activity name -> object category.
 PAPER_ACTIVITIES = {

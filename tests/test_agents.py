@@ -6,13 +6,13 @@ applies its own agent's action, so one compile of the env step covers all four a
 
 import numpy as np
 import pytest
+from worlds import ROOM, make_split
 
-from conav_jax.episodes import EpisodeSplit
-from envs.agents.baselines import BaselineConfig
+from conav_jax.data.episodes import EpisodeSplit
 from envs.agents.base import row_title
+from envs.agents.baselines import BaselineConfig
 from envs.agents.registry import check_agent, make_agent
 from envs.rollout import trace_step
-from worlds import ROOM, make_split
 
 BASELINES = ("random", "pioneer", "follower", "objectgoal-planner")
 T_ARRIVE, T_END = 120, 160  # the human walks 7.25 m from step 60 to 120 (1.2 m/s)

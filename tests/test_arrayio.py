@@ -5,7 +5,7 @@ import os
 import numpy as np
 import pytest
 
-from conav_jax import arrayio
+from conav_jax.data import arrayio
 
 
 def _record_syncs(monkeypatch):

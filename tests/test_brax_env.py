@@ -2,9 +2,9 @@
 
 import brax.envs
 import jax
-import pytest
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from brax.envs.wrappers import training
 
 import envs  # noqa: F401  (registers 'conav')

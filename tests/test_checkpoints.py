@@ -7,7 +7,12 @@ import jax
 import numpy as np
 import pytest
 
-from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.checkpoints import (
+    checkpoint_path,
+    latest_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+)
 from conav_jax.optim import AdamState, adam
 
 CONFIG = {"model": {"hidden": 8, "image_hw": (16, 64)}, "lr": 1e-3, "name": "tiny"}

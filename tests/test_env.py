@@ -6,12 +6,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from worlds import goal_of, make_split
 
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.config import PhysicsConfig
-from envs.mjcf import UD
 from envs.metrics import summarize
-from worlds import goal_of, make_split
+from envs.mjcf import UD
 
 SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32))
 
@@ -97,7 +97,7 @@ def test_bad_physics_config_is_rejected(bad):
 def test_bench_physics_overrides_are_typed_and_checked():
     import argparse
 
-    from envs.bench import parse_physics_override
+    from eval.cli import parse_physics_override
 
     assert parse_physics_override("solver_iterations=2") == ("solver_iterations", 2)
     assert parse_physics_override("timestep_s=0.02") == ("timestep_s", 0.02)

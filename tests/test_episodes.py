@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import worlds
 
-from conav_jax import episodes as episodes_lib
-from conav_jax.arrayio import sha256_file
 from conav_jax.config import DatasetConfig, MotionConfig
-from conav_jax.episodes import (
+from conav_jax.data import episodes as episodes_lib
+from conav_jax.data.arrayio import sha256_file
+from conav_jax.data.episodes import (
     BlockedStandingPoint,
     DatasetError,
     dataset_content_hash,
@@ -23,8 +23,8 @@ from conav_jax.episodes import (
     read_manifest,
     scene_nav,
 )
-from conav_jax.presets import PRESETS, preset
-from conav_jax.scene import SceneFormatError, scene_from_json_dict
+from conav_jax.data.presets import PRESETS, preset
+from conav_jax.data.scene import SceneFormatError, scene_from_json_dict
 
 # sha256 of the tiny preset's (seed 0) train and val files as generated before the minival split
 # existed: adding a split must not move them. Update only with a change meant to alter the data.
@@ -40,7 +40,7 @@ TINY_SEED0_TRAIN_VAL_SHA256 = {
 }
 # Procedural scenes routinely leave a carpet or a ceiling lamp unreachable: tests that generate
 # them silence the warning; the tests that pin it record it themselves.
-quiet_blocked = pytest.mark.filterwarnings("ignore::conav_jax.episodes.BlockedStandingPoint")
+quiet_blocked = pytest.mark.filterwarnings("ignore::conav_jax.data.episodes.BlockedStandingPoint")
 
 
 @quiet_blocked
@@ -339,14 +339,15 @@ def test_dataset_from_scene_files_rejects_shared_files_duplicate_names_and_unusa
 
 
 def test_conav_generate_from_a_scene_directory(tmp_path, capsys):
-    import argparse
-
-    from conav_jax.cli import add_generate, run_generate
+    from eval.cli import build_parser
 
     (tmp_path / "scenes").mkdir()
     _scene_files(tmp_path / "scenes")
-    parser = argparse.ArgumentParser()
-    add_generate(parser.add_subparsers())
+    parser = build_parser()
+
+    def run_generate(args):
+        return args.func(args)
+
     args = parser.parse_args(
         ["generate", "--scenes", str(tmp_path / "scenes"), "--val-scenes", "hall_b", "--minival-scenes", "lounge.json",
          "--episodes-per-scene", "2", "--out", str(tmp_path / "out"), "--seed", "3", "--workers", "1"]

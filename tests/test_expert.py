@@ -1,4 +1,4 @@
-"""conav_jax.expert on the hand-built hall, driven by a kinematic unicycle (no MJX: the
+"""conav_jax.nav.expert on the hand-built hall, driven by a kinematic unicycle (no MJX: the
 simulator-side tests are in test_imitation.py): it approaches, observes K steps, reaches the goal,
 stays in free space and gets out of the way of a human walking at it; batches in one jit."""
 
@@ -8,12 +8,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from worlds import make_split
 
 from conav_jax.config import TaskConfig
-from conav_jax.episodes import PHASE_ACTIVITY_A
-from conav_jax.expert import APPROACH, GO, OBSERVE, ExpertConfig, ExpertMaps, clearance_map, expert_action, initial_carry
-from conav_jax.planning import fill_blocked
-from worlds import make_split
+from conav_jax.motion.phases import PHASE_ACTIVITY_A
+from conav_jax.nav.expert import (
+    APPROACH,
+    GO,
+    OBSERVE,
+    ExpertConfig,
+    ExpertMaps,
+    clearance_map,
+    expert_action,
+    initial_carry,
+)
+from conav_jax.nav.planning import fill_blocked
 
 jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
 CFG = ExpertConfig()

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from conav_jax.config import MotionConfig
-from conav_jax.humanml3d import load_humanml3d_joints
-from conav_jax.motion import compose_episode_motion
-from conav_jax.skeleton import J, NUM_JOINTS, REST_POSE
+from conav_jax.motion.compose import compose_episode_motion
+from conav_jax.motion.humanml3d import load_humanml3d_joints
+from conav_jax.motion.skeleton import NUM_JOINTS, REST_POSE, J
 
 _FEET = [J["left_ankle"], J["right_ankle"], J["left_foot"], J["right_foot"]]
 

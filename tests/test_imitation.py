@@ -12,22 +12,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from worlds import make_split
 
 from conav_jax.checkpoints import checkpoint_path, save_checkpoint
-from conav_jax.expert import ExpertConfig, initial_carry
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
+from conav_jax.nav.expert import ExpertConfig, initial_carry
 from conav_jax.optim import adam
 from envs import ConavEnv, EnvConfig, SensorConfig
+from envs.agents.expert import make_expert_step
+from envs.agents.policy import make_policy_step, policy_agent, predictor_runs
 from envs.metrics import summarize
 from envs.mjcf import UD
 from envs.rollout import evaluate
-from envs.agents.expert import make_expert_step
-from envs.agents.policy import make_policy_step, policy_agent, predictor_runs
 from train import imitation as im
 from train.loop import TrainConfig
 from train.policy import ImitationConfig, check_recordable, run_config, train_policy
-from worlds import make_split
 
 # For the small jits. The MJX rollout keeps XLA's default: at level 0 its run time costs more
 # than compiling saves.
@@ -92,7 +92,7 @@ def trained(bc, params0, tmp_path_factory):
         params, state, loss = update(params, state)
         losses.append(float(loss))
     run = tmp_path_factory.mktemp("policy_run")
-    config = run_config(PCFG, ImitationConfig(resolution=(8, 32), seq_len=SEQ, burn_in=BURN_IN), ExpertConfig(), "test", None, None)
+    config = run_config(PCFG, ImitationConfig(seq_len=SEQ, burn_in=BURN_IN), ExpertConfig(), "test", None, None)
     save_checkpoint(checkpoint_path(run, 150), params=params, opt_state=state, config=config, step=150,
                     extra={"round": 0, "val": {}, "expert_val": {}})
     return SimpleNamespace(run=run, params=params, windows=windows, losses=losses)
@@ -142,10 +142,10 @@ def test_expert_round_data_do_not_depend_on_the_policy_so_a_run_can_record_them_
     for a, b in zip(jax.tree.leaves(bc), jax.tree.leaves(again)):
         assert a.tobytes() == b.tobytes()
     path = tmp_path / "data" / "round_1.npz"
-    check_recordable(0, 2000, 0, tmp_path / "data" / "round_0.npz", tmp_path)  # round 0: any time
-    check_recordable(1, 2000, 2000, path, tmp_path)  # a DAgger round not yet begun
+    check_recordable(0, True, tmp_path / "data" / "round_0.npz", tmp_path)  # round 0: any time
+    check_recordable(1, False, path, tmp_path)  # a DAgger round not yet begun
     with pytest.raises(FileNotFoundError, match="round_1.npz, the data of round 1, is missing"):
-        check_recordable(1, 2500, 2000, path, tmp_path)
+        check_recordable(1, True, path, tmp_path)
 
 
 def test_sequences_are_windows_with_burn_in_masked_after_the_end():
@@ -214,7 +214,7 @@ def _fake_intention(activity: int, obj: int):
 FAKE_TRAJECTORY = SimpleNamespace(predict=lambda history: jnp.full(history.shape[:-2] + (PCFG.horizon, 2), 7.0))
 
 
-def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0, tmp_path):
+def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0, tmp_path, tiny_data):
     rollout = jax.jit(im.make_rollout_fn(hall.env, PCFG, intention=_fake_intention(9, 11), trajectory=FAKE_TRAJECTORY,
                                          record_predicted=True, num_steps=24))
     for beta in (1.0, 0.0):  # the predictors follow the expert's steps and the policy's alike
@@ -229,8 +229,9 @@ def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0,
         im.make_rollout_fn(hall.env, PCFG, trajectory=FAKE_TRAJECTORY, record_predicted=True)
     # `conav train policy --train-intentions predicted` names the missing predictor runs up front.
     with pytest.raises(ValueError, match="predictor runs --intention, --trajectory"):
-        train_policy(tmp_path / "no_data", tmp_path / "run", TrainConfig(steps=1, warmup_steps=0),
+        train_policy(tiny_data, tmp_path / "run", TrainConfig(steps=1, warmup_steps=0), PCFG,
                      ImitationConfig(train_intentions="predicted"))
+    assert not (tmp_path / "run").exists()
     with pytest.raises(ValueError, match="unknown train_intentions"):
         ImitationConfig(train_intentions="oracle")
 

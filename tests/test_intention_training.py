@@ -9,6 +9,7 @@ import pytest
 from conav_jax.checkpoints import latest_checkpoint
 from conav_jax.models import perceiver
 from conav_jax.models.perceiver import PerceiverConfig
+from conav_jax.runs import read_log
 from envs.agents.predictors import load_intention_predictor
 from envs.humanoid import capsule_colours
 from train.intention import (
@@ -23,7 +24,6 @@ from train.intention import (
     run_config,
     topk_accuracy,
 )
-from conav_jax.runs import read_log
 from train.loop import TrainConfig, train
 
 FAST = {"xla_backend_optimization_level": 0}

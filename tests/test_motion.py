@@ -1,23 +1,30 @@
-"""Procedural activity clips, the walking gait and whole-episode human motion."""
+"""conav_jax.motion: the skeleton, procedural activity clips (clips.py), the walking gait
+(gait.py) and whole-episode human motion (compose.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from conav_jax.config import MotionConfig
-from conav_jax.motion import (
-    PHASE_A,
-    PHASE_B,
+from conav_jax.config import DatasetConfig, MotionConfig
+from conav_jax.geometry import wrap_angle_np
+from conav_jax.motion.clips import activity_clip
+from conav_jax.motion.compose import HumanMotion, compose_episode_motion
+from conav_jax.motion.gait import walk_along, walk_cycle
+from conav_jax.motion.phases import (
+    PHASE_ACTIVITY_A,
+    PHASE_ACTIVITY_B,
+    PHASE_DONE,
     PHASE_WALK,
-    HumanMotion,
-    activity_clip,
-    compose_episode_motion,
-    walk_along,
-    walk_cycle,
 )
-from conav_jax.primitives import MOTION_PRIMITIVES
-from conav_jax.skeleton import J, NUM_JOINTS, PARENTS, REST_POSE, capsule_segments
+from conav_jax.motion.primitives import MOTION_PRIMITIVES
+from conav_jax.motion.skeleton import (
+    NUM_JOINTS,
+    PARENTS,
+    REST_POSE,
+    J,
+    capsule_segments,
+)
 
 _CHILD = np.array([j for j, p in enumerate(PARENTS) if p >= 0])
 _PARENT = np.array([PARENTS[j] for j in _CHILD])
@@ -125,6 +132,48 @@ def test_walk_cycle_is_root_relative_and_loops():
     assert wrap_step < 0.35
 
 
+def test_the_gait_reads_its_numbers_from_the_motion_config():
+    default = walk_cycle(1.2, 0.1)
+    assert walk_cycle(1.2, 0.1, MotionConfig()).tobytes() == default.tobytes()
+    # Longer steps at the same speed: a longer stride, so more frames in one cycle.
+    assert len(walk_cycle(1.2, 0.1, MotionConfig(walk_step_length_m=0.7))) > len(default)
+    low = walk_cycle(1.2, 0.1, MotionConfig(walk_pelvis_height_m=0.88))
+    pelvis_drop_m = default[:, J["pelvis"], 2].mean() - low[:, J["pelvis"], 2].mean()
+    assert abs(pelvis_drop_m - 0.05) < 1e-5
+
+
+def test_a_dataset_config_written_before_the_gait_fields_loads_with_their_defaults():
+    d = DatasetConfig().to_dict()
+    added = [k for k in d["motion"] if k.startswith("walk_") and k != "walk_speed_mps"]
+    for k in added + ["turn_in_place_max_radps"]:
+        del d["motion"][k]
+    assert DatasetConfig.from_dict(d) == DatasetConfig()
+
+
+def test_numpy_angle_wrap_lies_in_minus_pi_to_pi_and_agrees_with_the_arctan2_one():
+    a = np.linspace(-20.0, 20.0, 4001)
+    w = wrap_angle_np(a)
+    assert (w >= -np.pi).all() and (w < np.pi).all()
+    # geometry.wrap_angle's formula, in numpy: calling the jax one here would start a jax backend
+    # in the test process before the dataset tests fork their workers.
+    by_arctan2 = np.arctan2(np.sin(a), np.cos(a))
+    away_from_pi = np.abs(np.abs(w) - np.pi) > 1e-9  # there the two may pick opposite ends
+    np.testing.assert_allclose(w[away_from_pi], by_arctan2[away_from_pi], atol=1e-12)
+
+
+def test_phase_codes_are_one_set_ordered_as_an_episode_runs():
+    codes = (PHASE_ACTIVITY_A, PHASE_WALK, PHASE_ACTIVITY_B, PHASE_DONE)
+    assert codes == (0, 1, 2, 3)  # stored in the recorded datasets
+    # One home: no other module of the project assigns phase codes of its own.
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    homes = {str(p.relative_to(root)) for pkg in ("conav_jax", "envs", "train", "eval") for p in (root / pkg).rglob("*.py")
+             if re.search(r"^PHASE_\w+(?:\s*,\s*PHASE_\w+)*\s*=\s*\d", p.read_text(), re.M)}
+    assert homes == {"conav_jax/motion/phases.py"}
+
+
 def _episode(seed, prim_a="wipe", prim_b="sit", cfg=None, **kw) -> HumanMotion:
     return compose_episode_motion(
         np.random.default_rng(seed),
@@ -146,16 +195,16 @@ def test_episode_phases_run_a_walk_b_in_order_with_consistent_times():
     assert hm.t_end == T - 1
     assert 0 < hm.t_walk_start < hm.t_arrive < hm.t_end
     assert (np.diff(hm.phase) >= 0).all()
-    assert hm.phase[0] == PHASE_A and hm.phase[-1] == PHASE_B
-    assert hm.phase[hm.t_walk_start - 1] == PHASE_A and hm.phase[hm.t_walk_start] == PHASE_WALK
-    assert hm.phase[hm.t_arrive - 1] == PHASE_WALK and hm.phase[hm.t_arrive] == PHASE_B
+    assert hm.phase[0] == PHASE_ACTIVITY_A and hm.phase[-1] == PHASE_ACTIVITY_B
+    assert hm.phase[hm.t_walk_start - 1] == PHASE_ACTIVITY_A and hm.phase[hm.t_walk_start] == PHASE_WALK
+    assert hm.phase[hm.t_arrive - 1] == PHASE_WALK and hm.phase[hm.t_arrive] == PHASE_ACTIVITY_B
     np.testing.assert_allclose(hm.root_xy, hm.joints[:, 0, :2])
 
 
 def test_episode_human_stays_at_the_standing_points_during_the_activities():
     hm = _episode(1)
-    a = hm.phase == PHASE_A
-    b = hm.phase == PHASE_B
+    a = hm.phase == PHASE_ACTIVITY_A
+    b = hm.phase == PHASE_ACTIVITY_B
     assert np.linalg.norm(hm.root_xy[a] - (0.0, 0.0), axis=1).max() < 0.3
     assert np.linalg.norm(hm.root_xy[b] - (4.0, 3.0), axis=1).max() < 0.3
     np.testing.assert_allclose(hm.root_xy[hm.t_arrive], (4.0, 3.0), atol=1e-4)

@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from conav_jax.navigation import (
+from conav_jax.data.scene import scene_from_json_dict
+from conav_jax.nav.navigation import (
     OccupancyGrid,
     astar,
     descend,
@@ -15,7 +16,6 @@ from conav_jax.navigation import (
     path_length,
     smooth_path,
 )
-from conav_jax.scene import scene_from_json_dict
 
 S2 = math.sqrt(2)
 

@@ -1,4 +1,5 @@
-"""The fast caster against mujoco.mjx.ray on generated scenes, random poses, with the human."""
+"""The fast caster against mujoco.mjx.ray on generated scenes, random poses, with the human;
+the panorama's ray layout; the depth / geom id keys the casters take their min over."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +8,13 @@ import pytest
 
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.mjcf import UD
-from envs.panorama import front_view, ray_angles
+from envs.panorama import (
+    NO_HIT_KEY,
+    front_view,
+    pack_depth_id,
+    ray_angles,
+    unpack_depth_id,
+)
 
 RES = SensorConfig(height=12, width=48)
 
@@ -80,3 +87,52 @@ def test_panorama_layout_centre_column_faces_forward():
     assert el[0] > 0 > el[-1] and abs(el[0] - np.pi / 4 + np.pi / 32) < 1e-6  # 90 deg fov
     x = jnp.zeros((8, 32, 4)).at[:, 12:20].set(1.0)
     np.testing.assert_array_equal(np.asarray(front_view(x)), 1.0)
+
+
+@pytest.mark.parametrize("max_depth_m", [10.0, 8.0, 3.5])
+def test_depth_id_keys_round_trip(max_depth_m):
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.0, max_depth_m, 4096).astype(np.float32)
+    depth[:3] = [0.0, np.nextafter(np.float32(max_depth_m), np.float32(0)), max_depth_m / 2]
+    ids = rng.integers(0, 256, 4096).astype(np.int32)
+    key = pack_depth_id(jnp.asarray(depth), jnp.asarray(ids), max_depth_m)
+    assert key.dtype == jnp.uint32
+    d, i = unpack_depth_id(key, max_depth_m)
+    np.testing.assert_array_equal(np.asarray(i), ids)
+    # Half a quantum from the bin's centre, one more for float32 rounding of depth * quanta/m,
+    # and the float32 spacing of the result.
+    quantum_m = max_depth_m / ((1 << 24) - 2)
+    err = np.abs(np.asarray(d) - depth)
+    assert (err <= 1.5 * quantum_m + np.spacing(depth)).all(), err.max()
+
+
+def test_depth_id_keys_order_as_depth_then_id():
+    max_depth_m = 10.0
+    depth = np.sort(np.random.default_rng(1).uniform(0.0, 9.99, 512).astype(np.float32))
+    depth = depth[np.diff(depth, prepend=-1.0) > 1e-5]  # distinct beyond a quantum
+    # The nearer hit has the larger id: the order must come from depth, not from id.
+    ids = np.arange(len(depth))[::-1] % 256
+    key = np.asarray(pack_depth_id(jnp.asarray(depth), jnp.asarray(ids, jnp.int32), max_depth_m))
+    assert (np.diff(key.astype(np.int64)) > 0).all()
+    # Equal depths: the lower id wins the min.
+    tie = np.asarray(pack_depth_id(jnp.full(2, 3.0), jnp.array([7, 5]), max_depth_m))
+    assert tie[1] < tie[0]
+    # A min over geoms' keys is the nearest hit with its id.
+    stack = pack_depth_id(jnp.array([[4.0, 9.0], [2.5, np.inf], [6.0, 1.0]]), jnp.array([[3], [200], [9]]), max_depth_m)
+    d, i = unpack_depth_id(jnp.min(stack, axis=0), max_depth_m)
+    np.testing.assert_array_equal(np.asarray(i), [200, 9])
+    np.testing.assert_allclose(np.asarray(d), [2.5, 1.0], atol=1e-5)
+
+
+@pytest.mark.parametrize("max_depth_m", [10.0, 8.0, 3.5])
+def test_depths_at_or_beyond_max_depth_pack_to_no_hit(max_depth_m):
+    below = np.nextafter(np.float32(max_depth_m), np.float32(0))
+    depth = jnp.array([below, max_depth_m, np.nextafter(np.float32(max_depth_m), np.float32(np.inf)), 1e9, np.inf])
+    key = np.asarray(pack_depth_id(depth, jnp.full(5, 255), max_depth_m))
+    # The last float32 below max_depth is still a hit, and its key (with the largest id) is
+    # below NO_HIT_KEY, so any hit wins a min against a miss.
+    assert key[0] < NO_HIT_KEY
+    np.testing.assert_array_equal(key[1:], NO_HIT_KEY)
+    d, i = unpack_depth_id(jnp.asarray(key), max_depth_m)
+    np.testing.assert_array_equal(np.asarray(i), [255, -1, -1, -1, -1])
+    np.testing.assert_array_equal(np.asarray(d)[1:], max_depth_m)

@@ -1,16 +1,20 @@
-"""The fused caster (both ways of writing its min), its Pallas kernel (interpreted on CPU, compiled
-on a GPU) and the
-legacy pass-based caster against each other and against mujoco.mjx.ray, in the hand-built hall
-with the humanoid close to the camera, around it and inside it."""
+"""The fused caster (both ways of writing its min) and its Pallas kernel (interpreted on CPU,
+compiled on a GPU) against each other and against mujoco.mjx.ray: through ConavEnv in the
+hand-built hall with the humanoid close to the camera, around it and inside it, and on a
+SceneGeometry built by hand, with and without capsules, next to an MJCF model of the same shapes."""
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
+from mujoco import mjx
+from worlds import make_split
 
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.mjcf import UD
-from worlds import make_split
+from envs.panorama import SceneGeometry, caster_for, fast_depth_ids, reference_depth_ids
+from envs.panorama_pallas import pallas_depth_ids
 
 RES = dict(height=16, width=64)
 T = 15  # the human walks along y = 2 through the middle of the hall
@@ -18,7 +22,6 @@ T = 15  # the human walks along y = 2 through the middle of the hall
 # beside the torso, inside the arms' bounding circles (their culling cannot skip any column).
 POSES = [(5.0, 3.2, -1.57), (3.6, 2.0, 0.3), (6.4, 1.1, 2.2), (0.9, 0.9, 0.8), (5.0, 2.3, 1.0), (4.6, 2.4, -0.5)]
 KINDS = {
-    "legacy": dict(kind="legacy"),
     "unroll": dict(kind="fast", fast_min="unroll"),
     "reduce": dict(kind="fast", fast_min="reduce"),
     # On a GPU the Triton kernel itself runs (compiled); elsewhere Pallas interprets it.
@@ -31,7 +34,7 @@ KINDS = {
 def images():
     split = make_split([(1.5, 2.0, 0.0)], t_arrive=20, t_end=40)
     envs = {k: ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(**RES, **kw))) for k, kw in KINDS.items()}
-    env = envs["legacy"]
+    env = envs["unroll"]
     ep = jnp.int32(0)
     d0 = jax.jit(env.reset_to_episode)(jax.random.PRNGKey(0), ep).pipeline_state
     human_x = float(env.bank.root_xy[0, T, 0])
@@ -60,17 +63,6 @@ def test_humanoid_is_in_view(images):
     assert (per_image > 0).sum() >= 4, per_image
 
 
-def test_fast_matches_legacy_on_every_pixel(images):
-    imgs, human = images
-    d_new, i_new = _stack(imgs, "unroll")
-    d_old, i_old = _stack(imgs, "legacy")
-    np.testing.assert_array_equal(i_new, i_old)
-    assert np.abs(d_new - d_old).max() < 1e-3
-    # Boxes and floor use the legacy arithmetic: identical there; capsules round differently.
-    scene = i_old < human
-    np.testing.assert_array_equal(d_new[scene], d_old[scene])
-
-
 @pytest.mark.parametrize("kind", ["reduce", "pallas"])
 def test_other_forms_agree_with_fast(images, kind):
     imgs, human = images
@@ -94,3 +86,100 @@ def test_fast_matches_mjx_ray(images):
     assert err.max() < 1e-3, np.quantile(err, [0.5, 0.99, 1.0])
     np.testing.assert_array_equal(i_new, i_ref)
     assert np.median(err[i_ref >= human]) < 1e-4
+
+
+# -- casters over a SceneGeometry built by hand -----------------------------------------------
+# Geom ids as MuJoCo numbers the MJCF below: floor 0, boxes 1-3, capsules 4-5. A fourth box,
+# padding (box_valid False), stands right in front of the camera: no caster may see it.
+BOXES_M = [
+    ((3.0, -2.0, 0.0), (3.2, 2.0, 2.5)),  # a wall
+    ((1.0, 0.8, 0.0), (1.8, 1.6, 0.75)),  # a table
+    ((-1.5, -1.5, 0.0), (-1.0, -1.0, 2.0)),  # a pillar
+]
+PADDING_BOX_M = ((0.3, -0.5, 0.0), (0.5, 0.5, 2.0))
+CAPSULES_M = [((1.5, -0.8, 0.2), (1.5, -0.8, 1.4), 0.15), ((-0.8, 0.9, 0.5), (-0.3, 1.3, 1.2), 0.08)]
+# (x, y, z, yaw): cameras looking at the boxes and capsules from several sides.
+CAMERAS = [(0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0, 2.4), (2.2, -0.5, 0.6, -1.0), (0.8, -1.6, 1.2, 1.9)]
+GEOMETRY_RES = dict(height=16, width=64)
+
+
+def _geometry(with_capsules: bool) -> SceneGeometry:
+    lo = np.array([b[0] for b in BOXES_M] + [PADDING_BOX_M[0]], np.float32)
+    hi = np.array([b[1] for b in BOXES_M] + [PADDING_BOX_M[1]], np.float32)
+    caps = CAPSULES_M if with_capsules else []
+    return SceneGeometry(
+        box_lo_m=jnp.asarray(lo),
+        box_hi_m=jnp.asarray(hi),
+        box_ids=jnp.array([1, 2, 3, 6], jnp.int32),
+        box_valid=jnp.array([True, True, True, False]),
+        capsule_p0_m=jnp.asarray(np.array([c[0] for c in caps], np.float32).reshape(-1, 3)),
+        capsule_p1_m=jnp.asarray(np.array([c[1] for c in caps], np.float32).reshape(-1, 3)),
+        capsule_radius_m=jnp.asarray(np.array([c[2] for c in caps], np.float32)),
+        capsule_ids=jnp.arange(4, 4 + len(caps), dtype=jnp.int32),
+        floor_id=0,
+    )
+
+
+def _mjcf(with_capsules: bool) -> str:
+    geoms = ['<geom type="plane" size="0 0 1"/>']
+    for lo, hi in BOXES_M:
+        c = " ".join(str((a + b) / 2) for a, b in zip(lo, hi))
+        h = " ".join(str((b - a) / 2) for a, b in zip(lo, hi))
+        geoms.append(f'<geom type="box" pos="{c}" size="{h}"/>')
+    for p0, p1, r in CAPSULES_M if with_capsules else []:
+        geoms.append(f'<geom type="capsule" fromto="{" ".join(map(str, p0 + p1))}" size="{r}"/>')
+    # MJX's kinematics needs a degree of freedom (a body with no geom, invisible to rays) and
+    # mjx.ray a material table (it reads geoms' material alpha even where none is used).
+    body = '<body><joint type="slide"/><inertial pos="0 0 0" mass="1" diaginertia="1 1 1"/></body>'
+    asset = '<asset><material name="unused" rgba="1 1 1 1"/></asset>'
+    return f"<mujoco>{asset}<worldbody>{''.join(geoms)}{body}</worldbody></mujoco>"
+
+
+@pytest.fixture(scope="module", params=[True, False], ids=["with_capsules", "boxes_only"])
+def geometry_images(request):
+    """Panoramas (depth, ids), stacked over CAMERAS, per caster, of one hand-built geometry."""
+    with_capsules = request.param
+    geometry = _geometry(with_capsules)
+    casters = {
+        "unroll": (fast_depth_ids, SensorConfig(**GEOMETRY_RES, kind="fast", fast_min="unroll")),
+        "reduce": (fast_depth_ids, SensorConfig(**GEOMETRY_RES, kind="fast", fast_min="reduce")),
+        "pallas": (pallas_depth_ids, SensorConfig(**GEOMETRY_RES, kind="pallas", pallas_block_w=8,
+                                                  pallas_interpret=jax.default_backend() != "gpu")),
+    }
+    out = {}
+    for name, (caster, cfg) in casters.items():
+        f = jax.jit(lambda cam, yaw, caster=caster, cfg=cfg: caster(cfg, cam, yaw, geometry))
+        shots = [f(jnp.array(c[:3], jnp.float32), jnp.float32(c[3])) for c in CAMERAS]
+        out[name] = tuple(np.stack([np.asarray(x[i]) for x in shots]) for i in range(2))
+    m = mjx.put_model(mujoco.MjModel.from_xml_string(_mjcf(with_capsules)))
+    d = mjx.kinematics(m, mjx.make_data(m))
+    cfg = SensorConfig(**GEOMETRY_RES, kind="reference")
+    ref = jax.jit(lambda cam, yaw: reference_depth_ids(cfg, m, d, cam, yaw, -1))
+    shots = [ref(jnp.array(c[:3], jnp.float32), jnp.float32(c[3])) for c in CAMERAS]
+    out["reference"] = tuple(np.stack([np.asarray(x[i]) for x in shots]) for i in range(2))
+    return out, with_capsules
+
+
+def test_scene_geometry_casters_agree_with_each_other_and_mjx_ray(geometry_images):
+    imgs, with_capsules = geometry_images
+    depth, ids = imgs["unroll"]
+    seen = set(np.unique(ids).tolist())
+    assert {-1, 0, 1, 2, 3} <= seen and 6 not in seen, seen  # sky, floor, every box; no padding
+    assert ({4, 5} <= seen) == with_capsules, seen
+    for kind in ("reduce", "pallas"):
+        d, i = imgs[kind]
+        np.testing.assert_array_equal(i, ids, err_msg=kind)
+        # Same arithmetic: boxes and floor bit for bit, capsules up to FMA contraction.
+        np.testing.assert_array_equal(d[i < 4], depth[ids < 4], err_msg=kind)
+        assert np.abs(d - depth).max() < 1e-4, kind
+    d_ref, i_ref = imgs["reference"]
+    np.testing.assert_array_equal(ids, i_ref)
+    assert np.abs(depth - d_ref).max() < 1e-3, np.quantile(np.abs(depth - d_ref), [0.5, 0.99, 1.0])
+
+
+def test_caster_for_picks_the_kind_and_refuses_the_reference():
+    assert caster_for("fast") is fast_depth_ids
+    assert caster_for("pallas") is pallas_depth_ids
+    assert caster_for("auto") in (fast_depth_ids, pallas_depth_ids)
+    with pytest.raises(ValueError, match="mjx.ray"):
+        caster_for("reference")

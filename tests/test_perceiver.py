@@ -105,7 +105,7 @@ def test_lowest_entropy_average_with_few_or_no_valid_steps():
 
 
 def test_graph_route_maps_a_certain_activity_a_to_its_graph_successors():
-    from conav_jax.activities import load_activity_graph
+    from conav_jax.data.activities import load_activity_graph
 
     graph = load_activity_graph()
     transition, objects = perceiver.graph_tables(CONFIG)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conav_jax.categories import CATEGORIES, FLOOR_RGB, WALL_RGB
+from conav_jax.data.categories import CATEGORIES, FLOOR_RGB, WALL_RGB
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig, ablation_config
 
@@ -228,28 +228,25 @@ def test_checkpoint_configs_from_before_the_saliency_channel_load_without_it():
 
 @pytest.mark.parametrize("flag, saliency", [([], True), (["--no-object-saliency"], False)])
 def test_train_policy_flag_switches_the_saliency_channel_in_the_runs_model(flag, saliency, monkeypatch, tmp_path):
-    import argparse
-
-    from conav_jax.expert import ExpertConfig
+    from conav_jax.nav.expert import ExpertConfig
+    from eval.cli import build_parser
     from train import policy as train_policy_mod
-    from train.policy import add_train_policy, policy_model, run_config
+    from train.policy import run_config
 
     seen = {}
 
-    def fake_train_policy(data, out, cfg, imitation, **kw):
-        seen["imitation"] = imitation
+    def fake_train_policy(data, out, cfg, model, imitation, **kw):
+        seen.update(model=model, imitation=imitation)
         return train_policy_mod.PolicyResult({}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, tmp_path)
 
     monkeypatch.setattr(train_policy_mod, "train_policy", fake_train_policy)
-    parser = argparse.ArgumentParser()
-    add_train_policy(parser.add_subparsers())
-    args = parser.parse_args(["policy", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--resolution", "16x64", *flag])
+    args = build_parser().parse_args(["train", "policy", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
+                                      "--resolution", "16x64", "--ablation", "object", *flag])
     assert args.func(args) == 0
-    imitation = seen["imitation"]
-    assert imitation.object_saliency is saliency
-    model = policy_model(imitation)
+    model = seen["model"]
     assert model.image_hw == (16, 64) and model.object_saliency is saliency
-    config = run_config(model, imitation, ExpertConfig(), "hash", None, None)
+    assert (model.use_activity, model.use_object, model.use_trajectory) == (False, True, False)
+    config = run_config(model, seen["imitation"], ExpertConfig(), "hash", None, None)
     assert config["model"]["object_saliency"] is saliency and "object_saliency" not in config["imitation"]
     shapes = jax.eval_shape(lambda k: policy.init(k, model), jax.random.PRNGKey(0))
     assert ("saliency" in shapes) is saliency

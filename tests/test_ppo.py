@@ -17,13 +17,18 @@ import numpy as np
 import pytest
 from brax.envs.wrappers import training as brax_training
 
-from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.checkpoints import (
+    checkpoint_path,
+    latest_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+)
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.optim import adam
 from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.metrics import METRIC_NAMES
 from envs.agents.ppo import ppo_agent
+from envs.metrics import METRIC_NAMES
 from train import ppo
 from train.ppo import PPOConfig
 
@@ -183,8 +188,8 @@ def test_init_from_loads_the_imitation_policy_and_rejects_bad_runs(tmp_path):
     loaded, config = ppo.load_policy_init(tmp_path / "bc")
     assert config == TINY
     jax.tree.map(np.testing.assert_array_equal, loaded, params)
-    with pytest.raises(ValueError, match="resolution"):  # caught before any env is built
-        ppo.train_ppo(tmp_path / "no_data", tmp_path / "rl", PPOConfig(resolution=(16, 64)), init_from=tmp_path / "bc")
+    with pytest.raises(ValueError, match="has its own network config"):  # caught before any env is built
+        ppo.train_ppo(tmp_path / "no_data", tmp_path / "rl", PPOConfig(), PolicyConfig(image_hw=(16, 64)), init_from=tmp_path / "bc")
     with pytest.raises(FileNotFoundError, match="not found"):
         ppo.load_policy_init(tmp_path / "missing")
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
@@ -206,7 +211,7 @@ def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, 
     bc = _imitation_run(tmp_path / "bc")
     # 3 iterations of 4 envs x 32 steps; validation once, at the end (iteration 3).
     cfg = PPOConfig(num_envs=4, rollout_steps=32, total_env_steps=384, epochs=2, minibatches=2,
-                    resolution=(8, 32), reset_every=2, eval_every=3, ckpt_every=2, recurrent=True)
+                    reset_every=2, eval_every=3, ckpt_every=2, recurrent=True)
     result = ppo.train_ppo(tiny_data, tmp_path / "rl", cfg, init_from=tmp_path / "bc",
                            progress=False, compiler_options=FAST)
     assert result.env_steps == 384 and result.policy_config == TINY
@@ -216,15 +221,15 @@ def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, 
     train = [r for r in records if r["split"] == "train"]
     assert [r["env_steps"] for r in train] == [128, 256, 384]
     assert all(np.isfinite(r["loss"]) and r["steps_per_s"] > 0 for r in train)
-    (val,) = [r for r in records if r["split"] == "val"]
+    (val,) = [r for r in records if r["split"] == "minival"]  # evaluated on minival, never on val
     assert set(METRIC_NAMES) <= set(val)
-    assert val == {"step": 3, "env_steps": 384, "split": "val", "intention_source": "ground_truth", **result.val}
+    assert val == {"step": 3, "env_steps": 384, "split": "minival", "intention_source": "ground_truth", **result.val}
 
     last = latest_checkpoint(tmp_path / "rl")
     assert last == checkpoint_path(tmp_path / "rl", 3)
     ckpt = load_checkpoint(last)
     assert ckpt.config["kind"] == "ppo" and ckpt.config["ppo"]["recurrent"] is True
-    assert ckpt.config["env"]["sensor_hw"] == [8, 32] and ckpt.extra["val"] == result.val
+    assert ckpt.config["model"]["image_hw"] == [8, 32] and ckpt.extra["val"] == result.val
     jax.tree.map(np.testing.assert_array_equal, ckpt.params, result.params)
 
     # The validation above is ppo_agent(val env, this run dir, ground truth) run through

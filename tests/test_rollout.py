@@ -6,11 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from worlds import make_split
 
 from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.rollout import Agent, evaluate, make_evaluator
 from envs.agents.registry import make_agent
-from worlds import make_split
+from envs.rollout import Agent, evaluate, make_evaluator
 
 T_ARRIVE, T_END = 140, 160  # the human walks from the fridge to the table in steps 70-140
 

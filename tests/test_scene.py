@@ -7,8 +7,13 @@ import numpy as np
 import pytest
 
 from conav_jax.config import SceneGenConfig
-from conav_jax.scene import SceneFormatError, load_scene, scene_from_json_dict, scene_boxes
-from conav_jax.scenegen import generate_scene
+from conav_jax.data.scene import (
+    SceneFormatError,
+    load_scene,
+    scene_boxes,
+    scene_from_json_dict,
+)
+from conav_jax.data.scenegen import generate_scene
 
 
 def _minimal():
@@ -92,7 +97,7 @@ def test_loader_rejects_bad_scene_naming_the_field(path, value, message):
 
 
 def test_unknown_category_lists_every_valid_category_and_names_the_file(tmp_path):
-    from conav_jax.categories import CATEGORY_INDEX
+    from conav_jax.data.categories import CATEGORY_INDEX
 
     d = _mutated(("objects", 1, "category"), "sofa2")
     p = tmp_path / "apt.json"

@@ -57,10 +57,11 @@ def _evaluate_metrics(mesh) -> dict:
     """envs.rollout.evaluate of the random agent (its actions come from the per-episode keys)
     on 5 hall episodes in batches of 3 (the second padded), 8x32 panoramas. One agent only:
     each env rollout compiles for ~25 s here."""
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.rollout import evaluate
-    from envs.agents.registry import make_agent
     from worlds import make_split
+
+    from envs import ConavEnv, EnvConfig, SensorConfig
+    from envs.agents.registry import make_agent
+    from envs.rollout import evaluate
 
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0)])
     env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
@@ -69,15 +70,15 @@ def _evaluate_metrics(mesh) -> dict:
 
 
 def _policy_updates(mesh) -> dict:
-    """Two BC updates of train.policy.make_update on synthetic windows (a tiny policy)."""
+    """Two BC updates (train.loop's single-update mode, as `conav train policy` runs on a CPU)
+    on synthetic windows (a tiny policy)."""
     import jax
 
     from conav_jax.models import policy
     from conav_jax.models.policy import PolicyConfig
-    from conav_jax.optim import adam
     from conav_jax.parallel import replicate
-    from train.loop import TrainConfig
-    from train.policy import make_update, window_indices
+    from train.imitation import bc_loss
+    from train.loop import TrainConfig, make_optimizer, make_single, make_update
 
     pcfg = PolicyConfig(image_hw=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                         intention_dim=4, hidden=8)
@@ -96,20 +97,22 @@ def _policy_updates(mesh) -> dict:
     reset[:, 0] = True
     data = {"obs": obs, "label": rng.uniform(-1, 1, (n, w, 2)).astype(np.float32),
             "mask": np.ones((n, w), np.float32), "reset": reset}
-    cfg = TrainConfig(batch=8, lr=1e-2)
+    cfg = TrainConfig(batch=8, lr=1e-2, warmup_steps=0)
     params = policy.init(jax.random.PRNGKey(0), pcfg)
-    opt_state = adam(cfg.lr).init(params)
+    optimizer = make_optimizer(cfg)
+    opt_state = optimizer.init(params)
     place = jax.device_put if mesh is None else lambda t: replicate(t, mesh)
     params, opt_state, data = place((params, opt_state, data))
-    update = make_update(pcfg, cfg, FAST, mesh)
-    bad, losses, norms = np.int32(-1), [], []
-    for step in range(2):
-        idx = window_indices(cfg.seed, step, n, cfg.batch)
-        params, opt_state, loss, norm, bad = update(params, opt_state, data, idx, cfg.lr, step, bad)
-        losses.append(float(loss))
-        norms.append(float(norm))
-    return {"losses": losses, "grad_norms": norms, "bad": int(bad),
-            "params": [float(np.asarray(x).sum()) for x in jax.tree.leaves(params)]}
+    update = make_update(lambda p, b, k: bc_loss(p, pcfg, b), optimizer, cfg, n, mesh)
+    single = jax.jit(make_single(update, cfg.batch), compiler_options=FAST)
+    sums = {"loss": 0.0, "grad_norm": 0.0, "steps_in_loss": 0.0, "lr": 0.0, "n": 0}
+    carry, losses = (params, opt_state, np.int32(-1), np.zeros(cfg.batch, np.int32), sums), []
+    for _ in range(2):
+        before = float(carry[4]["loss"])
+        carry = single(carry[0], carry[1], data, *carry[2:])
+        losses.append(float(carry[4]["loss"]) - before)
+    return {"losses": losses, "grad_norm_sum": float(carry[4]["grad_norm"]), "bad": int(carry[2]),
+            "params": [float(np.asarray(x).sum()) for x in jax.tree.leaves(carry[0])]}
 
 
 def _child(tmp: str) -> dict:
@@ -164,7 +167,8 @@ def test_sharded_policy_update_gives_the_single_device_loss(runs):
     single, sharded = runs["policy"]["single"], runs["policy"]["sharded"]
     assert single["bad"] == sharded["bad"] == -1
     np.testing.assert_allclose(sharded["losses"], single["losses"], rtol=1e-5)
-    np.testing.assert_allclose(sharded["grad_norms"], single["grad_norms"], rtol=1e-5)
+    np.testing.assert_allclose(sharded["grad_norm_sum"], single["grad_norm_sum"], rtol=1e-5)
+    assert single["losses"][0] > 0 and single["losses"][1] > 0
     np.testing.assert_allclose(sharded["params"], single["params"], rtol=1e-4, atol=1e-5)
 
 

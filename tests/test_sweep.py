@@ -1,7 +1,6 @@
 """`conav eval` and its report: intervals and tables on hand-built results, the sweep's files,
 determinism, and input errors raised before anything is compiled."""
 
-import argparse
 import csv
 import json
 
@@ -9,7 +8,13 @@ import numpy as np
 import pytest
 
 from eval import sweep
-from eval.report import bootstrap_interval, summarize_with_ci, table2_markdown, table3_markdown, wilson_interval
+from eval.report import (
+    bootstrap_interval,
+    summarize_with_ci,
+    table2_markdown,
+    table3_markdown,
+    wilson_interval,
+)
 
 
 def _metrics(rows):
@@ -71,9 +76,14 @@ def test_tables_are_laid_out_like_the_paper():
 
 
 def _args(*argv):
-    p = argparse.ArgumentParser()
-    sweep.add_eval(p.add_subparsers())
-    return p.parse_args(["eval", *argv])
+    from eval.cli import build_parser
+
+    return build_parser().parse_args(["eval", *argv])
+
+
+def run_eval(args):
+    """`conav eval` as the command line runs it, errors raised rather than printed."""
+    return args.func(args)
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +93,7 @@ def two_sweeps(tiny_data, tmp_path_factory):
     outs = [tmp_path_factory.mktemp(f"sweep{k}") for k in range(2)]
     for out in outs:
         argv = ["--data", str(tiny_data), "--agent", "objectgoal-planner", "--episodes", "3", "--batch", "4", "--resolution", "8x32", "--seed", "1", "--out", str(out)]
-        assert sweep.run_eval(_args(*argv)) == 0
+        assert run_eval(_args(*argv)) == 0
     return outs
 
 
@@ -124,7 +134,7 @@ def test_every_agent_is_built_before_the_first_rollout(two_sweeps, tiny_data, tm
     out = tmp_path / "o"
     argv = ["--data", str(tiny_data), "--agent", "objectgoal-planner,conav", "--checkpoint", str(tmp_path / "empty_run")]
     with pytest.raises((ValueError, FileNotFoundError)):
-        sweep.run_eval(_args(*argv, "--episodes", "3", "--batch", "2", "--resolution", "8x32", "--out", str(out)))
+        run_eval(_args(*argv, "--episodes", "3", "--batch", "2", "--resolution", "8x32", "--out", str(out)))
     assert not (out / "episodes_objectgoal-planner.csv").exists()
 
 
@@ -146,12 +156,12 @@ def test_bad_input_fails_before_anything_is_built(tiny_data, tmp_path, monkeypat
 
     monkeypatch.setattr(sweep, "load_env", never)
     with pytest.raises(ValueError, match=message):
-        sweep.run_eval(_args("--data", str(tiny_data), "--out", str(tmp_path / "o"), *argv))
+        run_eval(_args("--data", str(tiny_data), "--out", str(tmp_path / "o"), *argv))
 
 
 def test_missing_dataset_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="dataset directory not found"):
-        sweep.run_eval(_args("--data", str(tmp_path / "none"), "--agent", "random", "--out", str(tmp_path / "o")))
+        run_eval(_args("--data", str(tmp_path / "none"), "--agent", "random", "--out", str(tmp_path / "o")))
 
 
 def test_learning_curve_pools_reach_rates_over_reset_cycles(tmp_path):

@@ -1,21 +1,24 @@
 """Trajectory predictor training: windows from episodes, a run that learns, the predictor API."""
 
-import argparse
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conav_jax.episodes import PHASE_ACTIVITY_A, PHASE_ACTIVITY_B, PHASE_DONE, PHASE_WALK
 from conav_jax.models import trajectory as traj_model
 from conav_jax.models.trajectory import TrajectoryConfig
+from conav_jax.motion.phases import (
+    PHASE_ACTIVITY_A,
+    PHASE_ACTIVITY_B,
+    PHASE_DONE,
+    PHASE_WALK,
+)
 from conav_jax.runs import read_log
 from envs.agents.predictors import load_trajectory_predictor
 from train.loop import TrainConfig, train
 from train.trajectory import (
     TrajectoryDataConfig,
-    add_train_trajectory,
     make_val_fn,
     run_config,
     trajectory_loss,
@@ -97,7 +100,7 @@ def test_predictor_works_in_the_callers_frame(curving_run):
 
 
 def test_cli_registers_the_trajectory_command():
-    parser = argparse.ArgumentParser()
-    add_train_trajectory(parser.add_subparsers())
-    args = parser.parse_args(["trajectory", "--data", "D", "--out", "R", "--steps", "7", "--lr", "0.5"])
+    from eval.cli import build_parser
+
+    args = build_parser().parse_args(["train", "trajectory", "--data", "D", "--out", "R", "--steps", "7", "--lr", "0.5"])
     assert (args.data, args.out, args.steps, args.lr) == ("D", "R", 7, 0.5)

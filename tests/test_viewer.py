@@ -1,6 +1,5 @@
 """`conav view`: a recorded episode written as .rrd and read back with rerun's own reader."""
 
-import argparse
 from typing import NamedTuple
 
 import numpy as np
@@ -10,9 +9,9 @@ from eval import viewer
 
 
 def _args(*argv):
-    p = argparse.ArgumentParser()
-    viewer.add_view(p.add_subparsers())
-    return p.parse_args(["view", *argv])
+    from eval.cli import build_parser
+
+    return build_parser().parse_args(["view", *argv])
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +20,7 @@ def recording(tiny_data, tmp_path_factory):
 
     out = tmp_path_factory.mktemp("view") / "episode.rrd"
     args = _args("--data", str(tiny_data), "--episode", "1", "--agent", "objectgoal-planner", "--resolution", "8x32", "--out", str(out))
-    assert viewer.run_view(args) == 0
+    assert args.func(args) == 0
     return rerun.chunk.RrdReader(str(out)).stream().collect()
 
 
@@ -60,7 +59,7 @@ def test_recording_holds_scene_human_robot_panorama_and_intentions(recording):
 
 
 def test_the_human_is_animated_over_the_whole_episode(recording, tiny_data):
-    from conav_jax.episodes import load_split
+    from conav_jax.data.episodes import load_split
 
     t_end = int(load_split(tiny_data, "val", max_episodes=2).episodes["t_end"][1])
     rows = int(_entities(recording)["/world/human/joints"].split("rows=")[1].split()[0])
@@ -93,5 +92,6 @@ def test_predictions_are_read_from_an_agents_carry():
 )
 def test_bad_input_is_rejected_before_recording(tiny_data, tmp_path, argv, message):
     base = ["--data", str(tiny_data), "--out", str(tmp_path / "v.rrd")]
+    args = _args(*base, *argv)
     with pytest.raises(ValueError, match=message):
-        viewer.run_view(_args(*base, *argv))
+        args.func(args)

@@ -7,9 +7,10 @@ import math
 import numpy as np
 
 from conav_jax.config import DatasetConfig
-from conav_jax.episodes import PHASE_ACTIVITY_A, PHASE_ACTIVITY_B, PHASE_WALK, EpisodeSplit, scene_nav, stack_episodes
-from conav_jax.scene import scene_from_json_dict
-from conav_jax.skeleton import REST_POSE
+from conav_jax.data.episodes import EpisodeSplit, scene_nav, stack_episodes
+from conav_jax.data.scene import scene_from_json_dict
+from conav_jax.motion.phases import PHASE_ACTIVITY_A, PHASE_ACTIVITY_B, PHASE_WALK
+from conav_jax.motion.skeleton import REST_POSE
 
 # A 10 m x 4 m room: walls on all sides, a fridge at the west end (activity A) and a table
 # at the east end (activity B, the goal).

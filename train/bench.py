@@ -8,16 +8,13 @@ device, batch and resolution.
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import time
 
 import jax
 import jax.numpy as jnp
 
-from conav_jax.parallel import add_devices_arg, check_divisible, make_mesh, replicate
-from envs.bench import parse_resolution
+from conav_jax.parallel import check_divisible, replicate
 from train.loop import TrainConfig, make_chunk, make_optimizer, make_update
 
 DEFAULT_BATCH = {"trajectory": 4096, "intention": 256, "policy": 32}
@@ -59,34 +56,32 @@ def _intention_setup(key, batch: int, resolution):
     return perceiver.init(k_p, config), data, loss, {"resolution": f"{h}x{w}", "frames": frames}
 
 
-def policy_l2_loss(params, config, batch: dict, key, remat: bool = False):
-    """Imitation loss of the LSTM policy: mean squared action error over `(B, T)` steps."""
-    from conav_jax.models import policy
-
-    del key
-    obs = {k: v for k, v in batch.items() if k != "action"}  # float16 rgbd: encode widens it
-    carry = policy.initial_carry(config, batch["action"].shape[0])
-    actions, _, _ = policy.apply_sequence(params, config, obs, carry, remat=remat)
-    return jnp.mean(jnp.sum(jnp.square(actions - batch["action"]), axis=-1)), {}
-
-
 def _policy_setup(key, batch: int, resolution, remat: bool = False):
+    """Windows as `conav train policy` stores them (compact uint8 RGB, float16 depth; every
+    step in the loss) and its loss, train.imitation.bc_loss."""
     from conav_jax.models import policy
+    from train.imitation import bc_loss
 
     config = policy.PolicyConfig(image_hw=resolution)
     t = POLICY_SEQUENCE
     ks = jax.random.split(key, 8)
-    n = batch  # sequences of panoramas are large: (n, T, H, W, 4) float16
-    data = {
-        "rgbd": jax.random.uniform(ks[0], (n, t, *resolution, 4), jnp.float16),
+    n = batch  # sequences of panoramas are large: (n, T, H, W, 3) uint8 + (n, T, H, W) float16
+    obs = {
+        "rgb": jax.random.randint(ks[0], (n, t, *resolution, 3), 0, 256, jnp.int32).astype(jnp.uint8),
+        "depth": jax.random.uniform(ks[0], (n, t, *resolution), jnp.float16, 0.0, 10.0),
         "gps_compass": jax.random.normal(ks[1], (n, t, 3)),
         "human_pos": jax.random.normal(ks[2], (n, t, 2)),
         "activity_probs": jax.nn.softmax(jax.random.normal(ks[3], (n, t, config.num_activities))),
         "object_probs": jax.nn.softmax(jax.random.normal(ks[4], (n, t, config.num_objects))),
         "future_traj": jax.random.normal(ks[5], (n, t, config.horizon, 2)),
-        "action": jax.random.uniform(ks[6], (n, t, 2), minval=-1.0, maxval=1.0),
     }
-    loss = lambda p, b, k: policy_l2_loss(p, config, b, k, remat)
+    data = {
+        "obs": obs,
+        "label": jax.random.uniform(ks[6], (n, t, 2), minval=-1.0, maxval=1.0),
+        "mask": jnp.ones((n, t), jnp.float32),
+        "reset": jnp.zeros((n, t), bool).at[:, 0].set(True),
+    }
+    loss = lambda p, b, k: bc_loss(p, config, b, remat)
     h, w = resolution
     return policy.init(ks[7], config), data, loss, {"resolution": f"{h}x{w}", "sequence": t, "remat": remat}
 
@@ -146,35 +141,3 @@ def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int,
         "updates_per_s": round(steps / med, 2),
         **({"timesteps_per_s": round(batch * steps * POLICY_SEQUENCE / med, 1)} if model == "policy" else {}),
     }
-
-
-def add_bench_train(sub: argparse._SubParsersAction) -> None:
-    """Register `conav bench train`."""
-    p = sub.add_parser("train", help="training throughput: samples/s of a model's jitted update")
-    p.add_argument("--model", choices=sorted(SETUPS), required=True)
-    p.add_argument("--batch", type=int, nargs="+", default=None, help=f"samples per update (default {DEFAULT_BATCH})")
-    p.add_argument("--resolution", type=parse_resolution, default=(112, 448), help="policy panorama HxW")
-    p.add_argument("--steps", type=int, default=10, help="updates per timed call")
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--remat", action="store_true",
-                   help="policy: encode one time step at a time under jax.checkpoint (less memory, more compute)")
-    p.add_argument("--json", action="store_true", help="print one JSON line per batch size")
-    add_devices_arg(p)
-    p.set_defaults(func=run_bench_train)
-
-
-def run_bench_train(args: argparse.Namespace) -> int:
-    mesh = make_mesh(args.devices) if args.devices != 1 else None
-    for batch in args.batch or [DEFAULT_BATCH[args.model]]:
-        res = bench_train(args.model, batch, args.resolution, args.steps, args.repeats, mesh, args.remat)
-        if args.json:
-            print(json.dumps(res), flush=True)
-        else:
-            shape = ", ".join(f"{k}={res[k]}" for k in ("resolution", "frames", "sequence", "history") if k in res)
-            print(
-                f"{res['device']} {res['model']} batch={batch} {shape}: {res['samples_per_s']:,.0f} samples/s "
-                f"({res['updates_per_s']:.1f} updates/s, median of {args.repeats}; "
-                f"compile + first call {res['compile_and_first_call_s']} s)",
-                flush=True,
-            )
-    return 0

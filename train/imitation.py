@@ -17,12 +17,17 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from conav_jax.expert import ExpertConfig, initial_carry
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
+from conav_jax.nav.expert import ExpertConfig, initial_carry
 from conav_jax.parallel import replicate
 from envs.agents.expert import make_expert_step
-from envs.agents.policy import INTENTION_KEYS, PREDICTED, check_policy_env, make_policy_step
+from envs.agents.policy import (
+    INTENTION_KEYS,
+    PREDICTED,
+    check_policy_env,
+    make_policy_step,
+)
 from envs.conav_env import ConavEnv
 from envs.rollout import map_episodes
 

@@ -9,7 +9,6 @@ per-step predictor agents act with.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 from pathlib import Path
 
@@ -18,15 +17,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from conav_jax.episodes import read_manifest
-from conav_jax.models import perceiver
 from conav_jax import runs
+from conav_jax.data.episodes import read_manifest
+from conav_jax.models import perceiver
 from conav_jax.models.perceiver import PerceiverConfig
-from conav_jax.parallel import make_mesh
 from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.bench import parse_resolution
 from envs.panorama import front_view
-from train.loop import NonFiniteLoss, TrainConfig, TrainResult, add_train_args, train, train_config_from_args
+from train.loop import TrainConfig, TrainResult, train
 
 KIND = runs.INTENTION
 
@@ -248,45 +245,3 @@ def train_intention(
         val_fn=make_val_fn(model, val_d, baselines, compiler_options=compiler_options),
         progress=progress, compiler_options=compiler_options, mesh=mesh,
     )
-
-
-# -- CLI -----------------------------------------------------------------------------------------
-
-
-def add_train_intention(sub: argparse._SubParsersAction) -> None:
-    """Register `conav train intention`."""
-    p = sub.add_parser("intention", help="train the intention (activity/object B) Perceiver")
-    add_train_args(p, TrainConfig(steps=3000, batch=64, lr=3e-4, weight_decay=0.01))
-    p.add_argument("--frames", type=int, default=IntentionDataConfig.frames, help="frames per episode (F)")
-    p.add_argument("--sensor", type=parse_resolution, default=IntentionDataConfig.sensor_hw,
-                   help="panorama HxW rendered, front view H x W/4 (default 32x128)")
-    p.add_argument("--image", type=parse_resolution, default=PerceiverConfig.image_hw,
-                   help="Perceiver input HxW; front views are resized to it (default 32x32)")
-    p.add_argument("--no-activity-a-head", dest="activity_a_head", action="store_false",
-                   help="predict B with the direct heads only (no activity-A head, no activity graph)")
-    p.add_argument("--graph-mix", type=float, default=PerceiverConfig.graph_mix,
-                   help=f"weight of the activity-graph route in the predictions (default {PerceiverConfig.graph_mix})")
-    p.set_defaults(func=run_train_intention)
-
-
-def run_train_intention(args: argparse.Namespace) -> int:
-    data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames)
-    model = PerceiverConfig(image_hw=args.image, activity_a_head=args.activity_a_head, graph_mix=args.graph_mix)
-    try:
-        cfg, mesh = train_config_from_args(args), make_mesh(args.devices)
-        result = train_intention(args.data, args.out, cfg, model, data, progress=not args.no_progress, mesh=mesh)
-    except NonFiniteLoss as e:
-        print(f"conav train intention: {e}")
-        return 1
-    v = result.val
-    print(f"intention run: {result.run_dir} ({result.step} steps)")
-    for head in ("activity", "object"):
-        print(
-            f"val {head}: top-1 {v[f'{head}_top1']:.3f}, top-5 {v[f'{head}_top5']:.3f} "
-            f"(prior {v[f'prior_{head}_top1']:.3f} / {v[f'prior_{head}_top5']:.3f}, "
-            f"chance {v[f'chance_{head}_top1']:.3f} / {v[f'chance_{head}_top5']:.3f})"
-        )
-    if "activity_a_top1" in v:
-        print(f"val watched activity A: top-1 {v['activity_a_top1']:.3f} (chance {1 / model.num_activities:.3f})")
-    print(f"val frames showing the human: {v['val_frames_with_human']:.1%}")
-    return 0

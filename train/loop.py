@@ -11,7 +11,6 @@ each gathered minibatch is split over the devices: the same batches, the same lo
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 import time
@@ -28,7 +27,7 @@ from tqdm import tqdm
 
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
 from conav_jax.optim import Optimizer, adam, clip_by_global_norm, warmup_cosine
-from conav_jax.parallel import add_devices_arg, check_divisible, constrain_batch, replicate, replicated
+from conav_jax.parallel import check_divisible, constrain_batch, replicate, replicated
 from conav_jax.runs import LOG_FILE, append_log, finite_or_none, resume
 
 PyTree = Any
@@ -143,22 +142,9 @@ def make_chunk(update, batch: int):
     of loss, grad norm and aux over the applied updates, and their count `n`."""
 
     def chunk(params, opt_state, data, length):
-        def body(carry, _):
-            params, opt_state, bad_step, bad_idx = carry
-            new_params, new_opt, info = update(params, opt_state, data)
-            finite = jnp.isfinite(info.loss) & jnp.isfinite(info.grad_norm)
-            ok = finite & (bad_step < 0)
-            first_bad = ~finite & (bad_step < 0)
-            params, opt_state = jax.tree.map(
-                lambda new, old: jnp.where(ok, new, old), (new_params, new_opt), (params, opt_state)
-            )
-            bad_step = jnp.where(first_bad, opt_state.step, bad_step)
-            bad_idx = jnp.where(first_bad, info.indices, bad_idx)
-            scalars = {"loss": info.loss, "grad_norm": info.grad_norm, **info.aux}
-            return (params, opt_state, bad_step, bad_idx), (ok, scalars)
-
         init = (params, opt_state, jnp.int32(-1), jnp.zeros((batch,), jnp.int32))
-        (params, opt_state, bad_step, bad_idx), (ok, scalars) = jax.lax.scan(body, init, None, length)
+        (params, opt_state, bad_step, bad_idx), (ok, scalars) = jax.lax.scan(
+            lambda carry, _: guarded(update, carry, data), init, None, length)
         sums = {k: jnp.sum(jnp.where(ok, v, 0.0)) for k, v in scalars.items()}
         sums["n"] = jnp.sum(ok)
         return params, opt_state, bad_step, bad_idx, sums
@@ -166,15 +152,45 @@ def make_chunk(update, batch: int):
     return chunk
 
 
+def make_single(update, batch: int):
+    """`single(params, opt_state, data, bad_step, bad_indices, sums) -> the same, one update
+    later`: `make_chunk`'s body as one call, its non-finite guard and running sums carried by
+    the caller on the device (so calls queue up without a host sync). For XLA:CPU, where a
+    convolution's update inside a scan runs many times slower than the same update alone."""
+
+    def single(params, opt_state, data, bad_step, bad_idx, sums):
+        (params, opt_state, bad_step, bad_idx), (ok, scalars) = guarded(update, (params, opt_state, bad_step, bad_idx), data)
+        sums = {**{k: sums[k] + jnp.where(ok, v, 0.0) for k, v in scalars.items()}, "n": sums["n"] + ok}
+        return params, opt_state, bad_step, bad_idx, sums
+
+    return single
+
+
+def guarded(update, carry, data):
+    """One update unless an earlier one was not finite: `carry` = (params, opt_state, bad_step,
+    bad_indices) -> (the new carry, (applied, scalars))."""
+    params, opt_state, bad_step, bad_idx = carry
+    new_params, new_opt, info = update(params, opt_state, data)
+    finite = jnp.isfinite(info.loss) & jnp.isfinite(info.grad_norm)
+    ok = finite & (bad_step < 0)
+    first_bad = ~finite & (bad_step < 0)
+    params, opt_state = jax.tree.map(lambda new, old: jnp.where(ok, new, old), (new_params, new_opt), (params, opt_state))
+    bad_step = jnp.where(first_bad, opt_state.step, bad_step)
+    bad_idx = jnp.where(first_bad, info.indices, bad_idx)
+    return (params, opt_state, bad_step, bad_idx), (ok, {"loss": info.loss, "grad_norm": info.grad_norm, **info.aux})
+
+
 @functools.lru_cache(maxsize=16)
-def _jitted_chunk(loss_fn: LossFn, cfg: TrainConfig, n: int, compiler_options: tuple, mesh: Mesh | None):
-    """The jitted chunk, shared by runs of one process with the same loss, optimisation, data
-    size and mesh (so a resumed or repeated run reuses its compiled code). With a mesh all its
-    outputs (parameters, optimiser state, scalars) are replicated."""
+def _jitted(loss_fn: LossFn, cfg: TrainConfig, n: int, compiler_options: tuple, mesh: Mesh | None, scan: bool):
+    """The jitted chunk (or single update), shared by runs of one process with the same loss,
+    optimisation, data size and mesh (so a resumed or repeated run reuses its compiled code).
+    With a mesh all its outputs (parameters, optimiser state, scalars) are replicated."""
     update = make_update(loss_fn, make_optimizer(cfg), cfg, n, mesh)
     options = dict(compiler_options) or None
     out = None if mesh is None else replicated(mesh)
-    return jax.jit(make_chunk(update, cfg.batch), static_argnames="length", compiler_options=options, out_shardings=out)
+    if scan:
+        return jax.jit(make_chunk(update, cfg.batch), static_argnames="length", compiler_options=options, out_shardings=out), update
+    return jax.jit(make_single(update, cfg.batch), compiler_options=options, out_shardings=out), update
 
 
 def _next_boundary(step: int, cfg: TrainConfig) -> int:
@@ -194,13 +210,18 @@ def train(
     progress: bool = True,
     compiler_options: dict | None = None,
     mesh: Mesh | None = None,
+    scan_updates: bool = True,
+    resume_ignore: tuple[str, ...] = (),
+    log_extra: dict | None = None,
+    desc: str | None = None,
 ) -> TrainResult:
     """Train `params` on `data` for `cfg.steps` updates, resuming from `run_dir` if it holds a
     checkpoint.
 
     - `config`: JSON-able dict describing the run, with at least "kind" (e.g. "trajectory") and
       the model config; the checkpoint stores it plus `cfg.optimisation()` under "train". A
-      resumed run must match it exactly, else ValueError naming the first differing key.
+      resumed run must match it exactly, else ValueError naming the first differing key; the
+      dotted keys in `resume_ignore` may differ (e.g. "train.steps": a longer schedule).
     - `data`: dict (may nest) of arrays sharing the leading size N, numpy or jax; put on the
       device once. `loss_fn` gets it indexed by `cfg.batch` sample indices.
     - `val_fn(params) -> dict of floats`, run every `cfg.val_every` updates and at the end.
@@ -209,6 +230,11 @@ def train(
       optimiser state replicated, each minibatch split (ValueError unless `cfg.batch` divides
       by the device count). The same batches as without it, so the same losses up to the
       order of float sums.
+    - `scan_updates`: updates between log points run as one `lax.scan` (one call); False runs
+      each update as its own call, queued without a host sync (XLA:CPU runs a convolution's
+      update in a scan many times slower). Same updates, same results.
+    - `log_extra`: entries added to every log record (e.g. a DAgger round); `desc` labels the
+      progress bar.
     Raises NonFiniteLoss (naming the step and the batch's sample indices) when a loss or
     gradient goes inf/NaN; nothing is saved then, so the last checkpoint stays the last good one.
     """
@@ -223,34 +249,46 @@ def train(
         check_divisible(cfg.batch, mesh, "TrainConfig.batch")
     data = jax.device_put(data) if mesh is None else replicate(data, mesh)
     opt_state = make_optimizer(cfg).init(params)
+    extra = dict(log_extra or {})
 
     step = 0
-    ckpt = resume(run_dir, full_config, params, opt_state)
+    ckpt = resume(run_dir, full_config, params, opt_state, ignore=resume_ignore)
     if ckpt is not None:
         params, opt_state, step = ckpt.params, ckpt.opt_state, ckpt.step
     if mesh is not None:
         params, opt_state = replicate((params, opt_state), mesh)
 
     cadence_free = dataclasses.replace(cfg, **{k: 1 for k in CADENCE_FIELDS})
-    chunk = _jitted_chunk(loss_fn, cadence_free, n, tuple(sorted((compiler_options or {}).items())), mesh)
+    compiled, update = _jitted(loss_fn, cadence_free, n, tuple(sorted((compiler_options or {}).items())), mesh, scan_updates)
+    if not scan_updates:  # the running sums the single updates add to, of the scalars they report
+        info = jax.eval_shape(update, params, opt_state, data)[2]
+        zero_sums = {k: jnp.float32(0.0) for k in ("loss", "grad_norm", *info.aux)} | {"n": jnp.int32(0)}
     val: dict = {}
 
     def validate(at: int) -> None:
         nonlocal val
         val = {k: float(v) for k, v in val_fn(params).items()}
-        append_log(log_path, {"step": at, "split": "val", **val})
+        append_log(log_path, {"step": at, "split": "val", **extra, **val})
 
-    bar = tqdm(total=cfg.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True)
+    def run_updates(params, opt_state, length):
+        if scan_updates:
+            return compiled(params, opt_state, data, length=length)
+        carry = (params, opt_state, jnp.int32(-1), jnp.zeros((cfg.batch,), jnp.int32), zero_sums)
+        for _ in range(length):
+            carry = compiled(carry[0], carry[1], data, *carry[2:])
+        return carry
+
+    bar = tqdm(total=cfg.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True, desc=desc)
     start = time.perf_counter()
     try:
         while step < cfg.steps:
             end = _next_boundary(step, cfg)
             t0 = time.perf_counter()
-            new_params, new_opt, bad_step, bad_idx, sums = chunk(params, opt_state, data, length=end - step)
-            bad = int(bad_step)  # the one sync per chunk
+            new_params, new_opt, bad_step, bad_idx, sums = run_updates(params, opt_state, end - step)
+            bad = int(bad_step)  # the one sync per log interval
             if bad >= 0:
                 indices = [int(i) for i in np.asarray(bad_idx)]
-                append_log(log_path, {"step": bad, "split": "train", "error": "non-finite loss", "indices": indices})
+                append_log(log_path, {"step": bad, "split": "train", **extra, "error": "non-finite loss", "indices": indices})
                 last = latest_checkpoint(run_dir)
                 raise NonFiniteLoss(
                     f"non-finite loss or gradient at update step {bad} (batch sample indices {indices}); "
@@ -266,7 +304,7 @@ def train(
                 count = max(sums.pop("n"), 1.0)
                 record = {k: finite_or_none(v / count) for k, v in sums.items()}
                 record["samples_per_s"] = round(rate, 1)
-                append_log(log_path, {"step": step, "split": "train", **record,
+                append_log(log_path, {"step": step, "split": "train", **extra, **record,
                                        "elapsed_s": round(time.perf_counter() - start, 2)})
                 bar.set_postfix(loss=f"{record['loss']:.4g}", samples_s=f"{rate:.0f}")
             bar.update(end - bar.n)
@@ -282,22 +320,3 @@ def train(
     if val_fn is not None and not val:  # resumed at or past the end: still report metrics
         validate(step)
     return TrainResult(params, opt_state, step, val, run_dir)
-
-
-# -- CLI helpers shared by the `conav train` sub-commands ----------------------------------------
-
-
-def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig) -> None:
-    """The TrainConfig flags shared by the `conav train` sub-commands."""
-    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
-    p.add_argument("--out", required=True, help="run dir: log.jsonl and checkpoints (resumed if present)")
-    for f in dataclasses.fields(TrainConfig):
-        flag = "--" + f.name.replace("_", "-")
-        default = getattr(defaults, f.name)
-        p.add_argument(flag, type=type(default), default=default, help=f"TrainConfig.{f.name} (default {default})")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_devices_arg(p)
-
-
-def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
-    return TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})

@@ -29,15 +29,12 @@ Choices, stated once:
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
-
-import envs  # noqa: F401, I001  (first: registers 'conav' with brax, and imports mjx quietly)
 
 import brax.envs
 import jax
@@ -47,17 +44,23 @@ from brax.envs.wrappers import training as brax_training
 from jax.sharding import Mesh
 from tqdm import tqdm
 
+import envs  # noqa: F401, I001  (first: registers 'conav' with brax, and imports mjx quietly)
 from conav_jax import runs
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nn.lstm import LSTMState
 from conav_jax.optim import Optimizer, adam, clip_by_global_norm
-from conav_jax.parallel import add_devices_arg, batch_sharding, check_divisible, make_mesh, replicated
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.metrics import summarize
+from conav_jax.parallel import batch_sharding, check_divisible, replicated
 from conav_jax.runs import append_log, finite_or_none
-from envs.agents.policy import check_policy_env, intention_source, load_policy_run, policy_agent_from_params
+from envs import ConavEnv, EnvConfig, SensorConfig
+from envs.agents.policy import (
+    check_policy_env,
+    intention_source,
+    load_policy_run,
+    policy_agent_from_params,
+)
+from envs.metrics import summarize
 from envs.rollout import make_evaluator
 
 KIND = runs.PPO
@@ -84,14 +87,12 @@ class PPOConfig:
     normalize_advantages: bool = True  # per minibatch, to zero mean and unit std
     seed: int = 0
     recurrent: bool = True  # LSTM carry through time; False: zero carry every step
-    # Panorama (H, W). The rollout buffer holds T * B * H * W * 4 float32 (16 bytes a pixel):
-    # 32x128 at B=64, T=128 is 0.5 GB; the paper's 112x448 is 12x that.
-    resolution: tuple[int, int] = (32, 128)
     episode_length: int | None = None  # EpisodeWrapper limit; None: longer than every episode
     # Iterations between re-resets of the batch onto new episodes; None: enough for the bank's
     # longest episode, ceil((max_steps + 1) / rollout_steps).
     reset_every: int | None = None
-    eval_every: int = 50  # iterations between val evaluations (and one at the end); 0: none
+    eval_every: int = 50  # iterations between evaluations (and one at the end); 0: none
+    eval_split: str = "minival"  # evaluated on while training; the reported val split stays unseen
     ckpt_every: int = 50  # iterations between checkpoints (one is always written at the end)
     eval_episodes: int | None = None  # first N val episodes; None: all of them
     eval_batch: int = 256  # episodes per evaluation batch
@@ -115,8 +116,6 @@ class PPOConfig:
         if samples % self.minibatches:
             what = "num_envs" if self.recurrent else "num_envs * rollout_steps"
             raise ValueError(f"{what} ({samples}) must be divisible by minibatches ({self.minibatches})")
-        if len(self.resolution) != 2:
-            raise ValueError(f"PPOConfig.resolution must be (H, W), got {self.resolution}")
         if self.episode_length is not None and self.episode_length <= 0:
             raise ValueError(f"PPOConfig.episode_length must be > 0 or None, got {self.episode_length}")
         if self.eval_episodes is not None and self.eval_episodes <= 0:
@@ -485,10 +484,10 @@ def train_ppo(
     mesh: Mesh | None = None,
 ) -> PPOResult:
     """Train a PPO policy on the `train` split of `data_dir`; log, checkpoint and evaluate
-    (val split, through `ppo_agent` on the saved checkpoint) into `run_dir`, which must hold
-    no checkpoint yet.
+    (`config.eval_split`, the agent `conav eval --agent ppo --ground-truth-intentions` builds)
+    into `run_dir`, which must hold no checkpoint yet.
 
-    `policy_config`: the network (default PolicyConfig at `config.resolution`); with
+    `policy_config`: the network, its resolution included (default: PolicyConfig()); with
     `init_from` (an imitation "policy" run) the network and its weights come from that run.
     `compiler_options` go to `jax.jit` (tests lower the XLA optimisation level). `mesh`
     (conav_jax.parallel.make_mesh): the envs split over its devices, parameters replicated,
@@ -499,19 +498,15 @@ def train_ppo(
         check_divisible(config.num_envs, mesh, "PPOConfig.num_envs")
     if latest_checkpoint(run_dir) is not None:
         raise ValueError(f"{run_dir} already holds a checkpoint; PPO runs do not resume, choose a new --out")
-    hw = tuple(config.resolution)
     if init_from is not None:
         params, loaded = load_policy_init(init_from)
         if policy_config is not None and policy_config != loaded:
             raise ValueError(f"--init-from {init_from} has its own network config; do not pass policy_config too")
         policy_config = loaded
     else:
-        policy_config = policy_config or PolicyConfig(image_hw=hw)
+        policy_config = policy_config or PolicyConfig()
         params = policy.init(jax.random.PRNGKey(config.seed), policy_config)
-    if tuple(policy_config.image_hw) != hw:
-        src = f"the policy of {init_from}" if init_from is not None else "policy_config"
-        raise ValueError(f"{src} reads {policy_config.image_hw[0]}x{policy_config.image_hw[1]} panoramas but "
-                         f"the PPO resolution is {hw[0]}x{hw[1]}; pass --resolution to match")
+    hw = tuple(policy_config.image_hw)  # the env renders what the network reads
     # Training and validation episodes end at the first reach: the reach bonus ends an episode.
     env_config = EnvConfig(sensor=SensorConfig(height=hw[0], width=hw[1]), end_at_reach=True)
     env = brax.envs.get_environment("conav", data_dir=str(data_dir), split="train", config=env_config)
@@ -520,7 +515,7 @@ def train_ppo(
     episode_length = config.episode_length or env.bank.max_steps + 1
     config = resolve_reset_every(config, min(episode_length, env.bank.max_steps + 1))
     wrapped = brax_training.wrap(env, episode_length=episode_length)
-    val_env = ConavEnv(str(data_dir), "val", env_config) if config.eval_every else None
+    val_env = ConavEnv(str(data_dir), config.eval_split, env_config) if config.eval_every else None
     recurrent = config.recurrent
     evaluator = None if val_env is None else make_evaluator(
         val_env, lambda p: policy_agent_from_params(p, policy_config, name="ppo", recurrent=recurrent),
@@ -533,7 +528,7 @@ def train_ppo(
         "kind": KIND,
         "model": dataclasses.asdict(policy_config),
         "ppo": dataclasses.asdict(config),
-        "env": {"sensor_hw": list(hw), "episode_length": episode_length, "data_dir": str(data_dir),
+        "env": {"episode_length": episode_length, "data_dir": str(data_dir),
                 "init_from": None if init_from is None else str(init_from)},
     }
 
@@ -558,7 +553,7 @@ def train_ppo(
         # params just saved; params are an argument of the compiled rollout, so only the first
         # validation compiles.
         val = summarize(evaluator(runner.params, episodes))
-        append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": "val",
+        append_log(log_path, {"step": it, "env_steps": it * per_iter, "split": config.eval_split,
                               "intention_source": intention_source(policy_config), **val})
 
     bar = tqdm(total=n_iter * per_iter, disable=not progress, unit="step", dynamic_ncols=True)
@@ -595,66 +590,3 @@ def train_ppo(
     finally:
         bar.close()
     return PPOResult(runner.params, policy_config, n_iter * per_iter, val, run_dir)
-
-
-# -- CLI -------------------------------------------------------------------------------------------
-
-
-def _hw(text: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected HxW like 32x128, got {text!r}") from None
-    return h, w
-
-
-def add_train_rl(sub: argparse._SubParsersAction) -> None:
-    """Register `conav train rl` (PPO)."""
-    d = PPOConfig()
-    p = sub.add_parser("rl", help="train the policy with PPO in the simulator")
-    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
-    p.add_argument("--out", required=True, help="new run dir: log.jsonl and checkpoints")
-    p.add_argument("--init-from", default=None, metavar="POLICY_RUN",
-                   help="start from an imitation policy run (its network, weights and value head)")
-    p.add_argument("--num-envs", type=int, default=d.num_envs, help=f"parallel envs (default {d.num_envs})")
-    p.add_argument("--steps", type=int, default=d.total_env_steps, help=f"total env steps (default {d.total_env_steps})")
-    p.add_argument("--rollout-steps", type=int, default=d.rollout_steps, help=f"steps per env per iteration (default {d.rollout_steps})")
-    p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr})")
-    p.add_argument("--reset-every", type=int, default=None,
-                   help="iterations between re-resets onto new episodes (default: enough for the longest episode)")
-    mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--recurrent", dest="recurrent", action="store_true", default=d.recurrent,
-                      help="LSTM carry through time (default)")
-    mode.add_argument("--feedforward", dest="recurrent", action="store_false", help="zero LSTM carry every step")
-    p.add_argument("--resolution", type=_hw, default=d.resolution, help="panorama HxW (default 32x128)")
-    p.add_argument("--hidden", type=int, default=None,
-                   help=f"LSTM width of a new network (default {PolicyConfig.hidden}; not with --init-from)")
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--eval-every", type=int, default=d.eval_every, help="iterations between val evaluations (0: none)")
-    p.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="iterations between checkpoints")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_devices_arg(p)
-    p.set_defaults(func=run_train_rl)
-
-
-def run_train_rl(args: argparse.Namespace) -> int:
-    config = PPOConfig(
-        num_envs=args.num_envs, rollout_steps=args.rollout_steps, reset_every=args.reset_every, total_env_steps=args.steps, lr=args.lr,
-        recurrent=args.recurrent, resolution=tuple(args.resolution), seed=args.seed,
-        eval_every=args.eval_every, ckpt_every=args.ckpt_every,
-    )
-    if args.init_from and args.hidden is not None:
-        raise ValueError("--hidden sizes a new network; with --init-from the network is the imitation run's")
-    policy_config = None
-    if not args.init_from:
-        policy_config = PolicyConfig(image_hw=config.resolution, hidden=args.hidden or PolicyConfig.hidden)
-    try:
-        result = train_ppo(args.data, args.out, config, policy_config, args.init_from, progress=not args.no_progress,
-                           mesh=make_mesh(args.devices))
-    except FloatingPointError as e:
-        print(f"conav train rl: {e}")
-        return 1
-    print(f"ppo run: {result.run_dir} ({result.env_steps} env steps)")
-    if result.val:
-        print("val " + ", ".join(f"{k} {v:.1f}" for k, v in result.val.items()))
-    return 0

@@ -7,7 +7,6 @@ against constant velocity -> a run that envs.agents.predictors loads for agents.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 from pathlib import Path
 
@@ -17,11 +16,11 @@ import numpy as np
 from jax.sharding import Mesh
 
 from conav_jax import runs
-from conav_jax.episodes import PHASE_WALK, load_split, read_manifest
+from conav_jax.data.episodes import load_split, read_manifest
 from conav_jax.models import trajectory as traj_model
 from conav_jax.models.trajectory import TrajectoryConfig
-from conav_jax.parallel import make_mesh
-from train.loop import NonFiniteLoss, TrainConfig, TrainResult, add_train_args, train, train_config_from_args
+from conav_jax.motion.phases import PHASE_WALK
+from train.loop import TrainConfig, TrainResult, train
 
 KIND = runs.TRAJECTORY
 
@@ -151,29 +150,3 @@ def train_trajectory(
         run_dir, loss, params, train_w, cfg, run_config(model, data, content_hash),
         val_fn=make_val_fn(model, val_w, compiler_options), progress=progress, compiler_options=compiler_options, mesh=mesh,
     )
-
-
-# -- CLI -----------------------------------------------------------------------------------------
-
-
-def add_train_trajectory(sub: argparse._SubParsersAction) -> None:
-    """Register `conav train trajectory`."""
-    p = sub.add_parser("trajectory", help="train the trajectory (short-term intention) predictor")
-    add_train_args(p, TrainConfig(steps=3000, batch=256, lr=2e-3))
-    p.add_argument("--hidden", type=int, default=TrajectoryConfig.hidden, help="LSTM/MLP width")
-    p.set_defaults(func=run_train_trajectory)
-
-
-def run_train_trajectory(args: argparse.Namespace) -> int:
-    model = TrajectoryConfig(hidden=args.hidden)
-    try:
-        cfg, mesh = train_config_from_args(args), make_mesh(args.devices)
-        result = train_trajectory(args.data, args.out, cfg, model, progress=not args.no_progress, mesh=mesh)
-    except NonFiniteLoss as e:
-        print(f"conav train trajectory: {e}")
-        return 1
-    v = result.val
-    print(f"trajectory run: {result.run_dir} ({result.step} steps)")
-    print(f"val ADE {v['ade_m']:.3f} m, FDE {v['fde_m']:.3f} m "
-          f"(constant velocity: ADE {v['cv_ade_m']:.3f} m, FDE {v['cv_fde_m']:.3f} m)")
-    return 0

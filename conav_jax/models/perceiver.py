@@ -23,6 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from conav_jax import nn
+from conav_jax.data.activities import NUM_ACTIVITIES
+from conav_jax.data.categories import NUM_CATEGORIES
 
 Params = dict
 
@@ -40,8 +42,8 @@ class PerceiverConfig:
     num_heads: int = 4  # head width = dim // num_heads
     num_blocks: int = 2  # latent self-attention blocks after the cross-attention
     mlp_ratio: int = 2  # MLP hidden width = mlp_ratio * dim
-    num_activities: int = 107
-    num_objects: int = 51
+    num_activities: int = NUM_ACTIVITIES  # the shipped activity graph's
+    num_objects: int = NUM_CATEGORIES  # conav_jax.data.categories
     # Also classify activity A and predict B through the activity graph (needs the graph's
     # 107 activities and 51 categories). Checkpoints written before this field had no A head.
     activity_a_head: bool = True
@@ -76,8 +78,8 @@ def graph_tables(config: PerceiverConfig) -> tuple[np.ndarray, np.ndarray]:
 
 @functools.lru_cache(maxsize=4)
 def _graph_tables(num_activities: int, num_objects: int) -> tuple[np.ndarray, np.ndarray]:
-    from conav_jax.activities import load_activity_graph
-    from conav_jax.categories import CATEGORY_NAMES
+    from conav_jax.data.activities import load_activity_graph
+    from conav_jax.data.categories import CATEGORY_NAMES
 
     graph = load_activity_graph()
     n, m = len(graph.activities), len(CATEGORY_NAMES)

@@ -27,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from conav_jax import nn
-from conav_jax.categories import CATEGORIES
+from conav_jax.data.activities import NUM_ACTIVITIES
+from conav_jax.data.categories import CATEGORIES, NUM_CATEGORIES
 from conav_jax.nn.lstm import LSTMState
 
 Params = dict
@@ -56,8 +57,8 @@ class PolicyConfig:
     hidden: int = 256  # LSTM width
     max_depth_m: float = 10.0  # depth is divided by this and clipped to [0, 1]
     position_scale_m: float = 10.0  # positions (pose, human, trajectory) are divided by this
-    num_activities: int = 107
-    num_objects: int = 51
+    num_activities: int = NUM_ACTIVITIES  # the shipped activity graph's
+    num_objects: int = NUM_CATEGORIES  # conav_jax.data.categories
     horizon: int = 5  # future trajectory length
     use_activity: bool = True
     use_object: bool = True

@@ -16,8 +16,13 @@ import jax
 import jax.numpy as jnp
 
 from conav_jax.geometry import to_world, wrap_angle
-from conav_jax.planning import cell_centres, descent_chain, field_value
-from envs.agents.base import CANDIDATE_GOAL_POINTS, ORACLE_GOAL_CATEGORY, ORACLE_MAP, Agent
+from conav_jax.nav.planning import cell_centres, descent_chain, field_value
+from envs.agents.base import (
+    CANDIDATE_GOAL_POINTS,
+    ORACLE_GOAL_CATEGORY,
+    ORACLE_MAP,
+    Agent,
+)
 from envs.mjcf import UD
 
 

@@ -1,4 +1,4 @@
-"""The imitation teacher in the simulator: conav_jax.expert acting on one env's brax State.
+"""The imitation teacher in the simulator: conav_jax.nav.expert acting on one env's brax State.
 
 The expert is privileged by design: it reads the episode's geodesic fields (its goal and the
 human's start), the wall clearance of the scene, the human's upcoming positions and whether the
@@ -14,9 +14,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conav_jax.episodes import PHASE_ACTIVITY_A
-from conav_jax.expert import ExpertCarry, ExpertConfig, ExpertMaps, clearance_map, expert_action, initial_carry
-from envs.agents.base import FUTURE_HUMAN_POSITIONS, HUMAN_PHASE, ORACLE_GOAL_POINT, ORACLE_MAP, Agent
+from conav_jax.motion.phases import PHASE_ACTIVITY_A
+from conav_jax.nav.expert import (
+    ExpertCarry,
+    ExpertConfig,
+    ExpertMaps,
+    clearance_map,
+    expert_action,
+    initial_carry,
+)
+from envs.agents.base import (
+    FUTURE_HUMAN_POSITIONS,
+    HUMAN_PHASE,
+    ORACLE_GOAL_POINT,
+    ORACLE_MAP,
+    Agent,
+)
 from envs.mjcf import UD
 
 
@@ -32,7 +45,7 @@ def clearance_grids(env) -> jax.Array:
 
 
 def make_expert_step(env, cfg: ExpertConfig = ExpertConfig()) -> Callable:
-    """`(state, carry) -> (action (2,), carry)`: conav_jax.expert acting on one env's brax State.
+    """`(state, carry) -> (action (2,), carry)`: conav_jax.nav.expert acting on one env's brax State.
     Privileged: it reads the episode's fields, the human's upcoming positions and phase."""
     b = env.bank
     clearance = clearance_grids(env)
@@ -55,5 +68,5 @@ def expert_agent(env, cfg: ExpertConfig = ExpertConfig()) -> Agent:
     policy is measured against."""
     step = make_expert_step(env, cfg)
     return Agent("expert", lambda key, episode: initial_carry(), lambda state, carry, key: step(state, carry),
-                 title="Expert (imitation teacher)",
+                 title="Imitation expert",
                  privileged=(ORACLE_GOAL_POINT, ORACLE_MAP, FUTURE_HUMAN_POSITIONS, HUMAN_PHASE))

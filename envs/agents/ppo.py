@@ -12,7 +12,13 @@ from pathlib import Path
 
 from conav_jax import runs
 from envs.agents.base import Agent
-from envs.agents.policy import check_policy_env, load_policy_run, load_predictors, policy_agent_from_params, predictor_runs
+from envs.agents.policy import (
+    check_policy_env,
+    load_policy_run,
+    load_predictors,
+    policy_agent_from_params,
+    predictor_runs,
+)
 
 
 def ppo_agent(env, run_dir: str | Path, intention_run: str | Path | None = None,

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
 
+from conav_jax import runs
 from envs.agents.base import Agent
 
 
@@ -21,6 +22,7 @@ class AgentSpec(NamedTuple):
     summary: str  # one line for the command line's help
     needs_checkpoint: bool = False  # loads a trained run directory
     takes_intentions: bool = False  # reads intention inputs: predictor runs or ground truth
+    run_kind: str | None = None  # the conav_jax.runs kind of its checkpoint
 
 
 def _baseline(name: str) -> Callable[..., Agent]:
@@ -59,8 +61,8 @@ AGENTS: dict[str, AgentSpec] = {
     "objectgoal-planner": AgentSpec(_baseline("objectgoal-planner"), "oracle goal category + oracle map: the nearest "
                                     "instance along its geodesic field (privileged)"),
     "expert": AgentSpec(_expert, "the imitation teacher (privileged: goal, map, the human's future)"),
-    "conav": AgentSpec(_conav, "the trained CoNav policy (--checkpoint: a `conav train policy` run)", True, True),
-    "ppo": AgentSpec(_ppo, "a PPO policy (--checkpoint: a `conav train rl` run)", True, True),
+    "conav": AgentSpec(_conav, "the trained CoNav policy (--checkpoint: a `conav train policy` run)", True, True, runs.POLICY),
+    "ppo": AgentSpec(_ppo, "a PPO policy (--checkpoint: a `conav train rl` run)", True, True, runs.PPO),
 }
 
 
@@ -87,3 +89,29 @@ def make_agent(name: str, env, checkpoint: str | Path | None = None, **kwargs: A
     if intention_keys and not spec.takes_intentions:
         raise ValueError(f"agent {name!r} reads no intention inputs; it takes no {sorted(intention_keys)}")
     return spec.build(env, None if checkpoint is None else str(checkpoint), **kwargs).check()
+
+
+def run_resolution(trained: list[tuple[str, str | Path]], resolution: tuple[int, int] | None = None) -> tuple[int, int]:
+    """The panorama (H, W) an env must render for these (agent name, run dir) pairs: the
+    resolution their policies were trained at (ValueError if they differ, or differ from a
+    given `resolution`), else `resolution`, else SensorConfig's default. Reads only the runs'
+    configs, so it is cheap enough for input checks."""
+    from envs.config import SensorConfig
+
+    found: dict[tuple[int, int], str] = {}
+    for name, run in trained:
+        spec = check_agent(name, run)
+        hw = tuple(runs.run_config(run, spec.run_kind)["model"]["image_hw"])
+        found.setdefault(hw, str(run))
+    if len(found) > 1:
+        raise ValueError("the trained runs read different panoramas: " +
+                         ", ".join(f"{run} {h}x{w}" for (h, w), run in found.items()))
+    if found:
+        (hw, run), = found.items()
+        if resolution is not None and tuple(resolution) != hw:
+            raise ValueError(f"--resolution {resolution[0]}x{resolution[1]}, but {run} was trained at {hw[0]}x{hw[1]}")
+        return hw
+    if resolution is not None:
+        return tuple(resolution)
+    default = SensorConfig()
+    return default.height, default.width

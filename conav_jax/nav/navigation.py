@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from conav_jax.scene import Scene
+from conav_jax.data.scene import Scene
 
 SQRT2 = math.sqrt(2.0)
 # (dy, dx, cost in cells) of the 8 neighbours.

@@ -17,7 +17,7 @@ import numpy as np
 from scipy import ndimage
 
 from conav_jax.geometry import unit, wrap_angle
-from conav_jax.planning import cell_centres, descent_chain, field_cell, field_value
+from conav_jax.nav.planning import cell_centres, descent_chain, field_cell, field_value
 
 # Phases of the expert's plan, in order.
 APPROACH, OBSERVE, GO = 0, 1, 2

@@ -1,7 +1,8 @@
 """The 22-joint HumanML3D skeleton: joint names, kinematic tree, rest pose and body capsules.
 
-Motion (conav_jax.motion, conav_jax.humanml3d) produces joint positions in this layout; the
-simulator (envs.humanoid) turns them into capsules via `CAPSULE_BONES` / `capsule_segments`.
+Motion (rig, clips, gait and humanml3d in conav_jax.motion) produces joint positions in this
+layout; the simulator (envs.humanoid) turns them into capsules via `CAPSULE_BONES` /
+`capsule_segments`.
 World convention: Z-up, metres, floor at z=0, the rest pose faces +x with its left side at +y.
 """
 

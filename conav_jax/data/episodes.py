@@ -9,7 +9,7 @@ not match it, is an incomplete dataset.
 
 Layout of a dataset directory:
     manifest.json
-    scenes/<name>.json          the scene (conav_jax.scene format)
+    scenes/<name>.json          the scene (conav_jax.data.scene format)
     scenes/<name>.nav.npz       occupancy grid and geodesic fields to every usable object
     train/shard_00000.npz ...   episode arrays (see EPISODE_ARRAYS)
     val/shard_00000.npz ...
@@ -31,11 +31,16 @@ from typing import Callable, Iterable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from conav_jax import activities as activities_lib
 from conav_jax import motion as motion_lib
-from conav_jax.arrayio import load_npz, save_json, save_npz, sha256_file
 from conav_jax.config import SPLITS, DatasetConfig
-from conav_jax.navigation import (
+from conav_jax.data import activities as activities_lib
+from conav_jax.data.arrayio import load_npz, save_json, save_npz, sha256_file
+from conav_jax.data.scene import Scene, load_scene, scene_from_json_dict
+from conav_jax.data.scenegen import generate_scene
+
+# The phase codes are stored in the episode arrays; the simulator and trainers import them from here.
+from conav_jax.motion.phases import PHASE_DONE
+from conav_jax.nav.navigation import (
     OccupancyGrid,
     descend,
     geodesic_field,
@@ -44,13 +49,10 @@ from conav_jax.navigation import (
     occupancy_grid,
     smooth_path,
 )
-from conav_jax.scene import Scene, load_scene, scene_from_json_dict
-from conav_jax.scenegen import generate_scene
 
 MANIFEST = "manifest.json"
 DATASET_FORMAT = "conav-episodes"
 DATASET_VERSION = 1
-PHASE_ACTIVITY_A, PHASE_WALK, PHASE_ACTIVITY_B, PHASE_DONE = 0, 1, 2, 3
 MIN_HUMAN_PATH_M = 2.0  # activity B's spot is at least this far (geodesic) from activity A's
 
 # name -> (per-step?, dtype, meaning). Per-step arrays are (N, T, ...), padded past t_end with
@@ -378,7 +380,7 @@ def generate_from_scenes(
     workers: int = 1,
     progress: Callable[[Iterable], Iterable] | None = None,
 ) -> dict:
-    """A dataset from the user's own scene files (conav_jax.scene format) into `out_dir`;
+    """A dataset from the user's own scene files (conav_jax.data.scene format) into `out_dir`;
     returns the manifest. Same layout, determinism and atomicity as `generate_dataset`.
 
     `scene_paths_by_split` maps split names (of SPLITS; any non-empty subset) to scene files,

@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 
-from conav_jax.skeleton import J, NUM_JOINTS
+from conav_jax.motion.skeleton import NUM_JOINTS, J
 
 _FOOT_JOINTS = [J["left_ankle"], J["right_ankle"], J["left_foot"], J["right_foot"]]
 

@@ -1,7 +1,7 @@
 """Jittable planning on geodesic fields: distance lookups and the downhill direction.
 
 A field is a (ny, nx) array of shortest-path metres to a goal over a grid with the given origin
-and cell size (conav_jax.navigation). These functions run inside jit/vmap: the simulator's
+and cell size (conav_jax.nav.navigation). These functions run inside jit/vmap: the simulator's
 reward, the expert and the oracle-pathfinder baselines all use them.
 """
 

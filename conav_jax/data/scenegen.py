@@ -14,9 +14,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from conav_jax.categories import CATEGORIES, ROOM_TYPES, SUPPORT_CATEGORIES, Category, category
 from conav_jax.config import SceneGenConfig
-from conav_jax.scene import Box, Room, Scene, SceneObject, validate_geometry
+from conav_jax.data.categories import (
+    CATEGORIES,
+    ROOM_TYPES,
+    SUPPORT_CATEGORIES,
+    Category,
+    category,
+)
+from conav_jax.data.scene import Box, Room, Scene, SceneObject, validate_geometry
 
 # Room types in the order a growing apartment adds them.
 _ROOM_ORDER = ("living_room", "kitchen", "bedroom", "bathroom", "study", "bedroom", "living_room", "study")

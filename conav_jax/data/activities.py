@@ -16,12 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from conav_jax.categories import CATEGORY_INDEX, category
-from conav_jax.primitives import MOTION_PRIMITIVES
+from conav_jax.data.categories import CATEGORY_INDEX, category
+from conav_jax.motion.primitives import MOTION_PRIMITIVES
 
-# Size of the shipped graph: the number of activity classes the intention predictor outputs.
-NUM_ACTIVITIES = 107
-DEFAULT_GRAPH_PATH = Path(__file__).parent / "data" / "activity_graph.json"
+DEFAULT_GRAPH_PATH = Path(__file__).parent / "activity_graph.json"
 GRAPH_FORMAT_VERSION = 1
 
 
@@ -212,3 +210,7 @@ def _parse_links(
         seen.add((link.a, link.b))
         links.append(link)
     return tuple(links)
+
+
+# Size of the shipped graph (107): the number of activity classes the intention predictor outputs.
+NUM_ACTIVITIES = len(_load_default_graph().activities)

@@ -1,4 +1,4 @@
-"""`conav train policy` with a bad --data fails before it creates anything under --out."""
+"""The `conav` command line (eval/cli.py): a bad --data fails before anything is created under --out."""
 
 import json
 

@@ -1,8 +1,8 @@
 """Scenes: walls and furniture as axis-aligned boxes, the JSON scene format and its validator.
 
-The generator (conav_jax.scenegen) writes this format and the loader reads it back, so
+The generator (conav_jax.data.scenegen) writes this format and the loader reads it back, so
 hand-made or imported scenes (e.g. annotated real apartments) run unchanged. Data flows:
-JSON <-> `Scene` -> navigation grids (conav_jax.navigation) and simulator boxes (envs).
+JSON <-> `Scene` -> navigation grids (conav_jax.nav.navigation) and simulator boxes (envs).
 
 Format (version 1), all lengths in metres, z up, the floor at z = 0:
 
@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from conav_jax.categories import (
+from conav_jax.data.categories import (
     CATEGORY_INDEX,
     FLOOR_RGB,
     ROOM_TYPES,
