@@ -29,7 +29,9 @@ INTENTION = "intention"  # conav train intention: the Perceiver intention predic
 TRAJECTORY = "trajectory"  # conav train trajectory: the human trajectory predictor
 POLICY = "policy"  # conav train policy: the LSTM policy by imitation (BC, DAgger)
 PPO = "ppo"  # conav train rl: PPO on the brax env
-RUN_KINDS = (INTENTION, TRAJECTORY, POLICY, PPO)
+OBJECTNAV = "objectnav"  # conav train objectnav: the object-goal baseline by imitation of the object-goal planner
+IMAGENAV = "imagenav"  # conav train imagenav: the image-goal baseline by imitation of the goal planner
+RUN_KINDS = (INTENTION, TRAJECTORY, POLICY, PPO, OBJECTNAV, IMAGENAV)
 
 
 def append_log(path: str | Path, record: dict) -> None:
@@ -95,7 +97,8 @@ def _latest(run_dir: str | Path, kind: str) -> Path:
 def _check_kind(found: Path, config: dict, kind: str) -> None:
     got = config.get("kind")
     if got != kind:
-        command = {INTENTION: "train intention", TRAJECTORY: "train trajectory", POLICY: "train policy", PPO: "train rl"}
+        command = {INTENTION: "train intention", TRAJECTORY: "train trajectory", POLICY: "train policy", PPO: "train rl",
+                   OBJECTNAV: "train objectnav", IMAGENAV: "train imagenav"}
         raise ValueError(f"{found} is a {got!r} run, expected {kind!r} (a `conav {command[kind]}` run)")
 
 

@@ -20,6 +20,7 @@ from conav_jax.data.activities import NUM_ACTIVITIES
 from conav_jax.data.categories import FLOOR_RGB, NUM_CATEGORIES
 from conav_jax.data.episodes import EpisodeSplit
 from conav_jax.data.scene import scene_boxes
+from conav_jax.nav.expert import clearance_map
 from conav_jax.nav.planning import fill_blocked
 from envs.metrics import shortest_path_steps
 
@@ -43,6 +44,7 @@ class EpisodeBank:
     field_origin: jax.Array  # (S, 2) grid origin (m)
     field_category: jax.Array  # (S, K) category id of each field's object, -1 for padding
     field_stand: jax.Array  # (S, K, 3) standing pose (x, y, facing yaw) of each field's object
+    clearance: jax.Array  # (S, ny, nx) float32 signed wall clearance (m) on the field grid (the expert's)
     # per episode
     scene_index: jax.Array  # (N,)
     activity_b: jax.Array
@@ -122,6 +124,7 @@ def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int =
     ny = max(n.grid.shape[0] for n in split.navs)
     nx = max(n.grid.shape[1] for n in split.navs)
     fields = np.full((len(split.navs), k, ny, nx), np.inf, np.float16)
+    clearance = np.full((len(split.navs), ny, nx), -cell, np.float32)  # padding reads as blocked
     origin = np.zeros((len(split.navs), 2), np.float32)
     field_cat = np.full((len(split.navs), k), -1, np.int32)
     field_stand = np.zeros((len(split.navs), k, 3), np.float32)
@@ -132,6 +135,7 @@ def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int =
             field_cat[s, j] = scene.objects[int(nav.field_object[j])].category_index
             field_stand[s, j] = nav.stand_poses[j]
         origin[s] = nav.grid.origin
+        clearance[s, :gy, :gx] = clearance_map(nav.grid.free, cell)
     e = split.episodes
     return EpisodeBank(
         col_lo=jnp.asarray(col_lo),
@@ -146,6 +150,7 @@ def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int =
         field_origin=jnp.asarray(origin),
         field_category=jnp.asarray(field_cat),
         field_stand=jnp.asarray(field_stand),
+        clearance=jnp.asarray(clearance),
         scene_index=jnp.asarray(e["scene_index"]),
         activity_b=jnp.asarray(e["activity_b"]),
         object_b=jnp.asarray(e["object_b"]),

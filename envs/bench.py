@@ -216,3 +216,72 @@ def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mes
         ("env_steps_per_s" if what == "step" else "frames_per_s"): round(rate, 1),
         "peak_bytes_in_use": _memory_bytes(),
     }
+
+
+def bench_render(env, batch: int, repeats: int, steps: int = 10, rays: tuple[str, ...] = ("panorama", "pinhole"),
+                 check_batch: int = 64, topology_episode: int | None = 0) -> dict:
+    """`conav bench render`: our caster (ConavEnv.render_at with the env's sensor kind) against
+    MuJoCo Warp's batch renderer (envs.mjwarp_render: four cameras = one panorama) on the same
+    frames: `batch` robots at their episodes' start positions, random yaws, the humanoid at a
+    random step; `steps` frames per jitted call, each an RGB-D panorama (B, H, W, 4) as the env
+    observes it. Per renderer: panoramas/s (median of `repeats` calls), compile + first call
+    seconds, XLA's memory for the program (temporaries, which hold MuJoCo Warp's output buffers)
+    and the device's peak bytes in use after it (the process's peak so far: our caster is timed
+    first). For MuJoCo Warp also: the render context's creation time and the bytes Warp keeps
+    for it (BVH, bounds, ray table), and per-pixel agreement with our caster on `check_batch`
+    worlds (envs.mjwarp_render.compare_with_caster) from a second context with segmentation.
+    MuJoCo Warp's BVH topology is built from episode `topology_episode`'s scene (None: from the
+    model's padding poses; envs.mjwarp_render.seed_topology)."""
+    from envs import mjwarp_render
+
+    cfg = env.config.sensor
+    n = env.num_episodes
+    b = env.bank
+
+    def frames(count: int, key):
+        episodes = jnp.arange(count) % n
+        k_yaw, k_t = jax.random.split(key)
+        yaw = jax.random.uniform(k_yaw, (count,), minval=-jnp.pi, maxval=jnp.pi)
+        poses = b.robot_start[episodes].at[:, 2].set(yaw)
+        t = (jax.random.uniform(k_t, (count,)) * (b.t_end[episodes] + 1)).astype(jnp.int32)
+        return episodes, poses, t
+
+    def timed(render) -> dict:
+        def run(key):
+            def body(total, k):
+                rgbd, _ = render(*frames(batch, k))
+                return total + rgbd.mean(), None  # every pixel of every channel is read
+
+            total, _ = jax.lax.scan(body, jnp.zeros(()), jax.random.split(key, steps))
+            return total
+
+        t0 = time.perf_counter()
+        compiled = jax.jit(run).lower(jax.random.PRNGKey(0)).compile()
+        compile_s = time.perf_counter() - t0
+        first_s, med = _time(compiled, repeats)
+        mem = compiled.memory_analysis()
+        return {
+            "panoramas_per_s": round(batch * steps / med, 1),
+            "median_call_s": round(med, 4),
+            "compile_and_first_call_s": round(compile_s + first_s, 2),
+            "xla_temp_bytes": None if mem is None else int(mem.temp_size_in_bytes),
+            "peak_bytes_in_use": _memory_bytes(),
+        }
+
+    out = {"device": jax.devices()[0].device_kind, "batch": batch, "resolution": f"{cfg.height}x{cfg.width}",
+           "steps_per_call": steps, "what": "render", "ours": {"sensor": cfg.kind, **timed(jax.vmap(env.render_at))}}
+    check = frames(min(batch, check_batch), jax.random.PRNGKey(12345))
+    for layout in rays:
+        r = mjwarp_render.make_renderer(env, batch, layout, topology_episode=topology_episode)
+        res = {"rays": layout, "cameras": mjwarp_render.NUM_CAMERAS,
+               "camera_resolution": f"{cfg.height}x{cfg.width // mjwarp_render.NUM_CAMERAS}",
+               "bvh_topology_episode": topology_episode,
+               **timed(lambda e, p, t, renderer=r: mjwarp_render.render_panorama(renderer, e, p, t)),
+               "context_create_s": round(r.context_create_s, 3),
+               "warp_context_bytes": r.warp_live_bytes, "warp_create_peak_bytes": r.warp_peak_bytes}
+        del r  # the context's buffers go with it, before the checking context is made
+        checker = mjwarp_render.make_renderer(env, int(check[0].shape[0]), layout, segmentation=True,
+                                              topology_episode=topology_episode)
+        res["agreement"] = mjwarp_render.compare_with_caster(checker, *check)
+        out[f"mjwarp_{layout}"] = res
+    return out

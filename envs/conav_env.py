@@ -16,10 +16,18 @@ An episode ends when the human finishes activity B (`t_end`), or, with
 `EnvConfig.end_at_reach`, when the robot first reaches the goal. After it ends further steps
 leave the state unchanged, so a fixed-length `lax.scan` over a batch of episodes of different
 lengths reads every episode's result at its end.
+
+Physics runs on MJX's JAX implementation or on MuJoCo Warp (PhysicsConfig.impl). MuJoCo Warp's
+contact buffer is one for all the worlds of a batch (not one per world), so it cannot be merged
+per env with `jnp.where` as brax's AutoResetWrapper, the frozen ended episode and the rollout's
+lane refill do. It is scratch, rewritten by every substep's collision pass: the State's data
+holds the per-world fields only, and `_physics` hands MuJoCo Warp fresh buffers for the
+substeps of a control step. With impl="jax" nothing is held back.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import jax
@@ -36,9 +44,17 @@ from conav_jax.geometry import to_frame, wrap_angle
 from conav_jax.nav.planning import field_value
 from envs import contact
 from envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
-from envs.config import EnvConfig, resolve_sensor_kind
+from envs.config import EnvConfig, resolve_physics_impl, resolve_sensor_kind
 from envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_poses, quat_z_to
-from envs.mjcf import UD, GeomLayout, build_model, robot_body_id
+from envs.mjcf import (
+    UD,
+    GeomLayout,
+    build_model,
+    make_data,
+    robot_body_id,
+    servo_error_limits,
+    warp_lost_contact_bits,
+)
 from envs.panorama import (
     SceneGeometry,
     caster_for,
@@ -48,6 +64,17 @@ from envs.panorama import (
 )
 
 ROBOT_RGB = np.array([0.3, 0.3, 0.32], np.float32)
+
+
+class BankView:
+    """`env.bank`, looked up on every attribute read rather than once: an agent that keeps a
+    BankView (not the bank) reads the bank bound at trace time (ConavEnv.bound_bank)."""
+
+    def __init__(self, env: "ConavEnv"):
+        self._env = env
+
+    def __getattr__(self, name: str):
+        return getattr(self._env.bank, name)
 
 
 class ConavEnv(Env):
@@ -74,16 +101,25 @@ class ConavEnv(Env):
                 raise ValueError("ConavEnv needs data_dir (a generated dataset) or episodes=")
             episodes = load_split(data_dir, split, max_episodes=max_episodes)
         config = config or EnvConfig()
-        # "auto" becomes the caster this machine runs (pallas on one GPU, else fast).
+        # "auto" becomes the caster this machine runs (pallas on one GPU, else fast), and the
+        # physics implementation (warp on one CUDA GPU with warp-lang, else jax).
         sensor = dataclasses.replace(config.sensor, kind=resolve_sensor_kind(config.sensor.kind))
-        self.config = dataclasses.replace(config, sensor=sensor)
+        physics = dataclasses.replace(config.physics, impl=resolve_physics_impl(config.physics.impl))
+        self.config = dataclasses.replace(config, sensor=sensor, physics=physics)
         self.task: TaskConfig = episodes.config.task
         self.split = episodes
         self.bank: EpisodeBank = build_bank(episodes)
         slots = min(self.config.physics.collision_slots, self.bank.col_slots)
         self.layout = GeomLayout(self.bank.col_slots, self.bank.vis_slots, slots)
         self.mj_model, self.mjx_model = build_model(self.layout, self.task, self.config.physics)
-        self._data0 = mjx.make_data(self.mjx_model)
+        data0 = make_data(self.mj_model, self.mjx_model, self.layout, self.config.physics)
+        self._shared = shared_buffer_shapes(data0)  # MuJoCo Warp's all-worlds buffers: not in the State
+        self._data0 = without_shared_buffers(data0, self._shared)
+        self._servo_error_limits = servo_error_limits(self.config.physics)
+        self._lost_bits = warp_lost_contact_bits() if physics.impl == "warp" else 0
+        # The mjx.ray reference sensor is JAX code that reads geometry only: it renders from a JAX
+        # model whatever runs the physics.
+        self._render_base = self.mjx_model if physics.impl == "jax" else mjx.put_model(self.mj_model)
         self._robot_body = robot_body_id(self.mj_model)
         substeps = self.task.control_dt_s / self.config.physics.timestep_s
         if abs(substeps - round(substeps)) > 1e-6:
@@ -109,6 +145,28 @@ class ConavEnv(Env):
     def backend(self) -> str:
         return "mjx"
 
+    @contextlib.contextmanager
+    def bound_bank(self, bank: EpisodeBank):
+        """Within the block the env (and every agent reading `env.bank` as it acts) uses `bank`,
+        e.g. a jitted function's argument: traced there, the episode arrays enter the compiled
+        program as an argument instead of as constants (on the paper's val split the humanoid's
+        joints alone are 726 MB, which XLA would copy into the program and compile around).
+        ValueError for a bank of another structure or shape."""
+        if jax.tree.structure(bank) != jax.tree.structure(self.bank) or any(
+                a.shape != b.shape for a, b in zip(jax.tree.leaves(bank), jax.tree.leaves(self.bank))):
+            raise ValueError("bound_bank needs a bank of the env's own structure and shapes")
+        saved, self.bank = self.bank, bank
+        try:
+            yield self
+        finally:
+            self.bank = saved
+
+    @property
+    def bank_view(self) -> "BankView":
+        """The episode bank as agents should hold it: read when they act, so a bank bound by
+        `bound_bank` (a compiled program's argument) is what they read."""
+        return BankView(self)
+
     @property
     def num_episodes(self) -> int:
         return self.bank.num_episodes
@@ -130,7 +188,7 @@ class ConavEnv(Env):
         d = self._pose_human(d, episode, jnp.int32(0))
         geo = self._goal_distance(episode, start[:2])
         ud = jnp.zeros(len(UD)).at[UD["t_reach"]].set(-1.0).at[UD["prev_geodesic_m"]].set(geo)
-        d = mjx.forward(m, d.replace(userdata=ud))
+        d = self._forward(m, d.replace(userdata=ud))
         obs = self._observe(m, d, episode)
         return State(
             pipeline_state=d,
@@ -142,21 +200,29 @@ class ConavEnv(Env):
         )
 
     def step(self, state: State, action: jax.Array) -> State:
-        """One control step; actions with a NaN act as zero and are counted in metrics."""
+        """One control step. `action` (2,) = (v_lin, v_ang) in [-1, 1]; or (3,) = a pose (x m,
+        y m, yaw rad) the robot is put at before the step's physics (an oracle pathfinder's
+        move: privileged agents only; it counts in the path length, and contacts at the new
+        pose count as any other). Actions with a NaN act as zero (stay put) and are counted."""
         action = jnp.asarray(action)
-        if action.shape != (2,):
-            raise ValueError(f"action must have shape (2,) = (v_lin, v_ang) per environment, got {action.shape}")
+        if action.shape not in ((2,), (3,)):
+            raise ValueError("action must have shape (2,) = (v_lin, v_ang), or (3,) = a pose (x, y, yaw) for "
+                             f"oracle movers, per environment; got {action.shape}")
         episode = state.info["episode"]
         b, task = self.bank, self.task
         d0 = state.pipeline_state
         ud0 = d0.userdata
         is_nan = jnp.any(jnp.isnan(action))
-        a = jnp.clip(jnp.where(is_nan, 0.0, action), -1.0, 1.0)
-        v, w = a[0] * task.v_max_mps, a[1] * task.w_max_radps
         t = ud0[UD["t"]].astype(jnp.int32) + 1
+        if action.shape == (3,):  # put at the pose, then the physics of standing still
+            pose = jnp.where(is_nan, d0.qpos, action.astype(d0.qpos.dtype))
+            d_start, v, w = d0.replace(qpos=pose, qvel=jnp.zeros_like(d0.qvel)), 0.0, 0.0
+        else:
+            a = jnp.clip(jnp.where(is_nan, 0.0, action), -1.0, 1.0)
+            d_start, v, w = d0, a[0] * task.v_max_mps, a[1] * task.w_max_radps
 
-        m = self._episode_model(episode, d0.qpos[:2])
-        d = self._pose_human(d0, episode, t)
+        m = self._episode_model(episode, d_start.qpos[:2])
+        d = self._pose_human(d_start, episode, t)
         d = self._physics(m, d, v, w)
 
         xy = d.qpos[:2]
@@ -215,14 +281,34 @@ class ConavEnv(Env):
     def _physics(self, m: mjx.Model, d: mjx.Data, v: jax.Array, w: jax.Array) -> mjx.Data:
         """The MJX substeps of one control step, the robot servoed to (v m/s, w rad/s)."""
 
+        lim = self._servo_error_limits
+
         def substep(d, _):
             yaw = d.qpos[2]
-            d = d.replace(ctrl=jnp.stack([v * jnp.cos(yaw), v * jnp.sin(yaw), w]))
-            return mjx.step(m, d), None
+            ctrl = jnp.stack([v * jnp.cos(yaw), v * jnp.sin(yaw), w])
+            if lim is not None:  # the servos' force limits, as velocity errors (envs.mjcf.build_mjcf)
+                ctrl = d.qvel + jnp.clip(ctrl - d.qvel, -lim, lim)
+            return mjx.step(m, d.replace(ctrl=ctrl)), None
 
-        d, _ = jax.lax.scan(substep, d, None, length=self._substeps,
+        d, _ = jax.lax.scan(substep, self._mjx_data(m, d), None, length=self._substeps,
                             unroll=min(self.config.physics.substep_unroll, self._substeps))
-        return d
+        return without_shared_buffers(d, self._shared)
+
+    def _forward(self, m: mjx.Model, d: mjx.Data) -> mjx.Data:
+        """mjx.forward on the State's data (positions and velocities to everything derived)."""
+        return without_shared_buffers(mjx.forward(m, self._mjx_data(m, d)), self._shared)
+
+    def _mjx_data(self, m: mjx.Model, d: mjx.Data) -> mjx.Data:
+        """The State's data as MJX steps it in the episode model `m`. With impl="warp": fresh
+        all-worlds contact buffers, and the physics slots' world positions: MuJoCo Warp takes
+        geoms of the world body for static and computes their poses once, in make_data, while
+        ours follow the robot (`_episode_model`). The world body's frame is the identity and the
+        boxes are unrotated, so a slot's world position is its geom_pos."""
+        if self.config.physics.impl == "jax":
+            return d
+        sl = slice(self.layout.physics_start, self.layout.robot)
+        d = d.replace(geom_xpos=d.geom_xpos.at[sl].set(m.geom_pos[sl]))
+        return with_shared_buffers(d, self._shared)
 
     def _episode_model(self, episode: jax.Array, robot_xy: jax.Array, render: bool = False) -> mjx.Model:
         """The shared MJX model with this episode's blocking boxes nearest `robot_xy` in the
@@ -241,12 +327,14 @@ class ConavEnv(Env):
             start = lay.col_start
         pos, size = (lo + hi) / 2.0, (hi - lo) / 2.0
         sl = slice(start, stop)
-        mm = self.mjx_model
+        mm = self._render_base if render else self.mjx_model
+        # Local AABB (centre, half-size): (ngeom, 6) in JAX's model, (ngeom, 2, 3) in Warp's.
+        aabb = jnp.concatenate([jnp.zeros_like(size), size], axis=-1).reshape(size.shape[:1] + mm.geom_aabb.shape[1:])
         return mm.replace(
             geom_pos=mm.geom_pos.at[sl].set(pos),
             geom_size=mm.geom_size.at[sl].set(size),
             geom_rbound=mm.geom_rbound.at[sl].set(jnp.linalg.norm(size, axis=-1)),
-            geom_aabb=mm.geom_aabb.at[sl].set(jnp.concatenate([jnp.zeros_like(size), size], axis=-1)),
+            geom_aabb=mm.geom_aabb.at[sl].set(aabb),
         )
 
     def human_joints(self, episode: jax.Array, t: jax.Array) -> jax.Array:
@@ -357,4 +445,33 @@ class ConavEnv(Env):
         out["t_end"] = b.t_end[episode].astype(jnp.float32)
         out["geodesic_start_goal_m"] = b.geodesic_start_goal_m[episode]
         out["shortest_path_steps"] = b.shortest_path_steps[episode]
+        if self.config.physics.impl == "warp":  # 1: MuJoCo Warp dropped contacts (PhysicsConfig.warp_max_worlds)
+            out["physics_overflow"] = ((d._impl.overflow & self._lost_bits) != 0).astype(jnp.float32)
         return out
+
+
+def shared_buffer_shapes(d: mjx.Data) -> dict[str, jax.ShapeDtypeStruct]:
+    """The arrays of MuJoCo Warp's data that are one for all worlds (contacts and their counters),
+    by field name; none for MJX's JAX data."""
+    if d.impl != mjx.Impl.WARP:
+        return {}
+    from mujoco.mjx.warp.types import DATA_NON_VMAP
+
+    return {
+        name: jax.ShapeDtypeStruct(x.shape, x.dtype)
+        for name in sorted(DATA_NON_VMAP)
+        if isinstance(x := getattr(d._impl, name), jax.Array)
+    }
+
+
+def without_shared_buffers(d: mjx.Data, shared: dict) -> mjx.Data:
+    """`d` without the all-worlds buffers (None: no leaves), so every leaf is per world."""
+    return d.replace(_impl=d._impl.replace(**dict.fromkeys(shared))) if shared else d
+
+
+def with_shared_buffers(d: mjx.Data, shared: dict) -> mjx.Data:
+    """`d` with fresh all-worlds buffers: zeros do, since each collision pass starts by zeroing
+    the contact counters and writes every contact it reports."""
+    if not shared:
+        return d
+    return d.replace(_impl=d._impl.replace(**{k: jnp.zeros(v.shape, v.dtype) for k, v in shared.items()}))

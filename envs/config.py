@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 SENSOR_KINDS = ("auto", "fast", "pallas", "reference")
+PHYSICS_IMPLS = ("auto", "jax", "warp")
 
 
 def resolve_sensor_kind(kind: str) -> str:
@@ -20,6 +21,44 @@ def resolve_sensor_kind(kind: str) -> str:
     import jax
 
     return "pallas" if jax.default_backend() == "gpu" and jax.device_count() == 1 else "fast"
+
+
+def resolve_physics_impl(impl: str) -> str:
+    """The MJX implementation `impl` names; "auto" is "warp" (MuJoCo Warp through JAX's FFI) when
+    warp-lang imports and the default JAX device is a single visible CUDA GPU, else "jax". XLA's
+    partitioner cannot split the FFI call over a device mesh: it gathers the whole batch onto
+    every device around it (363 all-gathers in one env step on two devices), so each device
+    would step every world. An explicit "warp" runs anyway, and on the CPU too (Warp compiles
+    its kernels for it; the tests run it there)."""
+    if impl not in PHYSICS_IMPLS:
+        raise ValueError(f"physics impl must be one of {PHYSICS_IMPLS}, got {impl!r}")
+    if impl == "jax":
+        return impl
+    has_warp = _warp_imports()
+    if impl == "warp":
+        if not has_warp:
+            raise ImportError('physics impl "warp" needs warp-lang: pip install -e ".[warp]"')
+        return impl
+    return "warp" if has_warp and _single_cuda_device() else "jax"
+
+
+def _warp_imports() -> bool:
+    try:
+        import warp  # noqa: F401
+    except (ImportError, RuntimeError):  # RuntimeError: a warp-lang that cannot initialise
+        return False
+    return True
+
+
+def _single_cuda_device() -> bool:
+    import jax
+
+    if jax.default_backend() != "gpu" or jax.device_count() != 1:
+        return False
+    try:
+        return jax.devices()[0] in jax.devices("cuda")
+    except RuntimeError:  # a GPU backend other than CUDA (ROCm): MuJoCo Warp does not run there
+        return False
 
 
 @dataclass(frozen=True)
@@ -93,6 +132,26 @@ class PhysicsConfig:
     # fuse across substeps, but on an H100 10 was no faster (352k vs 358k env steps/s at 32x128)
     # and compiled 2.6x longer; `conav bench sim --physics substep_unroll=N` times it.
     substep_unroll: int = 1
+    # MJX implementation: "jax" (XLA), "warp" (MuJoCo Warp kernels through JAX's FFI; needs
+    # warp-lang, `pip install -e ".[warp]"`), or "auto": warp where warp-lang imports and the
+    # default device is a single CUDA GPU, else jax (resolve_physics_impl). Same model, servos and solver
+    # budget: random drives on the tiny val episodes agree to 1 um and count the same contacts
+    # (tests/test_warp_physics.py). They part where MJX's JAX collision functions differ from
+    # MuJoCo's, which Warp follows: JAX finds no contact between the robot and a box's vertical
+    # edge (a robot rounding a corner cuts into it, 17 mm seen) and one, not two, between
+    # parallel capsules (the robot and a standing human's legs: mm-scale differences in how
+    # fast they separate).
+    impl: str = "auto"
+    # impl="warp": MuJoCo Warp keeps ONE contact buffer for all the worlds (envs) a step serves,
+    # naconmax = warp_max_worlds x the robot's worst case per world (2 contacts per robot-box slot
+    # and per robot-capsule pair: 38 with 8 slots and 11 capsules; envs.mjcf.warp_data_sizes), about
+    # 200 bytes per contact with its scratch (250 MB at the default). A batch up to
+    # warp_max_worlds never loses a contact. A larger one loses some only when, at a substep, its
+    # contacts outnumber naconmax: MuJoCo Warp then drops the ones past it (a robot may pass into
+    # a wall), prints "narrowphase overflow" (or "broadphase overflow") on every such substep, and
+    # flags every world of the batch, whose episodes' metrics["physics_overflow"] read 1.
+    # Constraint rows (njmax) are per world, sized for the same worst case: they cannot overflow.
+    warp_max_worlds: int = 32768
 
     def __post_init__(self):
         for name in ("timestep_s", "robot_mass_kg", "kv_linear", "kv_angular", "force_limit_n", "torque_limit_nm"):
@@ -100,9 +159,11 @@ class PhysicsConfig:
                 raise ValueError(f"physics {name} must be positive, got {getattr(self, name)}")
         if self.contact_condim not in (1, 3):
             raise ValueError(f"physics contact_condim must be 1 or 3, got {self.contact_condim}")
-        for name in ("collision_slots", "solver_iterations", "ls_iterations", "substep_unroll"):
+        for name in ("collision_slots", "solver_iterations", "ls_iterations", "substep_unroll", "warp_max_worlds"):
             if getattr(self, name) < 1:
                 raise ValueError(f"physics {name} must be at least 1, got {getattr(self, name)}")
+        if self.impl not in PHYSICS_IMPLS:
+            raise ValueError(f"physics impl must be one of {PHYSICS_IMPLS}, got {self.impl!r}")
 
 
 @dataclass(frozen=True)

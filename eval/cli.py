@@ -68,8 +68,8 @@ def _devices_arg(p: argparse.ArgumentParser) -> None:
 
 def _intention_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--intention", default=None, metavar="RUN",
-                   help="conav/ppo: intention predictor run (`conav train intention`; default for conav: the one "
-                   "the policy run names)")
+                   help="conav/ppo/objectgoal-predicted: intention predictor run (`conav train intention`; default "
+                   "for conav: the one the policy run names)")
     p.add_argument("--trajectory", default=None, metavar="RUN",
                    help="conav/ppo: trajectory predictor run (`conav train trajectory`; default for conav: the "
                    "one the policy run names)")
@@ -270,16 +270,34 @@ def _add_train(sub) -> None:
     models = train.add_subparsers(dest="model", metavar="MODEL", required=True)
 
     p = models.add_parser("intention", help="train the intention (activity/object B) Perceiver")
-    _train_args(p, TrainConfig(steps=3000, batch=64, lr=3e-4, weight_decay=0.01))
-    p.add_argument("--frames", type=int, default=IntentionDataConfig.frames, help="frames per episode (F)")
-    p.add_argument("--sensor", type=parse_resolution, default=IntentionDataConfig.sensor_hw, metavar="HxW",
-                   help="panorama HxW rendered, front view H x W/4 (default 32x128)")
-    p.add_argument("--image", type=parse_resolution, default=PerceiverConfig.image_hw, metavar="HxW",
-                   help="Perceiver input HxW; front views are resized to it (default 32x32)")
+    _train_args(p, TrainConfig(steps=6000, batch=64, lr=3e-4, weight_decay=0.01))
+    dd, dm = IntentionDataConfig(), PerceiverConfig()
+    p.add_argument("--frames", type=int, default=dd.frames, help=f"frames per episode (F; default {dd.frames})")
+    p.add_argument("--sensor", type=parse_resolution, default=dd.sensor_hw, metavar="HxW",
+                   help="panorama HxW the frames come from; agents acting with the run must render it "
+                   f"(default {dd.sensor_hw[0]}x{dd.sensor_hw[1]})")
+    p.add_argument("--image", type=parse_resolution, default=dm.image_hw, metavar="HxW",
+                   help="Perceiver frame HxW: the crop around the human, in panorama pixels (front view: resized "
+                   f"to it; default {dm.image_hw[0]}x{dm.image_hw[1]})")
+    p.add_argument("--view", choices=("human", "front"), default=dd.view,
+                   help="what a frame shows: the panorama cropped around the human (default) or its front quarter "
+                   "(the input before the crop)")
+    p.add_argument("--viewpoints", type=int, default=dd.viewpoints,
+                   help="robot poses each train episode is rendered from: its start pose, then poses drawn around "
+                   f"the human (default {dd.viewpoints}; 16 frames of 64x64 take 0.26 GB of device memory per 1,000 "
+                   "episodes and viewpoint)")
+    p.add_argument("--dim", type=int, default=dm.dim, help=f"Perceiver token and latent width (default {dm.dim})")
+    p.add_argument("--latents", type=int, default=dm.num_latents, help=f"latent array length (default {dm.num_latents})")
+    p.add_argument("--blocks", type=int, default=dm.num_blocks,
+                   help=f"latent self-attention blocks (default {dm.num_blocks})")
     p.add_argument("--no-activity-a-head", dest="activity_a_head", action="store_false",
-                   help="predict B with the direct heads only (no activity-A head, no activity graph)")
-    p.add_argument("--graph-mix", type=float, default=PerceiverConfig.graph_mix,
-                   help=f"weight of the activity-graph route in the predictions (default {PerceiverConfig.graph_mix})")
+                   help="predict B with the direct heads only (no activity-A head, no graph prior)")
+    p.add_argument("--graph-mix", type=float, default=dm.graph_mix,
+                   help="weight of the graph route (the watched activity A through the generator's own activity "
+                   f"graph, a structural prior) in the predictions (default {dm.graph_mix})")
+    p.add_argument("--val-split", default="minival",
+                   help="split validated on (default minival: hyper-parameters are chosen there, never on the "
+                   "reported val split)")
     p.set_defaults(func=_run_train_intention)
 
     p = models.add_parser("trajectory", help="train the trajectory (short-term intention) predictor")
@@ -343,6 +361,43 @@ def _add_train(sub) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _devices_arg(p)
     p.set_defaults(func=_run_train_rl)
+    _add_train_goalnav(models)
+
+
+def _add_train_goalnav(models) -> None:
+    """`conav train objectnav` and `conav train imagenav`: the learned goal-navigation baselines."""
+    from conav_jax.models.policy import PolicyConfig
+    from train.loop import TrainConfig
+    from train.policy import ImitationConfig
+
+    d = ImitationConfig()
+    for name, what in (("objectnav", "the object-goal agent (after ZSON): panorama, GPS+compass and a goal category, "
+                        "imitating the object-goal planner (nearest instance of object B's category)"),
+                       ("imagenav", "the image-goal agent (after FGPrompt): panorama, GPS+compass and a goal image "
+                        "taken at the goal, imitating the geodesic planner to the goal")):
+        p = models.add_parser(name, help=f"imitation-train {what.split(':')[0]} (BC, then DAgger)",
+                              description=f"Imitation-train {what}: behaviour cloning, then DAgger rounds, in the "
+                              "train scenes, validated on minival; no human task and no human position. Evaluate "
+                              f"the run with `conav eval --agent {'objectgoal-oracle|objectgoal-predicted' if name == 'objectnav' else 'imagegoal'} "
+                              "--checkpoint RUN`.")
+        _train_args(p, TrainConfig(steps=2000, batch=16, lr=3e-4, warmup_steps=100, val_every=1000, ckpt_every=500))
+        p.add_argument("--dagger-rounds", type=int, default=d.dagger_rounds,
+                       help="DAgger rounds after behaviour cloning (a finished run resumes with more)")
+        p.add_argument("--dagger-steps", type=int, default=None,
+                       help="updates per DAgger round (default: --steps); a resumed run may change it for the rounds to come")
+        _resolution_arg(p, "rendered and read by the policy")
+        p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
+        p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
+        p.add_argument("--val-split", default=d.val_split, help=f"split validated on (default {d.val_split})")
+        p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
+        p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
+        p.add_argument("--rollout-batch", type=int, default=d.rollout_batch, help="episodes per simulator call")
+        p.add_argument("--remat", action="store_true", help="recompute the CNN per window step in the backward pass")
+        if name == "objectnav":
+            p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
+                           help="also read the goal category as a saliency map over the panorama (the pixels of "
+                           "that category: oracle segmentation, recorded as privileged; default: on)")
+        p.set_defaults(func=_run_train_goalnav)
 
 
 def _run_train_intention(args: argparse.Namespace) -> int:
@@ -350,23 +405,32 @@ def _run_train_intention(args: argparse.Namespace) -> int:
     from train.intention import IntentionDataConfig, train_intention
     from train.loop import NonFiniteLoss
 
-    data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames)
-    model = PerceiverConfig(image_hw=args.image, activity_a_head=args.activity_a_head, graph_mix=args.graph_mix)
+    data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames, view=args.view, viewpoints=args.viewpoints)
+    model = PerceiverConfig(image_hw=args.image, dim=args.dim, num_latents=args.latents, num_blocks=args.blocks,
+                            activity_a_head=args.activity_a_head, graph_mix=args.graph_mix)
     try:
         result = train_intention(args.data, args.out, _train_config(args), model, data, progress=not args.no_progress,
-                                 mesh=_mesh(args))
+                                 mesh=_mesh(args), val_split=args.val_split)
     except NonFiniteLoss as e:
         print(f"conav train intention: {e}")
         return 1
-    v = result.val
-    print(f"intention run: {result.run_dir} ({result.step} steps)")
-    for head in ("activity", "object"):
-        print(f"val {head}: top-1 {v[f'{head}_top1']:.3f}, top-5 {v[f'{head}_top5']:.3f} "
-              f"(prior {v[f'prior_{head}_top1']:.3f} / {v[f'prior_{head}_top5']:.3f}, "
-              f"chance {v[f'chance_{head}_top1']:.3f} / {v[f'chance_{head}_top5']:.3f})")
-    if "activity_a_top1" in v:
-        print(f"val watched activity A: top-1 {v['activity_a_top1']:.3f} (chance {1 / model.num_activities:.3f})")
-    print(f"val frames showing the human: {v['val_frames_with_human']:.1%}")
+    v, split = result.val, args.val_split
+    print(f"intention run: {result.run_dir} ({result.step} steps), validated on {split}")
+    for head, name in (("activity", "activity B"), ("object", "object B")):
+        top = lambda suffix: f"top-1 {v[f'{head}_top1{suffix}']:.3f}, top-5 {v[f'{head}_top5{suffix}']:.3f}"  # noqa: E731
+        w = model.graph_mix if model.activity_a_head else 0.0
+        print(f"{split} {name}: {top('')} (the predictor's output: {1 - w:.2f} direct heads + {w:.2f} graph prior)")
+        if model.activity_a_head:
+            print(f"    direct heads, no graph prior: {top('_direct')}")
+            print(f"    watched A through the generator's activity graph alone (structural prior): "
+                  f"{top('_generator_graph_prior')}")
+        print(f"    prior (most frequent B given the true A) {v[f'prior_{head}_top1']:.3f} / "
+              f"{v[f'prior_{head}_top5']:.3f}, chance {v[f'chance_{head}_top1']:.3f} / {v[f'chance_{head}_top5']:.3f}")
+    if model.activity_a_head:
+        print(f"{split} watched activity A: top-1 {v['activity_a_top1']:.3f}, top-5 {v['activity_a_top5']:.3f} "
+              f"(chance {1 / model.num_activities:.3f})")
+    print(f"{split} frames showing the human: {v['val_frames_with_human']:.1%}; "
+          f"the human's pixels inside the frames: {v['val_human_pixels_in_view']:.1%}")
     return 0
 
 
@@ -451,6 +515,35 @@ def _run_train_rl(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_train_goalnav(args: argparse.Namespace) -> int:
+    from envs.agents.registry import run_resolution
+    from train import goalnav
+    from train.loop import NonFiniteLoss
+    from train.policy import ImitationConfig
+
+    imitation = ImitationConfig(
+        episodes=args.episodes, val_episodes=args.val_episodes, val_split=args.val_split,
+        dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps, seq_len=args.seq_len, burn_in=args.burn_in,
+        rollout_batch=args.rollout_batch,
+    )
+    hw = run_resolution([], args.resolution)
+    if args.model == "objectnav":
+        model, train = goalnav.objectnav_model(hw, args.object_saliency), goalnav.train_objectnav
+    else:
+        model, train = goalnav.imagenav_model(hw), goalnav.train_imagenav
+    try:
+        result = train(args.data, args.out, _train_config(args), model, imitation, progress=not args.no_progress,
+                       mesh=_mesh(args), remat=args.remat)
+    except NonFiniteLoss as e:
+        print(f"conav train {args.model}: {e}")
+        return 1
+    rates = lambda m: f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"  # noqa: E731
+    print(f"{args.model} run: {result.run_dir}")
+    print(f"{imitation.val_split} planner (ceiling): {rates(result.expert_val)}")
+    print(f"{imitation.val_split} policy:            {rates(result.val)}")
+    return 0
+
+
 # -- conav eval, view, curve ---------------------------------------------------------------------
 
 
@@ -462,7 +555,11 @@ def _add_eval(sub) -> None:
     p.add_argument("--split", default="val")
     p.add_argument("--agent", required=True,
                    help="comma-separated agent names: " + "; ".join(f"{k} ({s.summary})" for k, s in AGENTS.items()))
-    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    p.add_argument("--checkpoint", default=None, metavar="RUN | AGENT=RUN,...",
+                   help="run dir of the learned agents (conav, ppo, objectgoal-oracle, objectgoal-predicted, "
+                   "imagegoal); for several learned agents of different runs, AGENT=RUN per agent, comma-separated "
+                   "(e.g. conav=runs/dagger,objectgoal-oracle=runs/objectnav,objectgoal-predicted=runs/objectnav,"
+                   "imagegoal=runs/imagenav); an entry without AGENT= is the run of the learned agents not named")
     _intention_args(p)
     p.add_argument("--ablation-checkpoints", default=None, metavar="NAME=RUN,...",
                    help="conav runs for the Table 3 ablation; the names none, activity, object, "
@@ -489,12 +586,28 @@ def parse_ablations(text: str | None) -> tuple[tuple[str, str], ...]:
     return tuple(out)
 
 
+def parse_checkpoints(text: str | None) -> str | dict[str | None, str] | None:
+    """`RUN` -> RUN; `AGENT=RUN,...` (with at most one bare RUN: the other learned agents') ->
+    {agent: run, None: run}."""
+    if not text or "=" not in text:
+        return text
+    out: dict[str | None, str] = {}
+    for item in text.split(","):
+        name, sep, run = item.strip().partition("=")
+        name, run = (name, run) if sep else (None, name)
+        if name == "" or not run or name in out:
+            raise ValueError(f"--checkpoint entries look like AGENT=RUN_DIR (at most one bare RUN_DIR, each agent "
+                             f"once), got {item!r}")
+        out[name] = run
+    return out
+
+
 def _run_eval(args: argparse.Namespace) -> int:
     from eval import sweep
 
     plan = sweep.plan_eval(
         args.data, args.split, tuple(n.strip() for n in args.agent.split(",") if n.strip()), args.out,
-        checkpoint=args.checkpoint, intention_kwargs=_intention_kwargs(args),
+        checkpoint=parse_checkpoints(args.checkpoint), intention_kwargs=_intention_kwargs(args),
         ablations=parse_ablations(args.ablation_checkpoints), episodes=args.episodes, batch=args.batch,
         seed=args.seed, resolution=args.resolution, devices=args.devices,
     )
@@ -515,7 +628,8 @@ def _add_view(sub) -> None:
     p.add_argument("--split", default="val")
     p.add_argument("--episode", type=int, required=True, help="episode index within the split")
     p.add_argument("--agent", default="pioneer", help=f"who drives the robot: {', '.join(AGENTS)}")
-    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    p.add_argument("--checkpoint", default=None,
+                   help="run dir of the learned agent (conav, ppo, objectgoal-oracle, objectgoal-predicted, imagegoal)")
     _intention_args(p)
     _resolution_arg(p, "(default with a trained run: the run's)")
     p.add_argument("--seed", type=int, default=0)
@@ -587,6 +701,98 @@ def _run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- conav reproduce ------------------------------------------------------------------------------
+
+
+def _add_reproduce(sub) -> None:
+    from eval.reproduce import BUDGETS, STAGES
+
+    p = sub.add_parser(
+        "reproduce", help="the paper's Tables 2 and 3: every stage from data to tables, resumable",
+        description="Generate the data, train the predictors, the learned baselines and every CoNav row "
+        "(Table 3's five intention ablations and DAgger, each for --seeds seeds), evaluate every agent on the "
+        "val split and write results.json and tables.md. Stages already done are skipped; a stage cut short "
+        "resumes where it stopped (every training run resumes from its checkpoints).")
+    p.add_argument("--preset", choices=sorted(BUDGETS), default="paper")
+    p.add_argument("--out", required=True, help="output directory (data, runs, eval, results.json, tables.md)")
+    p.add_argument("--seeds", type=int, default=3, help="training seeds of every learned CoNav row (default 3)")
+    p.add_argument("--stage", choices=STAGES, default=None, help="run only this stage (default: every stage not done)")
+    p.add_argument("--resolution", type=parse_resolution, default=(112, 448), metavar="HxW",
+                   help="panorama HxW of every agent (default the paper's 112x448)")
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="dataset generation processes")
+    p.add_argument("--unpack", default=None, metavar="PACK",
+                   help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
+    p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
+    p.set_defaults(func=_run_reproduce)
+
+
+def _run_reproduce(args: argparse.Namespace) -> int:
+    import shutil
+    import subprocess
+
+    from eval import reproduce as rp
+
+    cfg = rp.ReproduceConfig(out=Path(args.out), preset=args.preset, seeds=args.seeds,
+                             resolution=tuple(args.resolution), workers=args.workers)
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    if args.unpack:
+        print(f"unpacked {len(rp.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
+    progress = rp.read_progress(cfg.out)
+    plan = rp.plan_stages(cfg)
+    if not all(p.exists() for p in plan[0].outputs):  # data are regenerated from their seed (a fresh machine)
+        progress["stages"].pop(plan[0].name, None)
+        for argv in plan[0].commands:
+            progress["commands"].pop(rp.command_key(argv, cfg.out), None)
+    stages = [st for st in plan if args.stage in (None, st.name)]
+    # CONAV_COMMIT names the commit of a copy of the tree that is not a git checkout.
+    commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+        cwd=Path(__file__).resolve().parents[1]).stdout.strip() or "unknown"
+    for st in stages:
+        todo = [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]]
+        if args.dry_run:
+            print(f"[{st.name}] {'done' if st.name in progress['stages'] and not todo else 'to run'}")
+            for argv in st.commands:
+                line = f"copy {argv[1]} -> {argv[2]}" if argv[0] == "@copy" else f"conav {shlex.join(argv)}"
+                print(f"  {'(done) ' if rp.command_key(argv, cfg.out) in progress['commands'] else ''}{line}")
+            continue
+        if st.name in progress["stages"] and not todo and st.name != "pack":  # a pack is always of now
+            print(f"[{st.name}] done ({progress['stages'][st.name]:.0f} s), skipped")
+            continue
+        t_stage = time.perf_counter()
+        for argv in todo:
+            print(f"\n$ conav {shlex.join(argv)}" if argv[0] != "@copy" else f"\ncopy {argv[1]} -> {argv[2]}", flush=True)
+            t0 = time.perf_counter()
+            if argv[0] == "@copy":
+                if not Path(argv[2]).exists():
+                    shutil.copytree(argv[1], argv[2])
+            else:
+                rc = main(list(argv), compile_cache=False)  # the cache was set up for the whole command
+                if rc:
+                    print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: conav {shlex.join(argv)}")
+                    return rc
+            progress["commands"][rp.command_key(argv, cfg.out)] = round(time.perf_counter() - t0, 1)
+            rp.write_progress(cfg.out, progress)
+        if st.name == "tables":
+            extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
+                     "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
+                     "stage_seconds": progress["stages"], "command_seconds": progress["commands"]}
+            scripted = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())
+            extra["episodes"] = scripted["episodes"]
+            results = rp.collect_results(cfg.out, cfg.seeds, extra)
+            (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+            (cfg.out / "tables.md").write_text(rp.render_tables(results))
+        if st.name == "pack":
+            path, size = rp.write_pack(cfg, progress)
+            print(f"wrote {path} ({size / 2**20:.1f} MiB)")
+        progress["stages"][st.name] = round(time.perf_counter() - t_stage, 1)
+        rp.write_progress(cfg.out, progress)
+        print(f"[{st.name}] done in {progress['stages'][st.name]:.0f} s", flush=True)
+    if (cfg.out / "tables.md").exists() and not args.dry_run:
+        print((cfg.out / "tables.md").read_text())
+    return 0
+
+
 # -- conav bench -----------------------------------------------------------------------------------
 
 
@@ -635,7 +841,8 @@ def _add_bench(sub) -> None:
     p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
     p.add_argument("--split", default="val")
     p.add_argument("--agent", default="pioneer", help=f"one of {', '.join(AGENTS)}")
-    p.add_argument("--checkpoint", default=None, help="run dir of the conav (or ppo) agent")
+    p.add_argument("--checkpoint", default=None,
+                   help="run dir of the learned agent (conav, ppo, objectgoal-oracle, objectgoal-predicted, imagegoal)")
     _intention_args(p)
     p.add_argument("--batch", type=int, default=256)
     _resolution_arg(p, "(default with a trained run: the run's)")
@@ -648,6 +855,25 @@ def _add_bench(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON line")
     _devices_arg(p)
     p.set_defaults(func=_run_bench_eval)
+
+    p = what.add_parser("render", help="our panorama caster against MuJoCo Warp's batch renderer (needs warp-lang)")
+    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
+    p.add_argument("--split", default="val")
+    p.add_argument("--batch", type=int, nargs="+", default=[1024])
+    p.add_argument("--resolution", type=parse_resolution, nargs="+", default=[(112, 448)], metavar="HxW")
+    p.add_argument("--sensor", choices=[k for k in SENSOR_KINDS if k != "reference"], default="auto",
+                   help="our caster (auto: pallas on one GPU, else fast)")
+    p.add_argument("--rays", choices=["panorama", "pinhole", "both"], default="both",
+                   help="MuJoCo Warp's rays: panorama (our equirectangular rays in its four cameras), "
+                   "pinhole (its perspective cameras), or both")
+    p.add_argument("--steps", type=int, default=10, help="panoramas per robot per timed call")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--check-batch", type=int, default=64, help="worlds the per-pixel agreement is measured on")
+    p.add_argument("--bvh-episode", type=int, default=0,
+                   help="episode whose scene MuJoCo Warp's BVH topology is built from (it only refits it after); "
+                   "-1: the model's padding poses")
+    p.add_argument("--json", action="store_true", help="print one JSON line per resolution and batch")
+    p.set_defaults(func=_run_bench_render)
 
 
 def _run_bench_sim(args: argparse.Namespace) -> int:
@@ -677,9 +903,10 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
                 raise ValueError("the pallas caster runs on one device (XLA cannot partition a Pallas call): "
                                  "use --sensor fast with several devices, or --devices 1")
             for batch in args.batch:
-                res = {"sensor": kind, "resolution": f"{h}x{w}", **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh)}
+                res = {"sensor": kind, "resolution": f"{h}x{w}", "physics_impl": env.config.physics.impl,
+                       **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh)}
                 if args.physics:
-                    res["physics"] = dict(args.physics)
+                    res["physics_overrides"] = dict(args.physics)
                 if kind == "fast":
                     res["fast_min"] = env.config.sensor.fast_min
                 if kind == "pallas":
@@ -689,7 +916,8 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
                 else:
                     rate = res.get("env_steps_per_s", res.get("frames_per_s"))
                     unit = "env steps/s" if args.what == "step" else "panoramas/s"
-                    print(f"{res['device']} sensor={kind} res={h}x{w} batch={batch}: {rate:,.0f} {unit} (median of "
+                    print(f"{res['device']} sensor={kind} physics={res['physics_impl']} res={h}x{w} batch={batch}: "
+                          f"{rate:,.0f} {unit} (median of "
                           f"{args.repeats}), compile {res['compile_and_first_call_s']} s, peak mem {res['peak_bytes_in_use']}",
                           flush=True)
     if tmp is not None:
@@ -755,6 +983,41 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_bench_render(args: argparse.Namespace) -> int:
+    from envs import ConavEnv, EnvConfig, SensorConfig
+    from envs.bench import bench_render
+
+    if min(args.batch) < 1 or args.repeats < 1 or args.steps < 1 or args.check_batch < 1:
+        raise ValueError("--batch, --repeats, --steps and --check-batch must be at least 1")
+    rays = ("panorama", "pinhole") if args.rays == "both" else (args.rays,)
+    tmp = None if args.data is not None else _tiny_dataset()
+    data = args.data or tmp.name
+    for (h, w) in args.resolution:
+        env = ConavEnv(data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w, kind=args.sensor)))
+        for batch in args.batch:
+            res = bench_render(env, batch, args.repeats, args.steps, rays, args.check_batch,
+                               None if args.bvh_episode < 0 else args.bvh_episode)
+            if args.json:
+                print(json.dumps(res), flush=True)
+                continue
+            ours = res["ours"]
+            print(f"{res['device']} res={h}x{w} batch={batch}: ours ({ours['sensor']}) {ours['panoramas_per_s']:,.0f} "
+                  f"panoramas/s, compile {ours['compile_and_first_call_s']} s, XLA temp {ours['xla_temp_bytes']} B, "
+                  f"peak mem {ours['peak_bytes_in_use']}", flush=True)
+            for layout in rays:
+                mj, agree = res[f"mjwarp_{layout}"], res[f"mjwarp_{layout}"]["agreement"]
+                print(f"  MuJoCo Warp ({layout} rays, 4 x {mj['camera_resolution']}): {mj['panoramas_per_s']:,.0f} "
+                      f"panoramas/s, compile {mj['compile_and_first_call_s']} s, context {mj['context_create_s']} s "
+                      f"and {mj['warp_context_bytes']} B, XLA temp {mj['xla_temp_bytes']} B, peak mem "
+                      f"{mj['peak_bytes_in_use']}; depth vs ours on {agree['pixels_compared']} px: max "
+                      f"{agree['depth_abs_diff_max_m']:.4g} m, median {agree['depth_abs_diff_median_m']:.3g} m, "
+                      f"{100 * agree['depth_within_1cm']:.2f}% within 1 cm, ids agree "
+                      f"{100 * agree['geom_id_agreement']:.2f}%", flush=True)
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
+
+
 # -- the dispatcher --------------------------------------------------------------------------------
 
 
@@ -789,7 +1052,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"keep compiled programs in DIR between runs (default: ${COMPILE_CACHE_ENV}, else "
                         f"{default_compile_cache_dir()}); off: compile every time")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_generate, _add_train, _add_eval, _add_view, _add_demo, _add_curve, _add_bench):
+    for add in (_add_generate, _add_train, _add_eval, _add_view, _add_demo, _add_curve, _add_reproduce, _add_bench):
         add(sub)
     return parser
 

@@ -14,6 +14,7 @@ import csv
 import json
 import re
 import weakref
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -34,7 +35,8 @@ class EvalPlan:
     split: str
     content_hash: str
     agents: tuple[str, ...]
-    checkpoint: str | None
+    checkpoint: str | None  # the run of every learned agent not in agent_checkpoints
+    agent_checkpoints: tuple[tuple[str, str], ...] = ()  # (agent, run): a learned agent's own run
     # intention_run / trajectory_run / ground_truth, for the agents that read intention inputs
     intention_kwargs: dict = field(default_factory=dict)
     ablations: tuple[tuple[str, str], ...] = ()  # (name, run dir)
@@ -45,13 +47,19 @@ class EvalPlan:
     out: Path = Path("eval_out")
     devices: int | None = None  # devices the lanes are split over (None: all visible)
 
+    def checkpoint_of(self, name: str) -> str | None:
+        """The run agent `name` loads (None for agents without one)."""
+        if not AGENTS[name].needs_checkpoint:
+            return None
+        return dict(self.agent_checkpoints).get(name, self.checkpoint)
+
 
 def plan_eval(
     data: str | Path,
     split: str,
     agents: tuple[str, ...],
     out: str | Path,
-    checkpoint: str | None = None,
+    checkpoint: str | Mapping[str | None, str] | None = None,
     intention_kwargs: dict | None = None,
     ablations: tuple[tuple[str, str], ...] = (),
     episodes: int | None = None,
@@ -61,9 +69,11 @@ def plan_eval(
     devices: int | None = None,
 ) -> EvalPlan:
     """Check every input of an evaluation (dataset, split, agents, checkpoints, sizes) without
-    building an env or compiling anything; ValueError naming the first problem. `resolution`
-    None: the trained runs' (every learned agent's run must agree), else SensorConfig's default;
-    given, it must match every trained run's."""
+    building an env or compiling anything; ValueError naming the first problem. `checkpoint`:
+    the run of every learned agent, or a mapping agent name -> its run (the key None: the run of
+    learned agents not named), so one sweep evaluates several trained runs. `resolution` None:
+    the trained runs' (every learned agent's run must agree), else SensorConfig's default; given,
+    it must match every trained run's."""
     from conav_jax.data.episodes import read_manifest
     from envs.agents.registry import run_resolution
 
@@ -74,8 +84,16 @@ def plan_eval(
         raise ValueError("--agent needs at least one agent name")
     if len(set(agents)) != len(agents):
         raise ValueError(f"--agent lists an agent twice: {','.join(agents)}")
+    own = dict(checkpoint) if isinstance(checkpoint, Mapping) else {None: checkpoint}
+    default = own.pop(None, None)
     for name in agents:
-        check_agent(name, checkpoint)
+        learned_agent = name in AGENTS and AGENTS[name].needs_checkpoint
+        check_agent(name, own.get(name, default) if learned_agent else default)
+    for name in own:
+        if name not in agents or not AGENTS[name].needs_checkpoint:
+            learned = [n for n in agents if AGENTS[n].needs_checkpoint]
+            raise ValueError(f"--checkpoint names a run for {name!r}, which is not a learned agent of this evaluation "
+                             f"(learned agents: {', '.join(learned) or 'none'})")
     learned = dict(intention_kwargs or {})
     if learned and not ablations and not any(AGENTS[n].takes_intentions for n in agents):
         raise ValueError("--intention / --trajectory / --ground-truth-intentions only apply to agents that read "
@@ -97,14 +115,15 @@ def plan_eval(
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} exists and is not a directory")
-    trained = [(name, checkpoint) for name in agents if AGENTS[name].needs_checkpoint]
+    trained = [(name, own.get(name, default)) for name in agents if AGENTS[name].needs_checkpoint]
     trained += [("conav", run) for _, run in ablations]
     return EvalPlan(
         data=Path(data),
         split=split,
         content_hash=manifest["content_hash"],
         agents=tuple(agents),
-        checkpoint=checkpoint,
+        checkpoint=default,
+        agent_checkpoints=tuple((name, str(run)) for name, run in own.items()),
         intention_kwargs=learned,
         ablations=tuple(ablations),
         episodes=episodes,
@@ -135,26 +154,49 @@ def load_env(plan: EvalPlan):
     return _ENV_CACHE[key]
 
 
-def compiled_evaluator(env, name: str, checkpoint: str | None, batch: int, seed: int, mesh=None, **kwargs) -> Callable:
-    """(agent, evaluator): agent `name` and its evaluator (envs.rollout.make_evaluator with
-    trace_first), built once per env, agent, batch, seed and mesh (building loads the agent;
-    nothing compiles until the first call)."""
+def build_evaluators(env, runs: list[tuple[str, str | None, dict]], batch: int, seed: int, mesh=None) -> list:
+    """[(agent, evaluate(episodes) -> (metrics, traced episode, its robot poses))] for the
+    (name, checkpoint, agent keywords) of `runs`: every agent is built (checkpoints loaded)
+    before anything compiles, so a bad run fails fast. The scripted agents share one compiled
+    evaluator, the agent chosen as data (envs.agents.base.switch_agent): one compile of the
+    env's rollout instead of one per agent. Evaluators are kept per env, agent set, batch, seed
+    and mesh: evaluating the same agents on the same data again (tests, notebooks) skips the
+    compile. Keys per episode (envs.rollout), so the numbers do not depend on the batch."""
+    import jax.numpy as jnp
+
+    from envs.agents.base import switch_agent
     from envs.agents.registry import make_agent
     from envs.rollout import make_evaluator
 
     per_env = _EVALUATORS.setdefault(env, {})
-    key = (name, checkpoint, batch, seed, mesh, tuple(sorted(kwargs.items())))
-    if key not in per_env:
-        agent = make_agent(name, env, checkpoint, **kwargs)
-        per_env[key] = agent, make_evaluator(env, lambda _: agent, batch, seed, mesh, trace_first=True)
-    return per_env[key]
+    agents = [make_agent(name, env, ckpt, **kw) for name, ckpt, kw in runs]
+    out = []
+    for k, (agent, (name, ckpt, kw)) in enumerate(zip(agents, runs)):
+        # Scripted agents of the same action kind (velocities, or poses) share one evaluator.
+        scripted = [j for j, (other, _, _) in enumerate(runs)
+                    if not AGENTS[other].needs_checkpoint and agents[j].action_size == agent.action_size]
+        if k in scripted and len(scripted) > 1:
+            key = ("scripted", tuple(runs[j][0] for j in scripted), batch, seed, mesh)
+            if key not in per_env:
+                group = [agents[j] for j in scripted]
+                per_env[key] = make_evaluator(env, lambda which, group=group: switch_agent(group, which), batch, seed,
+                                              mesh, trace_first=True)
+            params = jnp.int32(scripted.index(k))
+        else:
+            key = (name, ckpt, batch, seed, mesh, tuple(sorted(kw.items())))
+            if key not in per_env:
+                per_env[key] = make_evaluator(env, lambda _, a=agent: a, batch, seed, mesh, trace_first=True)
+            params = None
+        out.append((agent, _evaluate_with(per_env[key], params)))
+    return out
 
 
-def run_agent(evaluator: Callable, episodes: np.ndarray) -> tuple[dict, int, np.ndarray]:
-    """(final metrics over `episodes`, the traced episode (the longest), its robot poses (steps,
-    3) up to its end). Keys per episode (envs.rollout), so the numbers do not depend on the batch."""
-    metrics, first, trace = evaluator(None, np.asarray(episodes))
-    return metrics, first, np.asarray(trace.robot_pose)
+def _evaluate_with(evaluator: Callable, params) -> Callable:
+    def run(episodes: np.ndarray) -> tuple[dict, int, np.ndarray]:
+        metrics, first, trace = evaluator(params, np.asarray(episodes))
+        return metrics, first, np.asarray(trace.robot_pose)
+
+    return run
 
 
 def episode_records(split, metrics: dict, given: dict) -> list[dict]:
@@ -274,17 +316,15 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
         raise ValueError("the benchmark runs episodes to t_end: build the env with EnvConfig(end_at_reach=False)")
     plan.out.mkdir(parents=True, exist_ok=True)
     episodes = np.arange(env.num_episodes)
-    runs = [(name, name, plan.checkpoint if AGENTS[name].needs_checkpoint else None) for name in plan.agents]
+    runs = [(name, name, plan.checkpoint_of(name)) for name in plan.agents]
     runs += [(f"ablation_{n}", "conav", run) for n, run in plan.ablations]
-    # Build every agent (loading checkpoints) before the first compile, so a bad run fails fast.
-    built = [compiled_evaluator(env, name, ckpt, plan.batch, plan.seed, mesh,
-                                **(plan.intention_kwargs if AGENTS[name].takes_intentions else {}))
-             for _, name, ckpt in runs]
+    built = build_evaluators(env, [(name, ckpt, plan.intention_kwargs if AGENTS[name].takes_intentions else {})
+                                   for _, name, ckpt in runs], plan.batch, plan.seed, mesh)
     results, summaries, given, maps = {}, {}, {}, []
     bar = tqdm(total=len(runs), desc="eval", unit="agent", disable=not progress, dynamic_ncols=True)
     for (key, _, _), (agent, evaluator) in zip(runs, built):
         bar.set_postfix_str(f"{key} ({len(episodes)} episodes, compile + run)")
-        metrics, i, first_path = run_agent(evaluator, episodes)
+        metrics, i, first_path = evaluator(episodes)
         j = int(np.flatnonzero(metrics["episode"] == i)[0])
         bar.update(1)
         given[key] = describe(agent)

@@ -14,7 +14,7 @@ from envs.agents.baselines import BaselineConfig
 from envs.agents.registry import check_agent, make_agent
 from envs.rollout import trace_step
 
-BASELINES = ("random", "pioneer", "follower", "objectgoal-planner")
+BASELINES = ("random", "pioneer-drive", "follower", "objectgoal-planner")  # the velocity-commanded ones
 T_ARRIVE, T_END = 120, 160  # the human walks 7.25 m from step 60 to 120 (1.2 m/s)
 
 # The hall with a partition at x = 5 from the south wall to y = 2.6: the way east is the 1.3 m
@@ -107,9 +107,9 @@ def test_objectgoal_goes_round_the_partition(runs):
     assert crossing[1] > 2.6  # it crossed x = 5 through the gap north of the partition
 
 
-def test_pioneer_waits_for_the_human_then_reaches_the_goal(runs):
+def test_driving_pioneer_waits_for_the_human_then_reaches_the_goal(runs):
     for episode in range(4):
-        poses, _, m = _sel(runs, "pioneer", episode)
+        poses, _, m = _sel(runs, "pioneer-drive", episode)
         # While the human does activity A (until step 60) there is no motion to extrapolate.
         assert np.abs(poses[:55] - poses[0]).max() < 1e-3
         # Then it heads for the table; it drives no faster than the human walks, on the same
@@ -146,7 +146,7 @@ def test_every_agent_names_what_it_is_given(runs):
     given = {n: make_agent(n, env) for n in BASELINES + ("expert",)}
     assert {n: (a.intention_source, a.privileged) for n, a in given.items()} == {
         "random": ("none", ()),
-        "pioneer": ("none", ("candidate goal points", "oracle map")),
+        "pioneer-drive": ("none", ("candidate goal points", "oracle map")),
         "follower": ("none", ("oracle map",)),
         "objectgoal-planner": ("none", ("oracle goal category", "oracle map")),
         "expert": ("none", ("oracle goal point", "oracle map", "future human positions", "human activity phase")),
@@ -155,3 +155,17 @@ def test_every_agent_names_what_it_is_given(runs):
     assert row_title(given["random"]) == "Random Agent"
     with pytest.raises(ValueError, match="reads no intention inputs"):
         make_agent("pioneer", env, ground_truth=True)
+
+
+def test_the_pioneer_is_put_at_the_goal_once_the_human_walks_and_first_reaches_it(runs):
+    from envs.rollout import evaluate
+
+    env = runs[0]
+    pioneer = make_agent("pioneer", env)
+    assert pioneer.action_size == 3 and pioneer.privileged == ("candidate goal points", "pose set by an oracle pathfinder")
+    m = evaluate(env, pioneer, batch=4)
+    # It stands still through activity A (until step 60), then the human's heading names the
+    # table within a second or so: put there at once, it is first, long before the human arrives
+    # at step 120.
+    assert (m["t_reach"] > 60).all() and (m["t_reach"] < 80).all(), m["t_reach"]
+    assert (m["path_length_m"] > 3.0).all()  # the oracle's moves count in its path

@@ -178,7 +178,19 @@ def test_bad_action_shape_is_rejected(hall):
     env, reset, _ = hall
     s = reset(jax.random.PRNGKey(0), 0)
     with pytest.raises(ValueError, match=r"action must have shape \(2,\)"):
-        env.step(s, jnp.zeros(3))
+        env.step(s, jnp.zeros(4))
+
+
+def test_a_pose_action_puts_the_robot_there_and_counts_the_move(hall):
+    # Episode 3 starts far from the goal; an oracle mover puts it 0.8 m short of the goal.
+    env, reset, step = hall
+    target = np.append(np.asarray(goal_of(env.split)) - np.array([0.8, 0.0]), 0.5).astype(np.float32)
+    s0 = reset(jax.random.PRNGKey(0), 3)
+    s1 = jax.jit(env.step)(s0, jnp.asarray(target))
+    np.testing.assert_allclose(np.asarray(s1.pipeline_state.qpos), target, atol=1e-3)
+    assert float(s1.metrics["t_reach"]) == 1.0
+    moved = float(np.linalg.norm(target[:2] - np.asarray(s0.pipeline_state.qpos[:2])))
+    assert float(s1.metrics["path_length_m"]) == pytest.approx(moved, abs=1e-3)
 
 
 def test_gps_compass_and_human_position_frames(hall):
@@ -208,27 +220,18 @@ def test_touching_the_human_before_reaching_voids_success(hall):
     assert s["FASR"] == 100.0 and s["CR"] == 0.0
 
 
-def test_the_episode_runs_to_t_end_and_cr_full_counts_contacts_after_the_reach():
-    # The robot is put 0.8 m west of the goal at step 5, on the human's walking line: reached at
-    # step 6, then the human (walking at 1.45 m/s in steps 50-100) runs into the parked robot.
-    split = make_split([(1.6, 3.3, 0.0)], t_arrive=100, t_end=120)
-    env = ConavEnv(episodes=split, config=SMALL)
-    fns = (env, jax.jit(env.reset_to_episode), jax.jit(env.step))
-    goal = np.asarray(goal_of(split)) - np.array([0.8, 0.0])
-    states = _run(fns, 0, [(0.0, 0.0)] * 121, teleport=(5, goal))
-    m = {k: np.asarray(v)[None] for k, v in states[-1].metrics.items()}
-    assert float(m["t_reach"][0]) == 6 and float(states[6].done) == 0.0 and float(states[-1].done) == 1.0
-    assert float(m["human_contact_steps"][0]) > 0 and float(m["t"][0]) == 120
-    s = summarize(m)
-    assert s["FASR"] == 100.0 and s["CR"] == 0.0 and s["CR_full"] == 100.0
-
-
-def test_with_end_at_reach_the_episode_stops_at_the_first_reach_and_reports_no_cr_full():
-    env, reset, step = _hall_env(dataclasses.replace(SMALL, end_at_reach=True))
+def test_the_episode_runs_to_t_end_and_cr_full_counts_contacts_after_the_reach(hall):
+    # Episode 3 (facing east) is put 0.8 m west of the goal at step 25, when the human has stood
+    # there since step 20: reached, untouched. From step 31 it drives on into the human: touches
+    # after the reach count for CR_full only, and the episode goes on to t_end = 40.
+    env = hall[0]
     goal = np.asarray(goal_of(env.split)) - np.array([0.8, 0.0])
-    states = _run((env, reset, step), 3, [(0.0, 0.0)] * 12, teleport=(5, goal))
-    assert float(states[6].done) == 1.0 and float(states[-1].metrics["human_contact_steps"]) == 0.0
-    assert "CR_full" not in summarize({k: np.asarray(v)[None] for k, v in states[-1].metrics.items()})
+    states = _run(hall, 3, [(0.0, 0.0)] * 30 + [(1.0, 0.0)] * 10, teleport=(24, goal))
+    m = {k: np.asarray(v)[None] for k, v in states[-1].metrics.items()}
+    assert float(m["t_reach"][0]) == 25 and float(states[26].done) == 0.0 and float(states[-1].done) == 1.0
+    assert float(m["human_contact_steps"][0]) > 0 and float(m["t"][0]) == 40
+    out = summarize(m)
+    assert out["RASR"] == 100.0 and out["CR"] == 0.0 and out["CR_full"] == 100.0
 
 
 def test_spl_in_steps_weighs_a_waiting_robot_below_a_direct_one(hall):

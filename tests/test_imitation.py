@@ -264,16 +264,22 @@ def test_at_evaluation_the_policy_reads_the_predictors_outputs_not_the_truth(hal
     monkeypatch.setattr(agent_policy, "load_predictors", lambda i, t: fakes if (i, t) == tuple(map(str, runs)) else None)
     agent = policy_agent(hall.env, trained.run, intention_run=runs[0], trajectory_run=runs[1])
     assert agent.intention_source == "predicted" and agent.privileged == ("oracle segmentation",)
-    state = hall.env.reset_to_episode(jax.random.PRNGKey(0), 0)
-    action, carry = agent.act(state, agent.init(jax.random.PRNGKey(0), 0), jax.random.PRNGKey(1))
+    state = jax.jit(hall.env.reset_to_episode, compiler_options=FAST)(jax.random.PRNGKey(0), 0)
+    pol, truth_pol = make_policy_step(PCFG, *fakes), make_policy_step(PCFG)
+
+    @functools.partial(jax.jit, compiler_options=FAST)
+    def act(state):
+        action, carry = agent.act(state, agent.init(jax.random.PRNGKey(0), 0), jax.random.PRNGKey(1))
+        inputs, _ = pol.predict(state.obs, pol.init())
+        expected, _ = pol.act(trained.params, inputs, pol.init())
+        truth, _ = truth_pol.step(trained.params, state.obs, truth_pol.init())
+        return action, carry, expected, truth
+
+    action, carry, expected, truth = act(state)
     assert int(carry.predicted["activity_probs"].argmax()) == 9 != int(state.obs["activity_probs"].argmax())
     assert int(carry.predicted["object_probs"].argmax()) == 11 != int(state.obs["object_probs"].argmax())
     np.testing.assert_array_equal(carry.predicted["future_traj"], 7.0)
     # The action is the policy's on the predictions, and not what the truth would give.
-    pol = make_policy_step(PCFG, *fakes)
-    inputs, _ = pol.predict(state.obs, pol.init())
-    expected, _ = pol.act(trained.params, inputs, pol.init())
-    truth, _ = make_policy_step(PCFG).step(trained.params, state.obs, make_policy_step(PCFG).init())
     np.testing.assert_allclose(action, expected, atol=1e-6)
     assert not np.allclose(action, truth, atol=1e-4)
 

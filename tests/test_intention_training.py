@@ -1,33 +1,39 @@
-"""Intention predictor training: rendered frames show the human, the prior baseline, a short
-run that checkpoints, and the per-step predictor under jit."""
+"""Intention predictor training: rendered crops show the human, the prior baseline, a short
+run that checkpoints and validates on minival by route, and the per-step predictor under jit
+seeing exactly the training frames."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conav_jax.checkpoints import latest_checkpoint
+from conav_jax.checkpoints import latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.geometry import to_frame
 from conav_jax.models import perceiver
 from conav_jax.models.perceiver import PerceiverConfig
+from conav_jax.nav.navigation import line_of_sight
 from conav_jax.runs import read_log
-from envs.agents.predictors import load_intention_predictor
+from envs.agents.predictors import FrameSpec, intention_frame, load_intention_predictor
 from envs.humanoid import capsule_colours
+from envs.panorama import front_view
 from train.intention import (
     IntentionDataConfig,
     activity_a_steps,
     baseline_metrics,
-    intention_loss,
     make_env,
     make_val_fn,
     prior_scores,
     render_split,
-    run_config,
+    robot_poses,
     topk_accuracy,
+    train_intention,
 )
-from train.loop import TrainConfig, train
+from train.loop import TrainConfig
 
 FAST = {"xla_backend_optimization_level": 0}
-DATA = IntentionDataConfig(sensor_hw=(16, 64), frames=4)
+# 16x16 crops of 32x128 panoramas: at this resolution a human 1.5-3 m away is 9-19 rows tall.
+# Two viewpoints: each episode's start pose and one drawn around the human.
+DATA = IntentionDataConfig(sensor_hw=(32, 128), frames=4, viewpoints=2)
 MODEL = PerceiverConfig(image_hw=(16, 16), dim=16, num_latents=4, num_heads=2, num_blocks=0)
 
 
@@ -43,18 +49,41 @@ def test_activity_a_steps_spread_over_activity_a():
     np.testing.assert_array_equal(num, [4, 2])
 
 
-def test_rendered_frames_show_the_human(rendered):
+def test_viewpoints_are_the_start_pose_then_clear_views_of_the_human(rendered):
+    env, _ = rendered
+    eps = env.split.episodes
+    poses = robot_poses(env, 3)
+    assert poses.shape == (env.num_episodes, 3, 3)
+    np.testing.assert_array_equal(poses[:, 0], eps["robot_start"])
+    np.testing.assert_array_equal(robot_poses(env, 3), poses)  # the same draws every time
+    lo, hi = env.task.robot_start_distance_m
+    for e in range(env.num_episodes):
+        grid = env.split.navs[int(eps["scene_index"][e])].grid
+        for v in (1, 2):
+            assert not np.array_equal(poses[e, v], poses[e, 0])
+            assert lo <= np.linalg.norm(poses[e, v, :2] - eps["root_xy"][e, 0]) <= hi
+            assert grid.is_free(poses[e, v, :2]) and line_of_sight(grid, poses[e, v, :2], eps["root_xy"][e, 0])
+            ahead = np.asarray(to_frame(eps["root_xy"][e, 0], poses[e, v, :2], poses[e, v, 2]))
+            assert abs(np.arctan2(ahead[1], ahead[0])) <= 0.25 + 1e-5  # facing the human, as start poses do
+
+
+def test_rendered_crops_show_the_human(rendered):
     env, d = rendered
-    n = env.num_episodes
-    assert d["frames"].shape == (n, 4, 16, 16, 4) and d["num_frames"].shape == (n,)
-    np.testing.assert_array_equal(d["activity"], env.split.episodes["activity_b"])
-    # The robot starts facing the human: every episode shows it in most of its frames...
-    seen = np.asarray(d["human_pixels"]) > 0
-    assert seen.mean() > 0.8 and seen.any(axis=1).all()
-    # ...and the human's pixels carry the capsules' colours (float16 storage: ~1e-3).
-    rgb = np.asarray(d["frames"][..., :3], np.float32).reshape(n, 4, -1, 1, 3)
+    n = 2 * env.num_episodes  # two viewpoints per episode, next to each other
+    assert d["frames"].shape == (n, 4, 16, 16, 4) and d["frames"].dtype == jnp.uint8
+    assert d["num_frames"].shape == (n,) and d["human_pos"].shape == (n, 4, 2)
+    np.testing.assert_array_equal(d["activity"], np.repeat(env.split.episodes["activity_b"], 2))
+    # The robot starts near the human: every frame's crop shows it, and most of it (16 rows of
+    # a 32-row panorama leave the feet of the closest humans out)...
+    seen, total = np.asarray(d["human_pixels"]), np.asarray(d["human_pixels_sensor"])
+    assert (seen > 0).all() and seen.sum() > 0.85 * total.sum()
+    # ...its pixels carry the capsules' colours (uint8: within half a step, 2e-3)...
+    rgb = np.asarray(d["frames"][..., :3], np.float32).reshape(n, 4, -1, 1, 3) / 255.0
     is_human = np.any(np.all(np.abs(rgb - capsule_colours()[None, None, None]) < 2e-3, axis=-1), axis=-1)
-    np.testing.assert_array_equal(is_human.sum(-1), d["human_pixels"])
+    np.testing.assert_array_equal(is_human.sum(-1), seen)
+    # ...and it is 1.5-3 m away, where the robot starts, at any bearing from the other viewpoint.
+    dist = np.linalg.norm(np.asarray(d["human_pos"]), axis=-1)
+    assert dist.min() > 1.3 and dist.max() < 3.3
 
 
 def test_prior_is_the_most_frequent_b_given_a():
@@ -75,59 +104,113 @@ def test_prior_is_the_most_frequent_b_given_a():
 
 
 @pytest.fixture(scope="module")
-def intention_run(rendered, tmp_path_factory):
-    env, d = rendered
+def intention_run(tiny_data, tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("intention_run")
-    samples = {k: d[k] for k in ("frames", "num_frames", "activity", "object", "activity_a")}
-    result = train(
-        run_dir,
-        lambda p, b, k: intention_loss(p, MODEL, b, k),
-        perceiver.init(jax.random.PRNGKey(0), MODEL),
-        samples,
-        TrainConfig(steps=3, batch=4, warmup_steps=0, log_every=3, val_every=3, ckpt_every=3),
-        run_config(MODEL, DATA, None, spacing=2.0),
-        val_fn=make_val_fn(MODEL, d, baseline_metrics(d, d, MODEL), compiler_options=FAST),
-        progress=False,
-        compiler_options=FAST,
-    )
+    cfg = TrainConfig(steps=40, batch=8, lr=3e-3, warmup_steps=0, log_every=10, val_every=40, ckpt_every=40)
+    result = train_intention(tiny_data, run_dir, cfg, MODEL, DATA, progress=False, compiler_options=FAST)
     return run_dir, result
 
 
-def test_a_few_training_steps_run_and_checkpoint(intention_run, rendered):
+def test_a_short_run_checkpoints_and_validates_on_minival(intention_run):
     run_dir, result = intention_run
-    assert result.step == 3 and latest_checkpoint(run_dir).name == "ckpt_00000003.npz"
+    assert result.step == 40 and latest_checkpoint(run_dir).name == "ckpt_00000040.npz"
     log = read_log(run_dir)
-    assert log[0]["split"] == "train" and np.isfinite(log[0]["loss"]) and "ce_object" in log[0]
-    # Validation reports the predictor's top-5 over every episode, all frames seen: recomputed here.
+    train_log = [r for r in log if r["split"] == "train"]
+    assert all(r["val_split"] == "minival" for r in log) and "ce_activity_a" in train_log[0]
+    assert train_log[-1]["loss"] < train_log[0]["loss"]  # it learns (the tiny train split)
+    # Each route reported: the predictor's output, the direct heads without the generator's
+    # graph, and the graph prior alone; the watched activity A; the data's sanity checks.
+    for key in ("activity_top1", "object_top5_direct", "activity_top1_generator_graph_prior", "activity_a_top5",
+                "prior_activity_top1", "val_frames_with_human", "val_human_pixels_in_view"):
+        assert key in result.val, key
+    assert result.val["val_frames_with_human"] == 1.0
+
+
+def test_validation_reports_each_route_over_every_episode(rendered):
+    # Recomputed here, all frames seen: the predictor's top-5 and the direct heads' top-1.
     d = rendered[1]
+    params = perceiver.init(jax.random.PRNGKey(1), MODEL)
+    val = make_val_fn(MODEL, d, {}, batch=5, compiler_options=FAST)(params)
     mask = np.arange(4)[None, :] < np.asarray(d["num_frames"])[:, None]
-    out = perceiver.apply(result.params, MODEL, jnp.asarray(d["frames"], jnp.float32), jnp.asarray(mask))
-    act, obj = (np.asarray(p) for p in perceiver.intention_probs(MODEL, out))
-    for name, probs, labels in (("activity", act, d["activity"]), ("object", obj, d["object"])):
-        top5 = np.mean([y in np.argsort(-p)[:5] for p, y in zip(probs, np.asarray(labels))])
-        assert result.val[f"{name}_top5"] == pytest.approx(top5), name
-    assert "prior_activity_top1" in result.val
+    routes = perceiver.intention_routes(MODEL, perceiver.apply(params, MODEL, d["frames"], jnp.asarray(mask)))
+    for name, k, (act, obj), suffix in (("top5", 5, routes.mixed, ""), ("top1", 1, routes.direct, "_direct")):
+        for head, probs in (("activity", act), ("object", obj)):
+            hits = np.mean([y in np.argsort(-p)[:k] for p, y in zip(np.asarray(probs), np.asarray(d[head]))])
+            assert val[f"{head}_{name}{suffix}"] == pytest.approx(hits), (head, name, suffix)
 
 
-def test_predictor_steps_under_jit(intention_run, rendered):
-    run_dir, _ = intention_run
-    predictor = load_intention_predictor(run_dir)
-    assert predictor.frame_stride == 2 and predictor.config == MODEL
-    # The env's front view at another resolution (resized inside): 32x32 from the 16x16 frames.
-    fronts = jax.image.resize(rendered[1]["frames"][0].astype(jnp.float32), (4, 32, 32, 4), "nearest")
-    fronts = jnp.concatenate([fronts, fronts[:1]])  # 5 steps
+def _panoramas(env, d, episode):
+    """The env's observations `rgbd (F, H, W, 4)`, `human_pos (F, 2)` of `episode`'s training
+    frames from its start pose (its first viewpoint)."""
+    steps, _ = activity_a_steps(env.split.episodes["t_walk_start"], DATA.frames)
+    rgbd = jax.jit(jax.vmap(lambda t: env.render_at(episode, env.bank.robot_start[episode], t)[0]))(steps[episode])
+    return {"rgbd": rgbd, "human_pos": d["human_pos"][2 * episode]}
 
+
+def _run_predictor(predictor, obs):
     @jax.jit
-    def run(fronts):
-        def body(carry, front):
-            act, obj, carry = predictor.step(carry, front)
+    def run(obs):
+        def body(carry, o):
+            act, obj, carry = predictor.step(carry, o)
             return carry, (act, obj)
 
-        return jax.lax.scan(body, predictor.init(), fronts)
+        return jax.lax.scan(body, predictor.init(), obs)
 
-    carry, (act, obj) = run(fronts)
-    assert act.shape == (5, 107) and obj.shape == (5, 51)
+    return run(obs)
+
+
+def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered):
+    run_dir, _ = intention_run
+    env, d = rendered
+    predictor = load_intention_predictor(run_dir, frame_stride=1)
+    assert predictor.config == MODEL and predictor.spec == FrameSpec("human", (32, 128), 1.25)
+    obs = _panoramas(env, d, 0)
+    carry, (act, obj) = _run_predictor(predictor, obs)
+    np.testing.assert_array_equal(carry.frames, d["frames"][0])  # crops from the observations
+    assert act.shape == (4, 107) and obj.shape == (4, 51)
     np.testing.assert_allclose(act.sum(-1), 1.0, atol=1e-5)
     np.testing.assert_allclose(obj.sum(-1), 1.0, atol=1e-5)
-    # Stride 2: frames recorded at steps 0, 2, 4; as many predictions in the history.
-    assert int(carry.num_frames) == 3 and int(carry.num_predictions) == 3 and int(carry.t) == 5
+    # The default stride: the training frames' spacing; a frame every `stride` steps.
+    strided = load_intention_predictor(run_dir)
+    assert strided.frame_stride > 1
+    carry, _ = _run_predictor(strided, jax.tree.map(lambda x: jnp.concatenate([x, x[:1]]), obs))
+    expected = -(-5 // strided.frame_stride)
+    assert int(carry.num_frames) == expected == int(carry.num_predictions) and int(carry.t) == 5
+
+
+def test_the_predictor_refuses_bad_observations(intention_run, rendered):
+    run_dir, _ = intention_run
+    env, d = rendered
+    predictor = load_intention_predictor(run_dir, frame_stride=1)
+    obs = _panoramas(env, d, 0)
+    # A NaN human position cannot raise under jit: from that step on every output is NaN.
+    nan_obs = {**obs, "human_pos": obs["human_pos"].at[2].set(jnp.nan)}
+    _, (act, obj) = _run_predictor(predictor, nan_obs)
+    assert np.isfinite(act[:2]).all() and np.isnan(act[2:]).all() and np.isnan(obj[3]).all()
+    one = jax.tree.map(lambda x: x[0], obs)
+    with pytest.raises(ValueError, match="finite"):
+        predictor.step(predictor.init(), {**one, "human_pos": jnp.array([np.nan, 1.0])})
+    with pytest.raises(ValueError, match=r"render the env with SensorConfig\(height=32, width=128\)"):
+        predictor.step(predictor.init(), {**one, "rgbd": jnp.zeros((16, 64, 4))})
+    with pytest.raises(ValueError, match="mapping with 'rgbd'"):
+        predictor.step(predictor.init(), one["rgbd"])
+    with pytest.raises(ValueError, match="does not fit"):
+        intention_frame(FrameSpec("human", (8, 32)), MODEL, jnp.zeros((8, 32, 4)), jnp.array([2.0, 0.0]))
+
+
+def test_runs_from_before_the_crop_load_and_read_the_front_view(intention_run, rendered, tmp_path):
+    run_dir, result = intention_run
+    env, d = rendered
+    ckpt = latest_checkpoint(run_dir)
+    old_config = {k: v for k, v in load_checkpoint(ckpt).config.items() if k != "train"}
+    old_config["data"] = {"sensor_hw": [16, 64], "frames": 4, "content_hash": None, "frame_spacing_steps": 2.0}
+    save_checkpoint(tmp_path / "ckpt_00000001.npz", params=result.params, opt_state=None, config=old_config, step=1)
+    predictor = load_intention_predictor(tmp_path)
+    assert predictor.spec == FrameSpec("front", (16, 64), 1.25) and predictor.frame_stride == 2
+    # Front views at any resolution, resized to the frame, as before the crop.
+    obs = _panoramas(env, d, 0)
+    carry, (act, _) = _run_predictor(predictor, obs)
+    expected = jax.image.resize(front_view(obs["rgbd"][0]), (16, 16, 4), "linear")
+    np.testing.assert_array_equal(carry.frames[0], perceiver.encode_frames(expected, MODEL.max_depth_m))
+    assert np.isfinite(act).all()
+

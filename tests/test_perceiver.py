@@ -1,4 +1,5 @@
-"""conav_jax.models.perceiver: masked frames change nothing, a tiny batch can be memorised,
+"""conav_jax.models.perceiver: masked frames change nothing, uint8 frames read as what they
+encode, a tiny batch can be memorised, the graph route and the direct heads are reported apart,
 and the lowest-entropy averaging picks, averages and falls back as the paper describes."""
 
 import functools
@@ -56,6 +57,28 @@ def test_sample_without_valid_frames_gives_finite_prior_logits(params, batch):
     out = APPLY(params, CONFIG, frames, np.zeros((B, N), bool))
     assert np.isfinite(out.activity).all()
     np.testing.assert_allclose(out.activity[0], out.activity[3], rtol=1e-6)  # same for every sample
+
+
+def test_uint8_frames_read_as_the_float_frames_they_encode(params, batch):
+    frames, mask = batch
+    stored = perceiver.encode_frames(jnp.asarray(frames), CONFIG.max_depth_m)
+    assert stored.dtype == jnp.uint8 and stored.shape == frames.shape
+    # RGB of 8-bit colours comes back exactly; depth to half a step of max_depth / 255.
+    decoded = np.asarray(stored, np.float32) / 255.0
+    decoded[..., 3] *= CONFIG.max_depth_m
+    colours = np.concatenate([np.round(frames[..., :3] * 255.0) / 255.0, frames[..., 3:]], axis=-1).astype(np.float32)
+    np.testing.assert_array_equal(np.asarray(perceiver.encode_frames(colours, 10.0))[..., :3] / np.float32(255.0),
+                                  colours[..., :3])
+    np.testing.assert_allclose(decoded[..., 3], frames[..., 3], atol=CONFIG.max_depth_m / 510 + 1e-6)
+    out_u8, out_float = APPLY(params, CONFIG, stored, mask), APPLY(params, CONFIG, decoded, mask)
+    np.testing.assert_allclose(out_u8.activity, out_float.activity, atol=1e-4)
+    np.testing.assert_allclose(out_u8.activity_a, out_float.activity_a, atol=1e-4)
+
+
+def test_frames_of_another_size_are_refused(params, batch):
+    frames, mask = batch
+    with pytest.raises(ValueError, match=r"frames must be \(B, N, 16, 16, 4\)"):
+        perceiver.apply(params, CONFIG, frames[:, :, :8], mask)
 
 
 def test_overfits_a_tiny_batch(params, batch):
@@ -122,7 +145,13 @@ def test_graph_route_maps_a_certain_activity_a_to_its_graph_successors():
     np.testing.assert_allclose(act, w * transition[a] + (1 - w) / n, atol=1e-6)
     np.testing.assert_allclose(obj, w * transition[a] @ objects + (1 - w) / m, atol=1e-6)
     assert abs(float(act.sum()) - 1.0) < 1e-5 and abs(float(obj.sum()) - 1.0) < 1e-5
+    # Each route apart: the graph prior alone, the direct heads alone, and their mix.
+    routes = perceiver.intention_routes(CONFIG, logits)
+    np.testing.assert_allclose(routes.graph_prior[0], transition[a], atol=1e-6)
+    np.testing.assert_allclose(routes.direct[1], 1.0 / m, rtol=1e-6)
+    np.testing.assert_array_equal(routes.mixed[0], act)
     # Without the A head the direct heads alone; a graph route needs the graph's class counts.
+    assert perceiver.intention_routes(CONFIG, logits._replace(activity_a=None)).graph_prior is None
     plain = perceiver.intention_probs(CONFIG, logits._replace(activity_a=None))
     np.testing.assert_allclose(plain[0], 1.0 / n, rtol=1e-6)
     with pytest.raises(ValueError, match="activity_a_head=False"):

@@ -250,3 +250,39 @@ def test_train_policy_flag_switches_the_saliency_channel_in_the_runs_model(flag,
     assert config["model"]["object_saliency"] is saliency and "object_saliency" not in config["imitation"]
     shapes = jax.eval_shape(lambda k: policy.init(k, model), jax.random.PRNGKey(0))
     assert ("saliency" in shapes) is saliency
+
+
+GOAL = dataclasses.replace(CONFIG, goal_image=True, goal_conv_channels=(4, 4), goal_conv_kernels=(3, 3), goal_dim=8,
+                           use_human_pos=False)
+
+
+def test_the_goal_image_is_read_and_the_human_position_can_be_switched_off(params):
+    # Off by default: no goal encoder, and the state layer reads the human's position.
+    assert not {"goal", "goal_convs"} & set(params) and params["state"]["w"].shape[0] == 6
+    goal_params = jit(policy.init, static_argnums=1)(jax.random.PRNGKey(0), GOAL)
+    assert goal_params["state"]["w"].shape[0] == 4
+    # The goal encoder draws its own keys: the rest of the network is initialised as without it.
+    for name in ("convs", "visual", "intentions", "action_head"):
+        for a, b in zip(jax.tree.leaves(goal_params[name]), jax.tree.leaves(params[name])):
+            np.testing.assert_array_equal(a, b)
+    obs, carry = _obs((B,)), policy.initial_carry(GOAL, B)
+    goal = np.random.default_rng(3).uniform(size=(B, *GOAL.goal_image_hw, 3)).astype(np.float32)
+    assert GOAL.goal_image_hw == (16, 16)
+    a, _, _ = STEP(goal_params, GOAL, {**obs, "goal_image": goal}, carry)
+    b, _, _ = STEP(goal_params, GOAL, {**obs, "goal_image": 1.0 - goal}, carry)
+    c, _, _ = STEP(goal_params, GOAL, {**obs, "goal_image": goal, "human_pos": obs["human_pos"] + 5.0}, carry)
+    assert not np.allclose(a, b, atol=1e-6)
+    np.testing.assert_array_equal(a, c)
+
+
+def test_runs_store_the_config_as_before_the_goal_inputs_and_read_both_back():
+    import json
+
+    from envs.agents.policy import policy_config_from_dict
+
+    old = {k: v for k, v in dataclasses.asdict(CONFIG).items() if k not in policy.LATER_FIELDS}
+    assert policy.config_dict(CONFIG) == old  # what a run stores: so runs written before resume
+    assert policy_config_from_dict(json.loads(json.dumps(old))) == CONFIG
+    stored = json.loads(json.dumps(policy.config_dict(GOAL)))
+    assert stored["goal_image"] is True and stored["use_human_pos"] is False and stored["goal_dim"] == 8
+    assert policy_config_from_dict(stored) == GOAL

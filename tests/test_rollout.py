@@ -45,6 +45,9 @@ def test_refilled_lanes_match_full_length_batches(env, noisy_expert):
     reference, first_b, trace_b = make_evaluator(env, lambda _: noisy_expert, batch=8, seed=7, trace_first=True)(None, episodes)
     reached = reference["t_reach"]
     assert len(set(reached.tolist())) > 2 and 0 <= reached.min() < T_END - 16  # early, different ends: lanes refill
+    # With end_at_reach an episode stops at its first reach, and reports no CR_full.
+    np.testing.assert_array_equal(reference["t"][reached >= 0], reached[reached >= 0])
+    assert "collided_full" not in reference
     np.testing.assert_array_equal(pooled["episode"], episodes)
     for k, v in reference.items():
         np.testing.assert_array_equal(pooled[k], v, err_msg=k)
@@ -84,3 +87,18 @@ def test_trace_step_reads_the_contacts_of_one_env_and_of_a_batch():
     np.testing.assert_array_equal(batch.wall_contact, [0, 0, 1])
     one = trace_step(state(2), np.zeros(2))
     assert float(one.human_contact) == 0.0 and float(one.wall_contact) == 1.0
+
+
+def test_compiled_rollouts_take_the_episode_bank_as_an_argument_not_as_constants(env, noisy_expert):
+    import re
+
+    from envs.rollout import make_param_rollout
+
+    run = make_param_rollout(env, lambda _: noisy_expert, 4)
+    text = run.lower(None, jax.random.PRNGKey(0), jnp.arange(2, dtype=jnp.int32)).as_text()
+    b = env.bank
+    n, t = b.joints_local.shape[:2]
+    assert f"tensor<{n}x{t}x22x3xf16>" in text  # the humanoid's joints: an argument
+    # No constant of the program holds episode data (the largest bank arrays are tens of kB here).
+    biggest = max((len(c) for c in re.findall(r'dense<"0x[0-9A-F]*">', text)), default=0)
+    assert biggest < 4 * int(b.fields[0, 0].size), biggest

@@ -92,7 +92,8 @@ def two_sweeps(tiny_data, tmp_path_factory):
     full-length batch: tests/test_rollout.py checks it against refilled lanes)."""
     outs = [tmp_path_factory.mktemp(f"sweep{k}") for k in range(2)]
     for out in outs:
-        argv = ["--data", str(tiny_data), "--agent", "objectgoal-planner", "--episodes", "3", "--batch", "4", "--resolution", "8x32", "--seed", "1", "--out", str(out)]
+        argv = ["--data", str(tiny_data), "--agent", "objectgoal-planner,random", "--episodes", "3", "--batch", "4",
+                "--resolution", "8x32", "--seed", "1", "--out", str(out)]
         assert run_eval(_args(*argv)) == 0
     return outs
 
@@ -119,6 +120,23 @@ def test_sweep_writes_records_metrics_report_and_figures(two_sweeps):
     assert "| Object-goal planner (oracle goal category + oracle map) |" in report
     assert "| CR↓ | CR_full↓ |" in report and "![success by step](success_over_time.png)" in report
     assert (out / "map_objectgoal-planner.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_scripted_agents_share_one_compiled_rollout_with_their_own_results(two_sweeps):
+    from envs.agents.registry import make_agent
+    from envs.rollout import evaluate
+
+    out = two_sweeps[0]
+    env = next(iter(sweep._ENV_CACHE.values()))
+    # One evaluator serves both scripted agents (the agent is data), for both sweeps.
+    assert len(sweep._EVALUATORS[env]) == 1
+    # ...and gives each the results it gets alone.
+    alone = evaluate(env, make_agent("objectgoal-planner", env), batch=4, seed=1)
+    rows = list(csv.DictReader((out / "episodes_objectgoal-planner.csv").open()))
+    assert [int(r["t_reach"]) for r in rows] == alone["t_reach"].astype(int).tolist()
+    # The random agent's rows are its own, not the planner's again.
+    random_rows = list(csv.DictReader((out / "episodes_random.csv").open()))
+    assert [r["t_reach"] for r in random_rows] != [r["t_reach"] for r in rows]
 
 
 def test_same_seed_gives_identical_metrics_bytes(two_sweeps):

@@ -2,9 +2,11 @@
 
 `make_rollout_fn` runs the env with the expert and the policy side by side (a share `beta` of
 the steps is acted by the expert: 1 for behaviour cloning, 0 for DAgger's own-policy rounds);
-the expert labels every visited state. Records -> `sequences` (fixed-length windows with a
-burn-in, compact uint8/float16 panoramas) -> `bc_loss` (paper's L2 on (v_lin, v_ang)), trained
-by train.loop. train/policy.py drives the rounds; envs.agents.policy steps the policy and
+the expert labels every visited state. The expert is the CoNav expert by default, or any
+teacher Agent (the goal-navigation baselines imitate geodesic planners, train/goalnav.py), and
+a goal sensor may add observations the policy reads (a goal image). Records -> `sequences`
+(fixed-length windows with a burn-in, compact uint8/float16 panoramas) -> `bc_loss` (paper's
+L2 on (v_lin, v_ang)), trained by train.loop. train/policy.py drives the rounds; envs.agents.policy steps the policy and
 builds the evaluated agent from a run.
 """
 
@@ -15,13 +17,16 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from brax.envs.base import State
 from jax.sharding import Mesh
 
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nav.expert import ExpertConfig, initial_carry
 from conav_jax.parallel import replicate
+from envs.agents.base import Agent
 from envs.agents.expert import make_expert_step
+from envs.agents.goalnav import GOAL_IMAGE
 from envs.agents.policy import (
     INTENTION_KEYS,
     PREDICTED,
@@ -31,7 +36,8 @@ from envs.agents.policy import (
 from envs.conav_env import ConavEnv
 from envs.rollout import map_episodes
 
-# What a rollout records per step (besides the panorama, kept as "rgb" uint8 and "depth" f16).
+# What a rollout records per step (besides the panorama, kept as "rgb" uint8 and "depth" f16,
+# and a goal sensor's "goal_image", kept as uint8 where there is one).
 RECORDED_KEYS = ("gps_compass", "human_pos") + INTENTION_KEYS
 
 
@@ -58,6 +64,8 @@ def compact_obs(obs: dict) -> dict:
         "depth": rgbd[..., 3].astype(jnp.float16),
     }
     out.update({k: obs[k].astype(jnp.float32) for k in RECORDED_KEYS})
+    if GOAL_IMAGE in obs:  # rendered RGB like the panorama's, so as compact
+        out[GOAL_IMAGE] = jnp.round(obs[GOAL_IMAGE] * 255.0).astype(jnp.uint8)
     return out
 
 
@@ -66,7 +74,10 @@ def expand_obs(compact: dict) -> dict:
     rgbd = jnp.concatenate(
         [compact["rgb"].astype(jnp.float32) / 255.0, compact["depth"].astype(jnp.float32)[..., None]], axis=-1
     )
-    return {"rgbd": rgbd, **{k: compact[k].astype(jnp.float32) for k in RECORDED_KEYS}}
+    out = {"rgbd": rgbd, **{k: compact[k].astype(jnp.float32) for k in RECORDED_KEYS}}
+    if GOAL_IMAGE in compact:
+        out[GOAL_IMAGE] = compact[GOAL_IMAGE].astype(jnp.float32) / 255.0
+    return out
 
 
 def make_rollout_fn(
@@ -79,10 +90,18 @@ def make_rollout_fn(
     intention=None,
     trajectory=None,
     record_predicted: bool = False,
+    teacher: Agent | None = None,
+    goal_obs: Callable[[State], dict] | None = None,
 ):
     """A pure function `(params, key, episodes (B,) int32, beta ()) -> (metrics, records)`;
     jit it (once: params and beta are arguments, so every round and every validation reuses
     the compiled code).
+
+    `teacher`: the Agent that labels and, for `beta`, acts (e.g. envs.agents.baselines'
+    object-goal planner); its key is drawn apart from the mixing draws. None: the CoNav expert
+    of `expert_cfg`, as before teachers existed (same code, same bytes). `goal_obs(state) ->
+    dict`: observations added to the env's before the policy reads them and the records keep
+    them (a goal image, envs.agents.goalnav); None: the env's alone.
 
     Each episode runs `num_steps` (default: the bank's longest) control steps with the expert
     and the policy side by side: at each step the expert's action (its label) is taken with
@@ -99,7 +118,11 @@ def make_rollout_fn(
         raise ValueError("recording imitation data needs the ground-truth intentions: EnvConfig(intention_obs=True)")
     if record_predicted and pol.source != PREDICTED:
         raise ValueError("record_predicted needs the predictor of every intention input the policy reads")
-    expert = make_expert_step(env, expert_cfg)
+    if teacher is None:
+        expert = make_expert_step(env, expert_cfg)
+        teacher_init, teacher_act = lambda key, episode: initial_carry(), lambda state, carry, key: expert(state, carry)
+    else:
+        teacher_init, teacher_act = teacher.init, teacher.act
     steps = num_steps or env.bank.max_steps
 
     def one(params, key, episode, beta):
@@ -108,26 +131,27 @@ def make_rollout_fn(
 
         def body(c, k):
             state, ecarry, pcarry = c
-            label, ecarry = expert(state, ecarry)
+            obs = state.obs if goal_obs is None else {**state.obs, **goal_obs(state)}
+            label, ecarry = teacher_act(state, ecarry, jax.random.fold_in(k, 1))
             if record_predicted:  # the predictors follow every step, whoever acts
-                inputs, pcarry = pol.predict(state.obs, pcarry)
+                inputs, pcarry = pol.predict(obs, pcarry)
 
             def mixed(pcarry):
                 if record_predicted:
                     action, pcarry = pol.act(params, inputs, pcarry)
                 else:
-                    action, pcarry = pol.step(params, state.obs, pcarry)
+                    action, pcarry = pol.step(params, obs, pcarry)
                 return jnp.where(jax.random.uniform(k) < beta, label, action), pcarry
 
             # beta is the same for the whole batch, so under vmap this stays a real branch.
             action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
             rec = None
             if record:
-                obs = {**state.obs, **pcarry.predicted} if record_predicted else state.obs
-                rec = StepRecord(compact_obs(obs), label, action, state.done < 0.5, state.pipeline_state.qpos)
+                kept = {**obs, **pcarry.predicted} if record_predicted else obs
+                rec = StepRecord(compact_obs(kept), label, action, state.done < 0.5, state.pipeline_state.qpos)
             return (env.step(state, action), ecarry, pcarry), rec
 
-        init = (state, initial_carry(), pol.init())
+        init = (state, teacher_init(k_reset, episode), pol.init())
         (state, _, _), recs = jax.lax.scan(body, init, jax.random.split(k_run, steps))
         return state.metrics, recs
 

@@ -9,7 +9,9 @@ on the minival split (hyper-parameters are chosen there, never on the reported v
 RUN/log.jsonl holds the expert's validation metrics (the ceiling) and the recordings;
 RUN/ckpt_<step>.npz the policy at the end of each round (read by envs.agents.policy and
 train.ppo's --init-from). With a device mesh (conav_jax.parallel) every update's windows and
-every simulator batch are split over the devices, parameters replicated.
+every simulator batch are split over the devices, parameters replicated. The same rounds train
+the goal-navigation baselines (train/goalnav.py): an `ImitationTask` names their teacher, their
+goal sensor and their run's kind in place of the CoNav expert.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple
 
 from conav_jax import runs
 from conav_jax.runs import append_log
@@ -64,6 +66,15 @@ class ImitationConfig:
                 raise ValueError(f"ImitationConfig.{name} must be >= 1 (or None), got {getattr(self, name)}")
 
 
+class ImitationTask(NamedTuple):
+    """What a run imitates in place of the CoNav expert: the goal-navigation baselines' planners."""
+
+    kind: str  # the run's conav_jax.runs kind
+    teacher: Callable[[Any], Any]  # env -> the teacher Agent in that env (train and validation envs)
+    goal_obs: Callable[[Any], Callable] | None  # env -> `sensor(state) -> dict` the policy also reads; None: none
+    config: dict  # what the run records about its teacher and goal (JSON)
+
+
 class PolicyResult(NamedTuple):
     params: dict
     val: dict  # the final policy's validation metrics (envs.metrics.summarize)
@@ -75,14 +86,30 @@ def run_config(model, imitation: ImitationConfig, expert, content_hash: str, int
     """The checkpoint's config: "kind", the PolicyConfig as "model" (what train.ppo's
     --init-from and envs.agents.policy rebuild the network from: its resolution, ablation and
     saliency switch), the data and the predictor runs validation used."""
+    from conav_jax.models.policy import config_dict
+
     return {
         "kind": KIND,
-        "model": dataclasses.asdict(model),
+        "model": config_dict(model),
         "imitation": {k: v for k, v in dataclasses.asdict(imitation).items() if k not in RESUME_FREE},
         "expert": dataclasses.asdict(expert),
         "data_hash": content_hash,
         "intention_run": None if intention_run is None else str(intention_run),
         "trajectory_run": None if trajectory_run is None else str(trajectory_run),
+    }
+
+
+def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, content_hash: str) -> dict:
+    """The checkpoint's config of a run imitating `task`'s teacher: its kind, the PolicyConfig as
+    "model" (what envs.agents.goalnav rebuilds the network from), the data and the teacher."""
+    from conav_jax.models.policy import config_dict
+
+    return {
+        "kind": task.kind,
+        "model": config_dict(model),
+        "imitation": {k: v for k, v in dataclasses.asdict(imitation).items() if k not in RESUME_FREE},
+        "teacher": task.config,
+        "data_hash": content_hash,
     }
 
 
@@ -116,6 +143,7 @@ def train_policy(
     mesh=None,
     remat: bool = False,
     scan_updates: bool | None = None,
+    task: ImitationTask | None = None,
 ) -> PolicyResult:
     """Imitation-train the policy `model` (a conav_jax.models.policy.PolicyConfig: network,
     resolution, ablation) on `data_dir`'s train split into `run_dir`, resuming a run of the same
@@ -132,7 +160,10 @@ def train_policy(
     ablation keeps). With a `mesh` (conav_jax.parallel.make_mesh) updates and rollouts run
     data-parallel over its devices. `remat` rematerialises the CNN per window step (less
     memory, same result up to float rounding). `scan_updates` (default: on a GPU or TPU, not on
-    the CPU) as train.loop.train. Nothing is written before the dataset has been checked."""
+    the CPU) as train.loop.train. With a `task` the policy imitates its teacher instead of the
+    CoNav expert and also reads its goal sensor's observations; the run is of its kind (no
+    `expert`, no predictor runs: a task's policy trains and validates on its goal itself).
+    Nothing is written before the dataset has been checked."""
     import jax
     import numpy as np
 
@@ -149,10 +180,15 @@ def train_policy(
     from envs import ConavEnv, EnvConfig, SensorConfig
     from envs.agents.policy import intention_source, load_predictors, needed_predictors
     from envs.metrics import summarize
+    from envs.rollout import jit_with_bank
     from train import imitation as im
     from train import loop
 
     content_hash = read_manifest(data_dir)["content_hash"]  # before anything is written
+    if task is not None and (expert is not None or intention_run is not None or trajectory_run is not None
+                             or imitation.train_intentions != "ground_truth"):
+        raise ValueError(f"a {task.kind} run imitates its own teacher on its goal: no expert config, predictor runs "
+                         "or predicted training intentions")
     expert = expert or ExpertConfig()
     if mesh is not None:
         check_divisible(cfg.batch, mesh, "TrainConfig.batch")
@@ -165,7 +201,8 @@ def train_policy(
         scan_updates = jax.default_backend() != "cpu"
 
     run_dir = Path(run_dir)
-    config = run_config(model, imitation, expert, content_hash, intention_run, trajectory_run)
+    config = (run_config(model, imitation, expert, content_hash, intention_run, trajectory_run) if task is None
+              else task_run_config(task, model, imitation, content_hash))
     round_steps = [cfg.steps] + [imitation.dagger_steps or cfg.steps] * imitation.dagger_rounds
     round_end = np.cumsum(round_steps)  # global update count at each round's end
 
@@ -190,11 +227,21 @@ def train_policy(
     train_env = ConavEnv(data_dir, "train", env_cfg, max_episodes=imitation.episodes)
     val_env = ConavEnv(data_dir, imitation.val_split, env_cfg, max_episodes=imitation.val_episodes)
     intention, trajectory = load_predictors(intention_run, trajectory_run)
-    jit = lambda f: jax.jit(f, compiler_options=compiler_options)  # noqa: E731
+    # The rollouts take each split's episode bank as an argument: no episode data in the programs.
+    jit = lambda env, f: jit_with_bank(env, f, compiler_options=compiler_options)  # noqa: E731
     predicted = imitation.train_intentions == "predicted" and (intention is not None or trajectory is not None)
-    record = jit(im.make_rollout_fn(train_env, model, expert, record=True, record_predicted=predicted,
+
+    def task_kwargs(env) -> dict:  # a task's teacher and goal sensor in `env`
+        if task is None:
+            return {}
+        return {"teacher": task.teacher(env), "goal_obs": None if task.goal_obs is None else task.goal_obs(env)}
+
+    train_task = task_kwargs(train_env)
+    teacher_name = "expert" if task is None else train_task["teacher"].name
+    record = jit(train_env, im.make_rollout_fn(train_env, model, expert, record=True, record_predicted=predicted, **train_task,
                                     **({"intention": intention, "trajectory": trajectory} if predicted else {})))
-    validate = jit(im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory))
+    validate = jit(val_env, im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory,
+                                      **task_kwargs(val_env)))
     # Where validation's intention inputs come from, logged with each validation (ground truth
     # when no predictor run is given: a training-time check, not a benchmark result).
     val_source = intention_source(model, intention, trajectory)
@@ -211,8 +258,8 @@ def train_policy(
     if not expert_val:
         t0 = time.perf_counter()
         expert_val = {k: v for k, v in val_metrics(params, 1.0).items() if k != "intention_source"}
-        append_log(log_path, {"split": imitation.val_split, "agent": "expert", "episodes": len(val_eps), **expert_val})
-        log(f"expert (the ceiling) on {imitation.val_split}, {len(val_eps)} episodes: {_rates(expert_val)}  "
+        append_log(log_path, {"split": imitation.val_split, "agent": teacher_name, "episodes": len(val_eps), **expert_val})
+        log(f"{teacher_name} (the ceiling) on {imitation.val_split}, {len(val_eps)} episodes: {_rates(expert_val)}  "
             f"[{time.perf_counter() - t0:.0f} s]")
 
     parts = []
@@ -224,9 +271,9 @@ def train_policy(
         else:
             check_recordable(r, r <= done or latest_checkpoint(round_dir) is not None, path, run_dir)
             # Round 0: the expert acts (behaviour cloning); later: the current policy (DAgger).
-            agent, beta = ("expert", 1.0) if r == 0 else ("policy", 0.0)
+            agent, beta = (teacher_name, 1.0) if r == 0 else ("policy", 0.0)
             if r <= done:
-                log(f"round {r}: {path} is missing; recording it again (the expert's rollouts: same seed, same data)")
+                log(f"round {r}: {path} is missing; recording it again (the {teacher_name}'s rollouts: same seed, same data)")
             t0 = time.perf_counter()
             key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
             m, recs = im.run_batched(record, params, key, train_eps, beta, imitation.rollout_batch, mesh=mesh)

@@ -526,7 +526,7 @@ def train_ppo(
     log_path.unlink(missing_ok=True)  # a log without a checkpoint belongs to no run we can continue
     run_config = {
         "kind": KIND,
-        "model": dataclasses.asdict(policy_config),
+        "model": policy.config_dict(policy_config),
         "ppo": dataclasses.asdict(config),
         "env": {"episode_length": episode_length, "data_dir": str(data_dir),
                 "init_from": None if init_from is None else str(init_from)},

@@ -1,14 +1,18 @@
-"""Long-term intention predictor (paper sec. 4.1): a Perceiver over front-view RGB-D frames.
+"""Long-term intention predictor (paper sec. 4.1): a Perceiver over RGB-D frames of the human.
 
-frames `(B, N, h, w, 4)` + valid `mask (B, N)` -> patch tokens (linear patch embedding +
-learned patch position + sinusoidal frame index) -> a learned latent array cross-attends to the
+frames `(B, N, h, w, 4)` (crops of the panorama around the human, envs.human_crop; runs from
+before it read the panorama's front quarter), float or as `encode_frames` stores them (uint8),
+and a valid `mask (B, N)` -> patch tokens (linear patch embedding + learned patch position +
+sinusoidal frame index) -> a learned latent array cross-attends to the
 valid tokens -> latent self-attention blocks -> mean-pooled latent -> activity (107) and object
 (51) logits of what the human does next (B), and, with `activity_a_head`, logits of the
 activity being watched (A). `intention_probs` turns them into the predicted distributions:
 with the A head, through the shipped causal activity graph, p(B) = sum_A p(A | frames) P(B | A),
 mixed with the direct B head. Recognising A from its motion and object is what the frames
-show; the step to B is the graph's knowledge, which a model trained on a few scenes otherwise
-has to learn from their labels (and memorises the scenes instead: BENCHMARKS.md).
+show; the step to B is a structural prior taken from the generator's own graph, which a model
+trained on a few scenes otherwise has to learn from their labels (and memorises the scenes
+instead: BENCHMARKS.md). `intention_routes` gives each route alone, so results can be reported
+with and without that prior.
 `lowest_entropy_average` is the paper's inference-time smoothing of predictions.
 """
 
@@ -31,12 +35,17 @@ Params = dict
 
 @dataclass(frozen=True)
 class PerceiverConfig:
-    """Sizes of the intention Perceiver. Defaults are CPU-test sized; scale up for training."""
+    """Sizes of the intention Perceiver. The frame defaults to the crop at the sensor's default
+    resolution; the widths are small, and twice the width (dim 128, 32 latents) did no better
+    on the small preset's minival split (2,000 updates, four viewpoints per episode)."""
 
-    image_hw: tuple[int, int] = (32, 32)  # front-view frame (h, w) in pixels
+    # Frame (h, w) in pixels: the crop around the human, taken from the panorama at its own
+    # resolution (64x64 of a 112x448 panorama frames a standing human 2-3 m away whole).
+    # Runs from before the crop read 32x32 front views and say so in their config.
+    image_hw: tuple[int, int] = (64, 64)
     channels: int = 4  # RGB in [0, 1] + depth in metres
     patch_size: int = 8  # square patches; must divide h and w
-    max_depth_m: float = 10.0  # depth is divided by this and clipped to [0, 1]
+    max_depth_m: float = 10.0  # depth is divided by this and clipped to [0, 1] (also in encode_frames)
     dim: int = 64  # token and latent width
     num_latents: int = 16
     num_heads: int = 4  # head width = dim // num_heads
@@ -47,7 +56,9 @@ class PerceiverConfig:
     # Also classify activity A and predict B through the activity graph (needs the graph's
     # 107 activities and 51 categories). Checkpoints written before this field had no A head.
     activity_a_head: bool = True
-    graph_mix: float = 0.8  # weight of the graph route in p(B) and p(object B); the rest: direct heads
+    # Weight of the graph route (p(A | frames) through the generator's activity graph, a
+    # structural prior) in p(B) and p(object B); the rest: the direct heads.
+    graph_mix: float = 0.8
 
     def __post_init__(self):
         if not 0.0 <= self.graph_mix <= 1.0:
@@ -99,19 +110,47 @@ def _graph_tables(num_activities: int, num_objects: int) -> tuple[np.ndarray, np
     return transition, objects
 
 
-def intention_probs(config: PerceiverConfig, logits: IntentionLogits) -> tuple[jax.Array, jax.Array]:
-    """(activity B probabilities `(..., num_activities)`, object B probabilities
-    `(..., num_objects)`): the direct heads' softmax, and with the A head their mix with the
-    graph route (weight `graph_mix`)."""
-    act, obj = jax.nn.softmax(logits.activity, axis=-1), jax.nn.softmax(logits.object, axis=-1)
+class IntentionRoutes(NamedTuple):
+    """The predicted distributions of activity B `(..., num_activities)` and object B
+    `(..., num_objects)` by route: `direct` from the B heads alone (what the frames taught the
+    model); `graph_prior` from the A head through the generator's activity graph alone, a
+    structural prior (None without the A head); `mixed`, what the predictor outputs: their
+    mix with weight `graph_mix` on the graph route (`direct` without the A head)."""
+
+    direct: tuple[jax.Array, jax.Array]
+    graph_prior: tuple[jax.Array, jax.Array] | None
+    mixed: tuple[jax.Array, jax.Array]
+
+
+def intention_routes(config: PerceiverConfig, logits: IntentionLogits) -> IntentionRoutes:
+    """Each route's (activity B, object B) probabilities, see IntentionRoutes."""
+    direct = jax.nn.softmax(logits.activity, axis=-1), jax.nn.softmax(logits.object, axis=-1)
     if logits.activity_a is None:
-        return act, obj
+        return IntentionRoutes(direct, None, direct)
     transition, objects = graph_tables(config)
     hi = jax.lax.Precision.HIGHEST  # probabilities: keep float32 on the GPU
     via_b = jnp.matmul(jax.nn.softmax(logits.activity_a, axis=-1), jnp.asarray(transition), precision=hi)
     via_obj = jnp.matmul(via_b, jnp.asarray(objects), precision=hi)
     w = config.graph_mix
-    return (1.0 - w) * act + w * via_b, (1.0 - w) * obj + w * via_obj
+    mixed = (1.0 - w) * direct[0] + w * via_b, (1.0 - w) * direct[1] + w * via_obj
+    return IntentionRoutes(direct, (via_b, via_obj), mixed)
+
+
+def intention_probs(config: PerceiverConfig, logits: IntentionLogits) -> tuple[jax.Array, jax.Array]:
+    """(activity B probabilities `(..., num_activities)`, object B probabilities
+    `(..., num_objects)`): the direct heads' softmax, and with the A head their mix with the
+    graph route (weight `graph_mix`); `intention_routes(...).mixed`."""
+    return intention_routes(config, logits).mixed
+
+
+def encode_frames(frames: jax.Array, max_depth_m: float) -> jax.Array:
+    """Frames `(..., 4)` float (RGB in [0, 1], depth m) as uint8: RGB and depth / `max_depth_m`,
+    clipped to [0, 1], in 255 steps. RGB of 8-bit colours comes back exactly; depth to within
+    max_depth_m / 510 (2 cm at 10 m). A quarter of float32's memory, for the training sets and
+    the predictor's frame buffer; `apply` reads them as they are."""
+    rgb, depth = frames[..., :3], frames[..., 3:]
+    unit = jnp.concatenate([rgb, depth / max_depth_m], axis=-1)
+    return jnp.round(jnp.clip(unit, 0.0, 1.0) * 255.0).astype(jnp.uint8)
 
 
 def _block_init(key: jax.Array, config: PerceiverConfig, kv_dim: int) -> Params:
@@ -173,14 +212,20 @@ def _patchify(frames: jax.Array, patch: int) -> jax.Array:
 def apply(
     params: Params, config: PerceiverConfig, frames: jax.Array, mask: jax.Array
 ) -> IntentionLogits:
-    """`frames (B, N, h, w, 4)` float (RGB in [0, 1], depth in metres), `mask (B, N)` bool
-    (True = a real frame) -> logits. Masked frames are ignored exactly, whatever they hold;
-    a sample with no valid frame gets the latents' prior prediction."""
+    """`frames (B, N, h, w, 4)` float (RGB in [0, 1], depth in metres) or uint8 (`encode_frames`),
+    `mask (B, N)` bool (True = a real frame) -> logits. Masked frames are ignored exactly,
+    whatever they hold; a sample with no valid frame gets the latents' prior prediction."""
     b, n = frames.shape[:2]
+    if frames.shape[2:] != (*config.image_hw, config.channels):
+        raise ValueError(f"frames must be (B, N, {config.image_hw[0]}, {config.image_hw[1]}, {config.channels}), "
+                         f"got {frames.shape}")
+    if frames.dtype == jnp.uint8:  # encode_frames: every channel already in [0, 1] steps of 1/255
+        frames = frames.astype(jnp.float32) / 255.0
+    else:
+        rgb, depth = frames[..., :3], frames[..., 3:]
+        frames = jnp.concatenate([rgb, jnp.clip(depth / config.max_depth_m, 0.0, 1.0)], axis=-1)
     # Padding may hold anything (even NaN); zero it so 0-weight attention stays exactly 0.
-    frames = jnp.where(mask[:, :, None, None, None], frames, 0.0)
-    rgb, depth = frames[..., :3], frames[..., 3:]
-    frames = jnp.concatenate([rgb, jnp.clip(depth / config.max_depth_m, 0.0, 1.0)], axis=-1)
+    frames = jnp.where(mask[:, :, None, None, None], frames, 0.0).astype(jnp.float32)
 
     tokens = nn.linear.apply(params["patch_embed"], _patchify(frames, config.patch_size))
     time = nn.embedding.sinusoidal(jnp.arange(n), config.dim)  # (N, d), frame index

@@ -13,6 +13,12 @@ probability of that category relative to the most likely one. The saliency map i
 channel, and per azimuth sector its peak and the nearest salient depth feed the LSTM directly.
 A probability vector alone says *what* the human will use; without a map the policy had to
 learn from a few thousand demonstrations which pixels show it, and did not (README).
+
+The same network serves the paper's goal-navigation baselines (envs.agents.goalnav): without
+the human's position (`use_human_pos`), given a goal category as `object_probs` (the object-goal
+agent), or a goal image (`goal_image`: the forward quarter, RGB, of a panorama rendered where the
+goal is seen from) encoded by a small CNN of its own and fed to the LSTM beside the rest (the
+image-goal agent).
 """
 
 from __future__ import annotations
@@ -68,14 +74,49 @@ class PolicyConfig:
     object_saliency: bool = True
     saliency_sectors: int = 16  # azimuth sectors of the bearing features; must divide the width
     init_log_std: float = -0.5  # initial action log-std (PPO only)
+    # The human's position (robot frame) in the state input. The goal-navigation baselines
+    # read none: an ObjectNav or ImageNav policy knows only its goal.
+    use_human_pos: bool = True
+    # A goal image `goal_image (goal_image_hw..., 3)` RGB in [0, 1], through its own stride-2
+    # CNN (one conv per entry) and a linear layer of goal_dim to the LSTM (the image-goal agent).
+    goal_image: bool = False
+    goal_conv_channels: tuple[int, ...] = (16, 32, 32)
+    goal_conv_kernels: tuple[int, ...] = (3, 3, 3)
+    goal_dim: int = 64
 
     def __post_init__(self):
         if self.uses_saliency and (self.saliency_sectors < 1 or self.image_hw[1] % self.saliency_sectors):
             raise ValueError(f"saliency_sectors ({self.saliency_sectors}) must divide the panorama width {self.image_hw[1]}")
+        if self.goal_image and (len(self.goal_conv_channels) != len(self.goal_conv_kernels) or self.image_hw[1] % 4):
+            raise ValueError("goal_conv_channels and goal_conv_kernels need one entry per conv layer, and the goal "
+                             f"image (a quarter of the panorama) a width divisible by 4, got {self.image_hw[1]}")
 
     @property
     def uses_saliency(self) -> bool:
         return self.use_object and self.object_saliency
+
+    @property
+    def goal_image_hw(self) -> tuple[int, int]:
+        """(H, W) of the goal image: the forward quarter of a panorama of image_hw
+        (envs.panorama.front_view)."""
+        return self.image_hw[0], self.image_hw[1] // 4
+
+
+# Fields added after runs were written: a run's config stores them only where they differ from
+# their defaults (`config_dict`), so a run written before them still resumes (its stored config
+# compares equal), and `envs.agents.policy.policy_config_from_dict` fills in the defaults.
+LATER_FIELDS = ("use_human_pos", "goal_image", "goal_conv_channels", "goal_conv_kernels", "goal_dim")
+# The goal encoder's keys come from this fold of init's key, so configs without a goal image
+# draw every other parameter exactly as before the goal input existed.
+_GOAL_KEY_FOLD = 0x60A1
+
+
+def config_dict(config: PolicyConfig) -> dict:
+    """What a run stores as its "model": the config's fields, LATER_FIELDS only where they
+    differ from the defaults."""
+    default = PolicyConfig()
+    return {k: v for k, v in dataclasses.asdict(config).items()
+            if k not in LATER_FIELDS or v != getattr(default, k)}
 
 
 def ablation_config(base: PolicyConfig, name: str) -> PolicyConfig:
@@ -168,11 +209,12 @@ def init(key: jax.Array, config: PolicyConfig) -> Params:
     image = jax.ShapeDtypeStruct((1, *config.image_hw, in_ch[0]), jnp.float32)
     _, fh, fw, fc = jax.eval_shape(_conv_stack, convs, image).shape
     lstm_in = config.visual_dim + config.state_dim + config.intention_dim * (len(intentions) + config.uses_saliency)
+    lstm_in += config.goal_dim if config.goal_image else 0
     saliency_key = next(keys)  # its place in the key order is the one the README's runs were initialised with
     params = {
         "convs": convs,
         "visual": nn.linear.init(next(keys), fh * fw * fc, config.visual_dim),
-        "state": nn.linear.init(next(keys), 6, config.state_dim),
+        "state": nn.linear.init(next(keys), 6 if config.use_human_pos else 4, config.state_dim),
         "intentions": {
             name: nn.linear.init(next(keys), width, config.intention_dim)
             for name, width in intentions.items()
@@ -185,13 +227,27 @@ def init(key: jax.Array, config: PolicyConfig) -> Params:
     }
     if config.uses_saliency:
         params["saliency"] = nn.linear.init(saliency_key, 2 * config.saliency_sectors, config.intention_dim)
+    if config.goal_image:
+        params.update(_init_goal_encoder(jax.random.fold_in(key, _GOAL_KEY_FOLD), config))
     return params
+
+
+def _init_goal_encoder(key: jax.Array, config: PolicyConfig) -> Params:
+    """"goal_convs" and "goal" (flattened CNN features -> goal_dim) of the goal-image encoder."""
+    n = len(config.goal_conv_channels)
+    keys = jax.random.split(key, n + 1)
+    in_ch = (3, *config.goal_conv_channels[:-1])
+    convs = [nn.conv.init(k, i, o, s) for k, i, o, s in zip(keys, in_ch, config.goal_conv_channels, config.goal_conv_kernels)]
+    image = jax.ShapeDtypeStruct((1, *config.goal_image_hw, 3), jnp.float32)
+    _, fh, fw, fc = jax.eval_shape(_conv_stack, convs, image).shape
+    return {"goal_convs": convs, "goal": nn.linear.init(keys[n], fh * fw * fc, config.goal_dim)}
 
 
 def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
     """Per-step features fed to the LSTM: obs with leading dims `(...)` -> `(..., lstm_in)`.
-    Reads `rgbd (..., H, W, 4)`, `gps_compass (..., 3)`, `human_pos (..., 2)` and only the
-    enabled intention keys."""
+    Reads `rgbd (..., H, W, 4)`, `gps_compass (..., 3)`, `human_pos (..., 2)` (with
+    use_human_pos), only the enabled intention keys and, with goal_image, `goal_image (...,
+    H, W/4, 3)`."""
     rgbd = obs["rgbd"].astype(jnp.float32)  # float16 panoramas widen here, per call
     depth = jnp.clip(rgbd[..., 3:] / config.max_depth_m, 0.0, 1.0)
     channels = [rgbd[..., :3], depth]
@@ -206,7 +262,8 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
     pose, scale = obs["gps_compass"], config.position_scale_m
     xy, yaw = pose[..., :2], pose[..., 2:]
     # Yaw as sin/cos: no jump at +-pi.
-    state = jnp.concatenate([xy / scale, jnp.sin(yaw), jnp.cos(yaw), obs["human_pos"] / scale], axis=-1)
+    state = [xy / scale, jnp.sin(yaw), jnp.cos(yaw)] + ([obs["human_pos"] / scale] if config.use_human_pos else [])
+    state = jnp.concatenate(state, axis=-1)
     parts = [visual, jax.nn.relu(nn.linear.apply(params["state"], state))]
     for name in _intention_inputs(config):
         value = obs[name]
@@ -216,6 +273,9 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
     if config.uses_saliency:
         bearing = saliency_bearing(config, saliency, rgbd[..., 3])
         parts.append(jax.nn.relu(nn.linear.apply(params["saliency"], bearing)))
+    if config.goal_image:
+        goal = _conv_stack(params["goal_convs"], obs["goal_image"].astype(jnp.float32))
+        parts.append(jax.nn.relu(nn.linear.apply(params["goal"], goal.reshape(*goal.shape[:-3], -1))))
     return jnp.concatenate(parts, axis=-1)
 
 

@@ -1,7 +1,9 @@
 """The Agent interface every rollout runs, and what a benchmark row must say about an agent.
 
 An `Agent` acts for ONE environment (rollouts vmap it): `init(key, episode) -> carry` and
-`act(state, carry, key) -> (action (2,), carry)`, where `state` is the env's brax State. Beside
+`act(state, carry, key) -> (action (2,), carry)`, where `state` is the env's brax State. A
+privileged agent reads the episode bank through `env.bank_view` (looked up as it acts), so that
+a compiled rollout can take the bank as an argument (envs.rollout.jit_with_bank). Beside
 the two functions it carries what a results table reports about it: a `title`, where its
 intention inputs come from (`intention_source`) and every privileged input it reads
 (`privileged`, from the names below). A row never hides an oracle: `row_title` spells them out.
@@ -9,7 +11,7 @@ intention inputs come from (`intention_source`) and every privileged input it re
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 
@@ -28,9 +30,11 @@ GROUND_TRUTH_INTENTIONS = "ground-truth intentions"  # activity/object B from th
 FUTURE_HUMAN_POSITIONS = "future human positions"  # where the human will be
 HUMAN_PHASE = "human activity phase"  # whether the human is still at activity A
 ORACLE_SEGMENTATION = "oracle segmentation"  # each pixel's object category, from the render
+HUMAN_VIEW_GOAL_IMAGE = "goal image from the human's position"  # rendered where the human stands, each step
+ORACLE_MOVES = "pose set by an oracle pathfinder"  # moved to a target at once, not driven there
 PRIVILEGED_INPUTS = (
-    ORACLE_MAP, ORACLE_GOAL_CATEGORY, ORACLE_GOAL_POINT, CANDIDATE_GOAL_POINTS,
-    GROUND_TRUTH_INTENTIONS, FUTURE_HUMAN_POSITIONS, HUMAN_PHASE, ORACLE_SEGMENTATION,
+    ORACLE_MAP, ORACLE_GOAL_CATEGORY, ORACLE_GOAL_POINT, CANDIDATE_GOAL_POINTS, GROUND_TRUTH_INTENTIONS,
+    FUTURE_HUMAN_POSITIONS, HUMAN_PHASE, ORACLE_SEGMENTATION, HUMAN_VIEW_GOAL_IMAGE, ORACLE_MOVES,
 )
 
 
@@ -41,6 +45,9 @@ class Agent(NamedTuple):
     title: str = ""  # the row name in reports (default: the name)
     intention_source: str = NO_INTENTIONS
     privileged: tuple[str, ...] = ()
+    # 2: (v_lin, v_ang) velocity commands; 3: a pose (x, y, yaw) the env puts the robot at
+    # (ConavEnv.step), which only an oracle mover may do.
+    action_size: int = 2
 
     def check(self) -> "Agent":
         """This agent, after checking its description; ValueError naming what is wrong."""
@@ -50,10 +57,38 @@ class Agent(NamedTuple):
         unknown = [p for p in self.privileged if p not in PRIVILEGED_INPUTS]
         if unknown:
             raise ValueError(f"agent {self.name!r}: unknown privileged inputs {unknown}; known: {PRIVILEGED_INPUTS}")
+        if self.action_size not in (2, 3) or (self.action_size == 3) != (ORACLE_MOVES in self.privileged):
+            raise ValueError(f"agent {self.name!r}: action_size is 2 (velocities) or 3 (poses, listing "
+                             f"{ORACLE_MOVES!r} as privileged), got {self.action_size}")
         if (self.intention_source == GROUND_TRUTH) != (GROUND_TRUTH_INTENTIONS in self.privileged):
             raise ValueError(f"agent {self.name!r}: ground-truth intentions must be listed as privileged exactly "
                              "when they are the intention source")
         return self
+
+
+def switch_agent(agents: Sequence[Agent], which: jax.Array) -> Agent:
+    """One Agent acting as `agents[which]` (`which` an int32 scalar, traced or not): a rollout
+    compiled once serves all of them, the agent chosen as data. Its carry holds every agent's;
+    under vmap over environments `which` stays one scalar, so only the chosen agent computes."""
+    agents = tuple(agents)
+    if not agents:
+        raise ValueError("switch_agent needs at least one agent")
+
+    def init(key, episode):
+        return tuple(a.init(key, episode) for a in agents)
+
+    def act(state, carry, key):
+        def branch(i):
+            def run(carry):
+                action, own = agents[i].act(state, carry[i], key)
+                return action, carry[:i] + (own,) + carry[i + 1:]
+            return run
+
+        return jax.lax.switch(which, [branch(i) for i in range(len(agents))], carry)
+
+    if len({a.action_size for a in agents}) != 1:
+        raise ValueError("switch_agent needs agents of one action size")
+    return Agent("|".join(a.name for a in agents), init, act, action_size=agents[0].action_size)
 
 
 def row_title(agent: Agent) -> str:

@@ -20,7 +20,9 @@ from conav_jax.nav.planning import cell_centres, descent_chain, field_value
 from envs.agents.base import (
     CANDIDATE_GOAL_POINTS,
     ORACLE_GOAL_CATEGORY,
+    ORACLE_GOAL_POINT,
     ORACLE_MAP,
+    ORACLE_MOVES,
     Agent,
 )
 from envs.mjcf import UD
@@ -69,7 +71,7 @@ def steer(pose: jax.Array, direction: jax.Array, speed: jax.Array, env, cfg: Bas
 
 def _clearance(env, scene: jax.Array, p: jax.Array) -> jax.Array:
     """Distance (m) from points p (..., 2) to the nearest blocking box footprint of `scene`."""
-    b = env.bank
+    b = env.bank_view
     c = (b.col_lo[scene, :, :2] + b.col_hi[scene, :, :2]) / 2.0
     h = (b.col_hi[scene, :, :2] - b.col_lo[scene, :, :2]) / 2.0
     gap = jnp.maximum(jnp.abs(p[..., None, :] - c) - h, 0.0)
@@ -98,7 +100,7 @@ def _pursue(env, cfg: BaselineConfig, scene: jax.Array, xy: jax.Array, points: j
 def _field_dir(env, cfg: BaselineConfig, scene: jax.Array, k: jax.Array, xy: jax.Array) -> jax.Array:
     """Unit direction (2,) along field k of `scene` from xy (the oracle pathfinder); zero when
     k < 0 (no target)."""
-    b = env.bank
+    b = env.bank_view
     cells = descent_chain(b.fields[scene, jnp.maximum(k, 0)], b.field_origin[scene], b.cell_m, xy, cfg.path_lookahead_cells)
     chain = cell_centres(b.field_origin[scene], b.cell_m, cells)
     return jnp.where(k >= 0, _pursue(env, cfg, scene, xy, chain), 0.0)
@@ -116,39 +118,68 @@ def random_agent(env) -> Agent:
     return Agent("random", lambda key, episode: (), act, title="Random Agent")
 
 
-def pioneer_agent(env, cfg: BaselineConfig | None = None) -> Agent:
-    """The paper's pioneer: where will the human be in a few seconds, and go there first.
-
-    Our reading of "the next waypoint ... based on its orientation and speed, and a ground-truth
-    pathfinder": the human's velocity is estimated from the observed `human_history` (8 past
-    positions, robot frame) and extrapolated `pioneer_horizon_s` ahead to a waypoint; the target
-    is the scene object standing point nearest that waypoint (straight-line distance), and the
-    oracle pathfinder is that point's geodesic field, descended at full speed. The paper's
-    pathfinder teleports the robot to the waypoint; ours drives, so it obeys walls and speed
-    limits. While the human stands still the pioneer keeps its last target, or waits (zero
-    action) if it never had one: extrapolating a standing human points at the human itself.
-    Carry: the target field index (int32, -1 none).
-    """
-    cfg = cfg or BaselineConfig()
-    b, dt = env.bank, env.task.control_dt_s
+def _pioneer_target(env, cfg: BaselineConfig, state, carry) -> jax.Array:
+    """The pioneer's target: the scene object standing point nearest to where the human will be
+    in `pioneer_horizon_s` (velocity from the observed `human_history`, 8 past positions in the
+    robot frame); while the human stands still it keeps its previous target (`carry`, -1: none):
+    extrapolating a standing human points at the human itself. -> field index (int32)."""
+    b, dt = env.bank_view, env.task.control_dt_s
     n_hist = env.config.human_history_steps
-    if n_hist < 2:
+    pose = state.pipeline_state.qpos
+    scene = b.scene_index[state.info["episode"]]
+    hist = to_world(state.obs["human_history"], pose)  # (n_hist, 2), oldest first
+    vel = (hist[-1] - hist[0]) / ((n_hist - 1) * dt)
+    waypoint = hist[-1] + vel * cfg.pioneer_horizon_s
+    gap = jnp.linalg.norm(b.field_stand[scene, :, :2] - waypoint, axis=-1)
+    gap = jnp.where(b.field_category[scene] >= 0, gap, jnp.inf)
+    moving = jnp.linalg.norm(vel) >= cfg.pioneer_min_speed_mps
+    return jnp.where(moving, jnp.argmin(gap).astype(jnp.int32), carry)
+
+
+def _check_history(env) -> None:
+    if env.config.human_history_steps < 2:
         raise ValueError("the pioneer needs human_history_steps >= 2 to estimate the human's velocity")
+
+
+def pioneer_agent(env, cfg: BaselineConfig | None = None) -> Agent:
+    """The paper's pioneer: the next waypoint from the human's current orientation and speed,
+    and the robot translated to it by the oracle pathfinder.
+
+    The waypoint is where the human will be in `pioneer_horizon_s`; the target is the scene
+    object standing point nearest it (_pioneer_target), and the robot is put at that standing
+    pose at once (a pose action: ConavEnv.step), every step the target holds: privileged, it
+    never drives, and contacts at the poses it is put at count as any other. While the human
+    has not moved it stays where it is. Carry: the target field index (int32, -1 none)."""
+    cfg = cfg or BaselineConfig()
+    _check_history(env)
+    b = env.bank_view
+
+    def act(state, carry, key):
+        del key
+        k = _pioneer_target(env, cfg, state, carry)
+        scene = b.scene_index[state.info["episode"]]
+        return jnp.where(k >= 0, b.field_stand[scene, jnp.maximum(k, 0)], state.pipeline_state.qpos), k
+
+    return Agent("pioneer", lambda key, episode: jnp.int32(-1), act, title="Pioneer Agent",
+                 privileged=(CANDIDATE_GOAL_POINTS, ORACLE_MOVES), action_size=3)
+
+
+def pioneer_drive_agent(env, cfg: BaselineConfig | None = None) -> Agent:
+    """The pioneer that drives: the same target (_pioneer_target), reached by descending its
+    geodesic field at full speed (the oracle map), so it obeys walls and speed limits; it waits
+    (zero action) until the human first moves. Carry: the target field index (int32, -1 none)."""
+    cfg = cfg or BaselineConfig()
+    _check_history(env)
+    b = env.bank_view
 
     def act(state, carry, key):
         del key
         pose = state.pipeline_state.qpos
         scene = b.scene_index[state.info["episode"]]
-        hist = to_world(state.obs["human_history"], pose)  # (n_hist, 2), oldest first
-        vel = (hist[-1] - hist[0]) / ((n_hist - 1) * dt)
-        waypoint = hist[-1] + vel * cfg.pioneer_horizon_s
-        gap = jnp.linalg.norm(b.field_stand[scene, :, :2] - waypoint, axis=-1)
-        gap = jnp.where(b.field_category[scene] >= 0, gap, jnp.inf)
-        moving = jnp.linalg.norm(vel) >= cfg.pioneer_min_speed_mps
-        k = jnp.where(moving, jnp.argmin(gap).astype(jnp.int32), carry)
+        k = _pioneer_target(env, cfg, state, carry)
         return steer(pose, _field_dir(env, cfg, scene, k, pose[:2]), 1.0, env, cfg), k
 
-    return Agent("pioneer", lambda key, episode: jnp.int32(-1), act, title="Pioneer Agent",
+    return Agent("pioneer-drive", lambda key, episode: jnp.int32(-1), act, title="Pioneer Agent, driving",
                  privileged=(CANDIDATE_GOAL_POINTS, ORACLE_MAP))
 
 
@@ -164,7 +195,7 @@ def follower_agent(env, cfg: BaselineConfig | None = None) -> Agent:
     that it faces the human and backs away, at full speed `follow_back_off_m` inside it. Carry: none.
     """
     cfg = cfg or BaselineConfig()
-    b = env.bank
+    b = env.bank_view
     steps = jnp.arange(b.max_steps)
     ahead = cfg.follow_stride_steps * jnp.arange(1, cfg.path_lookahead_cells + 1)
 
@@ -191,32 +222,61 @@ def follower_agent(env, cfg: BaselineConfig | None = None) -> Agent:
     return Agent("follower", lambda key, episode: (), act, title="Human-following Agent", privileged=(ORACLE_MAP,))
 
 
-def objectgoal_planner_agent(env, cfg: BaselineConfig | None = None) -> Agent:
+def nearest_instance(env, scene: jax.Array, category: jax.Array, xy: jax.Array) -> jax.Array:
+    """The field index (int32) of the object of `category` in `scene` whose standing point is
+    nearest to xy by geodesic distance (the smallest field value there)."""
+    b = env.bank_view
+    values = jax.vmap(lambda f: field_value(f, b.field_origin[scene], b.cell_m, xy))(b.fields[scene])
+    values = jnp.where(b.field_category[scene] == category, values, jnp.inf)
+    return jnp.argmin(values).astype(jnp.int32)
+
+
+def objectgoal_planner_agent(env, cfg: BaselineConfig | None = None, replan: bool = False) -> Agent:
     """An object-goal planner with the oracle goal category and the oracle map: privileged, ours,
-    not the paper's learned object-goal agent (ZSON reads only its camera and the category).
+    not the paper's learned object-goal agent (envs.agents.goalnav: it reads only its camera,
+    pose and the category, and imitates this planner).
 
     At the start it picks, among the scene's objects of the episode's object-B category, the
     one whose standing point is nearest by geodesic distance from the robot's start (the
     smallest field value there), and descends that field at full speed, ignoring the human.
     With several instances it can pick the wrong one, as a real object-goal agent would.
+    With `replan` it picks the nearest instance again from wherever the robot is, every step:
+    the same path from the start (descending a field keeps its instance the nearest), and the
+    teacher's answer in any state a learner's own rollout reaches (DAgger).
     Carry: the chosen field index (int32).
     """
     cfg = cfg or BaselineConfig()
-    b = env.bank
+    b = env.bank_view
 
     def init(key, episode):
         del key
-        scene = b.scene_index[episode]
-        xy = b.robot_start[episode, :2]
-        values = jax.vmap(lambda f: field_value(f, b.field_origin[scene], b.cell_m, xy))(b.fields[scene])
-        values = jnp.where(b.field_category[scene] == b.object_b[episode], values, jnp.inf)
-        return jnp.argmin(values).astype(jnp.int32)
+        return nearest_instance(env, b.scene_index[episode], b.object_b[episode], b.robot_start[episode, :2])
 
     def act(state, carry, key):
         del key
         pose = state.pipeline_state.qpos
-        scene = b.scene_index[state.info["episode"]]
+        episode = state.info["episode"]
+        scene = b.scene_index[episode]
+        if replan:
+            carry = nearest_instance(env, scene, b.object_b[episode], pose[:2])
         return steer(pose, _field_dir(env, cfg, scene, carry, pose[:2]), 1.0, env, cfg), carry
 
     return Agent("objectgoal-planner", init, act, title="Object-goal planner",
                  privileged=(ORACLE_GOAL_CATEGORY, ORACLE_MAP))
+
+
+def goal_planner_agent(env, cfg: BaselineConfig | None = None) -> Agent:
+    """The geodesic planner to the episode's goal itself (its standing point for activity B):
+    descends the goal's field at full speed, ignoring the human. The image-goal agent's
+    teacher (envs.agents.goalnav): where the goal image was taken is where it leads. Carry: none."""
+    cfg = cfg or BaselineConfig()
+    b = env.bank_view
+
+    def act(state, carry, key):
+        del key
+        pose = state.pipeline_state.qpos
+        episode = state.info["episode"]
+        return steer(pose, _field_dir(env, cfg, b.scene_index[episode], b.field_b[episode], pose[:2]), 1.0, env, cfg), carry
+
+    return Agent("goal-planner", lambda key, episode: (), act, title="Goal planner",
+                 privileged=(ORACLE_GOAL_POINT, ORACLE_MAP))

@@ -10,16 +10,13 @@ from __future__ import annotations
 
 from typing import Callable
 
-import jax
 import jax.numpy as jnp
-import numpy as np
 
 from conav_jax.motion.phases import PHASE_ACTIVITY_A
 from conav_jax.nav.expert import (
     ExpertCarry,
     ExpertConfig,
     ExpertMaps,
-    clearance_map,
     expert_action,
     initial_carry,
 )
@@ -33,22 +30,10 @@ from envs.agents.base import (
 from envs.mjcf import UD
 
 
-def clearance_grids(env) -> jax.Array:
-    """(S, ny, nx) signed wall clearance (m) of every scene, on the bank's field grid."""
-    b = env.bank
-    _, _, ny, nx = b.fields.shape
-    out = np.full((len(env.split.navs), ny, nx), -b.cell_m, np.float32)  # padding reads as blocked
-    for s, nav in enumerate(env.split.navs):
-        gy, gx = nav.grid.shape
-        out[s, :gy, :gx] = clearance_map(nav.grid.free, nav.grid.cell_m)
-    return jnp.asarray(out)
-
-
 def make_expert_step(env, cfg: ExpertConfig = ExpertConfig()) -> Callable:
     """`(state, carry) -> (action (2,), carry)`: conav_jax.nav.expert acting on one env's brax State.
     Privileged: it reads the episode's fields, the human's upcoming positions and phase."""
-    b = env.bank
-    clearance = clearance_grids(env)
+    b = env.bank_view
     look = jnp.asarray(cfg.human_lookahead_steps, jnp.int32)
 
     def step(state, carry: ExpertCarry):
@@ -56,7 +41,7 @@ def make_expert_step(env, cfg: ExpertConfig = ExpertConfig()) -> Callable:
         s = b.scene_index[ep]
         t = state.pipeline_state.userdata[UD["t"]].astype(jnp.int32)
         ts = jnp.clip(t + look, 0, b.max_steps - 1)
-        maps = ExpertMaps(b.fields[s, b.field_b[ep]], b.fields[s, b.field_a[ep]], clearance[s], b.field_origin[s])
+        maps = ExpertMaps(b.fields[s, b.field_b[ep]], b.fields[s, b.field_a[ep]], b.clearance[s], b.field_origin[s])
         at_a = b.phase[ep, ts[0]] == PHASE_ACTIVITY_A
         return expert_action(cfg, maps, b.cell_m, state.pipeline_state.qpos, b.root_xy[ep, ts], at_a, carry)
 

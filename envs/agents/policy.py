@@ -62,10 +62,11 @@ class PolicyStep(NamedTuple):
 
 
 def policy_inputs(cfg: PolicyConfig) -> tuple[str, ...]:
-    """The observation keys the policy reads: the panorama, pose, human position and the
-    intention inputs its ablation keeps."""
+    """The observation keys the policy reads: the panorama, pose, human position (unless
+    switched off), the intention inputs its ablation keeps and the goal image if it has one."""
     on = (cfg.use_activity, cfg.use_object, cfg.use_trajectory)
-    return ("rgbd", "gps_compass", "human_pos") + tuple(k for k, use in zip(INTENTION_KEYS, on) if use)
+    return (("rgbd", "gps_compass") + (("human_pos",) if cfg.use_human_pos else ())
+            + tuple(k for k, use in zip(INTENTION_KEYS, on) if use) + (("goal_image",) if cfg.goal_image else ()))
 
 
 def needed_predictors(cfg: PolicyConfig) -> tuple[str, ...]:
@@ -117,7 +118,7 @@ def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None, recurre
         inputs = {k: obs[k] for k in keys if k not in predicted_keys}
         icarry = carry.intention
         if use_intention:
-            activity, obj, icarry = intention.step(icarry, obs["front"])
+            activity, obj, icarry = intention.step(icarry, obs)
             inputs.update(activity_probs=activity, object_probs=obj)
         if use_trajectory:
             inputs["future_traj"] = trajectory.predict(obs["human_history"])

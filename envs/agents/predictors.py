@@ -1,15 +1,17 @@
 """The intention and trajectory predictors of trained runs, as agents use them while acting.
 
 `load_intention_predictor(run)` turns a `conav train intention` run into a per-env, per-step
-predictor: front views go into a frame ring buffer, the Perceiver reads them, and the output
-is the mean of the lowest-entropy recent predictions (paper sec. 4.2). `load_trajectory_predictor
+predictor: the observation's panorama, cropped around the human (`obs["rgbd"]` at
+`obs["human_pos"]`, envs.human_crop; `intention_frame`, which also makes the training frames),
+goes into a frame ring buffer, the Perceiver reads it, and the output is the mean of the
+lowest-entropy recent predictions (paper sec. 4.2). `load_trajectory_predictor
 (run)` turns a `conav train trajectory` run into `predict(history) -> next positions`. Both
 close over their parameters, are jittable and vmappable, and run inside the agents' `act`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import NamedTuple
 
@@ -17,33 +19,80 @@ import jax
 import jax.numpy as jnp
 
 from conav_jax import runs
+from conav_jax.config import TaskConfig
 from conav_jax.models import perceiver
 from conav_jax.models import trajectory as traj_model
 from conav_jax.models.perceiver import PerceiverConfig
 from conav_jax.models.trajectory import TrajectoryConfig
+from envs.human_crop import human_crop
+from envs.panorama import front_view
+
+# What a Perceiver frame shows: "human", the panorama cropped around the human at its own
+# resolution; "front", the panorama's front quarter resized to the frame (runs from before
+# the crop; a run's config without a view is one of those).
+VIEWS = ("human", "front")
+
+
+class FrameSpec(NamedTuple):
+    """How a run's frames were made from the panorama, which the predictor repeats."""
+
+    view: str  # one of VIEWS
+    sensor_hw: tuple[int, int]  # (H, W) of the panoramas the run was trained on
+    camera_height_m: float = TaskConfig.camera_height_m  # where the crop's rows look
+
+
+def intention_frame(spec: FrameSpec, config: PerceiverConfig, rgbd: jax.Array, human_pos: jax.Array) -> jax.Array:
+    """One Perceiver frame `(h, w, 4)` uint8 (perceiver.encode_frames) from a panorama `rgbd
+    (H, W, 4)` and the human's position `(2,)` m in the robot frame: what training stored and
+    what the predictor records. ValueError when the panorama is not the resolution the run was
+    trained on for the "human" view (a crop of another resolution shows the human at another
+    size), or when the shapes do not fit (envs.human_crop)."""
+    if spec.view not in VIEWS:
+        raise ValueError(f"unknown intention view {spec.view!r}; expected one of {VIEWS}")
+    if rgbd.ndim != 3 or rgbd.shape[-1] != config.channels:
+        raise ValueError(f"rgbd must be (H, W, {config.channels}), got {rgbd.shape}")
+    h, w = config.image_hw
+    if spec.view == "front":
+        frame = front_view(rgbd).astype(jnp.float32)
+        if frame.shape[:2] != (h, w):
+            frame = jax.image.resize(frame, (h, w, config.channels), "linear")
+    else:
+        if tuple(rgbd.shape[:2]) != tuple(spec.sensor_hw):
+            sh, sw = spec.sensor_hw
+            raise ValueError(
+                f"the intention predictor crops {h}x{w} frames from {sh}x{sw} panoramas (its training "
+                f"resolution) but got {rgbd.shape[0]}x{rgbd.shape[1]}; render the env with "
+                f"SensorConfig(height={sh}, width={sw})")
+        frame = human_crop(rgbd.astype(jnp.float32), human_pos, (h, w), spec.camera_height_m)
+    return perceiver.encode_frames(frame, config.max_depth_m)
 
 
 class IntentionCarry(NamedTuple):
     """Per-env state of the predictor (arrays; vmap it for a batch of envs)."""
 
-    frames: jax.Array  # (F, h, w, 4) the last F recorded frames, oldest first
+    frames: jax.Array  # (F, h, w, 4) uint8 (perceiver.encode_frames): the last F recorded frames, oldest first
     num_frames: jax.Array  # int32: frames recorded so far, capped at F
     activity_history: jax.Array  # (P, num_activities) the last P predictions, oldest first
     object_history: jax.Array  # (P, num_objects)
     num_predictions: jax.Array  # int32: predictions recorded so far, capped at P
     t: jax.Array  # int32: step() calls so far
+    # bool: a recorded observation's human position held NaN. Its crop is in the buffer as some
+    # uint8 value, so every later output is NaN: no prediction from a made-up view.
+    bad_input: jax.Array
 
 
 class IntentionPredictor(NamedTuple):
     """A trained Perceiver with its parameters closed over, for one env (jittable, vmappable).
 
-    `init() -> carry`; `step(carry, front) -> (activity_probs (107,), object_probs (51,),
-    carry)` with `front (H, W/4, 4)` float, the env's `obs["front"]` at any resolution."""
+    `init() -> carry`; `step(carry, obs) -> (activity_probs (107,), object_probs (51,), carry)`
+    with `obs` the env's observation of one env: it reads `obs["rgbd"]` (H, W, 4) and
+    `obs["human_pos"]` (2,) (`intention_frame`)."""
 
     config: PerceiverConfig
     frame_stride: int
+    spec: FrameSpec
     init: Callable[[], IntentionCarry]
-    step: Callable[[IntentionCarry, jax.Array], tuple[jax.Array, jax.Array, IntentionCarry]]
+    step: Callable[[IntentionCarry, Mapping[str, jax.Array]], tuple[jax.Array, jax.Array, IntentionCarry]]
 
 
 def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -55,29 +104,32 @@ def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Arr
 
 
 def make_intention_predictor(
-    params, config: PerceiverConfig, frames: int, frame_stride: int = 1, history: int = 16, top_k: int = 5
+    params, config: PerceiverConfig, frames: int, spec: FrameSpec, frame_stride: int = 1, history: int = 16,
+    top_k: int = 5,
 ) -> IntentionPredictor:
-    """A predictor that records a frame every `frame_stride` calls (training frames were that
-    far apart), keeps the last `frames`, runs the Perceiver on them and returns the mean of
-    the `top_k` lowest-entropy of the last `history` predictions (paper sec. 4.2)."""
+    """A predictor that records a frame (`intention_frame` by `spec`) every `frame_stride`
+    calls (training frames were that far apart), keeps the last `frames`, runs the Perceiver
+    on them and returns the mean of the `top_k` lowest-entropy of the last `history`
+    predictions (paper sec. 4.2)."""
     h, w = config.image_hw
     f32 = jnp.float32
 
     def init() -> IntentionCarry:
         zero = jnp.zeros((), jnp.int32)
         return IntentionCarry(
-            jnp.zeros((frames, h, w, config.channels), f32), zero,
+            jnp.zeros((frames, h, w, config.channels), jnp.uint8), zero,
             jnp.zeros((history, config.num_activities), f32), jnp.zeros((history, config.num_objects), f32),
-            zero, zero,
+            zero, zero, jnp.zeros((), bool),
         )
 
-    def step(carry: IntentionCarry, front: jax.Array):
-        if front.ndim != 3 or front.shape[-1] != config.channels:
-            raise ValueError(f"front must be (H, W, {config.channels}), got {front.shape}")
+    def step(carry: IntentionCarry, obs: Mapping[str, jax.Array]):
+        if not isinstance(obs, Mapping) or "rgbd" not in obs or "human_pos" not in obs:
+            raise ValueError("the intention predictor steps on the env's observation of one env, a mapping "
+                             "with 'rgbd' (H, W, 4) and 'human_pos' (2,)")
+        rgbd, human_pos = jnp.asarray(obs["rgbd"]), jnp.asarray(obs["human_pos"])
         record = carry.t % frame_stride == 0
-        frame = front.astype(f32)
-        if frame.shape[:2] != (h, w):
-            frame = jax.image.resize(frame, (h, w, config.channels), "linear")
+        frame = intention_frame(spec, config, rgbd, human_pos)
+        bad = carry.bad_input | (record & ~jnp.all(jnp.isfinite(human_pos)))
         buf, n = _push(carry.frames, carry.num_frames, frame)
         buf, n = jnp.where(record, buf, carry.frames), jnp.where(record, n, carry.num_frames)
         mask = jnp.arange(frames) < n
@@ -92,9 +144,19 @@ def make_intention_predictor(
         valid = (jnp.arange(history) < m)[None]
         act = perceiver.lowest_entropy_average(act_h[None], valid, top_k)[0]
         obj = perceiver.lowest_entropy_average(obj_h[None], valid, top_k)[0]
-        return act, obj, IntentionCarry(buf, n, act_h, obj_h, m, carry.t + 1)
+        act, obj = jnp.where(bad, jnp.nan, act), jnp.where(bad, jnp.nan, obj)
+        return act, obj, IntentionCarry(buf, n, act_h, obj_h, m, carry.t + 1, bad)
 
-    return IntentionPredictor(config, frame_stride, init, step)
+    return IntentionPredictor(config, frame_stride, spec, init, step)
+
+
+def frame_spec_from_config(data: dict) -> FrameSpec:
+    """The FrameSpec of a run's "data" config; runs from before the crop have no "view" and
+    read front views."""
+    view = data.get("view", "front")
+    if view not in VIEWS:
+        raise ValueError(f"intention run with unknown view {view!r}; this version reads {VIEWS}")
+    return FrameSpec(view, tuple(data["sensor_hw"]), float(data.get("camera_height_m", TaskConfig.camera_height_m)))
 
 
 def load_intention_predictor(
@@ -109,7 +171,8 @@ def load_intention_predictor(
     cfg.setdefault("activity_a_head", False)  # runs from before the A head had none
     data = ckpt.config["data"]
     stride = frame_stride if frame_stride is not None else max(1, int(round(data["frame_spacing_steps"])))
-    return make_intention_predictor(ckpt.params, PerceiverConfig(**cfg), data["frames"], stride, history, top_k)
+    return make_intention_predictor(ckpt.params, PerceiverConfig(**cfg), data["frames"], frame_spec_from_config(data),
+                                    stride, history, top_k)
 
 
 class TrajectoryPredictor(NamedTuple):

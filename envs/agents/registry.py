@@ -3,7 +3,9 @@
 name -> AgentSpec (does it load a trained run? does it read intention inputs?) -> `check_agent`
 (cheap: no env, no compile, run directories checked) -> `make_agent(name, env, ...)` -> Agent.
 Agents that read intention inputs (conav, ppo) take predictor runs, or `ground_truth=True` for
-the env's ground truth; they refuse to run with neither (envs.agents.policy).
+the env's ground truth; they refuse to run with neither (envs.agents.policy). The learned
+object-goal agent's predicted variant takes an intention predictor run and nothing else
+(envs.agents.goalnav).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ def _baseline(name: str) -> Callable[..., Agent]:
         from envs.agents import baselines
 
         return {"random": baselines.random_agent, "pioneer": baselines.pioneer_agent,
+                "pioneer-drive": baselines.pioneer_drive_agent,
                 "follower": baselines.follower_agent, "objectgoal-planner": baselines.objectgoal_planner_agent}[name](env, **kwargs)
 
     return build
@@ -53,16 +56,41 @@ def _ppo(env, checkpoint, **kwargs):
     return ppo_agent(env, checkpoint, **kwargs)
 
 
+def _objectgoal(oracle: bool) -> Callable[..., Agent]:
+    def build(env, checkpoint, **kwargs):
+        from envs.agents.goalnav import objectgoal_agent
+
+        return objectgoal_agent(env, checkpoint, oracle, **kwargs)
+
+    return build
+
+
+def _imagegoal(env, checkpoint, **kwargs):
+    from envs.agents.goalnav import imagegoal_agent
+
+    return imagegoal_agent(env, checkpoint, **kwargs)
+
+
 AGENTS: dict[str, AgentSpec] = {
     "random": AgentSpec(_baseline("random"), "uniform random actions"),
-    "pioneer": AgentSpec(_baseline("pioneer"), "extrapolates the human to the nearest object standing point and drives "
-                         "there on the oracle geodesic field (privileged)"),
+    "pioneer": AgentSpec(_baseline("pioneer"), "the paper's pioneer: put at once (oracle pathfinder) at the object "
+                         "standing point nearest where the human will be in 2 s (privileged)"),
+    "pioneer-drive": AgentSpec(_baseline("pioneer-drive"), "the pioneer's target, driven to along the oracle "
+                               "geodesic field (privileged)"),
     "follower": AgentSpec(_baseline("follower"), "stays about 1 m behind the human"),
     "objectgoal-planner": AgentSpec(_baseline("objectgoal-planner"), "oracle goal category + oracle map: the nearest "
                                     "instance along its geodesic field (privileged)"),
     "expert": AgentSpec(_expert, "the imitation teacher (privileged: goal, map, the human's future)"),
     "conav": AgentSpec(_conav, "the trained CoNav policy (--checkpoint: a `conav train policy` run)", True, True, runs.POLICY),
     "ppo": AgentSpec(_ppo, "a PPO policy (--checkpoint: a `conav train rl` run)", True, True, runs.PPO),
+    "objectgoal-oracle": AgentSpec(_objectgoal(True), "the learned object-goal agent (no map) given the episode's "
+                                   "object-B category (privileged; --checkpoint: a `conav train objectnav` run)",
+                                   True, False, runs.OBJECTNAV),
+    "objectgoal-predicted": AgentSpec(_objectgoal(False), "the learned object-goal agent given the intention "
+                                      "predictor's most likely object (--checkpoint: a `conav train objectnav` run, "
+                                      "--intention RUN)", True, True, runs.OBJECTNAV),
+    "imagegoal": AgentSpec(_imagegoal, "the learned image-goal agent given an image rendered at the human's position "
+                           "each step (privileged; --checkpoint: a `conav train imagenav` run)", True, False, runs.IMAGENAV),
 }
 
 

@@ -1,0 +1,355 @@
+"""`conav reproduce`'s plan: the paper's Tables 2 and 3 as resumable stages of `conav` commands.
+
+config -> `plan_stages` (each stage: the `conav` argument lists it runs and the files that show
+it is done) -> the command line runs each stage's commands in order, skipping stages already
+done; a stage cut short resumes (every training run resumes exactly from its checkpoints) ->
+`collect_results` reads every evaluation's metrics.json into results.json (per agent, per
+seed; the commit, the command and the stage timings) -> `render_tables` writes tables.md:
+Table 2 (every agent beside the paper's figures, its privileged inputs named) and Table 3 (the
+five intention ablations), each learned cell the mean ± sd over seeds with the pooled 95%
+interval. Nothing here imports the training code: stages are command lines.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from envs.metrics import METRIC_NAMES
+
+STAGES = ("generate", "predictors", "baselines", "bc", "dagger", "eval", "tables", "pack")
+ABLATIONS = ("none", "activity", "object", "activity_object", "all")  # the paper's Table 3 rows 1-5
+PACK_LIMIT_BYTES = 60 * 2**20
+
+# The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
+PAPER_TABLE2 = {
+    "random": ("Random Agent", (4.5, 4.6, 3.7, 3.7, 32.7, 442.6)),
+    "pioneer": ("Pioneer Agent (Oracle Pathfinder)", (61.6, 61.8, 46.6, 46.7, 30.4, 308.1)),
+    "follower": ("Human-following Agent", (3.5, 3.7, 1.6, 1.7, 49.0, 350.8)),
+    "objectgoal-oracle": ("Object-goal Agent (Oracle Goal Object)", (15.6, 16.4, 10.7, 10.9, 46.1, 295.5)),
+    "objectgoal-predicted": ("Object-goal Agent (Predicted Goal Object)", (8.6, 9.3, 7.2, 7.5, 38.7, 377.4)),
+    "imagegoal": ("Image-goal Agent", (7.6, 8.1, 6.0, 6.2, 41.4, 372.5)),
+    "conav": ("CoNav Agent (Ours)", (19.8, 23.2, 13.5, 14.9, 20.1, 354.5)),
+}
+PAPER_TABLE3 = {
+    "none": (14.5, 17.0, 10.6, 11.8, 14.7, 402.9),
+    "activity": (14.4, 17.4, 10.2, 11.9, 27.7, 330.1),
+    "object": (15.7, 18.6, 10.6, 11.7, 16.0, 391.9),
+    "activity_object": (17.5, 20.4, 11.4, 12.8, 22.2, 352.5),
+    "all": (19.8, 23.2, 13.5, 14.9, 20.1, 354.5),
+}
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Training budgets of one preset (updates, batches, rounds), chosen on minival."""
+
+    intention_steps: int = 6000
+    trajectory_steps: int = 3000
+    policy_steps: int = 2000  # BC updates
+    policy_batch: int = 256  # windows per update
+    # Train episodes each imitation round records: their windows live on the GPU (about 125 kB a
+    # step at 112x448 in uint8 RGB + float16 depth), so the paper preset records a subset.
+    policy_episodes: int | None = None
+    dagger_rounds: int = 2
+    dagger_steps: int = 4000
+    baseline_steps: int = 2000  # object-goal and image-goal BC updates
+    baseline_dagger_rounds: int = 1
+    eval_batch: int = 2048  # evaluation lanes
+
+
+BUDGETS = {
+    "tiny": Budget(intention_steps=60, trajectory_steps=60, policy_steps=40, policy_batch=8, dagger_rounds=1,
+                   dagger_steps=20, baseline_steps=40, baseline_dagger_rounds=0, eval_batch=64),
+    "small": Budget(policy_episodes=500, eval_batch=512),
+    "paper": Budget(policy_episodes=400),
+}
+
+
+@dataclass(frozen=True)
+class ReproduceConfig:
+    """One `conav reproduce` run."""
+
+    out: Path
+    preset: str = "paper"
+    seeds: int = 3  # training seeds of every learned CoNav row
+    resolution: tuple[int, int] = (112, 448)  # the panorama every agent reads (the paper's)
+    data_seed: int = 0
+    workers: int = 2  # dataset generation processes
+
+    def __post_init__(self):
+        if self.preset not in BUDGETS:
+            raise ValueError(f"unknown preset {self.preset!r}; choose from {', '.join(BUDGETS)}")
+        if self.seeds < 1:
+            raise ValueError(f"--seeds must be at least 1, got {self.seeds}")
+
+    @property
+    def budget(self) -> Budget:
+        return BUDGETS[self.preset]
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage: the `conav` argument lists it runs, in order (an entry starting with "@copy"
+    copies a run directory: DAgger continues a copy of the BC run), and the files it writes."""
+
+    name: str
+    commands: tuple[tuple[str, ...], ...]
+    outputs: tuple[Path, ...] = field(default=())
+
+
+PROGRESS_FILE = "progress.json"  # the commands and stages done, with their wall times (s)
+
+
+def read_progress(out: Path) -> dict:
+    path = Path(out) / PROGRESS_FILE
+    return json.loads(path.read_text()) if path.is_file() else {"commands": {}, "stages": {}}
+
+
+def write_progress(out: Path, progress: dict) -> None:
+    from conav_jax.data.arrayio import save_json
+
+    save_json(Path(out) / PROGRESS_FILE, progress)
+
+
+def command_key(argv: tuple[str, ...], out: Path) -> str:
+    """How progress.json names a command: its words, with the run's directory as OUT (a run
+    packed on one machine continues in another directory on the next)."""
+    return " ".join(argv).replace(str(out), "OUT")
+
+
+def _res(cfg: ReproduceConfig) -> str:
+    return "x".join(map(str, cfg.resolution))
+
+
+def intention_crop_side(resolution: tuple[int, int], side: int = 64, patch: int = 8) -> int:
+    """The side (pixels) of the square crop around the human the intention predictor reads
+    from panoramas of `resolution`: `side` (64 of 112x448 frames a standing human 2-3 m away),
+    or the panorama's height rounded down to the Perceiver's patch where that is smaller (the
+    predictor crops from the panorama the agents render, so a lower resolution sees the human
+    in fewer pixels)."""
+    return min(side, resolution[0] // patch * patch)
+
+
+def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
+    """Every stage of the pipeline for `cfg`, in order."""
+    b, out, res = cfg.budget, Path(cfg.out), _res(cfg)
+    data, runs, evals = out / "data", out / "runs", out / "eval"
+    quiet = ("--no-progress",)
+    intention, trajectory = runs / "intention", runs / "trajectory"
+    crop = "x".join([str(intention_crop_side(cfg.resolution))] * 2)
+    stages = [
+        Stage("generate", (("generate", "--preset", cfg.preset, "--out", str(data), "--seed", str(cfg.data_seed),
+                            "--workers", str(cfg.workers)),), (data / "manifest.json",)),
+        Stage("predictors", (
+            ("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
+             "--sensor", res, "--image", crop, *quiet),
+            ("train", "trajectory", "--data", str(data), "--out", str(trajectory), "--steps", str(b.trajectory_steps), *quiet),
+        ), (intention / "ckpt_{:08d}.npz".format(b.intention_steps),
+            trajectory / "ckpt_{:08d}.npz".format(b.trajectory_steps))),
+        Stage("baselines", (
+            ("train", "objectnav", "--data", str(data), "--out", str(runs / "objectnav"), "--resolution", res,
+             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *quiet),
+            ("train", "imagenav", "--data", str(data), "--out", str(runs / "imagenav"), "--resolution", res,
+             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *quiet),
+        ), (runs / "objectnav" / "log.jsonl", runs / "imagenav" / "log.jsonl")),
+    ]
+    policy = ("--data", str(data), "--intention", str(intention), "--trajectory", str(trajectory),
+              "--train-intentions", "predicted", "--resolution", res, "--steps", str(b.policy_steps),
+              "--batch", str(b.policy_batch), *(("--episodes", str(b.policy_episodes)) if b.policy_episodes else ()), *quiet)
+    bc = [("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(runs / f"bc_{a}_s{s}"))
+          for s in range(cfg.seeds) for a in ABLATIONS]
+    stages.append(Stage("bc", tuple(bc), tuple(runs / f"bc_{a}_s{s}" / "log.jsonl" for s in range(cfg.seeds) for a in ABLATIONS)))
+    dagger = []
+    for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
+        dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"dagger_s{s}")))
+        dagger.append(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
+                       str(b.dagger_rounds), "--dagger-steps", str(b.dagger_steps), "--out", str(runs / f"dagger_s{s}")))
+    stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"dagger_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
+    common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
+    evals_ = [("eval", *common, "--agent", "random,follower,pioneer,pioneer-drive,objectgoal-planner,expert",
+               "--out", str(evals / "scripted")),
+              ("eval", *common, "--agent", "objectgoal-oracle", "--checkpoint", str(runs / "objectnav"),
+               "--out", str(evals / "objectgoal-oracle")),
+              ("eval", *common, "--agent", "objectgoal-predicted", "--checkpoint", str(runs / "objectnav"),
+               "--intention", str(intention), "--out", str(evals / "objectgoal-predicted")),
+              ("eval", *common, "--agent", "imagegoal", "--checkpoint", str(runs / "imagenav"),
+               "--out", str(evals / "imagegoal"))]
+    for s in range(cfg.seeds):
+        ablations = ",".join(f"{a}={runs / f'bc_{a}_s{s}'}" for a in ABLATIONS)
+        evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"dagger_s{s}"),
+                       "--ablation-checkpoints", ablations, "--out", str(evals / f"conav_s{s}")))
+    names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [f"conav_s{s}" for s in range(cfg.seeds)]
+    stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
+    stages.append(Stage("tables", (), (out / "results.json", out / "tables.md")))
+    stages.append(Stage("pack", (), (out / "pack.tar",)))
+    return stages
+
+
+# -- results and tables ------------------------------------------------------------------------
+
+
+def _mean_sd(values: list[float]) -> tuple[float, float]:
+    m = sum(values) / len(values)
+    sd = math.sqrt(sum((v - m) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
+    return m, sd
+
+
+def collect_results(out: Path, seeds: int, extra: dict) -> dict:
+    """results.json's content from the evaluations under `out/eval`: per agent its title,
+    intention source, privileged inputs and metrics (per seed for the learned CoNav rows)."""
+    evals = Path(out) / "eval"
+    agents: dict[str, dict] = {}
+    for name in ("scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"):
+        doc = json.loads((evals / name / "metrics.json").read_text())
+        for key, entry in doc["agents"].items():
+            agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
+    conav: dict[str, dict] = {}
+    for s in range(seeds):
+        doc = json.loads((evals / f"conav_s{s}" / "metrics.json").read_text())
+        rows = {"dagger": doc["agents"]["conav"], **{k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()}}
+        for row, entry in rows.items():
+            slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
+            slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": doc["episodes"]}
+    return {**extra, "agents": agents, "conav": conav}
+
+
+def _cell(value: float) -> str:
+    return f"{value:.1f}"
+
+
+def _learned_cell(row: dict, metric: str) -> str:
+    """'mean ± sd [lo, hi]' over seeds: the pooled 95% interval treats every seed's episodes as
+    one sample (for rates: the Wilson interval of the pooled counts; otherwise the seeds' mean
+    of the per-seed bounds)."""
+    from eval.report import RATES, wilson_interval
+
+    per_seed = [s["metrics"][metric] for s in row["seeds"].values()]
+    m, sd = _mean_sd([p["value"] for p in per_seed])
+    if metric in RATES:
+        n = [s["episodes"] for s in row["seeds"].values()]
+        hits = round(sum(p["value"] / 100.0 * k for p, k in zip(per_seed, n)))
+        lo, hi = (100.0 * v for v in wilson_interval(hits, sum(n)))
+    else:
+        lo, hi = (sum(p[b] for p in per_seed) / len(per_seed) for b in ("lo", "hi"))
+    return f"{m:.1f} ± {sd:.1f} [{lo:.1f}, {hi:.1f}]"
+
+
+def render_tables(results: dict) -> str:
+    """tables.md: Table 2 (ours beside the paper's) and Table 3 from results.json's content."""
+    cols = METRIC_NAMES
+    head = "| " + " | ".join(cols) + " |"
+    lines = [
+        "# CoNav: the paper's Tables 2 and 3, reproduced",
+        "",
+        f"Data: preset `{results.get('preset', '?')}`, split val ({results.get('episodes', '?')} episodes), panorama "
+        f"{results.get('resolution', '?')}; {results.get('seeds', '?')} training seeds for every learned CoNav row; "
+        f"commit {results.get('commit', '?')}. Rates and SPLs in percent, AS in steps. Learned rows: mean ± sd over "
+        "seeds [pooled 95% interval]. Paper: the published figures (a different simulator, scenes and agents' "
+        "implementations; they are context, not a target).",
+        "",
+        "## Table 2: agents",
+        "",
+        "| agent | given (privileged inputs) | source " + head,
+        "|---|---|---" + "|---:" * len(cols) + "|",
+    ]
+    for key, (paper_title, paper) in PAPER_TABLE2.items():
+        if key == "conav":
+            row = results["conav"].get("all")
+            if row is not None:
+                lines.append(f"| {row['title']} (BC) | {', '.join(row['privileged']) or 'none'} | ours | "
+                             + " | ".join(_learned_cell(row, m) for m in cols) + " |")
+            row = results["conav"].get("dagger")
+            if row is not None:
+                lines.append(f"| {row['title']} (BC + DAgger) | {', '.join(row['privileged']) or 'none'} | ours | "
+                             + " | ".join(_learned_cell(row, m) for m in cols) + " |")
+        else:
+            entry = results["agents"].get(key)
+            if entry is not None:
+                lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
+                             + " | ".join(_cell(entry["metrics"][m]["value"]) for m in cols) + " |")
+        lines.append(f"| {paper_title} | | paper | " + " | ".join(_cell(v) for v in paper) + " |")
+    for key, entry in results["agents"].items():
+        if key not in PAPER_TABLE2:  # ours without a paper row (e.g. the planner, the expert)
+            lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
+                         + " | ".join(_cell(entry["metrics"][m]["value"]) for m in cols) + " |")
+    lines += ["", "## Table 3: intention inputs (BC, predicted intentions)", "",
+              "| # | activity | object | trajectory | source " + head, "|---|:---:|:---:|:---:|---" + "|---:" * len(cols) + "|"]
+    flags = {"none": (0, 0, 0), "activity": (1, 0, 0), "object": (0, 1, 0), "activity_object": (1, 1, 0), "all": (1, 1, 1)}
+    for k, name in enumerate(ABLATIONS, start=1):
+        marks = " | ".join("✓" if f else "✗" for f in flags[name])
+        row = results["conav"].get(name)
+        if row is not None:
+            lines.append(f"| {k} | {marks} | ours | " + " | ".join(_learned_cell(row, m) for m in cols) + " |")
+        lines.append(f"| {k} | {marks} | paper | " + " | ".join(_cell(v) for v in PAPER_TABLE3[name]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# -- pack ------------------------------------------------------------------------------------------
+
+
+def pack_members(cfg: ReproduceConfig, progress: dict) -> list[Path]:
+    """What a fresh machine needs to continue: the progress record, every evaluation's outputs,
+    results and tables, and the latest checkpoint of every run a stage still to run reads (the
+    data are regenerated from their seed; a training round cut short restarts from the run's
+    last finished round)."""
+    out = Path(cfg.out)
+    members = [out / PROGRESS_FILE] + sorted((out / "eval").rglob("*.json")) + sorted((out / "eval").rglob("*.md"))
+    members += [p for p in (out / "results.json", out / "tables.md") if p.exists()]
+    pending = [argv for st in plan_stages(cfg) for argv in st.commands if command_key(argv, out) not in progress["commands"]]
+    runs = set()
+    for argv in pending:
+        for flag in ("--checkpoint", "--intention", "--trajectory", "--out", "--init-from"):
+            if flag in argv:
+                runs.add(Path(argv[argv.index(flag) + 1]))
+        if argv[0] == "@copy":
+            runs.add(Path(argv[1]))
+        if "--ablation-checkpoints" in argv:
+            runs.update(Path(item.split("=", 1)[1]) for item in argv[argv.index("--ablation-checkpoints") + 1].split(","))
+    from conav_jax.checkpoints import latest_checkpoint
+
+    for run in sorted(runs):
+        found = latest_checkpoint(run)
+        if found is not None:
+            members += [found] + [p for p in (run / "log.jsonl",) if p.exists()]
+    return [p for p in members if p.exists()]
+
+
+def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int]:
+    """OUT/pack.tar (atomically): `pack_members`, paths relative to OUT. ValueError when it
+    would exceed PACK_LIMIT_BYTES, naming the largest members."""
+    import os
+    import tarfile
+    import tempfile
+
+    out = Path(cfg.out)
+    members = pack_members(cfg, progress)
+    total = sum(p.stat().st_size for p in members)
+    if total > PACK_LIMIT_BYTES:
+        big = sorted(members, key=lambda p: -p.stat().st_size)[:5]
+        raise ValueError(f"the pack would hold {total / 2**20:.1f} MiB (limit {PACK_LIMIT_BYTES / 2**20:.0f} MiB); "
+                         "largest: " + ", ".join(f"{p.relative_to(out)} {p.stat().st_size / 2**20:.1f} MiB" for p in big))
+    fd, tmp = tempfile.mkstemp(prefix=".pack.", suffix=".tmp", dir=out)
+    os.close(fd)
+    with tarfile.open(tmp, "w") as tar:
+        for p in members:
+            tar.add(p, arcname=str(p.relative_to(out)))
+    os.replace(tmp, out / "pack.tar")
+    return out / "pack.tar", total
+
+
+def unpack(pack: Path, out: Path) -> list[str]:
+    """Unpack a pack into OUT (a fresh machine continuing a run); the member names."""
+    import tarfile
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(pack) as tar:
+        names = tar.getnames()
+        bad = [n for n in names if n.startswith("/") or ".." in Path(n).parts]
+        if bad:
+            raise ValueError(f"{pack}: unsafe member paths {bad[:3]}")
+        tar.extractall(out)
+    return names

@@ -1,0 +1,160 @@
+"""`conav reproduce` (eval/reproduce.py and its command line): the stages and their commands, the
+runner skipping what is done and resuming after a failure, tables rendered from results."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from eval import cli
+from eval import reproduce as rp
+
+METRICS = ("FASR", "RASR", "FASPL", "RASPL", "CR", "AS")
+
+
+def _metrics(values, lo=None, hi=None):
+    return {m: {"value": v, "lo": v - 1 if lo is None else lo, "hi": v + 1 if hi is None else hi}
+            for m, v in zip(METRICS, values)}
+
+
+def _eval_doc(agents: dict, ablations: dict | None = None, episodes: int = 100) -> dict:
+    def entry(key, values):
+        return {"agent": key, "title": f"T {key}", "intention_source": "none", "privileged": ["oracle map"],
+                "metrics": _metrics(values)}
+
+    return {"episodes": episodes, "agents": {k: entry(k, v) for k, v in agents.items()},
+            "ablations": {f"ablation_{k}": entry("conav", v) for k, v in (ablations or {}).items()}}
+
+
+def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episodes(tmp_path):
+    stages = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=2))
+    assert [s.name for s in stages] == list(rp.STAGES)
+    bc = {s.name: s for s in stages}["bc"].commands
+    assert len(bc) == 2 * len(rp.ABLATIONS)
+    assert all("--episodes" in argv and "--train-intentions" in argv for argv in bc)
+    dagger = {s.name: s for s in stages}["dagger"].commands
+    assert dagger[0] == ("@copy", str(tmp_path / "runs" / "bc_all_s0"), str(tmp_path / "runs" / "dagger_s0"))
+    # The intention predictor crops from the panorama the agents render: 64x64 of 112x448, less below.
+    for res, crop in (((112, 448), "64x64"), ((32, 128), "32x32")):
+        (intention,) = [argv for argv in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, resolution=res))[1].commands
+                        if argv[1] == "intention"]
+        assert intention[intention.index("--sensor") + 1] == "x".join(map(str, res))
+        assert intention[intention.index("--image") + 1] == crop
+    with pytest.raises(ValueError, match="--seeds must be at least 1"):
+        rp.ReproduceConfig(out=tmp_path, seeds=0)
+
+
+def test_learned_cells_are_the_mean_and_sd_over_seeds_with_the_pooled_interval():
+    row = {"title": "CoNav", "privileged": [], "seeds": {
+        "0": {"metrics": _metrics((10, 20, 5, 6, 30, 100)), "episodes": 100},
+        "1": {"metrics": _metrics((20, 30, 7, 8, 10, 200)), "episodes": 100}}}
+    # FASR: mean 15, sd sqrt(50) = 7.07; pooled 30 of 200: Wilson [10.7, 20.6].
+    assert rp._learned_cell(row, "FASR") == "15.0 ± 7.1 [10.7, 20.6]"
+    # AS: not a rate: mean 150, sd 70.7, the seeds' mean bounds.
+    assert rp._learned_cell(row, "AS") == "150.0 ± 70.7 [149.0, 151.0]"
+
+
+def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
+    results = {
+        "preset": "small", "seeds": 1, "resolution": "32x128", "episodes": 100, "commit": "abc1234",
+        "agents": {"random": {"title": "Random Agent", "intention_source": "none", "privileged": [],
+                              "metrics": _metrics((1, 2, 3, 4, 5, 6))},
+                   "expert": {"title": "Imitation expert", "intention_source": "none", "privileged": ["oracle map"],
+                              "metrics": _metrics((90, 95, 80, 85, 2, 70))}},
+        "conav": {"all": {"title": "CoNav Agent", "intention_source": "predicted", "privileged": ["oracle segmentation"],
+                          "seeds": {"0": {"metrics": _metrics((12, 13, 14, 15, 16, 17)), "episodes": 100}}}},
+    }
+    md = rp.render_tables(results)
+    lines = md.splitlines()
+    assert "| Random Agent | none | ours | 1.0 | 2.0 | 3.0 | 4.0 | 5.0 | 6.0 |" in lines
+    assert "| Random Agent | | paper | 4.5 | 4.6 | 3.7 | 3.7 | 32.7 | 442.6 |" in lines
+    assert "| Imitation expert | oracle map | ours | 90.0 | 95.0 | 80.0 | 85.0 | 2.0 | 70.0 |" in lines
+    assert any(line.startswith("| CoNav Agent (BC) | oracle segmentation | ours | 12.0 ± 0.0 [") for line in lines)
+    assert "| 5 | ✓ | ✓ | ✓ | paper | 19.8 | 23.2 | 13.5 | 14.9 | 20.1 | 354.5 |" in lines
+    assert "commit abc1234" in md
+
+
+@pytest.fixture
+def fake_conav(monkeypatch):
+    """`conav` commands replaced by a recorder that writes what the real ones would: a run's
+    log, an evaluation's metrics.json. `fail_on` makes one command fail (a cut-off run)."""
+    calls, state = [], {"fail_on": None}
+
+    def fake_main(argv, compile_cache=True):
+        calls.append(tuple(argv))
+        if state["fail_on"] is not None and any(state["fail_on"] in a for a in argv):
+            state["fail_on"] = None
+            return 1
+        out = Path(argv[argv.index("--out") + 1])
+        if argv[0] == "eval":
+            out.mkdir(parents=True, exist_ok=True)
+            agents = argv[argv.index("--agent") + 1].split(",")
+            ablations = ({item.split("=")[0]: (5, 6, 7, 8, 9, 10) for item in argv[argv.index("--ablation-checkpoints") + 1].split(",")}
+                         if "--ablation-checkpoints" in argv else None)
+            (out / "metrics.json").write_text(json.dumps(_eval_doc({a: (1, 2, 3, 4, 5, 6) for a in agents}, ablations)))
+        else:
+            out.mkdir(parents=True, exist_ok=True)
+            (out / ("manifest.json" if argv[0] == "generate" else "log.jsonl")).write_text("{}\n")
+        return 0
+
+    monkeypatch.setattr(cli, "main", fake_main)
+    return calls, state
+
+
+def _reproduce(out, *extra):
+    args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--seeds", "2", "--out", str(out), *extra])
+    return args.func(args)
+
+
+def test_a_run_cut_short_resumes_where_it_stopped_and_gives_the_same_results(fake_conav, tmp_path):
+    calls, state = fake_conav
+    assert _reproduce(tmp_path / "a") == 0
+    straight = list(calls)
+    results = json.loads((tmp_path / "a" / "results.json").read_text())
+    assert set(results["conav"]) == set(rp.ABLATIONS) | {"dagger"} and set(results["conav"]["all"]["seeds"]) == {"0", "1"}
+
+    calls.clear()
+    state["fail_on"] = "bc_object_s1"  # the run is cut during the bc stage
+    assert _reproduce(tmp_path / "b") == 1
+    first = list(calls)
+    calls.clear()
+    assert _reproduce(tmp_path / "b") == 0
+    # Nothing done before the cut runs again; the cut command and everything after it does.
+    done_before = first[:-1]
+    assert not set(done_before) & set(calls)
+    assert calls[0] == first[-1]
+    assert len(done_before) + len(calls) == len(straight)
+    resumed = json.loads((tmp_path / "b" / "results.json").read_text())
+    for doc in (results, resumed):
+        for key in ("command", "stage_seconds", "command_seconds"):
+            doc.pop(key)
+    assert json.dumps(resumed, sort_keys=True).replace("/b/", "/a/") == json.dumps(results, sort_keys=True)
+    # Everything done: a third call runs nothing.
+    calls.clear()
+    assert _reproduce(tmp_path / "b") == 0 and calls == []
+
+
+def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, tmp_path):
+    from conav_jax.checkpoints import checkpoint_path, save_checkpoint
+
+    calls, state = fake_conav
+    state["fail_on"] = "dagger_s0"
+    out = tmp_path / "r"
+    assert _reproduce(out) == 1  # cut in the dagger stage: the BC runs and the predictors are still needed
+    for run in ("intention", "trajectory", "bc_all_s1", "bc_none_s0"):
+        save_checkpoint(checkpoint_path(out / "runs" / run, 5), params={"w": [1.0]}, opt_state=None,
+                        config={"kind": "policy"}, step=5)
+    assert _reproduce(out, "--stage", "pack") == 0
+    import tarfile
+
+    names = set(tarfile.open(out / "pack.tar").getnames())
+    assert "progress.json" in names and "runs/bc_all_s1/ckpt_00000005.npz" in names
+    assert "runs/intention/ckpt_00000005.npz" in names and "runs/bc_none_s0/ckpt_00000005.npz" in names
+    fresh = tmp_path / "fresh"
+    assert _reproduce(fresh, "--unpack", str(out / "pack.tar"), "--dry-run") == 0
+    assert (fresh / "runs" / "bc_all_s1" / "ckpt_00000005.npz").is_file()
+    # On the fresh machine the data are made again, then the run goes on where it was cut.
+    calls.clear()
+    assert _reproduce(fresh) == 0
+    assert calls[0][0] == "generate" and "dagger_s0" in " ".join(calls[1])
+    assert not any(c[0] == "train" and "bc_" in c[c.index("--out") + 1] for c in calls if "--out" in c)

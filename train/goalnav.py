@@ -1,0 +1,79 @@
+"""`conav train objectnav` / `conav train imagenav`: the paper's learned goal-navigation
+baselines (object-goal agent after ZSON, image-goal agent after FGPrompt), by imitation of a
+geodesic planner: behaviour cloning, then DAgger rounds (train/policy.py's rounds, unchanged).
+
+train split -> episodes run to the first reach, the teacher acting (BC) or labelling the
+policy's own states (DAgger) -> windows -> L2 imitation loss on train.loop -> validation on
+minival -> a run of kind "objectnav" / "imagenav" that envs.agents.goalnav loads.
+
+No human task: the teachers lead to the goal object's standing point and ignore the human, and
+the policies read no human position (PolicyConfig.use_human_pos off).
+- Object-goal: the teacher is the object-goal planner descending the field of the nearest
+  instance of the episode's object-B category, re-picked from wherever the robot is (so DAgger's
+  labels answer from the states the policy reaches). The policy reads the category as the env's
+  ground-truth one-hot `object_probs` (ObjectNav trains on its true goal), as a vector and, with
+  the saliency channel (default on), as the map of that category's pixels (oracle segmentation).
+- Image-goal: the teacher is the geodesic planner to the goal itself; the policy reads the goal
+  image taken at the goal's standing pose (envs.agents.goalnav.goal_view_sensor), rendered each
+  step with the human where they are, and validates on it (at evaluation the image comes from
+  the human's position instead).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from conav_jax import runs
+from conav_jax.models.policy import PolicyConfig, ablation_config
+from envs.agents.baselines import BaselineConfig, goal_planner_agent, objectgoal_planner_agent
+from envs.agents.goalnav import check_imagegoal_config, check_objectgoal_config, goal_view_sensor
+from train.loop import TrainConfig
+from train.policy import ImitationConfig, ImitationTask, PolicyResult, train_policy
+
+
+def objectnav_model(image_hw: tuple[int, int], object_saliency: bool = True, base: PolicyConfig = PolicyConfig()) -> PolicyConfig:
+    """`base` as the object-goal policy: the goal category its only intention input, no human
+    position, panoramas of `image_hw`."""
+    return dataclasses.replace(ablation_config(base, "object"), image_hw=tuple(image_hw),
+                               object_saliency=object_saliency, use_human_pos=False)
+
+
+def imagenav_model(image_hw: tuple[int, int], base: PolicyConfig = PolicyConfig()) -> PolicyConfig:
+    """`base` as the image-goal policy: a goal image, no intention input, no human position."""
+    return dataclasses.replace(ablation_config(base, "none"), image_hw=tuple(image_hw), use_human_pos=False,
+                               goal_image=True)
+
+
+def objectnav_task(planner: BaselineConfig = BaselineConfig()) -> ImitationTask:
+    """The object-goal planner (re-picking the nearest instance every step) as the teacher."""
+    return ImitationTask(runs.OBJECTNAV, lambda env: objectgoal_planner_agent(env, planner, replan=True), None,
+                         {"planner": "objectgoal-planner", "replan": True, "baseline": dataclasses.asdict(planner)})
+
+
+def imagenav_task(planner: BaselineConfig = BaselineConfig()) -> ImitationTask:
+    """The geodesic planner to the goal as the teacher, the goal-pose image as the goal input."""
+    return ImitationTask(runs.IMAGENAV, lambda env: goal_planner_agent(env, planner), goal_view_sensor,
+                         {"planner": "goal-planner", "goal_image": "goal standing pose, forward quarter, RGB",
+                          "baseline": dataclasses.asdict(planner)})
+
+
+def train_objectnav(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, model: PolicyConfig,
+                    imitation: ImitationConfig = ImitationConfig(), planner: BaselineConfig = BaselineConfig(),
+                    **kwargs) -> PolicyResult:
+    """Train the object-goal policy `model` (see `objectnav_model`) into `run_dir`, resuming a
+    run of the same config; `kwargs` as train.policy.train_policy's (progress, mesh, remat...)."""
+    check_objectgoal_config(model, "the object-goal model")
+    if model.use_human_pos:
+        raise ValueError("the object-goal model reads no human position (use_human_pos=False)")
+    return train_policy(data_dir, run_dir, cfg, model, imitation, task=objectnav_task(planner), **kwargs)
+
+
+def train_imagenav(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, model: PolicyConfig,
+                   imitation: ImitationConfig = ImitationConfig(), planner: BaselineConfig = BaselineConfig(),
+                   **kwargs) -> PolicyResult:
+    """Train the image-goal policy `model` (see `imagenav_model`) into `run_dir`, as `train_objectnav`."""
+    check_imagegoal_config(model, "the image-goal model")
+    if model.use_human_pos:
+        raise ValueError("the image-goal model reads no human position (use_human_pos=False)")
+    return train_policy(data_dir, run_dir, cfg, model, imitation, task=imagenav_task(planner), **kwargs)
