@@ -178,6 +178,7 @@ def train_policy(
     from conav_jax.nav.expert import ExpertConfig
     from conav_jax.parallel import check_divisible
     from envs import ConavEnv, EnvConfig, SensorConfig
+    from envs.agents.base import NO_INTENTIONS
     from envs.agents.policy import intention_source, load_predictors, needed_predictors
     from envs.metrics import summarize
     from envs.rollout import jit_with_bank
@@ -229,7 +230,9 @@ def train_policy(
     intention, trajectory = load_predictors(intention_run, trajectory_run)
     # The rollouts take each split's episode bank as an argument: no episode data in the programs.
     jit = lambda env, f: jit_with_bank(env, f, compiler_options=compiler_options)  # noqa: E731
-    predicted = imitation.train_intentions == "predicted" and (intention is not None or trajectory is not None)
+    # A policy that reads no intention input records the same either way (Table 3's first row).
+    predicted = (imitation.train_intentions == "predicted" and (intention is not None or trajectory is not None)
+                 and intention_source(model, intention, trajectory) != NO_INTENTIONS)
 
     def task_kwargs(env) -> dict:  # a task's teacher and goal sensor in `env`
         if task is None:
