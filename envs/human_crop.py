@@ -5,7 +5,8 @@ azimuth, by SensorConfig's convention (column j looks at azimuth yaw + pi - 2 pi
 and the rows over a standing human's body at its distance (camera at `camera_height_m`, rows of
 square pixels over a vertical field of view of 2 pi H / W, row 0 at the top) -> a `(ch, cw, C)`
 window of the panorama's own pixels (no resampling), wrapping across the seam behind the robot.
-Jittable and vmappable; `crop_window` gives the window alone.
+Jittable and vmappable; `crop_window` gives the window alone; `default_crop_hw` the crop's
+size for a panorama resolution.
 """
 
 from __future__ import annotations
@@ -23,6 +24,18 @@ from conav_jax.config import TaskConfig
 # than the crop (closer than ~2 m at 64 rows of a 112x448 panorama) the window keeps the top:
 # the head, arms and the object handled say more about an activity than the feet.
 BODY_Z_M = (0.0, 1.9)
+
+
+def default_crop_hw(panorama_hw: tuple[int, int], side: int = 64, multiple: int = 8) -> tuple[int, int]:
+    """The square crop read from panoramas of `panorama_hw`: `side` (64 of a 112x448 panorama
+    frames a standing human 2-3 m away), or the panorama's height rounded down to `multiple`
+    (the Perceiver's patch) where that is smaller: a lower resolution sees the human in fewer
+    pixels, and the crop is cut from the panorama the agents render."""
+    h = panorama_hw[0]
+    if h < multiple:
+        raise ValueError(f"a {h}x{panorama_hw[1]} panorama is lower than one {multiple}-pixel patch")
+    c = min(side, h // multiple * multiple)
+    return c, c
 
 
 def _check(image_hw: tuple[int, int], human_pos_xy: jax.Array, crop_hw: tuple[int, int]) -> None:

@@ -276,9 +276,10 @@ def _add_train(sub) -> None:
     p.add_argument("--sensor", type=parse_resolution, default=dd.sensor_hw, metavar="HxW",
                    help="panorama HxW the frames come from; agents acting with the run must render it "
                    f"(default {dd.sensor_hw[0]}x{dd.sensor_hw[1]})")
-    p.add_argument("--image", type=parse_resolution, default=dm.image_hw, metavar="HxW",
+    p.add_argument("--image", type=parse_resolution, default=None, metavar="HxW",
                    help="Perceiver frame HxW: the crop around the human, in panorama pixels (front view: resized "
-                   f"to it; default {dm.image_hw[0]}x{dm.image_hw[1]})")
+                   f"to it; default {dm.image_hw[0]}x{dm.image_hw[1]}, or the --sensor height rounded down to a "
+                   "multiple of 8 where that is smaller)")
     p.add_argument("--view", choices=("human", "front"), default=dd.view,
                    help="what a frame shows: the panorama cropped around the human (default) or its front quarter "
                    "(the input before the crop)")
@@ -402,11 +403,14 @@ def _add_train_goalnav(models) -> None:
 
 def _run_train_intention(args: argparse.Namespace) -> int:
     from conav_jax.models.perceiver import PerceiverConfig
+    from envs.human_crop import default_crop_hw
     from train.intention import IntentionDataConfig, train_intention
     from train.loop import NonFiniteLoss
 
     data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames, view=args.view, viewpoints=args.viewpoints)
-    model = PerceiverConfig(image_hw=args.image, dim=args.dim, num_latents=args.latents, num_blocks=args.blocks,
+    image = args.image or default_crop_hw(args.sensor, side=PerceiverConfig().image_hw[0],
+                                          multiple=PerceiverConfig().patch_size)
+    model = PerceiverConfig(image_hw=image, dim=args.dim, num_latents=args.latents, num_blocks=args.blocks,
                             activity_a_head=args.activity_a_head, graph_mix=args.graph_mix)
     try:
         result = train_intention(args.data, args.out, _train_config(args), model, data, progress=not args.no_progress,
@@ -961,7 +965,8 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
     tmp = None if args.data is not None else _tiny_dataset()
     env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w, kind=args.sensor)))
     agent = make_agent(args.agent, env, args.checkpoint, **predictors)
-    res = {"agent": args.agent, "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind}
+    res = {"agent": args.agent, "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind,
+           "physics_impl": env.config.physics.impl}
     if args.mode == "sweep":
         res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, mesh))
     else:
@@ -969,7 +974,8 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(res), flush=True)
     elif args.mode == "sweep":
-        print(f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={res['sensor']} lanes={args.batch}: "
+        print(f"{res['devices']} x {res['device']} agent={args.agent} res={h}x{w} sensor={res['sensor']} "
+              f"physics={res['physics_impl']} lanes={args.batch}: "
               f"{res['episodes']} episodes (mean {res['mean_episode_steps']} steps, longest {res['longest_episode_steps']}) "
               f"in {res['median_sweep_s']} s = {res['episodes_per_min']:,.1f} episodes/min (median of {args.repeats}); "
               f"compile + first sweep {res['compile_and_first_sweep_s']} s", flush=True)

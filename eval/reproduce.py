@@ -124,28 +124,18 @@ def _res(cfg: ReproduceConfig) -> str:
     return "x".join(map(str, cfg.resolution))
 
 
-def intention_crop_side(resolution: tuple[int, int], side: int = 64, patch: int = 8) -> int:
-    """The side (pixels) of the square crop around the human the intention predictor reads
-    from panoramas of `resolution`: `side` (64 of 112x448 frames a standing human 2-3 m away),
-    or the panorama's height rounded down to the Perceiver's patch where that is smaller (the
-    predictor crops from the panorama the agents render, so a lower resolution sees the human
-    in fewer pixels)."""
-    return min(side, resolution[0] // patch * patch)
-
-
 def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     """Every stage of the pipeline for `cfg`, in order."""
     b, out, res = cfg.budget, Path(cfg.out), _res(cfg)
     data, runs, evals = out / "data", out / "runs", out / "eval"
     quiet = ("--no-progress",)
     intention, trajectory = runs / "intention", runs / "trajectory"
-    crop = "x".join([str(intention_crop_side(cfg.resolution))] * 2)
     stages = [
         Stage("generate", (("generate", "--preset", cfg.preset, "--out", str(data), "--seed", str(cfg.data_seed),
                             "--workers", str(cfg.workers)),), (data / "manifest.json",)),
         Stage("predictors", (
             ("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
-             "--sensor", res, "--image", crop, *quiet),
+             "--sensor", res, *quiet),  # crops of the panorama the agents render (envs.human_crop)
             ("train", "trajectory", "--data", str(data), "--out", str(trajectory), "--steps", str(b.trajectory_steps), *quiet),
         ), (intention / "ckpt_{:08d}.npz".format(b.intention_steps),
             trajectory / "ckpt_{:08d}.npz".format(b.trajectory_steps))),

@@ -25,3 +25,15 @@ def test_train_policy_with_an_edited_manifest_leaves_no_run_directory(tmp_path, 
     (data / "manifest.json").write_text(json.dumps(m))
     assert main(["train", "policy", "--data", str(data), "--out", str(out)]) != 0
     assert not out.exists()
+
+
+def test_the_demos_commands_parse_and_its_predictor_crops_the_policys_panorama(tmp_path):
+    """Every stage of `conav demo` is a valid command line, and the intention predictor is
+    trained on the panoramas the policy and the evaluated agents render (else the policy stage
+    refuses it)."""
+    from eval.cli import build_parser
+    from eval.demo import demo_commands
+
+    commands = demo_commands(tmp_path, seed=0, resolution="16x64")
+    parsed = {tuple(argv[:2]): build_parser().parse_args(argv) for argv in commands}
+    assert tuple(parsed[("train", "intention")].sensor) == tuple(parsed[("train", "policy")].resolution) == (16, 64)

@@ -13,7 +13,7 @@ from worlds import make_split
 from conav_jax.geometry import to_frame
 from conav_jax.motion.skeleton import CAPSULE_BONES, JOINT_NAMES
 from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.human_crop import crop_window, human_crop
+from envs.human_crop import crop_window, default_crop_hw, human_crop
 
 jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
 HW, CROP = (112, 448), (64, 64)
@@ -123,3 +123,11 @@ def test_bad_input_fails_loudly():
     # Traced, a NaN position cannot raise: the crop is NaN throughout, never a made-up view.
     crop = jit(lambda p: human_crop(rgbd, p, CROP))(jnp.array([np.nan, 1.0]))
     assert np.isnan(crop).all()
+
+
+def test_the_default_crop_fits_the_panorama_the_agents_render():
+    assert default_crop_hw((112, 448)) == (64, 64)
+    assert default_crop_hw((32, 128)) == (32, 32)
+    assert default_crop_hw((20, 80)) == (16, 16)  # rounded down to whole 8-pixel patches
+    with pytest.raises(ValueError, match="patch"):
+        default_crop_hw((4, 16))
