@@ -8,7 +8,8 @@ import contextlib as _contextlib
 import io as _io
 
 # mujoco-mjx prints "Failed to import warp" on import when its optional Warp backend is not
-# installed (we use the JAX backend); keep that line out of every command's output.
+# installed (the JAX physics then runs; PhysicsConfig.impl); keep that line out of every
+# command's output.
 with _contextlib.redirect_stdout(_io.StringIO()):
     from mujoco import mjx as _mjx  # noqa: F401
 
