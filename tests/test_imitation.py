@@ -27,7 +27,7 @@ from envs.mjcf import UD
 from envs.rollout import evaluate
 from train import imitation as im
 from train.loop import TrainConfig
-from train.policy import ImitationConfig, check_recordable, run_config, train_policy
+from train.policy import ImitationConfig, check_recordable, records_predictions, run_config, train_policy
 
 # For the small jits. The MJX rollout keeps XLA's default: at level 0 its run time costs more
 # than compiling saves.
@@ -234,6 +234,11 @@ def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0,
     assert not (tmp_path / "run").exists()
     with pytest.raises(ValueError, match="unknown train_intentions"):
         ImitationConfig(train_intentions="oracle")
+    # Table 3's first row reads no intention input: it records without predictors, whatever is given.
+    predicted, fake = ImitationConfig(train_intentions="predicted"), _fake_intention(9, 11)
+    assert records_predictions(predicted, PCFG, fake, FAKE_TRAJECTORY)
+    assert not records_predictions(predicted, policy.ablation_config(PCFG, "none"), fake, FAKE_TRAJECTORY)
+    assert not records_predictions(ImitationConfig(), PCFG, fake, FAKE_TRAJECTORY)
 
 
 def test_policy_agent_runs_in_evaluate_with_ground_truth_only_when_asked(hall, trained):

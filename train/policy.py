@@ -22,8 +22,24 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
 
+import jax
+import numpy as np
+
 from conav_jax import runs
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.data.episodes import read_manifest
+from conav_jax.models import policy
+from conav_jax.models.policy import config_dict
+from conav_jax.nav.expert import ExpertConfig
+from conav_jax.parallel import check_divisible
 from conav_jax.runs import append_log
+from envs import ConavEnv, EnvConfig, SensorConfig
+from envs.agents.base import NO_INTENTIONS
+from envs.agents.policy import intention_source, load_predictors, needed_predictors
+from envs.metrics import summarize
+from envs.rollout import jit_with_bank
+from train import imitation as im
+from train import loop
 from train.loop import TrainConfig
 
 KIND = runs.POLICY
@@ -82,12 +98,19 @@ class PolicyResult(NamedTuple):
     run_dir: Path
 
 
+def records_predictions(imitation: ImitationConfig, model, intention=None, trajectory=None) -> bool:
+    """Whether a run's recordings hold the predictors' outputs in place of the ground-truth
+    intention inputs: `--train-intentions predicted` with predictors given, for a policy that
+    reads some intention input (one that reads none, Table 3's first row, records the same
+    either way and needs no predictor)."""
+    return (imitation.train_intentions == "predicted" and (intention is not None or trajectory is not None)
+            and intention_source(model, intention, trajectory) != NO_INTENTIONS)
+
+
 def run_config(model, imitation: ImitationConfig, expert, content_hash: str, intention_run, trajectory_run) -> dict:
     """The checkpoint's config: "kind", the PolicyConfig as "model" (what train.ppo's
     --init-from and envs.agents.policy rebuild the network from: its resolution, ablation and
     saliency switch), the data and the predictor runs validation used."""
-    from conav_jax.models.policy import config_dict
-
     return {
         "kind": KIND,
         "model": config_dict(model),
@@ -102,8 +125,6 @@ def run_config(model, imitation: ImitationConfig, expert, content_hash: str, int
 def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, content_hash: str) -> dict:
     """The checkpoint's config of a run imitating `task`'s teacher: its kind, the PolicyConfig as
     "model" (what envs.agents.goalnav rebuilds the network from), the data and the teacher."""
-    from conav_jax.models.policy import config_dict
-
     return {
         "kind": task.kind,
         "model": config_dict(model),
@@ -164,27 +185,6 @@ def train_policy(
     CoNav expert and also reads its goal sensor's observations; the run is of its kind (no
     `expert`, no predictor runs: a task's policy trains and validates on its goal itself).
     Nothing is written before the dataset has been checked."""
-    import jax
-    import numpy as np
-
-    from conav_jax.checkpoints import (
-        checkpoint_path,
-        latest_checkpoint,
-        load_checkpoint,
-        save_checkpoint,
-    )
-    from conav_jax.data.episodes import read_manifest
-    from conav_jax.models import policy
-    from conav_jax.nav.expert import ExpertConfig
-    from conav_jax.parallel import check_divisible
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.agents.base import NO_INTENTIONS
-    from envs.agents.policy import intention_source, load_predictors, needed_predictors
-    from envs.metrics import summarize
-    from envs.rollout import jit_with_bank
-    from train import imitation as im
-    from train import loop
-
     content_hash = read_manifest(data_dir)["content_hash"]  # before anything is written
     if task is not None and (expert is not None or intention_run is not None or trajectory_run is not None
                              or imitation.train_intentions != "ground_truth"):
@@ -230,9 +230,7 @@ def train_policy(
     intention, trajectory = load_predictors(intention_run, trajectory_run)
     # The rollouts take each split's episode bank as an argument: no episode data in the programs.
     jit = lambda env, f: jit_with_bank(env, f, compiler_options=compiler_options)  # noqa: E731
-    # A policy that reads no intention input records the same either way (Table 3's first row).
-    predicted = (imitation.train_intentions == "predicted" and (intention is not None or trajectory is not None)
-                 and intention_source(model, intention, trajectory) != NO_INTENTIONS)
+    predicted = records_predictions(imitation, model, intention, trajectory)
 
     def task_kwargs(env) -> dict:  # a task's teacher and goal sensor in `env`
         if task is None:
