@@ -190,9 +190,39 @@ def bench_breakdown(env, batch: int, steps: int, repeats: int) -> dict:
     return out
 
 
+def bench_compile(env, batch: int) -> dict:
+    """Seconds to trace + lower and to compile the batched reset, the batched step, and one
+    program holding both (what an evaluator that refills finished lanes compiles: every
+    iteration may reset some lanes while it steps the others), one device, no compile cache."""
+    keys = jax.random.split(jax.random.PRNGKey(0), batch)
+    reset, step = jax.vmap(env.reset), jax.vmap(env.step)
+    action = jnp.zeros((batch, env.action_size), jnp.float32)
+
+    def step_or_reset(state, action, keys):  # lane 0 steps, the rest restart
+        stepped, fresh = step(state, action), reset(keys)
+        first = jnp.arange(batch) == 0
+        return jax.tree.map(lambda a, b: jnp.where(first.reshape((batch,) + (1,) * (a.ndim - 1)), a, b), stepped, fresh)
+
+    out = {"device": jax.devices()[0].device_kind, "batch": batch, "what": "compile"}
+    with jax.enable_checks(False), jax.log_compiles(False):
+        for name, fn in (("reset", lambda keys: reset(keys)), ("step", lambda state, action, keys: step(state, action)),
+                         ("step_and_reset", step_or_reset)):
+            args = (keys,) if name == "reset" else (jax.eval_shape(reset, keys), action, keys)
+            t0 = time.perf_counter()
+            lowered = jax.jit(fn).lower(*args)
+            t1 = time.perf_counter()
+            lowered.compile()
+            out[name] = {"trace_and_lower_s": round(t1 - t0, 2), "compile_s": round(time.perf_counter() - t1, 2)}
+    return out
+
+
 def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mesh=None) -> dict:
     """Time `steps` env steps (or panoramas) of `batch` episodes (in all, split over `mesh`'s
     devices if given); returns a dict of figures, rates in total and per device."""
+    if what == "compile":
+        if mesh is not None and mesh.size > 1:
+            raise ValueError("--what compile runs on one device; use --devices 1")
+        return bench_compile(env, batch)
     if what == "breakdown":
         if mesh is not None and mesh.size > 1:
             raise ValueError("--what breakdown runs on one device; use --devices 1")

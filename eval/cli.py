@@ -818,9 +818,11 @@ def _add_bench(sub) -> None:
     p.add_argument("--fast-min", choices=["reduce", "unroll"], default=None, help="fast caster: min over geoms as")
     p.add_argument("--steps", type=int, default=20, help="env steps per timed call")
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--what", choices=["step", "sensor", "breakdown"], default="step",
+    p.add_argument("--what", choices=["step", "sensor", "breakdown", "compile"], default="step",
                    help="step: full env steps (physics, humanoid, sensors); sensor: panoramas only; "
-                   "breakdown: physics, humanoid, sensors and the full step timed separately, plus the floor")
+                   "breakdown: physics, humanoid, sensors and the full step timed separately, plus the floor; "
+                   "compile: compile seconds of the batched reset, step, and both in one program (run it with "
+                   "--compile-cache off)")
     p.add_argument("--pallas-block-w", type=int, default=None, help="pallas caster: columns per program")
     p.add_argument("--pallas-num-warps", type=int, default=None, help="pallas caster: warps per program")
     p.add_argument("--physics", type=parse_physics_override, nargs="+", default=[], metavar="NAME=VALUE",
@@ -890,7 +892,7 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
     tmp = None if args.data is not None else _tiny_dataset()
     data = args.data or tmp.name
     # The breakdown times single-device stages; the other modes split the batch over the mesh.
-    mesh = make_mesh(args.devices) if args.devices != 1 and args.what != "breakdown" else None
+    mesh = make_mesh(args.devices) if args.devices != 1 and args.what not in ("breakdown", "compile") else None
     kinds = []
     for k in args.sensor:
         for kk in (["fast", "reference"] if k == "both" else [k]):
@@ -915,7 +917,7 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
                     res["fast_min"] = env.config.sensor.fast_min
                 if kind == "pallas":
                     res["pallas"] = {"block_w": cfg.sensor.pallas_block_w, "num_warps": cfg.sensor.pallas_num_warps}
-                if args.json or args.what == "breakdown":
+                if args.json or args.what in ("breakdown", "compile"):
                     print(json.dumps(res), flush=True)
                 else:
                     rate = res.get("env_steps_per_s", res.get("frames_per_s"))
