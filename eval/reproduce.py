@@ -61,8 +61,10 @@ class Budget:
 
 
 BUDGETS = {
-    "tiny": Budget(intention_steps=60, trajectory_steps=60, policy_steps=40, policy_batch=8, dagger_rounds=1,
-                   dagger_steps=20, baseline_steps=40, baseline_dagger_rounds=0, eval_batch=64),
+    # Tiny: a smoke test of the pipeline on CPU; 100 updates is the least the default 100-step
+    # learning-rate warm-up allows.
+    "tiny": Budget(intention_steps=100, trajectory_steps=100, policy_steps=100, policy_batch=8, dagger_rounds=1,
+                   dagger_steps=50, baseline_steps=100, baseline_dagger_rounds=0, eval_batch=64),
     "small": Budget(policy_episodes=500, eval_batch=512),
     "paper": Budget(policy_episodes=400),
 }

@@ -157,3 +157,17 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
     assert _reproduce(fresh) == 0
     assert calls[0][0] == "generate" and "dagger_s0" in " ".join(calls[1])
     assert not any(c[0] == "train" and "bc_" in c[c.index("--out") + 1] for c in calls if "--out" in c)
+
+
+@pytest.mark.parametrize("preset", sorted(rp.BUDGETS))
+def test_every_planned_command_parses_into_a_valid_training_config(preset, tmp_path):
+    """Each stage's command line is one the real `conav` accepts, and its budget is a valid
+    TrainConfig (e.g. at least the learning-rate warm-up's updates)."""
+    parser = cli.build_parser()
+    for stage in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset=preset, seeds=1)):
+        for argv in stage.commands:
+            if argv[0] == "@copy":
+                continue
+            args = parser.parse_args(list(argv))
+            if argv[0] == "train":
+                cli._train_config(args)
