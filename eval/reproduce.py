@@ -237,7 +237,7 @@ def render_tables(results: dict) -> str:
         "# CoNav: the paper's Tables 2 and 3, reproduced",
         "",
         f"Data: preset `{results.get('preset', '?')}`, split val ({results.get('episodes', '?')} episodes), panorama "
-        f"{results.get('resolution', '?')}; {results.get('seeds', '?')} training seeds for every learned CoNav row; "
+        f"{results.get('resolution', '?')}; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "
         f"commit {results.get('commit', '?')}. Rates and SPLs in percent, AS in steps. Learned rows: mean ± sd over "
         "seeds [pooled 95% interval]. Paper: the published figures (a different simulator, scenes and agents' "
         "implementations; they are context, not a target).",
