@@ -229,9 +229,28 @@ def _learned_cell(row: dict, metric: str) -> str:
     return f"{m:.1f} ± {sd:.1f} [{lo:.1f}, {hi:.1f}]"
 
 
+# The tables' columns: the paper's, with CR_full (contacts up to the end of activity B) beside CR.
+TABLE_COLUMNS = tuple(c for m in METRIC_NAMES for c in ((m, "CR_full") if m == "CR" else (m,)))
+
+
+def _paper_cells(paper: tuple[float, ...]) -> str:
+    """The paper's figures in TABLE_COLUMNS order; "-" where the paper reports none (CR_full)."""
+    values = dict(zip(METRIC_NAMES, paper))
+    return " | ".join(_cell(values[c]) if c in values else "-" for c in TABLE_COLUMNS)
+
+
+def _our_cells(metrics: dict) -> str:
+    return " | ".join(_cell(metrics[c]["value"]) if c in metrics else "-" for c in TABLE_COLUMNS)
+
+
+def _learned_cells(row: dict) -> str:
+    have = set.intersection(*(set(s["metrics"]) for s in row["seeds"].values()))
+    return " | ".join(_learned_cell(row, c) if c in have else "-" for c in TABLE_COLUMNS)
+
+
 def render_tables(results: dict) -> str:
     """tables.md: Table 2 (ours beside the paper's) and Table 3 from results.json's content."""
-    cols = METRIC_NAMES
+    cols = TABLE_COLUMNS
     head = "| " + " | ".join(cols) + " |"
     lines = [
         "# CoNav: the paper's Tables 2 and 3, reproduced",
@@ -239,7 +258,8 @@ def render_tables(results: dict) -> str:
         f"Data: preset `{results.get('preset', '?')}`, split val ({results.get('episodes', '?')} episodes), panorama "
         f"{results.get('resolution', '?')}; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "
         f"commit {results.get('commit', '?')}. Rates and SPLs in percent, AS in steps. Learned rows: mean ± sd over "
-        "seeds [pooled 95% interval]. Paper: the published figures (a different simulator, scenes and agents' "
+        "seeds [pooled 95% interval]. CR counts contacts up to the first reach (the paper's), CR_full up to the end "
+        "of activity B. Paper: the published figures (a different simulator, scenes and agents' "
         "implementations; they are context, not a target).",
         "",
         "## Table 2: agents",
@@ -252,21 +272,21 @@ def render_tables(results: dict) -> str:
             row = results["conav"].get("all")
             if row is not None:
                 lines.append(f"| {row['title']} (BC) | {', '.join(row['privileged']) or 'none'} | ours | "
-                             + " | ".join(_learned_cell(row, m) for m in cols) + " |")
+                             + _learned_cells(row) + " |")
             row = results["conav"].get("dagger")
             if row is not None:
                 lines.append(f"| {row['title']} (BC + DAgger) | {', '.join(row['privileged']) or 'none'} | ours | "
-                             + " | ".join(_learned_cell(row, m) for m in cols) + " |")
+                             + _learned_cells(row) + " |")
         else:
             entry = results["agents"].get(key)
             if entry is not None:
                 lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
-                             + " | ".join(_cell(entry["metrics"][m]["value"]) for m in cols) + " |")
-        lines.append(f"| {paper_title} | | paper | " + " | ".join(_cell(v) for v in paper) + " |")
+                             + _our_cells(entry["metrics"]) + " |")
+        lines.append(f"| {paper_title} | | paper | " + _paper_cells(paper) + " |")
     for key, entry in results["agents"].items():
         if key not in PAPER_TABLE2:  # ours without a paper row (e.g. the planner, the expert)
             lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
-                         + " | ".join(_cell(entry["metrics"][m]["value"]) for m in cols) + " |")
+                         + _our_cells(entry["metrics"]) + " |")
     lines += ["", "## Table 3: intention inputs (BC, predicted intentions)", "",
               "| # | activity | object | trajectory | source " + head, "|---|:---:|:---:|:---:|---" + "|---:" * len(cols) + "|"]
     flags = {"none": (0, 0, 0), "activity": (1, 0, 0), "object": (0, 1, 0), "activity_object": (1, 1, 0), "all": (1, 1, 1)}
@@ -274,8 +294,8 @@ def render_tables(results: dict) -> str:
         marks = " | ".join("✓" if f else "✗" for f in flags[name])
         row = results["conav"].get(name)
         if row is not None:
-            lines.append(f"| {k} | {marks} | ours | " + " | ".join(_learned_cell(row, m) for m in cols) + " |")
-        lines.append(f"| {k} | {marks} | paper | " + " | ".join(_cell(v) for v in PAPER_TABLE3[name]) + " |")
+            lines.append(f"| {k} | {marks} | ours | " + _learned_cells(row) + " |")
+        lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
     return "\n".join(lines) + "\n"
 
 

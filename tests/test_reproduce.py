@@ -59,17 +59,20 @@ def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
         "agents": {"random": {"title": "Random Agent", "intention_source": "none", "privileged": [],
                               "metrics": _metrics((1, 2, 3, 4, 5, 6))},
                    "expert": {"title": "Imitation expert", "intention_source": "none", "privileged": ["oracle map"],
-                              "metrics": _metrics((90, 95, 80, 85, 2, 70))}},
+                              "metrics": {**_metrics((90, 95, 80, 85, 2, 70)),
+                                          "CR_full": {"value": 37.0, "lo": 33.0, "hi": 41.0}}}},
         "conav": {"all": {"title": "CoNav Agent", "intention_source": "predicted", "privileged": ["oracle segmentation"],
                           "seeds": {"0": {"metrics": _metrics((12, 13, 14, 15, 16, 17)), "episodes": 100}}}},
     }
     md = rp.render_tables(results)
     lines = md.splitlines()
-    assert "| Random Agent | none | ours | 1.0 | 2.0 | 3.0 | 4.0 | 5.0 | 6.0 |" in lines
-    assert "| Random Agent | | paper | 4.5 | 4.6 | 3.7 | 3.7 | 32.7 | 442.6 |" in lines
-    assert "| Imitation expert | oracle map | ours | 90.0 | 95.0 | 80.0 | 85.0 | 2.0 | 70.0 |" in lines
+    assert "| agent | given (privileged inputs) | source | FASR | RASR | FASPL | RASPL | CR | CR_full | AS |" in lines
+    # CR_full beside CR: "-" where a row (or the paper) has none.
+    assert "| Random Agent | none | ours | 1.0 | 2.0 | 3.0 | 4.0 | 5.0 | - | 6.0 |" in lines
+    assert "| Random Agent | | paper | 4.5 | 4.6 | 3.7 | 3.7 | 32.7 | - | 442.6 |" in lines
+    assert "| Imitation expert | oracle map | ours | 90.0 | 95.0 | 80.0 | 85.0 | 2.0 | 37.0 | 70.0 |" in lines
     assert any(line.startswith("| CoNav Agent (BC) | oracle segmentation | ours | 12.0 ± 0.0 [") for line in lines)
-    assert "| 5 | ✓ | ✓ | ✓ | paper | 19.8 | 23.2 | 13.5 | 14.9 | 20.1 | 354.5 |" in lines
+    assert "| 5 | ✓ | ✓ | ✓ | paper | 19.8 | 23.2 | 13.5 | 14.9 | 20.1 | - | 354.5 |" in lines
     assert "commit abc1234" in md
 
 
