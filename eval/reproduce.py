@@ -271,7 +271,8 @@ def render_tables(results: dict) -> str:
         if key == "conav":
             row = results["conav"].get("all")
             if row is not None:
-                lines.append(f"| {row['title']} (BC) | {', '.join(row['privileged']) or 'none'} | ours | "
+                title = row["title"].removeprefix("all: ")  # the evaluation names its ablation rows "NAME: title"
+                lines.append(f"| {title} (BC) | {', '.join(row['privileged']) or 'none'} | ours | "
                              + _learned_cells(row) + " |")
             row = results["conav"].get("dagger")
             if row is not None:
