@@ -236,11 +236,16 @@ def read_checkpoint_meta(path: str | os.PathLike) -> dict:
         raise FileNotFoundError(f"no checkpoint at {path}")
     try:
         with zipfile.ZipFile(path, "r") as zf:
-            meta = json.loads(zf.read(META_MEMBER))
+            return _read_meta(zf)
     except (zipfile.BadZipFile, KeyError, ValueError) as e:
         raise ValueError(f"corrupt checkpoint {path}: {type(e).__name__}: {e}") from e
+
+
+def _read_meta(zf: zipfile.ZipFile) -> dict:
+    """The metadata member of an open checkpoint; ValueError for a format this code cannot read."""
+    meta = json.loads(zf.read(META_MEMBER))
     if meta.get("format_version") != FORMAT_VERSION:
-        raise ValueError(f"corrupt checkpoint {path}: unsupported format {meta.get('format_version')!r}")
+        raise ValueError(f"unsupported checkpoint format {meta.get('format_version')!r}")
     return meta
 
 
@@ -267,9 +272,7 @@ def load_checkpoint(
         raise FileNotFoundError(f"no checkpoint at {path}")
     try:
         with zipfile.ZipFile(path, "r") as zf:
-            meta = json.loads(zf.read(META_MEMBER))
-            if meta.get("format_version") != FORMAT_VERSION:
-                raise ValueError(f"unsupported checkpoint format {meta.get('format_version')!r}")
+            meta = _read_meta(zf)
             arrays = {}
             for member in zf.namelist():
                 if member.endswith(".npy"):

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from conav_jax.parallel import check_divisible, constrain_batch
+from envs.rollout import select_lanes
 
 
 def _memory_bytes() -> int | None:
@@ -199,9 +200,7 @@ def bench_compile(env, batch: int) -> dict:
     action = jnp.zeros((batch, env.action_size), jnp.float32)
 
     def step_or_reset(state, action, keys):  # lane 0 steps, the rest restart
-        stepped, fresh = step(state, action), reset(keys)
-        first = jnp.arange(batch) == 0
-        return jax.tree.map(lambda a, b: jnp.where(first.reshape((batch,) + (1,) * (a.ndim - 1)), a, b), stepped, fresh)
+        return select_lanes(jnp.arange(batch) == 0, step(state, action), reset(keys))
 
     out = {"device": jax.devices()[0].device_kind, "batch": batch, "what": "compile"}
     with jax.enable_checks(False), jax.log_compiles(False):

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from conav_jax.config import TaskConfig
+from conav_jax.models.perceiver import PerceiverConfig
 
 # Heights (m) of the body the crop's rows frame: the floor up to a little above the crown of a
 # standing human (~1.75 m), so hands raised to the face stay inside. When the body is taller
@@ -26,11 +27,14 @@ from conav_jax.config import TaskConfig
 BODY_Z_M = (0.0, 1.9)
 
 
-def default_crop_hw(panorama_hw: tuple[int, int], side: int = 64, multiple: int = 8) -> tuple[int, int]:
-    """The square crop read from panoramas of `panorama_hw`: `side` (64 of a 112x448 panorama
-    frames a standing human 2-3 m away), or the panorama's height rounded down to `multiple`
-    (the Perceiver's patch) where that is smaller: a lower resolution sees the human in fewer
-    pixels, and the crop is cut from the panorama the agents render."""
+def default_crop_hw(
+    panorama_hw: tuple[int, int], side: int = PerceiverConfig.image_hw[0], multiple: int = PerceiverConfig.patch_size
+) -> tuple[int, int]:
+    """The square crop read from panoramas of `panorama_hw`: `side` (the Perceiver's default
+    frame; 64 of a 112x448 panorama frames a standing human 2-3 m away), or the panorama's
+    height rounded down to `multiple` (the Perceiver's patch) where that is smaller: a lower
+    resolution sees the human in fewer pixels, and the crop is cut from the panorama the agents
+    render."""
     h = panorama_hw[0]
     if h < multiple:
         raise ValueError(f"a {h}x{panorama_hw[1]} panorama is lower than one {multiple}-pixel patch")

@@ -155,6 +155,11 @@ def map_episodes(
     return jax.tree.map(lambda *xs: np.concatenate(xs), *chunks)
 
 
+def select_lanes(mask: jax.Array, new, old):
+    """Per lane, `new` where `mask (B,)` is True, else `old` (pytrees of (B, ...) arrays)."""
+    return jax.tree.map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+
+
 class Lanes(NamedTuple):
     """The pool's parallel lanes, each (slots, ...): the env state, the agent's carry, the
     episode's step key and the step count within the episode."""
@@ -202,9 +207,6 @@ def make_pool_rollout(
     if chunk < 1 or slots < 1 or trace_steps < 0:
         raise ValueError("slots and chunk must be at least 1, trace_steps at least 0")
 
-    def pick(mask, new, old):
-        return jax.tree.map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
-
     def run(params, key, queue, n):
         agent = agent_fn(params)
         q = queue.shape[0]
@@ -237,7 +239,7 @@ def make_pool_rollout(
             free = ~c.active
             new_pos = c.next_position + jnp.cumsum(free) - 1
             take = free & (new_pos < n)
-            refill = lambda lane: pick(take, start(queue[jnp.clip(new_pos, 0, q - 1)]), lane)
+            refill = lambda lane: select_lanes(take, start(queue[jnp.clip(new_pos, 0, q - 1)]), lane)
             lane = constrain_batch(jax.lax.cond(take.any(), refill, lambda lane: lane, c.lanes), mesh)
             position, active = jnp.where(take, new_pos, c.position), c.active | take
             (lane, trace, _), _ = jax.lax.scan(one_step, (lane, c.trace, position[0] == 0), None, length=chunk)

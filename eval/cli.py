@@ -408,8 +408,7 @@ def _run_train_intention(args: argparse.Namespace) -> int:
     from train.loop import NonFiniteLoss
 
     data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames, view=args.view, viewpoints=args.viewpoints)
-    image = args.image or default_crop_hw(args.sensor, side=PerceiverConfig().image_hw[0],
-                                          multiple=PerceiverConfig().patch_size)
+    image = args.image or default_crop_hw(args.sensor)
     model = PerceiverConfig(image_hw=image, dim=args.dim, num_latents=args.latents, num_blocks=args.blocks,
                             activity_a_head=args.activity_a_head, graph_mix=args.graph_mix)
     try:
@@ -467,13 +466,9 @@ def _policy_model(args: argparse.Namespace):
 
 def _run_train_policy(args: argparse.Namespace) -> int:
     from train.loop import NonFiniteLoss
-    from train.policy import ImitationConfig, train_policy
+    from train.policy import train_policy
 
-    imitation = ImitationConfig(
-        episodes=args.episodes, val_episodes=args.val_episodes, val_split=args.val_split,
-        dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps, seq_len=args.seq_len, burn_in=args.burn_in,
-        rollout_batch=args.rollout_batch, train_intentions=args.train_intentions,
-    )
+    imitation = _imitation_config(args, train_intentions=args.train_intentions)
     for flag, run in (("--intention", args.intention), ("--trajectory", args.trajectory)):
         if run is not None and not Path(run).is_dir():
             raise FileNotFoundError(f"{flag} run directory not found: {run}")
@@ -484,11 +479,28 @@ def _run_train_policy(args: argparse.Namespace) -> int:
     except NonFiniteLoss as e:
         print(f"conav train policy: {e}")
         return 1
-    rates = lambda m: f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"  # noqa: E731
-    print(f"policy run: {result.run_dir}")
-    print(f"{imitation.val_split} expert (ceiling): {rates(result.expert_val)}")
-    print(f"{imitation.val_split} policy:           {rates(result.val)}")
+    _print_imitation_result("policy", "expert", result, imitation.val_split)
     return 0
+
+
+def _imitation_config(args: argparse.Namespace, **extra):
+    """train.policy.ImitationConfig from the imitation flags `conav train policy|objectnav|imagenav` share."""
+    from train.policy import ImitationConfig
+
+    return ImitationConfig(
+        episodes=args.episodes, val_episodes=args.val_episodes, val_split=args.val_split,
+        dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps, seq_len=args.seq_len, burn_in=args.burn_in,
+        rollout_batch=args.rollout_batch, **extra,
+    )
+
+
+def _print_imitation_result(kind: str, teacher: str, result, split: str) -> None:
+    from train.policy import rates_line
+
+    print(f"{kind} run: {result.run_dir}")
+    ceiling = f"{teacher} (ceiling):"
+    print(f"{split} {ceiling} {rates_line(result.expert_val)}")
+    print(f"{split} {'policy:':<{len(ceiling)}} {rates_line(result.val)}")
 
 
 def _run_train_rl(args: argparse.Namespace) -> int:
@@ -523,13 +535,8 @@ def _run_train_goalnav(args: argparse.Namespace) -> int:
     from envs.agents.registry import run_resolution
     from train import goalnav
     from train.loop import NonFiniteLoss
-    from train.policy import ImitationConfig
 
-    imitation = ImitationConfig(
-        episodes=args.episodes, val_episodes=args.val_episodes, val_split=args.val_split,
-        dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps, seq_len=args.seq_len, burn_in=args.burn_in,
-        rollout_batch=args.rollout_batch,
-    )
+    imitation = _imitation_config(args)
     hw = run_resolution([], args.resolution)
     if args.model == "objectnav":
         model, train = goalnav.objectnav_model(hw, args.object_saliency), goalnav.train_objectnav
@@ -541,10 +548,7 @@ def _run_train_goalnav(args: argparse.Namespace) -> int:
     except NonFiniteLoss as e:
         print(f"conav train {args.model}: {e}")
         return 1
-    rates = lambda m: f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"  # noqa: E731
-    print(f"{args.model} run: {result.run_dir}")
-    print(f"{imitation.val_split} planner (ceiling): {rates(result.expert_val)}")
-    print(f"{imitation.val_split} policy:            {rates(result.val)}")
+    _print_imitation_result(args.model, "planner", result, imitation.val_split)
     return 0
 
 
@@ -709,7 +713,9 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 
 def _add_reproduce(sub) -> None:
-    from eval.reproduce import BUDGETS, STAGES
+    from eval.reproduce import BUDGETS, STAGES, ReproduceConfig
+
+    d = {f.name: f.default for f in dataclasses.fields(ReproduceConfig)}
 
     p = sub.add_parser(
         "reproduce", help="the paper's Tables 2 and 3: every stage from data to tables, resumable",
@@ -717,13 +723,16 @@ def _add_reproduce(sub) -> None:
         "(Table 3's five intention ablations and DAgger, each for --seeds seeds), evaluate every agent on the "
         "val split and write results.json and tables.md. Stages already done are skipped; a stage cut short "
         "resumes where it stopped (every training run resumes from its checkpoints).")
-    p.add_argument("--preset", choices=sorted(BUDGETS), default="paper")
+    h, w = d["resolution"]
+    p.add_argument("--preset", choices=sorted(BUDGETS), default=d["preset"])
     p.add_argument("--out", required=True, help="output directory (data, runs, eval, results.json, tables.md)")
-    p.add_argument("--seeds", type=int, default=3, help="training seeds of every learned CoNav row (default 3)")
+    p.add_argument("--seeds", type=int, default=d["seeds"],
+                   help=f"training seeds of every learned CoNav row (default {d['seeds']})")
     p.add_argument("--stage", choices=STAGES, default=None, help="run only this stage (default: every stage not done)")
-    p.add_argument("--resolution", type=parse_resolution, default=(112, 448), metavar="HxW",
-                   help="panorama HxW of every agent (default the paper's 112x448)")
-    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="dataset generation processes")
+    p.add_argument("--resolution", type=parse_resolution, default=d["resolution"], metavar="HxW",
+                   help=f"panorama HxW of every agent (default the paper's {h}x{w})")
+    p.add_argument("--workers", type=int, default=min(d["workers"], os.cpu_count() or 1),
+                   help="dataset generation processes")
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")

@@ -357,9 +357,15 @@ def unpack(pack: Path, out: Path) -> list[str]:
     """Unpack a pack into OUT (a fresh machine continuing a run); the member names."""
     import tarfile
 
-    out = Path(out)
+    out, pack = Path(out), Path(pack)
+    if not pack.is_file():
+        raise FileNotFoundError(f"no pack at {pack}")
+    try:
+        tar = tarfile.open(pack)
+    except tarfile.TarError as e:
+        raise ValueError(f"{pack} is not a pack written by `conav reproduce --stage pack`: {e}") from e
     out.mkdir(parents=True, exist_ok=True)
-    with tarfile.open(pack) as tar:
+    with tar:
         names = tar.getnames()
         bad = [n for n in names if n.startswith("/") or ".." in Path(n).parts]
         if bad:

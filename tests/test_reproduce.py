@@ -155,6 +155,11 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
     fresh = tmp_path / "fresh"
     assert _reproduce(fresh, "--unpack", str(out / "pack.tar"), "--dry-run") == 0
     assert (fresh / "runs" / "bc_all_s1" / "ckpt_00000005.npz").is_file()
+    (tmp_path / "junk.tar").write_text("not a tar")
+    with pytest.raises(ValueError, match="not a pack"):
+        rp.unpack(tmp_path / "junk.tar", tmp_path / "junk")
+    with pytest.raises(FileNotFoundError, match="no pack"):
+        rp.unpack(tmp_path / "missing.tar", tmp_path / "junk")
     # On the fresh machine the data are made again, then the run goes on where it was cut.
     calls.clear()
     assert _reproduce(fresh) == 0

@@ -43,7 +43,7 @@ class IntentionDataConfig:
     # Panorama (H, W) rendered, the sensor's default. The "human" view crops the model's
     # image_hw from it at this resolution, so the agents' env must render it too (the
     # predictor checks); "front" resizes the front quarter to image_hw (any resolution).
-    sensor_hw: tuple[int, int] = (112, 448)
+    sensor_hw: tuple[int, int] = (SensorConfig.height, SensorConfig.width)
     frames: int = 16  # F: frames per episode, spread evenly over activity A
     # What a frame shows (envs.agents.predictors.VIEWS): "human", the panorama cropped around
     # the human; "front", the front quarter (the input before the crop, for comparison).

@@ -145,7 +145,8 @@ def check_recordable(r: int, begun: bool, path: Path, run_dir: Path) -> None:
                             "(recorded by the policy of that time; start a new run)")
 
 
-def _rates(m: dict) -> str:
+def rates_line(m: dict) -> str:
+    """One line of a rollout's summary metrics, as the training logs print them."""
     return f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"
 
 
@@ -260,7 +261,7 @@ def train_policy(
         t0 = time.perf_counter()
         expert_val = {k: v for k, v in val_metrics(params, 1.0).items() if k != "intention_source"}
         append_log(log_path, {"split": imitation.val_split, "agent": teacher_name, "episodes": len(val_eps), **expert_val})
-        log(f"{teacher_name} (the ceiling) on {imitation.val_split}, {len(val_eps)} episodes: {_rates(expert_val)}  "
+        log(f"{teacher_name} (the ceiling) on {imitation.val_split}, {len(val_eps)} episodes: {rates_line(expert_val)}  "
             f"[{time.perf_counter() - t0:.0f} s]")
 
     parts = []
@@ -282,7 +283,7 @@ def train_policy(
             im.save_sequences(path, parts[-1])
             append_log(log_path, {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent,
                                    "episodes": len(train_eps), "windows": len(parts[-1]["label"]), **summarize(m)})
-            log(f"round {r}: recorded {len(train_eps)} train episodes, {agent} acting ({_rates(summarize(m))}): "
+            log(f"round {r}: recorded {len(train_eps)} train episodes, {agent} acting ({rates_line(summarize(m))}): "
                 f"{len(parts[-1]['label'])} windows  [{time.perf_counter() - t0:.0f} s]")
         if r <= done:
             continue
@@ -298,7 +299,7 @@ def train_policy(
         params, val = jax.device_get(result.params), result.val
         save_checkpoint(checkpoint_path(run_dir, int(round_end[r])), params=params, opt_state=None, config=config,
                         step=int(round_end[r]), extra={"round": r, "val": val, "expert_val": expert_val})
-        log(f"round {r} done: policy on {imitation.val_split}: {_rates(val)}")
+        log(f"round {r} done: policy on {imitation.val_split}: {rates_line(val)}")
     if not val:  # resumed after its last round without a validation on record
         val = policy_val(params)
     return PolicyResult(params, val, expert_val, run_dir)
