@@ -189,9 +189,18 @@ def _mean_sd(values: list[float]) -> tuple[float, float]:
     return m, sd
 
 
+BC_ONLY_EVAL = "conav_bc_s{}"  # a seed evaluated without its DAgger run (see collect_results)
+
+
 def collect_results(out: Path, seeds: int, extra: dict) -> dict:
     """results.json's content from the evaluations under `out/eval`: per agent its title,
-    intention source, privileged inputs and metrics (per seed for the learned CoNav rows)."""
+    intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
+
+    A seed's CoNav rows come from `eval/conav_s{s}` (the DAgger run as the agent, the five BC
+    runs as its ablations). A seed whose DAgger run was not made may instead be evaluated into
+    `eval/conav_bc_s{s}` (`BC_ONLY_EVAL`: the BC all-inputs run as the agent): it adds to the five
+    BC rows only, so every row lists the seeds it was measured on. FileNotFoundError when a seed
+    has neither."""
     evals = Path(out) / "eval"
     agents: dict[str, dict] = {}
     for name in ("scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"):
@@ -200,8 +209,13 @@ def collect_results(out: Path, seeds: int, extra: dict) -> dict:
             agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
     conav: dict[str, dict] = {}
     for s in range(seeds):
-        doc = json.loads((evals / f"conav_s{s}" / "metrics.json").read_text())
-        rows = {"dagger": doc["agents"]["conav"], **{k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()}}
+        full, bc_only = evals / f"conav_s{s}" / "metrics.json", evals / BC_ONLY_EVAL.format(s) / "metrics.json"
+        if not full.is_file() and not bc_only.is_file():
+            raise FileNotFoundError(f"seed {s} has no CoNav evaluation: neither {full} nor {bc_only}")
+        doc = json.loads((full if full.is_file() else bc_only).read_text())
+        rows = {k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()}
+        if full.is_file():
+            rows = {"dagger": doc["agents"]["conav"], **rows}
         for row, entry in rows.items():
             slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
             slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": doc["episodes"]}
@@ -213,9 +227,9 @@ def _cell(value: float) -> str:
 
 
 def _learned_cell(row: dict, metric: str) -> str:
-    """'mean ± sd [lo, hi]' over seeds: the pooled 95% interval treats every seed's episodes as
-    one sample (for rates: the Wilson interval of the pooled counts; otherwise the seeds' mean
-    of the per-seed bounds)."""
+    """'mean ± sd [lo, hi]' over seeds ('value [lo, hi]' for one seed): the pooled 95% interval
+    treats every seed's episodes as one sample (for rates: the Wilson interval of the pooled
+    counts; otherwise the seeds' mean of the per-seed bounds)."""
     from eval.report import RATES, wilson_interval
 
     per_seed = [s["metrics"][metric] for s in row["seeds"].values()]
@@ -226,6 +240,8 @@ def _learned_cell(row: dict, metric: str) -> str:
         lo, hi = (100.0 * v for v in wilson_interval(hits, sum(n)))
     else:
         lo, hi = (sum(p[b] for p in per_seed) / len(per_seed) for b in ("lo", "hi"))
+    if len(per_seed) == 1:  # one seed has no spread to report
+        return f"{m:.1f} [{lo:.1f}, {hi:.1f}]"
     return f"{m:.1f} ± {sd:.1f} [{lo:.1f}, {hi:.1f}]"
 
 
@@ -248,6 +264,14 @@ def _learned_cells(row: dict) -> str:
     return " | ".join(_learned_cell(row, c) if c in have else "-" for c in TABLE_COLUMNS)
 
 
+def _learned_source(row: dict, seeds: int | None) -> str:
+    """The source column of a learned row: "ours", and which seeds when not all of the run's."""
+    have = sorted(row["seeds"], key=int)
+    if seeds is None or len(have) == seeds:
+        return "ours"
+    return f"ours (seed{'s' if len(have) > 1 else ''} {', '.join(have)} of {seeds})"
+
+
 def render_tables(results: dict) -> str:
     """tables.md: Table 2 (ours beside the paper's) and Table 3 from results.json's content."""
     cols = TABLE_COLUMNS
@@ -258,7 +282,7 @@ def render_tables(results: dict) -> str:
         f"Data: preset `{results.get('preset', '?')}`, split val ({results.get('episodes', '?')} episodes), panorama "
         f"{results.get('resolution', '?')}; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "
         f"commit {results.get('commit', '?')}. Rates and SPLs in percent, AS in steps. Learned rows: mean ± sd over "
-        "seeds [pooled 95% interval]. CR counts contacts up to the first reach (the paper's), CR_full up to the end "
+        "seeds [pooled 95% interval] (a row measured on fewer seeds says which). CR counts contacts up to the first reach (the paper's), CR_full up to the end "
         "of activity B. Paper: the published figures (a different simulator, scenes and agents' "
         "implementations; they are context, not a target).",
         "",
@@ -272,12 +296,12 @@ def render_tables(results: dict) -> str:
             row = results["conav"].get("all")
             if row is not None:
                 title = row["title"].removeprefix("all: ")  # the evaluation names its ablation rows "NAME: title"
-                lines.append(f"| {title} (BC) | {', '.join(row['privileged']) or 'none'} | ours | "
-                             + _learned_cells(row) + " |")
+                lines.append(f"| {title} (BC) | {', '.join(row['privileged']) or 'none'} | "
+                             f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
             row = results["conav"].get("dagger")
             if row is not None:
-                lines.append(f"| {row['title']} (BC + DAgger) | {', '.join(row['privileged']) or 'none'} | ours | "
-                             + _learned_cells(row) + " |")
+                lines.append(f"| {row['title']} (BC + DAgger) | {', '.join(row['privileged']) or 'none'} | "
+                             f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
         else:
             entry = results["agents"].get(key)
             if entry is not None:
@@ -295,7 +319,7 @@ def render_tables(results: dict) -> str:
         marks = " | ".join("✓" if f else "✗" for f in flags[name])
         row = results["conav"].get(name)
         if row is not None:
-            lines.append(f"| {k} | {marks} | ours | " + _learned_cells(row) + " |")
+            lines.append(f"| {k} | {marks} | {_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
         lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
     return "\n".join(lines) + "\n"
 

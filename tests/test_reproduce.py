@@ -71,9 +71,37 @@ def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
     assert "| Random Agent | none | ours | 1.0 | 2.0 | 3.0 | 4.0 | 5.0 | - | 6.0 |" in lines
     assert "| Random Agent | | paper | 4.5 | 4.6 | 3.7 | 3.7 | 32.7 | - | 442.6 |" in lines
     assert "| Imitation expert | oracle map | ours | 90.0 | 95.0 | 80.0 | 85.0 | 2.0 | 37.0 | 70.0 |" in lines
-    assert any(line.startswith("| CoNav Agent (BC) | oracle segmentation | ours | 12.0 ± 0.0 [") for line in lines)
+    assert any(line.startswith("| CoNav Agent (BC) | oracle segmentation | ours | 12.0 [") for line in lines)
     assert "| 5 | ✓ | ✓ | ✓ | paper | 19.8 | 23.2 | 13.5 | 14.9 | 20.1 | - | 354.5 |" in lines
     assert "commit abc1234" in md
+
+
+def _write_eval(path: Path, doc: dict) -> None:
+    path.mkdir(parents=True, exist_ok=True)
+    (path / "metrics.json").write_text(json.dumps(doc))
+
+
+def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_say_so(tmp_path):
+    evals = tmp_path / "eval"
+    for name, agent in (("scripted", "random"), ("objectgoal-oracle", "objectgoal-oracle"),
+                        ("objectgoal-predicted", "objectgoal-predicted"), ("imagegoal", "imagegoal")):
+        _write_eval(evals / name, _eval_doc({agent: (1, 2, 3, 4, 5, 6)}))
+    bc = {a: (10, 20, 5, 6, 30, 100) for a in rp.ABLATIONS}
+    _write_eval(evals / "conav_s0", _eval_doc({"conav": (40, 50, 5, 6, 30, 100)}, bc))
+    # Seed 1's agent is its BC all-inputs run: were it read as DAgger, DAgger's mean would move.
+    _write_eval(evals / rp.BC_ONLY_EVAL.format(1), _eval_doc({"conav": (20, 30, 7, 8, 10, 200)},
+                                                              {a: (20, 30, 7, 8, 10, 200) for a in rp.ABLATIONS}))
+    results = rp.collect_results(tmp_path, 2, {"seeds": 2})
+    assert set(results["conav"]["dagger"]["seeds"]) == {"0"}
+    assert all(set(results["conav"][a]["seeds"]) == {"0", "1"} for a in rp.ABLATIONS)
+    lines = rp.render_tables(results).splitlines()
+    # One seed: its value and interval, no spread; the source names the seed.
+    assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 40.0 [") for line in lines)
+    assert any(line.startswith("| T conav (BC) | oracle map | ours | 15.0 ± 7.1 [") for line in lines)
+    assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours | 15.0 ± 7.1 [") for line in lines)
+    (evals / rp.BC_ONLY_EVAL.format(1) / "metrics.json").unlink()
+    with pytest.raises(FileNotFoundError, match="seed 1 has no CoNav evaluation"):
+        rp.collect_results(tmp_path, 2, {"seeds": 2})
 
 
 @pytest.fixture
