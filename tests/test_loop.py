@@ -135,3 +135,17 @@ def test_resume_accepts_changes_to_the_keys_it_is_told_to_ignore_and_no_others(t
     with pytest.raises(ValueError, match="imitation.seq_len"):
         resume(tmp_path, {"kind": "policy", "imitation": {"dagger_steps": 4000, "seq_len": 16}}, params, opt_state,
                ignore=RESUME_CHANGEABLE)
+
+
+def test_single_updates_on_a_mesh_compile_once(tmp_path):
+    """Updates one call at a time (the CPU path) on a device mesh: the first call's guard and
+    sums are placed as the update returns them, so later calls reuse its program."""
+    from conav_jax.parallel import make_mesh
+    from train.loop import _jitted
+
+    c = cfg(log_every=2)
+    train(tmp_path / "run", linear_loss, init_params(), make_data(), c, CONFIG, compiler_options=FAST,
+          mesh=make_mesh(1), scan_updates=False)
+    cadence_free = TrainConfig(**{**c.__dict__, "log_every": 1, "val_every": 1, "ckpt_every": 1})
+    compiled, _ = _jitted(linear_loss, cadence_free, 32, tuple(sorted(FAST.items())), make_mesh(1), False)
+    assert compiled._cache_size() == 1

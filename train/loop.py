@@ -260,9 +260,12 @@ def train(
 
     cadence_free = dataclasses.replace(cfg, **{k: 1 for k in CADENCE_FIELDS})
     compiled, update = _jitted(loss_fn, cadence_free, n, tuple(sorted((compiler_options or {}).items())), mesh, scan_updates)
-    if not scan_updates:  # the running sums the single updates add to, of the scalars they report
+    if not scan_updates:  # the guard's start and the running sums the single updates add to
         info = jax.eval_shape(update, params, opt_state, data)[2]
         zero_sums = {k: jnp.float32(0.0) for k in ("loss", "grad_norm", *info.aux)} | {"n": jnp.int32(0)}
+        fresh_tail = (jnp.int32(-1), jnp.zeros((cfg.batch,), jnp.int32), zero_sums)
+        if mesh is not None:  # placed as the update returns them, or its second call compiles again
+            fresh_tail = replicate(fresh_tail, mesh)
     val: dict = {}
 
     def validate(at: int) -> None:
@@ -273,7 +276,7 @@ def train(
     def run_updates(params, opt_state, length):
         if scan_updates:
             return compiled(params, opt_state, data, length=length)
-        carry = (params, opt_state, jnp.int32(-1), jnp.zeros((cfg.batch,), jnp.int32), zero_sums)
+        carry = (params, opt_state, *fresh_tail)
         for _ in range(length):
             carry = compiled(carry[0], carry[1], data, *carry[2:])
         return carry
