@@ -425,7 +425,7 @@ def _run_train_intention(args: argparse.Namespace) -> int:
         print(f"{split} {name}: {top('')} (the predictor's output: {1 - w:.2f} direct heads + {w:.2f} graph prior)")
         if model.activity_a_head:
             print(f"    direct heads, no graph prior: {top('_direct')}")
-            print(f"    watched A through the generator's activity graph alone (structural prior): "
+            print(f"    watched A through P(B | A) counted on train alone (structural prior): "
                   f"{top('_generator_graph_prior')}")
         print(f"    prior (most frequent B given the true A) {v[f'prior_{head}_top1']:.3f} / "
               f"{v[f'prior_{head}_top5']:.3f}, chance {v[f'chance_{head}_top1']:.3f} / {v[f'chance_{head}_top5']:.3f}")
@@ -840,6 +840,14 @@ def _add_bench(sub) -> None:
     _devices_arg(p)
     p.set_defaults(func=_run_bench_sim)
 
+    p = what.add_parser("intention", help="an intention run's top-1/top-5 on a split, by route, with P(B | A) "
+                        "counted on the train split and with the activity graph's links alone")
+    p.add_argument("--run", required=True, metavar="RUN", help="a `conav train intention` run")
+    p.add_argument("--data", required=True, metavar="DIR", help="the dataset it was trained on")
+    p.add_argument("--split", default="val", help="the split to score (default val)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_run_bench_intention)
+
     p = what.add_parser("train", help="training throughput: samples/s of a model's jitted update")
     p.add_argument("--model", choices=sorted(SETUPS), required=True)
     p.add_argument("--batch", type=int, nargs="+", default=None, help=f"samples per update (default {DEFAULT_BATCH})")
@@ -937,6 +945,26 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
                           flush=True)
     if tmp is not None:
         tmp.cleanup()
+    return 0
+
+
+def _run_bench_intention(args: argparse.Namespace) -> int:
+    from train.intention import evaluate_run
+
+    res = evaluate_run(args.run, args.data, args.split)
+    if args.json:
+        print(json.dumps({"run": str(args.run), "split": args.split, **res}), flush=True)
+        return 0
+    v = res["counted"]
+    print(f"{args.run} on {args.split}: watched activity A top-1 {v.get('activity_a_top1', float('nan')):.3f}, "
+          f"top-5 {v.get('activity_a_top5', float('nan')):.3f}")
+    for head, name in (("activity", "activity B"), ("object", "object B")):
+        for route, label in (("counted", "P(B | A) counted on train"), ("graph", "the graph's links, uniform")):
+            r = res[route]
+            print(f"  {name}, graph route through {label}: predictor output top-1 {r[f'{head}_top1']:.3f} / "
+                  f"top-5 {r[f'{head}_top5']:.3f}; graph route alone {r.get(f'{head}_top1_generator_graph_prior', float('nan')):.3f}")
+        print(f"  {name}, direct heads alone: top-1 {v[f'{head}_top1_direct']:.3f}; prior (most frequent B given the "
+              f"true A) {v[f'prior_{head}_top1']:.3f}")
     return 0
 
 

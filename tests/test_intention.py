@@ -178,6 +178,26 @@ def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered)
     assert int(carry.num_frames) == expected == int(carry.num_predictions) and int(carry.t) == 5
 
 
+def test_the_graph_route_steps_through_p_b_given_a_counted_on_the_train_split(intention_run, rendered, tiny_data):
+    from conav_jax import runs
+    from envs.conav_env import ConavEnv
+
+    run_dir, result = intention_run
+    env, d = rendered
+    train_eps = ConavEnv(tiny_data, "train").split.episodes
+    counts = runs.run_config(run_dir, runs.INTENTION)["data"]["transition_counts"]
+    assert counts == perceiver.count_transitions(train_eps["activity_a"], train_eps["activity_b"])
+    counted = perceiver.transition_from_counts(MODEL, counts)
+    # The predictor's first output (one frame, one prediction) is the Perceiver's through the counts.
+    _, (act, obj) = _run_predictor(load_intention_predictor(run_dir, frame_stride=1), _panoramas(env, d, 0))
+    logits = perceiver.apply(result.params, MODEL, d["frames"][:1, :1], jnp.ones((1, 1), bool))
+    want = perceiver.intention_probs(MODEL, logits, counted)
+    np.testing.assert_allclose(act[0], want[0][0], atol=1e-5)
+    np.testing.assert_allclose(obj[0], want[1][0], atol=1e-5)
+    uniform = perceiver.intention_probs(MODEL, logits)
+    assert not np.allclose(act[0], uniform[0][0], atol=1e-4)  # the counts, not the graph's uniform rows
+
+
 def test_the_predictor_refuses_bad_observations(intention_run, rendered):
     run_dir, _ = intention_run
     env, d = rendered
@@ -214,3 +234,19 @@ def test_runs_from_before_the_crop_load_and_read_the_front_view(intention_run, r
     np.testing.assert_array_equal(carry.frames[0], perceiver.encode_frames(expected, MODEL.max_depth_m))
     assert np.isfinite(act).all()
 
+
+
+def test_bench_intention_scores_a_run_by_route_as_its_own_validation(intention_run, tiny_data, capsys):
+    import json
+
+    from eval import cli
+
+    run_dir, result = intention_run
+    assert cli.main(["bench", "intention", "--run", str(run_dir), "--data", str(tiny_data), "--split", "minival",
+                     "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    # The counted route is what the run validated with; the graph's uniform links differ from it.
+    for key in ("activity_top5", "object_top5", "activity_a_top1", "activity_top1_direct"):
+        assert res["counted"][key] == pytest.approx(result.val[key]), key
+    assert res["counted"]["activity_a_top1"] == res["graph"]["activity_a_top1"]
+    assert set(res["counted"]) == set(res["graph"])

@@ -158,3 +158,25 @@ def test_graph_route_maps_a_certain_activity_a_to_its_graph_successors():
         perceiver.init(jax.random.PRNGKey(0), PerceiverConfig(num_activities=4, num_objects=6))
     with pytest.raises(ValueError, match="graph_mix"):
         PerceiverConfig(graph_mix=1.5)
+
+
+def test_counted_transition_replaces_the_uniform_graph_rows_it_has_data_for():
+    a, b = np.array([3, 3, 3, 7]), np.array([5, 5, 9, 2])
+    triples = perceiver.count_transitions(a, b)
+    assert triples == [[3, 5, 2], [3, 9, 1], [7, 2, 1]]
+    t = perceiver.transition_from_counts(CONFIG, triples)
+    uniform, _ = perceiver.graph_tables(CONFIG)
+    np.testing.assert_allclose(t[3, [5, 9]], [2 / 3, 1 / 3], rtol=1e-6)
+    assert t[3].sum() == pytest.approx(1.0) and t[7, 2] == 1.0
+    np.testing.assert_array_equal(t[0], uniform[0])  # no episode starts with A = 0: the graph's row
+    # The graph route steps through the table it is given.
+    n, m = CONFIG.num_activities, CONFIG.num_objects
+    logits = perceiver.IntentionLogits(jnp.zeros(n), jnp.zeros(m), jnp.full(n, -1e9).at[3].set(0.0))
+    routes = perceiver.intention_routes(CONFIG, logits, t)
+    np.testing.assert_allclose(routes.graph_prior[0], t[3], atol=1e-6)
+    with pytest.raises(ValueError, match="transition must have shape"):
+        perceiver.intention_routes(CONFIG, logits, t[:5])
+    with pytest.raises(ValueError, match="activities in"):
+        perceiver.transition_from_counts(CONFIG, [[3, n, 1]])
+    with pytest.raises(ValueError, match="1-D of one length"):
+        perceiver.count_transitions(a, b[:2])

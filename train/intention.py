@@ -263,27 +263,28 @@ def intention_loss(params, config: PerceiverConfig, batch: dict, key: jax.Array)
 
 
 # Validation keys by route (perceiver.IntentionRoutes): the predictor's output has none; the
-# direct heads alone and the A head through the generator's activity graph alone (a structural
-# prior the generator sampled the episodes from) carry these suffixes.
+# direct heads alone and the A head through P(B | A) alone (a structural prior: the train
+# split's counts of the generator's links) carry these suffixes.
 ROUTE_SUFFIXES = {"mixed": "", "direct": "_direct", "graph_prior": "_generator_graph_prior"}
 
 
 def make_val_fn(
-    config: PerceiverConfig, val: dict, baselines: dict, batch: int = 256, compiler_options: dict | None = None
+    config: PerceiverConfig, val: dict, baselines: dict, batch: int = 256, compiler_options: dict | None = None,
+    transition: np.ndarray | None = None,
 ):
     """`val(params) -> dict`: top-1/top-5 of activity B and object B with every frame of activity
     A seen, by route (ROUTE_SUFFIXES): `activity_top1` etc. what the predictor outputs
     (`perceiver.intention_probs`), `activity_top1_direct` the direct heads without the graph
-    prior, `activity_top1_generator_graph_prior` the A head through the generator's graph
-    alone; top-1/top-5 of the watched activity A with the A head; plus the (constant) prior,
-    chance and data figures of `baselines`."""
+    prior, `activity_top1_generator_graph_prior` the A head through P(B | A) alone
+    (`transition`, see perceiver.intention_routes); top-1/top-5 of the watched activity A
+    with the A head; plus the (constant) prior, chance and data figures of `baselines`."""
     f = val["frames"].shape[1]
     routes = [r for r in ROUTE_SUFFIXES if r != "graph_prior" or config.activity_a_head]
 
     def probs(params, frames, num):
         mask = jnp.arange(f)[None, :] < num[:, None]
         out = perceiver.apply(params, config, frames, mask)
-        by_route = perceiver.intention_routes(config, out)._asdict()
+        by_route = perceiver.intention_routes(config, out, transition)._asdict()
         return {r: by_route[r] for r in routes}, out.activity_a
 
     # The data are arguments: closed over, they would be baked into the compiled program.
@@ -308,14 +309,16 @@ def make_val_fn(
 
 
 def run_config(model: PerceiverConfig, data: IntentionDataConfig, content_hash: str | None, spacing: float,
-               camera_height_m: float) -> dict:
+               camera_height_m: float, transition_counts: list[list[int]] | None = None) -> dict:
     """The checkpoint's config: what a resumed run must share, and what the predictor needs
-    (envs.agents.predictors.frame_spec_from_config reads the view, sensor and camera height)."""
+    (envs.agents.predictors.frame_spec_from_config reads the view, sensor and camera height;
+    `transition_counts`, [A, B, count] of the train split's episodes, its P(B | A))."""
+    extra = {} if transition_counts is None else {"transition_counts": transition_counts}
     return {
         "kind": KIND,
         "model": dataclasses.asdict(model),
         "data": {**dataclasses.asdict(data), "content_hash": content_hash, "frame_spacing_steps": spacing,
-                 "camera_height_m": camera_height_m},
+                 "camera_height_m": camera_height_m, **extra},
     }
 
 
@@ -354,12 +357,43 @@ def train_intention(
     val_d = render_split(val_env, model, data, compiler_options=compiler_options, viewpoints=1)
     baselines = {**baseline_metrics(train_d, val_d, model), **data_metrics(val_d)}
     spacing = frame_spacing(train_env.split.episodes["t_walk_start"], data.frames)
+    # P(B | A) of the graph route, counted on the train split's episodes.
+    counts = perceiver.count_transitions(train_env.split.episodes["activity_a"], train_env.split.episodes["activity_b"])
+    config = run_config(model, data, content_hash, spacing, float(train_env.task.camera_height_m), counts)
     params = perceiver.init(jax.random.PRNGKey(cfg.seed), model)
     loss = lambda p, b, k: intention_loss(p, model, b, k)
     samples = {k: train_d[k] for k in ("frames", "num_frames", "activity", "object", "activity_a")}
     return train(
-        run_dir, loss, params, samples, cfg,
-        run_config(model, data, content_hash, spacing, float(train_env.task.camera_height_m)),
-        val_fn=make_val_fn(model, val_d, baselines, compiler_options=compiler_options),
+        run_dir, loss, params, samples, cfg, config,
+        val_fn=make_val_fn(model, val_d, baselines, compiler_options=compiler_options,
+                           transition=perceiver.transition_from_counts(model, counts)),
         progress=progress, compiler_options=compiler_options, mesh=mesh, log_extra={"val_split": val_split},
     )
+
+
+def evaluate_run(run_dir: str | Path, data_dir: str | Path, split: str = "val",
+                 compiler_options: dict | None = None) -> dict[str, dict]:
+    """An intention run's accuracy on `split` of `data_dir` (its start viewpoint, every frame of
+    activity A seen; make_val_fn's keys by route), with two graph routes: "counted", P(B | A)
+    counted on the data's train split (what a run records and its predictor uses), and
+    "graph", the generator's links, uniform. FileNotFoundError / ValueError as runs.load_run,
+    ValueError if the run was trained on other data (content hash)."""
+    ckpt = runs.load_run(run_dir, runs.INTENTION)
+    model_d = {k: tuple(v) if isinstance(v, list) else v for k, v in ckpt.config["model"].items()}
+    model = PerceiverConfig(**{"activity_a_head": False, **model_d})
+    names = {f.name for f in dataclasses.fields(IntentionDataConfig)}
+    data = IntentionDataConfig(**{k: tuple(v) if isinstance(v, list) else v
+                                  for k, v in ckpt.config["data"].items() if k in names})
+    trained_on, here = ckpt.config["data"].get("content_hash"), read_manifest(data_dir).get("content_hash")
+    if trained_on is not None and trained_on != here:
+        raise ValueError(f"{run_dir} was trained on data with content hash {trained_on}; {data_dir} has {here}")
+    train_eps = make_env(data_dir, "train", data).split.episodes
+    env = make_env(data_dir, split, data)
+    labels = render_split(env, model, data, compiler_options=compiler_options, viewpoints=1)
+    train_labels = {"activity_a": train_eps["activity_a"], "activity": train_eps["activity_b"],
+                    "object": train_eps["object_b"]}
+    baselines = {**baseline_metrics(train_labels, labels, model), **data_metrics(labels)}
+    counted = perceiver.transition_from_counts(model, perceiver.count_transitions(train_eps["activity_a"],
+                                                                                  train_eps["activity_b"]))
+    return {route: make_val_fn(model, labels, baselines, compiler_options=compiler_options, transition=t)(ckpt.params)
+            for route, t in (("counted", counted), ("graph", None))}

@@ -9,10 +9,13 @@ valid tokens -> latent self-attention blocks -> mean-pooled latent -> activity (
 activity being watched (A). `intention_probs` turns them into the predicted distributions:
 with the A head, through the shipped causal activity graph, p(B) = sum_A p(A | frames) P(B | A),
 mixed with the direct B head. Recognising A from its motion and object is what the frames
-show; the step to B is a structural prior taken from the generator's own graph, which a model
-trained on a few scenes otherwise has to learn from their labels (and memorises the scenes
-instead: BENCHMARKS.md). `intention_routes` gives each route alone, so results can be reported
-with and without that prior.
+show; the step to B is a structural prior: P(B | A) counted on the training episodes
+(`transition_from_counts`: how often each link of the generator's graph follows A where the
+scenes hold both objects; its ties fall where the scenes make them, not by activity id), or
+the graph's links alone, uniform, where a run has no counts. A model trained on a few scenes
+otherwise has to learn that step from their labels (and memorises the scenes instead:
+BENCHMARKS.md). `intention_routes` gives each route alone, so results can be reported with and
+without that prior.
 `lowest_entropy_average` is the paper's inference-time smoothing of predictions.
 """
 
@@ -56,8 +59,8 @@ class PerceiverConfig:
     # Also classify activity A and predict B through the activity graph (needs the graph's
     # 107 activities and 51 categories). Checkpoints written before this field had no A head.
     activity_a_head: bool = True
-    # Weight of the graph route (p(A | frames) through the generator's activity graph, a
-    # structural prior) in p(B) and p(object B); the rest: the direct heads.
+    # Weight of the graph route (p(A | frames) through P(B | A), a structural prior: see
+    # transition_from_counts) in p(B) and p(object B); the rest: the direct heads.
     graph_mix: float = 0.8
 
     def __post_init__(self):
@@ -113,8 +116,8 @@ def _graph_tables(num_activities: int, num_objects: int) -> tuple[np.ndarray, np
 class IntentionRoutes(NamedTuple):
     """The predicted distributions of activity B `(..., num_activities)` and object B
     `(..., num_objects)` by route: `direct` from the B heads alone (what the frames taught the
-    model); `graph_prior` from the A head through the generator's activity graph alone, a
-    structural prior (None without the A head); `mixed`, what the predictor outputs: their
+    model); `graph_prior` from the A head through P(B | A) alone (the run's counts, else the
+    generator's graph), a structural prior (None without the A head); `mixed`, what the predictor outputs: their
     mix with weight `graph_mix` on the graph route (`direct` without the A head)."""
 
     direct: tuple[jax.Array, jax.Array]
@@ -122,12 +125,41 @@ class IntentionRoutes(NamedTuple):
     mixed: tuple[jax.Array, jax.Array]
 
 
-def intention_routes(config: PerceiverConfig, logits: IntentionLogits) -> IntentionRoutes:
-    """Each route's (activity B, object B) probabilities, see IntentionRoutes."""
+def count_transitions(activity_a: np.ndarray, activity_b: np.ndarray) -> list[list[int]]:
+    """The (A, B) activity pairs of episodes as sorted [A, B, count] triples (a run config's
+    JSON). ValueError for arrays that are not 1-D of one length."""
+    a, b = np.asarray(activity_a), np.asarray(activity_b)
+    if a.shape != b.shape or a.ndim != 1:
+        raise ValueError(f"activity_a and activity_b must be 1-D of one length, got {a.shape} and {b.shape}")
+    pairs, counts = np.unique(np.stack([a, b], 1).reshape(-1, 2), axis=0, return_counts=True)
+    return [[int(x), int(y), int(c)] for (x, y), c in zip(pairs, counts)]
+
+
+def transition_from_counts(config: PerceiverConfig, triples) -> np.ndarray:
+    """P(B | A) `(A, B)` float32, row-stochastic, from [A, B, count] triples (count_transitions
+    of training episodes); an A no episode starts with keeps the graph's uniform row
+    (graph_tables). ValueError for activities out of range or negative counts."""
+    n = config.num_activities
+    t = np.asarray(triples, np.int64).reshape(-1, 3)
+    if t.size and (t[:, :2].min() < 0 or t[:, :2].max() >= n or t[:, 2].min() < 0):
+        raise ValueError(f"transition counts need activities in [0, {n}) and counts >= 0, got {t.tolist()[:4]}...")
+    counts = np.zeros((n, n), np.float64)
+    np.add.at(counts, (t[:, 0], t[:, 1]), t[:, 2])
+    rows = counts.sum(1, keepdims=True)
+    return np.where(rows > 0, counts / np.maximum(rows, 1.0), graph_tables(config)[0]).astype(np.float32)
+
+
+def intention_routes(config: PerceiverConfig, logits: IntentionLogits, transition=None) -> IntentionRoutes:
+    """Each route's (activity B, object B) probabilities, see IntentionRoutes. `transition`:
+    P(B | A) `(A, B)` for the graph route (a run's `transition_from_counts`); None: the graph's
+    links, uniform (graph_tables)."""
     direct = jax.nn.softmax(logits.activity, axis=-1), jax.nn.softmax(logits.object, axis=-1)
     if logits.activity_a is None:
         return IntentionRoutes(direct, None, direct)
-    transition, objects = graph_tables(config)
+    graph_transition, objects = graph_tables(config)
+    transition = graph_transition if transition is None else transition
+    if np.shape(transition) != graph_transition.shape:
+        raise ValueError(f"transition must have shape {graph_transition.shape}, got {np.shape(transition)}")
     hi = jax.lax.Precision.HIGHEST  # probabilities: keep float32 on the GPU
     via_b = jnp.matmul(jax.nn.softmax(logits.activity_a, axis=-1), jnp.asarray(transition), precision=hi)
     via_obj = jnp.matmul(via_b, jnp.asarray(objects), precision=hi)
@@ -136,11 +168,11 @@ def intention_routes(config: PerceiverConfig, logits: IntentionLogits) -> Intent
     return IntentionRoutes(direct, (via_b, via_obj), mixed)
 
 
-def intention_probs(config: PerceiverConfig, logits: IntentionLogits) -> tuple[jax.Array, jax.Array]:
+def intention_probs(config: PerceiverConfig, logits: IntentionLogits, transition=None) -> tuple[jax.Array, jax.Array]:
     """(activity B probabilities `(..., num_activities)`, object B probabilities
     `(..., num_objects)`): the direct heads' softmax, and with the A head their mix with the
-    graph route (weight `graph_mix`); `intention_routes(...).mixed`."""
-    return intention_routes(config, logits).mixed
+    graph route (weight `graph_mix`; `transition` as intention_routes); `intention_routes(...).mixed`."""
+    return intention_routes(config, logits, transition).mixed
 
 
 def encode_frames(frames: jax.Array, max_depth_m: float) -> jax.Array:

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from conav_jax import runs
 from conav_jax.config import TaskConfig
@@ -105,12 +106,13 @@ def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Arr
 
 def make_intention_predictor(
     params, config: PerceiverConfig, frames: int, spec: FrameSpec, frame_stride: int = 1, history: int = 16,
-    top_k: int = 5,
+    top_k: int = 5, transition: np.ndarray | None = None,
 ) -> IntentionPredictor:
     """A predictor that records a frame (`intention_frame` by `spec`) every `frame_stride`
     calls (training frames were that far apart), keeps the last `frames`, runs the Perceiver
     on them and returns the mean of the `top_k` lowest-entropy of the last `history`
-    predictions (paper sec. 4.2)."""
+    predictions (paper sec. 4.2). `transition`: the P(B | A) of its graph route
+    (perceiver.intention_routes)."""
     h, w = config.image_hw
     f32 = jnp.float32
 
@@ -133,7 +135,8 @@ def make_intention_predictor(
         buf, n = _push(carry.frames, carry.num_frames, frame)
         buf, n = jnp.where(record, buf, carry.frames), jnp.where(record, n, carry.num_frames)
         mask = jnp.arange(frames) < n
-        act_p, obj_p = (x[0] for x in perceiver.intention_probs(config, perceiver.apply(params, config, buf[None], mask[None])))
+        logits = perceiver.apply(params, config, buf[None], mask[None])
+        act_p, obj_p = (x[0] for x in perceiver.intention_probs(config, logits, transition))
         # Only a new frame adds a prediction: repeated steps on the same buffer would
         # otherwise crowd the history with one prediction.
         act_h, m = _push(carry.activity_history, carry.num_predictions, act_p)
@@ -171,8 +174,13 @@ def load_intention_predictor(
     cfg.setdefault("activity_a_head", False)  # runs from before the A head had none
     data = ckpt.config["data"]
     stride = frame_stride if frame_stride is not None else max(1, int(round(data["frame_spacing_steps"])))
-    return make_intention_predictor(ckpt.params, PerceiverConfig(**cfg), data["frames"], frame_spec_from_config(data),
-                                    stride, history, top_k)
+    model = PerceiverConfig(**cfg)
+    # P(B | A) counted on the run's train split; runs written before the counts step through
+    # the graph's links, uniform.
+    counts = data.get("transition_counts")
+    transition = None if counts is None else perceiver.transition_from_counts(model, counts)
+    return make_intention_predictor(ckpt.params, model, data["frames"], frame_spec_from_config(data),
+                                    stride, history, top_k, transition)
 
 
 class TrajectoryPredictor(NamedTuple):
