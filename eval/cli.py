@@ -259,7 +259,7 @@ def _run_generate(args: argparse.Namespace) -> int:
 
 def _add_train(sub) -> None:
     from conav_jax.models.perceiver import PerceiverConfig
-    from conav_jax.models.policy import ABLATIONS, PolicyConfig
+    from conav_jax.models.policy import ABLATIONS, CONV_DTYPES, PolicyConfig
     from conav_jax.models.trajectory import TrajectoryConfig
     from train.intention import IntentionDataConfig
     from train.loop import TrainConfig
@@ -329,6 +329,10 @@ def _add_train(sub) -> None:
     p.add_argument("--remat", action="store_true",
                    help="recompute the CNN per window step in the backward pass: less memory (112x448 windows "
                    "at batch >= 256 need it on an H100), ~1.7x the update time")
+    p.add_argument("--conv-dtype", choices=sorted(CONV_DTYPES), default=PolicyConfig.conv_dtype,
+                   help="operand dtype of the policy's convolutions: bfloat16 halves the CNN's memory traffic and "
+                   "runs it on tensor cores, accumulating in float32 (default float32; part of the run's model: a run "
+                   "resumes only with the value it began with)")
     p.add_argument("--train-intentions", choices=TRAIN_INTENTIONS, default=d.train_intentions,
                    help="intention inputs in the training data: ground truth (the paper) or the predictor runs' outputs")
     p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
@@ -461,7 +465,8 @@ def _policy_model(args: argparse.Namespace):
     from envs.agents.registry import run_resolution
 
     h, w = run_resolution([], args.resolution)
-    return ablation_config(PolicyConfig(image_hw=(h, w), object_saliency=args.object_saliency), args.ablation)
+    return ablation_config(PolicyConfig(image_hw=(h, w), object_saliency=args.object_saliency,
+                                        conv_dtype=args.conv_dtype), args.ablation)
 
 
 def _run_train_policy(args: argparse.Namespace) -> int:
@@ -810,6 +815,7 @@ def _run_reproduce(args: argparse.Namespace) -> int:
 
 
 def _add_bench(sub) -> None:
+    from conav_jax.models.policy import CONV_DTYPES
     from envs.agents.registry import AGENTS
     from envs.config import SENSOR_KINDS
     from train.bench import DEFAULT_BATCH, SETUPS
@@ -856,6 +862,8 @@ def _add_bench(sub) -> None:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--remat", action="store_true",
                    help="policy: encode one time step at a time under jax.checkpoint (less memory, more compute)")
+    p.add_argument("--conv-dtype", choices=sorted(CONV_DTYPES), default="float32",
+                   help="policy: operand dtype of the CNN's convolutions (PolicyConfig.conv_dtype; float32 accumulation)")
     p.add_argument("--json", action="store_true", help="print one JSON line per batch size")
     _devices_arg(p)
     p.set_defaults(func=_run_bench_train)
@@ -974,11 +982,11 @@ def _run_bench_train(args: argparse.Namespace) -> int:
 
     mesh = make_mesh(args.devices) if args.devices != 1 else None
     for batch in args.batch or [DEFAULT_BATCH[args.model]]:
-        res = bench_train(args.model, batch, args.resolution, args.steps, args.repeats, mesh, args.remat)
+        res = bench_train(args.model, batch, args.resolution, args.steps, args.repeats, mesh, args.remat, args.conv_dtype)
         if args.json:
             print(json.dumps(res), flush=True)
         else:
-            shape = ", ".join(f"{k}={res[k]}" for k in ("resolution", "frames", "sequence", "history") if k in res)
+            shape = ", ".join(f"{k}={res[k]}" for k in ("resolution", "frames", "sequence", "history", "conv_dtype") if k in res)
             print(f"{res['device']} {res['model']} batch={batch} {shape}: {res['samples_per_s']:,.0f} samples/s "
                   f"({res['updates_per_s']:.1f} updates/s, median of {args.repeats}; "
                   f"compile + first call {res['compile_and_first_call_s']} s)", flush=True)

@@ -286,3 +286,69 @@ def test_runs_store_the_config_as_before_the_goal_inputs_and_read_both_back():
     stored = json.loads(json.dumps(policy.config_dict(GOAL)))
     assert stored["goal_image"] is True and stored["use_human_pos"] is False and stored["goal_dim"] == 8
     assert policy_config_from_dict(stored) == GOAL
+
+
+# -- bfloat16 convolutions --------------------------------------------------------------------
+
+
+def test_conv_dtype_must_be_float32_or_bfloat16():
+    with pytest.raises(ValueError, match="conv_dtype 'float16'"):
+        PolicyConfig(conv_dtype="float16")
+
+
+def test_bfloat16_reaches_every_convolution_the_policy_runs():
+    params = jit(policy.init, static_argnums=1)(jax.random.PRNGKey(0), GOAL)
+    obs = {**_obs((B,)), "goal_image": np.random.default_rng(3).uniform(size=(B, *GOAL.goal_image_hw, 3)).astype(np.float32)}
+    encode = jit(policy.encode, static_argnums=1)
+    exact = encode(params, GOAL, obs)
+    mixed = encode(params, dataclasses.replace(GOAL, conv_dtype="bfloat16"), obs)
+    assert mixed.dtype == jnp.float32
+    # Features: the panorama CNN's first (visual_dim), the goal CNN's last (goal_dim); between
+    # them the state, intention and saliency-bearing embeddings, which no convolution computes.
+    # Measured on the CPU over four seeds: at most 0.57% of the largest feature.
+    cnn = {"panorama CNN": slice(0, GOAL.visual_dim), "goal CNN": slice(-GOAL.goal_dim, None)}
+    for name, part in cnn.items():
+        assert not np.array_equal(mixed[:, part], exact[:, part]), f"the {name} did not run in bfloat16"
+        np.testing.assert_allclose(mixed[:, part], exact[:, part], rtol=0, atol=0.02 * np.abs(exact[:, part]).max())
+    middle = slice(GOAL.visual_dim, -GOAL.goal_dim)
+    np.testing.assert_array_equal(mixed[:, middle], exact[:, middle])
+
+
+@pytest.mark.parametrize("flag, dtype", [([], "float32"), (["--conv-dtype", "bfloat16"], "bfloat16")])
+def test_train_policy_flag_sets_the_conv_dtype_of_the_runs_model(flag, dtype, monkeypatch, tmp_path):
+    from eval.cli import build_parser
+    from train import policy as train_policy_mod
+
+    seen = {}
+
+    def fake_train_policy(data, out, cfg, model, imitation, **kw):
+        seen.update(model=model)
+        return train_policy_mod.PolicyResult({}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, tmp_path)
+
+    monkeypatch.setattr(train_policy_mod, "train_policy", fake_train_policy)
+    args = build_parser().parse_args(["train", "policy", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
+                                      "--resolution", "16x64", "--ablation", "object", *flag])
+    assert args.func(args) == 0
+    assert seen["model"].conv_dtype == dtype and seen["model"].use_object and not seen["model"].use_activity
+
+
+def test_runs_store_conv_dtype_only_where_it_is_bfloat16_and_resume_only_with_the_same(tmp_path):
+    import json
+
+    from conav_jax.checkpoints import load_checkpoint, save_checkpoint
+    from envs.agents.policy import policy_config_from_dict
+
+    # A float32 run's model is stored as before the field existed, so runs written before it
+    # resume, and a stored model without it loads as float32.
+    old = json.loads(json.dumps(policy.config_dict(CONFIG)))
+    assert "conv_dtype" not in old
+    assert policy_config_from_dict(old) == CONFIG and CONFIG.conv_dtype == "float32"
+    bf16 = dataclasses.replace(CONFIG, conv_dtype="bfloat16")
+    stored = json.loads(json.dumps(policy.config_dict(bf16)))
+    assert stored["conv_dtype"] == "bfloat16" and policy_config_from_dict(stored) == bf16
+    # A run resumed with another conv_dtype fails, naming the field.
+    path = save_checkpoint(tmp_path / "ckpt_1.npz", params={"w": np.zeros(2)}, opt_state=None,
+                           config={"model": old}, step=1)
+    load_checkpoint(path, config={"model": policy.config_dict(CONFIG)})
+    with pytest.raises(ValueError, match="model.conv_dtype"):
+        load_checkpoint(path, config={"model": policy.config_dict(bf16)})

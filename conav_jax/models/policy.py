@@ -40,6 +40,9 @@ from conav_jax.nn.lstm import LSTMState
 Params = dict
 Obs = dict[str, jax.Array]
 
+# PolicyConfig.conv_dtype -> conav_jax.nn.conv's compute_dtype (None: no cast, float32 throughout).
+CONV_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
+
 ABLATIONS = {
     # name: (use_activity, use_object, use_trajectory), rows 1-5 of the paper's Table 3
     "none": (False, False, False),
@@ -83,13 +86,26 @@ class PolicyConfig:
     goal_conv_channels: tuple[int, ...] = (16, 32, 32)
     goal_conv_kernels: tuple[int, ...] = (3, 3, 3)
     goal_dim: int = 64
+    # Operand dtype of every convolution the policy runs (the panorama CNN and the goal-image
+    # CNN): "float32" or "bfloat16". At 112x448 the CNN dominates the imitation update; bf16
+    # operands halve its memory traffic and run it on tensor cores, while the convolutions still
+    # accumulate in and return float32 (conav_jax.nn.conv). Parameters, the loss, the optimizer
+    # and the LSTM stay float32.
+    conv_dtype: str = "float32"
 
     def __post_init__(self):
+        if self.conv_dtype not in CONV_DTYPES:
+            raise ValueError(f"unknown conv_dtype {self.conv_dtype!r}; expected one of {sorted(CONV_DTYPES)}")
         if self.uses_saliency and (self.saliency_sectors < 1 or self.image_hw[1] % self.saliency_sectors):
             raise ValueError(f"saliency_sectors ({self.saliency_sectors}) must divide the panorama width {self.image_hw[1]}")
         if self.goal_image and (len(self.goal_conv_channels) != len(self.goal_conv_kernels) or self.image_hw[1] % 4):
             raise ValueError("goal_conv_channels and goal_conv_kernels need one entry per conv layer, and the goal "
                              f"image (a quarter of the panorama) a width divisible by 4, got {self.image_hw[1]}")
+
+    @property
+    def conv_compute_dtype(self):
+        """conav_jax.nn.conv's `compute_dtype` for conv_dtype (None: plain float32)."""
+        return CONV_DTYPES[self.conv_dtype]
 
     @property
     def uses_saliency(self) -> bool:
@@ -105,7 +121,7 @@ class PolicyConfig:
 # Fields added after runs were written: a run's config stores them only where they differ from
 # their defaults (`config_dict`), so a run written before them still resumes (its stored config
 # compares equal), and `envs.agents.policy.policy_config_from_dict` fills in the defaults.
-LATER_FIELDS = ("use_human_pos", "goal_image", "goal_conv_channels", "goal_conv_kernels", "goal_dim")
+LATER_FIELDS = ("use_human_pos", "goal_image", "goal_conv_channels", "goal_conv_kernels", "goal_dim", "conv_dtype")
 # The goal encoder's keys come from this fold of init's key, so configs without a goal image
 # draw every other parameter exactly as before the goal input existed.
 _GOAL_KEY_FOLD = 0x60A1
@@ -188,10 +204,11 @@ def saliency_bearing(config: PolicyConfig, saliency: jax.Array, depth_m: jax.Arr
     return jnp.concatenate([peak, near], axis=-1)
 
 
-def _conv_stack(params: list, x: jax.Array) -> jax.Array:
-    """Stride-2 SAME convs with ReLU: `(..., H, W, C) -> (..., ~H / 2^n, ~W / 2^n, C_last)`."""
+def _conv_stack(params: list, x: jax.Array, compute_dtype=None) -> jax.Array:
+    """Stride-2 SAME convs with ReLU: `(..., H, W, C) -> (..., ~H / 2^n, ~W / 2^n, C_last)`,
+    float32 out (`compute_dtype`: conav_jax.nn.conv.apply's)."""
     for layer in params:
-        x = jax.nn.relu(nn.conv.apply(layer, x, stride=2, padding="SAME"))
+        x = jax.nn.relu(nn.conv.apply(layer, x, stride=2, padding="SAME", compute_dtype=compute_dtype))
     return x
 
 
@@ -255,7 +272,7 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
         saliency = object_saliency(rgbd[..., :3], obs["object_probs"].astype(jnp.float32))
         channels.append(saliency[..., None])
     image = jnp.concatenate(channels, axis=-1)
-    feat = _conv_stack(params["convs"], image)
+    feat = _conv_stack(params["convs"], image, config.conv_compute_dtype)
     feat = feat.reshape(*feat.shape[:-3], -1)
     visual = jax.nn.relu(nn.linear.apply(params["visual"], feat))
 
@@ -274,7 +291,7 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
         bearing = saliency_bearing(config, saliency, rgbd[..., 3])
         parts.append(jax.nn.relu(nn.linear.apply(params["saliency"], bearing)))
     if config.goal_image:
-        goal = _conv_stack(params["goal_convs"], obs["goal_image"].astype(jnp.float32))
+        goal = _conv_stack(params["goal_convs"], obs["goal_image"].astype(jnp.float32), config.conv_compute_dtype)
         parts.append(jax.nn.relu(nn.linear.apply(params["goal"], goal.reshape(*goal.shape[:-3], -1))))
     return jnp.concatenate(parts, axis=-1)
 
