@@ -159,8 +159,11 @@ def _run_predictor(predictor, obs):
     return run(obs)
 
 
-def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered):
-    run_dir, _ = intention_run
+def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered, tiny_data):
+    from conav_jax import runs
+    from envs.conav_env import ConavEnv
+
+    run_dir, result = intention_run
     env, d = rendered
     predictor = load_intention_predictor(run_dir, frame_stride=1)
     assert predictor.config == MODEL and predictor.spec == FrameSpec("human", (32, 128), 1.25)
@@ -168,6 +171,16 @@ def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered)
     carry, (act, obj) = _run_predictor(predictor, obs)
     np.testing.assert_array_equal(carry.frames, d["frames"][0])  # crops from the observations
     assert act.shape == (4, 107) and obj.shape == (4, 51)
+    # Its graph route steps through P(B | A) counted on the train split, recorded in the run:
+    # the first output (one frame, one prediction) is the Perceiver's through the counts.
+    train_eps = ConavEnv(tiny_data, "train").split.episodes
+    counts = runs.run_config(run_dir, runs.INTENTION)["data"]["transition_counts"]
+    assert counts == perceiver.count_transitions(train_eps["activity_a"], train_eps["activity_b"])
+    logits = perceiver.apply(result.params, MODEL, d["frames"][:1, :1], jnp.ones((1, 1), bool))
+    want = perceiver.intention_probs(MODEL, logits, perceiver.transition_from_counts(MODEL, counts))
+    np.testing.assert_allclose(act[0], want[0][0], atol=1e-5)
+    np.testing.assert_allclose(obj[0], want[1][0], atol=1e-5)
+    assert not np.allclose(act[0], perceiver.intention_probs(MODEL, logits)[0][0], atol=1e-4)  # not the uniform links
     np.testing.assert_allclose(act.sum(-1), 1.0, atol=1e-5)
     np.testing.assert_allclose(obj.sum(-1), 1.0, atol=1e-5)
     # The default stride: the training frames' spacing; a frame every `stride` steps.
@@ -176,26 +189,6 @@ def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered)
     carry, _ = _run_predictor(strided, jax.tree.map(lambda x: jnp.concatenate([x, x[:1]]), obs))
     expected = -(-5 // strided.frame_stride)
     assert int(carry.num_frames) == expected == int(carry.num_predictions) and int(carry.t) == 5
-
-
-def test_the_graph_route_steps_through_p_b_given_a_counted_on_the_train_split(intention_run, rendered, tiny_data):
-    from conav_jax import runs
-    from envs.conav_env import ConavEnv
-
-    run_dir, result = intention_run
-    env, d = rendered
-    train_eps = ConavEnv(tiny_data, "train").split.episodes
-    counts = runs.run_config(run_dir, runs.INTENTION)["data"]["transition_counts"]
-    assert counts == perceiver.count_transitions(train_eps["activity_a"], train_eps["activity_b"])
-    counted = perceiver.transition_from_counts(MODEL, counts)
-    # The predictor's first output (one frame, one prediction) is the Perceiver's through the counts.
-    _, (act, obj) = _run_predictor(load_intention_predictor(run_dir, frame_stride=1), _panoramas(env, d, 0))
-    logits = perceiver.apply(result.params, MODEL, d["frames"][:1, :1], jnp.ones((1, 1), bool))
-    want = perceiver.intention_probs(MODEL, logits, counted)
-    np.testing.assert_allclose(act[0], want[0][0], atol=1e-5)
-    np.testing.assert_allclose(obj[0], want[1][0], atol=1e-5)
-    uniform = perceiver.intention_probs(MODEL, logits)
-    assert not np.allclose(act[0], uniform[0][0], atol=1e-4)  # the counts, not the graph's uniform rows
 
 
 def test_the_predictor_refuses_bad_observations(intention_run, rendered):
