@@ -212,10 +212,10 @@ def collect_results(out: Path, seeds: int, extra: dict) -> dict:
         full, bc_only = evals / f"conav_s{s}" / "metrics.json", evals / BC_ONLY_EVAL.format(s) / "metrics.json"
         if not full.is_file() and not bc_only.is_file():
             raise FileNotFoundError(f"seed {s} has no CoNav evaluation: neither {full} nor {bc_only}")
-        doc = json.loads((full if full.is_file() else bc_only).read_text())
-        rows = {k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()}
-        if full.is_file():
-            rows = {"dagger": doc["agents"]["conav"], **rows}
+        has_dagger = full.is_file()
+        doc = json.loads((full if has_dagger else bc_only).read_text())
+        rows = {"dagger": doc["agents"]["conav"]} if has_dagger else {}
+        rows.update({k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()})
         for row, entry in rows.items():
             slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
             slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": doc["episodes"]}
@@ -282,8 +282,8 @@ def render_tables(results: dict) -> str:
         f"Data: preset `{results.get('preset', '?')}`, split val ({results.get('episodes', '?')} episodes), panorama "
         f"{results.get('resolution', '?')}; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "
         f"commit {results.get('commit', '?')}. Rates and SPLs in percent, AS in steps. Learned rows: mean ± sd over "
-        "seeds [pooled 95% interval] (a row measured on fewer seeds says which). CR counts contacts up to the first reach (the paper's), CR_full up to the end "
-        "of activity B. Paper: the published figures (a different simulator, scenes and agents' "
+        "seeds [pooled 95% interval] (a row measured on fewer seeds says which). CR counts contacts up to the "
+        "first reach (the paper's), CR_full up to the end of activity B. Paper: the published figures (a different simulator, scenes and agents' "
         "implementations; they are context, not a target).",
         "",
         "## Table 2: agents",

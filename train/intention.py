@@ -28,7 +28,7 @@ from conav_jax.models import perceiver
 from conav_jax.models.perceiver import PerceiverConfig
 from conav_jax.nav.navigation import line_of_sight
 from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.agents.predictors import VIEWS, FrameSpec, intention_frame
+from envs.agents.predictors import VIEWS, FrameSpec, intention_frame, perceiver_config_from_run
 from envs.human_crop import human_crop
 from envs.panorama import front_view
 from train.loop import TrainConfig, TrainResult, train
@@ -379,8 +379,7 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, split: str = "val",
     "graph", the generator's links, uniform. FileNotFoundError / ValueError as runs.load_run,
     ValueError if the run was trained on other data (content hash)."""
     ckpt = runs.load_run(run_dir, runs.INTENTION)
-    model_d = {k: tuple(v) if isinstance(v, list) else v for k, v in ckpt.config["model"].items()}
-    model = PerceiverConfig(**{"activity_a_head": False, **model_d})
+    model = perceiver_config_from_run(ckpt.config["model"])
     names = {f.name for f in dataclasses.fields(IntentionDataConfig)}
     data = IntentionDataConfig(**{k: tuple(v) if isinstance(v, list) else v
                                   for k, v in ckpt.config["data"].items() if k in names})

@@ -117,8 +117,9 @@ class IntentionRoutes(NamedTuple):
     """The predicted distributions of activity B `(..., num_activities)` and object B
     `(..., num_objects)` by route: `direct` from the B heads alone (what the frames taught the
     model); `graph_prior` from the A head through P(B | A) alone (the run's counts, else the
-    generator's graph), a structural prior (None without the A head); `mixed`, what the predictor outputs: their
-    mix with weight `graph_mix` on the graph route (`direct` without the A head)."""
+    generator's graph), a structural prior (None without the A head); `mixed`, what the
+    predictor outputs: their mix with weight `graph_mix` on the graph route (`direct` without
+    the A head)."""
 
     direct: tuple[jax.Array, jax.Array]
     graph_prior: tuple[jax.Array, jax.Array] | None

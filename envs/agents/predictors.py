@@ -162,6 +162,13 @@ def frame_spec_from_config(data: dict) -> FrameSpec:
     return FrameSpec(view, tuple(data["sensor_hw"]), float(data.get("camera_height_m", TaskConfig.camera_height_m)))
 
 
+def perceiver_config_from_run(model: dict) -> PerceiverConfig:
+    """The PerceiverConfig of an intention run's JSON "model" (lists back to tuples; runs from
+    before the A head had none)."""
+    return PerceiverConfig(**{"activity_a_head": False,
+                              **{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()}})
+
+
 def load_intention_predictor(
     run_dir: str | Path, frame_stride: int | None = None, history: int = 16, top_k: int = 5
 ) -> IntentionPredictor:
@@ -169,12 +176,9 @@ def load_intention_predictor(
     defaults to the training frames' median spacing in steps (rounded). FileNotFoundError /
     ValueError naming the run when it is missing or of another kind."""
     ckpt = runs.load_run(run_dir, runs.INTENTION)
-    cfg = dict(ckpt.config["model"])
-    cfg["image_hw"] = tuple(cfg["image_hw"])
-    cfg.setdefault("activity_a_head", False)  # runs from before the A head had none
     data = ckpt.config["data"]
     stride = frame_stride if frame_stride is not None else max(1, int(round(data["frame_spacing_steps"])))
-    model = PerceiverConfig(**cfg)
+    model = perceiver_config_from_run(ckpt.config["model"])
     # P(B | A) counted on the run's train split; runs written before the counts step through
     # the graph's links, uniform.
     counts = data.get("transition_counts")
