@@ -327,12 +327,12 @@ def _add_train(sub) -> None:
     p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
     p.add_argument("--rollout-batch", type=int, default=d.rollout_batch, help="episodes per simulator call")
     p.add_argument("--remat", action="store_true",
-                   help="recompute the CNN per window step in the backward pass: less memory (112x448 windows "
+                   help="recompute the CNN per window step in the backward pass: less memory (float32 112x448 windows "
                    "at batch >= 256 need it on an H100), ~1.7x the update time")
     p.add_argument("--conv-dtype", choices=sorted(CONV_DTYPES), default=PolicyConfig.conv_dtype,
-                   help="operand dtype of the policy's convolutions: bfloat16 halves the CNN's memory traffic and "
-                   "runs it on tensor cores, accumulating in float32 (default float32; part of the run's model: a run "
-                   "resumes only with the value it began with)")
+                   help="dtype of the policy's convolutions and of the activations between them: bfloat16 halves the "
+                   "CNN's memory traffic and runs it on tensor cores, accumulating in float32 (default float32; part "
+                   "of the run's model: a run resumes only with the value it began with)")
     p.add_argument("--train-intentions", choices=TRAIN_INTENTIONS, default=d.train_intentions,
                    help="intention inputs in the training data: ground truth (the paper) or the predictor runs' outputs")
     p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
@@ -863,7 +863,7 @@ def _add_bench(sub) -> None:
     p.add_argument("--remat", action="store_true",
                    help="policy: encode one time step at a time under jax.checkpoint (less memory, more compute)")
     p.add_argument("--conv-dtype", choices=sorted(CONV_DTYPES), default="float32",
-                   help="policy: operand dtype of the CNN's convolutions (PolicyConfig.conv_dtype; float32 accumulation)")
+                   help="policy: dtype of the CNN's convolutions and activations (PolicyConfig.conv_dtype; float32 accumulation)")
     p.add_argument("--json", action="store_true", help="print one JSON line per batch size")
     _devices_arg(p)
     p.set_defaults(func=_run_bench_train)

@@ -86,11 +86,11 @@ class PolicyConfig:
     goal_conv_channels: tuple[int, ...] = (16, 32, 32)
     goal_conv_kernels: tuple[int, ...] = (3, 3, 3)
     goal_dim: int = 64
-    # Operand dtype of every convolution the policy runs (the panorama CNN and the goal-image
-    # CNN): "float32" or "bfloat16". At 112x448 the CNN dominates the imitation update; bf16
-    # operands halve its memory traffic and run it on tensor cores, while the convolutions still
-    # accumulate in and return float32 (conav_jax.nn.conv). Parameters, the loss, the optimizer
-    # and the LSTM stay float32.
+    # Dtype of every convolution the policy runs (the panorama CNN and the goal-image CNN) and
+    # of the activations between its layers: "float32" or "bfloat16". At 112x448 the CNN
+    # dominates the imitation update; bf16 halves its memory traffic and runs it on tensor
+    # cores, which accumulate in float32 (conav_jax.nn.conv); the CNN's output is widened to
+    # float32. Parameters, the loss, the optimizer and the LSTM stay float32.
     conv_dtype: str = "float32"
 
     def __post_init__(self):
@@ -206,10 +206,15 @@ def saliency_bearing(config: PolicyConfig, saliency: jax.Array, depth_m: jax.Arr
 
 def _conv_stack(params: list, x: jax.Array, compute_dtype=None) -> jax.Array:
     """Stride-2 SAME convs with ReLU: `(..., H, W, C) -> (..., ~H / 2^n, ~W / 2^n, C_last)`,
-    float32 out (`compute_dtype`: conav_jax.nn.conv.apply's)."""
-    for layer in params:
-        x = jax.nn.relu(nn.conv.apply(layer, x, stride=2, padding="SAME", compute_dtype=compute_dtype))
-    return x
+    float32 out. With `compute_dtype` (conav_jax.nn.conv.apply's) the activations between the
+    layers are in it, and the first layer, whose few input channels starve GPU convolution
+    kernels, runs over 2x2 pixel blocks when the image's sides are even (the same sums, faster;
+    BENCHMARKS.md)."""
+    for i, layer in enumerate(params):
+        blocks = compute_dtype is not None and i == 0 and x.shape[-3] % 2 == 0 and x.shape[-2] % 2 == 0
+        x = jax.nn.relu(nn.conv.apply(layer, x, stride=2, padding="SAME", compute_dtype=compute_dtype,
+                                      space_to_depth=blocks))
+    return x.astype(jnp.float32)
 
 
 def init(key: jax.Array, config: PolicyConfig) -> Params:

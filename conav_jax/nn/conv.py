@@ -3,14 +3,15 @@
 Kernel `w (kh, kw, C_in, C_out)` (HWIO), bias `b (C_out,)`; stride and padding are chosen at
 apply time so the params stay arrays only. Built on `lax.conv_general_dilated`.
 
-Mixed precision (`compute_dtype`, e.g. bfloat16): the image and kernel are rounded to it for
-the convolution, which accumulates in and returns float32; parameters stay float32. On GPUs
-this halves the convolution's memory traffic and runs it on tensor cores.
+Mixed precision (`compute_dtype`, e.g. bfloat16): the image, kernel and bias are rounded to it
+and the output is in it, so a stack of such layers passes bfloat16 activations; GPU convolution
+kernels accumulate bfloat16 products in float32. Parameters stay float32 (their gradients come
+back in it through the casts). On GPUs this halves the convolutions' memory traffic, forward and
+backward, and runs them on tensor cores.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Literal
 
@@ -41,34 +42,53 @@ def init(
     return {"w": w, "b": jnp.zeros((out_channels,), dtype)}
 
 
-def _conv(x: jax.Array, w: jax.Array, stride: tuple[int, int], padding: Padding, out_dtype=None) -> jax.Array:
+def _conv(x: jax.Array, w: jax.Array, stride: tuple[int, int], padding: Padding) -> jax.Array:
     return lax.conv_general_dilated(
-        x, w, window_strides=stride, padding=padding, dimension_numbers=("NHWC", "HWIO", "NHWC"),
-        preferred_element_type=out_dtype,
-    )
+        x, w, window_strides=stride, padding=padding, dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
-# `x` and `w` in a low-precision dtype, float32 out. JAX's transpose rules would widen the
-# operands to the float32 gradient's dtype, so the backward pass (two of the three convolutions
-# of an update) would run in float32. This VJP rounds the incoming gradient to the operands'
-# dtype instead, so all three run in it (GPUs accumulate such convolutions in float32); the
-# image and kernel gradients come back in it and `apply`'s casts widen them to float32.
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
-def _mixed_conv(x: jax.Array, w: jax.Array, stride: tuple[int, int], padding: Padding) -> jax.Array:
-    return _conv(x, w, stride, padding, jnp.float32)
+def _space_to_depth(x: jax.Array) -> jax.Array:
+    """`(N, H, W, C) -> (N, H / 2, W / 2, 4C)`: each 2x2 block of pixels as one pixel, the
+    block's row parity major, then its column parity, then the channel."""
+    n, h, w, c = x.shape
+    return x.reshape(n, h // 2, 2, w // 2, 2, c).transpose(0, 1, 3, 2, 4, 5).reshape(n, h // 2, w // 2, 4 * c)
 
 
-def _mixed_conv_fwd(x, w, stride, padding):
-    return _mixed_conv(x, w, stride, padding), (x, w)  # residuals low-precision: half the memory
+def _block_kernel(w: jax.Array, pad_lo: tuple[int, int]) -> tuple[jax.Array, tuple[tuple[int, int], ...]]:
+    """A stride-2 kernel `w (kh, kw, C, O)` whose input starts `pad_lo` pixels before the first
+    as a stride-1 kernel over 2x2 blocks (`_space_to_depth`), and that conv's padding in blocks.
+    Output i of the stride-2 conv reads pixel u = 2i - lo + t with tap t, i.e. block
+    floor(u / 2) at parity u mod 2: tap t lands at block offset d = floor((t - lo) / 2), parity
+    (t - lo) mod 2, so the block kernel spans offsets d_min..d_max and is zero where no tap lands."""
+    taps = []
+    for k, lo in zip(w.shape[:2], pad_lo):
+        d_min, d_max = (0 - lo) // 2, (k - 1 - lo) // 2
+        # index[d - d_min, parity] = the tap that lands there, k (a zero row appended) where none.
+        index = [[2 * d + p + lo if 0 <= 2 * d + p + lo < k else k for p in (0, 1)] for d in range(d_min, d_max + 1)]
+        taps.append((jnp.asarray(index), (-d_min, d_max)))
+    (rows, pad_h), (cols, pad_w) = taps
+    kh, kw, c, o = w.shape
+    padded = jnp.pad(w, ((0, 1), (0, 1), (0, 0), (0, 0)))  # the zero tap
+    blocks = padded[rows[:, :, None, None], cols[None, None, :, :]]  # (bh, 2, bw, 2, C, O)
+    bh, bw = rows.shape[0], cols.shape[0]
+    return blocks.transpose(0, 2, 1, 3, 4, 5).reshape(bh, bw, 4 * c, o), (pad_h, pad_w)
 
 
-def _mixed_conv_bwd(stride, padding, residuals, g):
-    x, w = residuals
-    _, vjp = jax.vjp(lambda x, w: _conv(x, w, stride, padding), x, w)
-    return vjp(g.astype(x.dtype))
-
-
-_mixed_conv.defvjp(_mixed_conv_fwd, _mixed_conv_bwd)
+def _conv_space_to_depth(x: jax.Array, w: jax.Array) -> jax.Array:
+    """The stride-2 SAME convolution of `x (N, H, W, C)`, H and W even, as a stride-1
+    convolution over its 2x2 blocks: the same products and sums with 4x the input channels, in
+    which GPU convolution kernels run several times faster when C is small. C is zero-padded to
+    a multiple of 8 first (zero channels add nothing; whole tensor-core tiles)."""
+    kh, kw = w.shape[:2]
+    # XLA's SAME padding for stride 2 and even n: k - 2 in all, the smaller half first.
+    pad_lo = tuple(max(k - 2, 0) // 2 for k in (kh, kw))
+    extra = -x.shape[-1] % 8
+    if extra:
+        x = jnp.pad(x, ((0, 0), (0, 0), (0, 0), (0, extra)))
+        w = jnp.pad(w, ((0, 0), (0, 0), (0, extra), (0, 0)))
+    kernel, block_pad = _block_kernel(w, pad_lo)
+    return lax.conv_general_dilated(_space_to_depth(x), kernel, (1, 1), block_pad,
+                                    dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
 def apply(
@@ -78,18 +98,28 @@ def apply(
     stride: int | tuple[int, int] = 1,
     padding: Padding = "SAME",
     compute_dtype: jnp.dtype | None = None,
+    space_to_depth: bool = False,
 ) -> jax.Array:
     """`x (..., H, W, C_in) -> (..., H', W', C_out)`; leading dims are flattened into one batch.
 
     SAME: `H' = ceil(H / stride)`; VALID: `H' = (H - kh) // stride + 1`. `compute_dtype`
-    (e.g. `jnp.bfloat16`): the convolution's operands are rounded to it and it returns float32
-    (module docstring); None: it runs in the dtype of `x` and the params.
+    (e.g. `jnp.bfloat16`): the image and kernel are rounded to it and the output and bias are
+    in it (module docstring); None: it runs in the dtype of `x` and the params.
+    `space_to_depth`: a stride-2 SAME convolution of an image with even H and W runs as a
+    stride-1 convolution over its 2x2 blocks (`_conv_space_to_depth`; the same sums, faster on
+    GPUs for images of few channels); ValueError for any other convolution.
     """
     lead, image = x.shape[:-3], x.shape[-3:]
     x = x.reshape((-1, *image))
-    if compute_dtype is None:
-        y = _conv(x, params["w"], _pair(stride), padding)
+    w, b = params["w"], params["b"]
+    if compute_dtype is not None:
+        x, w, b = x.astype(compute_dtype), w.astype(compute_dtype), b.astype(compute_dtype)
+    if space_to_depth:
+        if _pair(stride) != (2, 2) or padding != "SAME" or image[0] % 2 or image[1] % 2:
+            raise ValueError("space_to_depth needs a stride-2 SAME convolution of an image with even height and "
+                             f"width; got stride {stride}, {padding}, image {image[0]}x{image[1]}")
+        y = _conv_space_to_depth(x, w)
     else:
-        y = _mixed_conv(x.astype(compute_dtype), params["w"].astype(compute_dtype), _pair(stride), padding)
-    y = y + params["b"]
+        y = _conv(x, w, _pair(stride), padding)
+    y = y + b
     return y.reshape((*lead, *y.shape[1:]))
