@@ -150,7 +150,7 @@ def test_space_to_depth_gives_the_stride2_same_conv(kernel, hw):
     blocks = nn.conv.apply(params, x, stride=2, space_to_depth=True)
     assert blocks.shape == exact.shape
     np.testing.assert_allclose(blocks, exact, rtol=1e-5, atol=1e-5)
-    for bad in (dict(stride=1), dict(stride=2, padding="VALID")):
+    for bad in ({"stride": 1}, {"stride": 2, "padding": "VALID"}):
         with pytest.raises(ValueError, match="space_to_depth needs a stride-2 SAME"):
             nn.conv.apply(params, x, space_to_depth=True, **bad)
     with pytest.raises(ValueError, match="even height and width"):

@@ -67,7 +67,7 @@ def _block_kernel(w: jax.Array, pad_lo: tuple[int, int]) -> tuple[jax.Array, tup
         index = [[2 * d + p + lo if 0 <= 2 * d + p + lo < k else k for p in (0, 1)] for d in range(d_min, d_max + 1)]
         taps.append((jnp.asarray(index), (-d_min, d_max)))
     (rows, pad_h), (cols, pad_w) = taps
-    kh, kw, c, o = w.shape
+    c, o = w.shape[2:]
     padded = jnp.pad(w, ((0, 1), (0, 1), (0, 0), (0, 0)))  # the zero tap
     blocks = padded[rows[:, :, None, None], cols[None, None, :, :]]  # (bh, 2, bw, 2, C, O)
     bh, bw = rows.shape[0], cols.shape[0]
