@@ -20,7 +20,9 @@ from train.intention import (
     IntentionDataConfig,
     activity_a_steps,
     baseline_metrics,
+    frame_spec,
     make_env,
+    make_renderer,
     make_val_fn,
     prior_scores,
     render_split,
@@ -65,6 +67,19 @@ def test_viewpoints_are_the_start_pose_then_clear_views_of_the_human(rendered):
             assert grid.is_free(poses[e, v, :2]) and line_of_sight(grid, poses[e, v, :2], eps["root_xy"][e, 0])
             ahead = np.asarray(to_frame(eps["root_xy"][e, 0], poses[e, v, :2], poses[e, v, 2]))
             assert abs(np.arctan2(ahead[1], ahead[0])) <= 0.25 + 1e-5  # facing the human, as start poses do
+
+
+def test_the_renderer_takes_the_episode_bank_as_an_argument_not_as_constants(rendered):
+    import re
+
+    env, _ = rendered
+    render = make_renderer(env, MODEL, frame_spec(env, DATA), 4, FAST)
+    one = jnp.zeros((1,), jnp.int32)
+    text = render.lower(one, one, jnp.zeros((1, 3)), jnp.zeros((1, 2))).as_text()
+    n, t = env.bank.joints_local.shape[:2]
+    assert f"tensor<{n}x{t}x22x3xf16>" in text  # the humanoid's joints: an argument
+    biggest = max((len(c) for c in re.findall(r'dense<"0x[0-9A-F]*">', text)), default=0)
+    assert biggest < 4 * int(env.bank.fields[0, 0].size), biggest
 
 
 def test_rendered_crops_show_the_human(rendered):

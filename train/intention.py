@@ -31,6 +31,7 @@ from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.agents.predictors import VIEWS, FrameSpec, intention_frame, perceiver_config_from_run
 from envs.human_crop import human_crop
 from envs.panorama import front_view
+from envs.rollout import jit_with_bank
 from train.loop import TrainConfig, TrainResult, train
 
 KIND = runs.INTENTION
@@ -154,7 +155,8 @@ def make_renderer(env: ConavEnv, model: PerceiverConfig, spec: FrameSpec, chunk:
     def render(episodes, steps, poses, pos):
         return jax.lax.map(lambda x: one(*x), (episodes, steps, poses, pos), batch_size=chunk)
 
-    return jax.jit(render, compiler_options=compiler_options)
+    # The episode bank as an argument: as constants, the paper split's made a 6 GB executable.
+    return jit_with_bank(env, render, compiler_options=compiler_options)
 
 
 def render_split(
