@@ -34,6 +34,12 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
     assert all("--episodes" in argv and "--train-intentions" in argv for argv in bc)
     dagger = {s.name: s for s in stages}["dagger"].commands
     assert dagger[0] == ("@copy", str(tmp_path / "runs" / "bc_all_s0"), str(tmp_path / "runs" / "dagger_s0"))
+    # The paper preset trains the policy with its CNN in bfloat16; the small preset's commands
+    # stay as its runs were made, so they resume.
+    for argv in (*bc, *dagger[1::2]):
+        assert argv[argv.index("--conv-dtype") + 1] == "bfloat16"
+    small = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1))
+    assert not any("--conv-dtype" in argv for st in small for argv in st.commands)
     # The intention predictor crops from the panorama the agents render.
     for res in ((112, 448), (32, 128)):
         (intention,) = [argv for argv in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, resolution=res))[1].commands
