@@ -203,23 +203,42 @@ class ConavEnv(Env):
         """One control step. `action` (2,) = (v_lin, v_ang) in [-1, 1]; or (3,) = a pose (x m,
         y m, yaw rad) the robot is put at before the step's physics (an oracle pathfinder's
         move: privileged agents only; it counts in the path length, and contacts at the new
-        pose count as any other). Actions with a NaN act as zero (stay put) and are counted."""
+        pose count as any other); or (6,) = (kind, v_lin, v_ang, x, y, yaw), kind 0 the
+        velocities, 1 the pose (one compiled rollout serving agents of both kinds,
+        envs.agents.base.switch_agent). Actions with a NaN (in the part used) act as zero (stay
+        put) and are counted."""
         action = jnp.asarray(action)
-        if action.shape not in ((2,), (3,)):
-            raise ValueError("action must have shape (2,) = (v_lin, v_ang), or (3,) = a pose (x, y, yaw) for "
-                             f"oracle movers, per environment; got {action.shape}")
+        if action.shape not in ((2,), (3,), (6,)):
+            raise ValueError("action must have shape (2,) = (v_lin, v_ang), (3,) = a pose (x, y, yaw) for oracle "
+                             f"movers, or (6,) = (kind, v_lin, v_ang, x, y, yaw), per environment; got {action.shape}")
         episode = state.info["episode"]
         b, task = self.bank, self.task
         d0 = state.pipeline_state
         ud0 = d0.userdata
-        is_nan = jnp.any(jnp.isnan(action))
         t = ud0[UD["t"]].astype(jnp.int32) + 1
-        if action.shape == (3,):  # put at the pose, then the physics of standing still
-            pose = jnp.where(is_nan, d0.qpos, action.astype(d0.qpos.dtype))
-            d_start, v, w = d0.replace(qpos=pose, qvel=jnp.zeros_like(d0.qvel)), 0.0, 0.0
+
+        def posed(pose_action, is_nan):  # put at the pose, then the physics of standing still
+            pose = jnp.where(is_nan, d0.qpos, pose_action.astype(d0.qpos.dtype))
+            return pose, jnp.zeros_like(d0.qvel)
+
+        def driven(velocity_action, is_nan):
+            a = jnp.clip(jnp.where(is_nan, 0.0, velocity_action), -1.0, 1.0)
+            return a[0] * task.v_max_mps, a[1] * task.w_max_radps
+
+        if action.shape == (6,):
+            is_pose, velocity_action, pose_action = action[0] > 0.5, action[1:3], action[3:]
+            is_nan = jnp.where(is_pose, jnp.any(jnp.isnan(pose_action)), jnp.any(jnp.isnan(velocity_action)))
+            qpos, qvel = posed(pose_action, is_nan)
+            v, w = driven(velocity_action, is_nan)
+            d_start = d0.replace(qpos=jnp.where(is_pose, qpos, d0.qpos), qvel=jnp.where(is_pose, qvel, d0.qvel))
+            v, w = jnp.where(is_pose, 0.0, v), jnp.where(is_pose, 0.0, w)
+        elif action.shape == (3,):
+            is_nan = jnp.any(jnp.isnan(action))
+            qpos, qvel = posed(action, is_nan)
+            d_start, v, w = d0.replace(qpos=qpos, qvel=qvel), 0.0, 0.0
         else:
-            a = jnp.clip(jnp.where(is_nan, 0.0, action), -1.0, 1.0)
-            d_start, v, w = d0, a[0] * task.v_max_mps, a[1] * task.w_max_radps
+            is_nan = jnp.any(jnp.isnan(action))
+            d_start, (v, w) = d0, driven(action, is_nan)
 
         m = self._episode_model(episode, d_start.qpos[:2])
         d = self._pose_human(d_start, episode, t)

@@ -170,11 +170,11 @@ def build_evaluators(env, runs: list[tuple[str, str | None, dict]], batch: int, 
 
     per_env = _EVALUATORS.setdefault(env, {})
     agents = [make_agent(name, env, ckpt, **kw) for name, ckpt, kw in runs]
+    # The scripted agents share one evaluator, the pioneer's poses and the others' velocities
+    # alike (envs.agents.base.switch_agent).
+    scripted = [j for j, (name, _, _) in enumerate(runs) if not AGENTS[name].needs_checkpoint]
     out = []
     for k, (agent, (name, ckpt, kw)) in enumerate(zip(agents, runs)):
-        # Scripted agents of the same action kind (velocities, or poses) share one evaluator.
-        scripted = [j for j, (other, _, _) in enumerate(runs)
-                    if not AGENTS[other].needs_checkpoint and agents[j].action_size == agent.action_size]
         if k in scripted and len(scripted) > 1:
             key = ("scripted", tuple(runs[j][0] for j in scripted), batch, seed, mesh)
             if key not in per_env:

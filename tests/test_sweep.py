@@ -92,7 +92,7 @@ def two_sweeps(tiny_data, tmp_path_factory):
     full-length batch: tests/test_rollout.py checks it against refilled lanes)."""
     outs = [tmp_path_factory.mktemp(f"sweep{k}") for k in range(2)]
     for out in outs:
-        argv = ["--data", str(tiny_data), "--agent", "objectgoal-planner,random", "--episodes", "3", "--batch", "4",
+        argv = ["--data", str(tiny_data), "--agent", "objectgoal-planner,random,pioneer", "--episodes", "3", "--batch", "4",
                 "--resolution", "8x32", "--seed", "1", "--out", str(out)]
         assert run_eval(_args(*argv)) == 0
     return outs
@@ -128,12 +128,17 @@ def test_scripted_agents_share_one_compiled_rollout_with_their_own_results(two_s
 
     out = two_sweeps[0]
     env = next(iter(sweep._ENV_CACHE.values()))
-    # One evaluator serves both scripted agents (the agent is data), for both sweeps.
+    # One evaluator serves the scripted agents (the agent is data), the pioneer's poses with the
+    # others' velocities, for both sweeps...
     assert len(sweep._EVALUATORS[env]) == 1
     # ...and gives each the results it gets alone.
-    alone = evaluate(env, make_agent("objectgoal-planner", env), batch=4, seed=1)
+    for name in ("objectgoal-planner", "pioneer"):
+        alone = evaluate(env, make_agent(name, env), batch=4, seed=1)
+        rows = list(csv.DictReader((out / f"episodes_{name}.csv").open()))
+        assert [int(r["t_reach"]) for r in rows] == alone["t_reach"].astype(int).tolist(), name
+        for key in ("path_length_m", "collided_full"):  # the CSV's 4 decimals
+            np.testing.assert_allclose([float(r[key]) for r in rows], alone[key], rtol=0, atol=1e-4, err_msg=name)
     rows = list(csv.DictReader((out / "episodes_objectgoal-planner.csv").open()))
-    assert [int(r["t_reach"]) for r in rows] == alone["t_reach"].astype(int).tolist()
     # The random agent's rows are its own, not the planner's again.
     random_rows = list(csv.DictReader((out / "episodes_random.csv").open()))
     assert [r["t_reach"] for r in random_rows] != [r["t_reach"] for r in rows]

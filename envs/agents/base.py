@@ -14,6 +14,9 @@ from __future__ import annotations
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
+import jax.numpy as jnp
+
+MIXED_ACTION_SIZE = 6  # ConavEnv.step's (kind, v_lin, v_ang, x, y, yaw)
 
 # Where an agent's intention inputs (activity B, object B, future trajectory) come from.
 PREDICTED = "predicted"  # the intention and trajectory predictors' outputs
@@ -46,7 +49,8 @@ class Agent(NamedTuple):
     intention_source: str = NO_INTENTIONS
     privileged: tuple[str, ...] = ()
     # 2: (v_lin, v_ang) velocity commands; 3: a pose (x, y, yaw) the env puts the robot at
-    # (ConavEnv.step), which only an oracle mover may do.
+    # (ConavEnv.step), which only an oracle mover may do; MIXED_ACTION_SIZE: either, the kind
+    # first (switch_agent over agents of both kinds).
     action_size: int = 2
 
     def check(self) -> "Agent":
@@ -66,13 +70,24 @@ class Agent(NamedTuple):
         return self
 
 
+def _as_mixed_action(action: jax.Array) -> jax.Array:
+    """A velocity (2,) or pose (3,) action as ConavEnv.step's (6,) = (kind, v_lin, v_ang, x, y,
+    yaw), the unused part zero."""
+    if action.shape[-1] == 2:
+        return jnp.concatenate([jnp.zeros_like(action[..., :1]), action, jnp.zeros((*action.shape[:-1], 3), action.dtype)], -1)
+    return jnp.concatenate([jnp.ones_like(action[..., :1]), jnp.zeros_like(action[..., :2]), action], -1)
+
+
 def switch_agent(agents: Sequence[Agent], which: jax.Array) -> Agent:
     """One Agent acting as `agents[which]` (`which` an int32 scalar, traced or not): a rollout
     compiled once serves all of them, the agent chosen as data. Its carry holds every agent's;
-    under vmap over environments `which` stays one scalar, so only the chosen agent computes."""
+    under vmap over environments `which` stays one scalar, so only the chosen agent computes.
+    Agents of both action kinds (velocities and poses) together act in ConavEnv.step's mixed
+    (6,) form."""
     agents = tuple(agents)
     if not agents:
         raise ValueError("switch_agent needs at least one agent")
+    mixed = len({a.action_size for a in agents}) > 1
 
     def init(key, episode):
         return tuple(a.init(key, episode) for a in agents)
@@ -81,14 +96,12 @@ def switch_agent(agents: Sequence[Agent], which: jax.Array) -> Agent:
         def branch(i):
             def run(carry):
                 action, own = agents[i].act(state, carry[i], key)
-                return action, carry[:i] + (own,) + carry[i + 1:]
+                return _as_mixed_action(action) if mixed else action, carry[:i] + (own,) + carry[i + 1:]
             return run
 
         return jax.lax.switch(which, [branch(i) for i in range(len(agents))], carry)
 
-    if len({a.action_size for a in agents}) != 1:
-        raise ValueError("switch_agent needs agents of one action size")
-    return Agent("|".join(a.name for a in agents), init, act, action_size=agents[0].action_size)
+    return Agent("|".join(a.name for a in agents), init, act, action_size=MIXED_ACTION_SIZE if mixed else agents[0].action_size)
 
 
 def row_title(agent: Agent) -> str:
