@@ -774,7 +774,7 @@ def _run_reproduce(args: argparse.Namespace) -> int:
                 line = f"copy {argv[1]} -> {argv[2]}" if argv[0] == "@copy" else f"conav {shlex.join(argv)}"
                 print(f"  {'(done) ' if rp.command_key(argv, cfg.out) in progress['commands'] else ''}{line}")
             continue
-        if st.name in progress["stages"] and not todo and st.name != "pack":  # a pack is always of now
+        if st.name in progress["stages"] and not todo and st.name not in ("tables", "pack"):  # those two are of now
             print(f"[{st.name}] done ({progress['stages'][st.name]:.0f} s), skipped")
             continue
         t_stage = time.perf_counter()
@@ -794,7 +794,7 @@ def _run_reproduce(args: argparse.Namespace) -> int:
         if st.name == "tables":
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
-                     "stage_seconds": progress["stages"], "command_seconds": progress["commands"]}
+                     "stage_seconds": rp.stage_seconds(plan, progress, cfg.out), "command_seconds": progress["commands"]}
             scripted = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())
             extra["episodes"] = scripted["episodes"]
             results = rp.collect_results(cfg.out, cfg.seeds, extra)

@@ -125,6 +125,19 @@ def command_key(argv: tuple[str, ...], out: Path) -> str:
     return " ".join(argv).replace(str(out), "OUT")
 
 
+def stage_seconds(plan: list["Stage"], progress: dict, out: Path) -> dict[str, float]:
+    """Each stage's time: the sum of its commands' recorded wall times (a stage run over several
+    calls or machines counts every part once); a stage without commands, its own record."""
+    seconds = {}
+    for st in plan:
+        done = [progress["commands"][k] for k in (command_key(a, out) for a in st.commands) if k in progress["commands"]]
+        if done:
+            seconds[st.name] = round(sum(done), 1)
+        elif st.name in progress["stages"]:
+            seconds[st.name] = progress["stages"][st.name]
+    return seconds
+
+
 def _res(cfg: ReproduceConfig) -> str:
     return "x".join(map(str, cfg.resolution))
 

@@ -213,3 +213,25 @@ def test_every_planned_command_parses_into_a_valid_training_config(preset, tmp_p
             args = parser.parse_args(list(argv))
             if argv[0] == "train":
                 cli._train_config(args)
+
+
+def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fake_conav, tmp_path):
+    calls, _ = fake_conav
+    out = tmp_path / "r"
+    args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--seeds", "1", "--out", str(out)])
+    assert args.func(args) == 0  # seed 0 first, to the tables
+    assert set(json.loads((out / "results.json").read_text())["conav"]["all"]["seeds"]) == {"0"}
+    progress = rp.read_progress(out)  # seed 0's BC runs took 100 s each
+    progress["commands"].update({k: 100.0 for k in progress["commands"] if " policy " in k and "bc_" in k})
+    rp.write_progress(out, progress)
+    calls.clear()
+    assert _reproduce(out) == 0  # the same run with two seeds: only seed 1's commands run
+    assert calls and all("_s0" not in " ".join(argv) for argv in calls)
+    results = json.loads((out / "results.json").read_text())
+    assert results["seeds"] == 2 and set(results["conav"]["all"]["seeds"]) == {"0", "1"}
+    assert "ours (seed" not in (out / "tables.md").read_text()
+    # The bc stage ran in two calls: its time is every bc command's, not the last call's.
+    plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
+    bc_keys = [rp.command_key(argv, out) for argv in {s.name: s for s in plan}["bc"].commands]
+    assert results["stage_seconds"]["bc"] == pytest.approx(sum(results["command_seconds"][k] for k in bc_keys), abs=0.2)
+    assert results["stage_seconds"]["bc"] >= 100.0 * len(rp.ABLATIONS)
