@@ -325,7 +325,7 @@ def _add_train(sub) -> None:
                    "are chosen there, never on the reported val split)")
     p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
     p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
-    p.add_argument("--rollout-batch", type=int, default=d.rollout_batch, help="episodes per simulator call")
+    _add_rollout_batches(p)
     p.add_argument("--remat", action="store_true",
                    help="recompute the CNN per window step in the backward pass: less memory (float32 112x448 windows "
                    "at batch >= 256 need it on an H100), ~1.7x the update time")
@@ -396,7 +396,7 @@ def _add_train_goalnav(models) -> None:
         p.add_argument("--val-split", default=d.val_split, help=f"split validated on (default {d.val_split})")
         p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
         p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
-        p.add_argument("--rollout-batch", type=int, default=d.rollout_batch, help="episodes per simulator call")
+        _add_rollout_batches(p)
         p.add_argument("--remat", action="store_true", help="recompute the CNN per window step in the backward pass")
         if name == "objectnav":
             p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
@@ -488,6 +488,16 @@ def _run_train_policy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_rollout_batches(p) -> None:
+    from train.policy import RECORD_BUDGET_BYTES, ImitationConfig
+
+    p.add_argument("--rollout-batch", type=int, default=None,
+                   help=f"episodes per recording call (default: as many as {RECORD_BUDGET_BYTES / 2**30:.0f} GiB of "
+                   "records hold; results do not depend on it)")
+    p.add_argument("--val-batch", type=int, default=ImitationConfig.val_batch,
+                   help="episodes per validation call (default %(default)s)")
+
+
 def _imitation_config(args: argparse.Namespace, **extra):
     """train.policy.ImitationConfig from the imitation flags `conav train policy|objectnav|imagenav` share."""
     from train.policy import ImitationConfig
@@ -495,7 +505,7 @@ def _imitation_config(args: argparse.Namespace, **extra):
     return ImitationConfig(
         episodes=args.episodes, val_episodes=args.val_episodes, val_split=args.val_split,
         dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps, seq_len=args.seq_len, burn_in=args.burn_in,
-        rollout_batch=args.rollout_batch, **extra,
+        rollout_batch=args.rollout_batch, val_batch=args.val_batch, **extra,
     )
 
 

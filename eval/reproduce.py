@@ -57,6 +57,10 @@ class Budget:
     dagger_steps: int = 4000
     baseline_steps: int = 2000  # object-goal and image-goal BC updates
     baseline_dagger_rounds: int = 1
+    baseline_episodes: int | None = None  # train episodes each of their rounds records (None: all)
+    # Updates between validations on minival while training (None: the commands' default, 500);
+    # the paper preset's minival is 1,000 episodes, so it validates less often.
+    val_every: int | None = None
     eval_batch: int = 2048  # evaluation lanes
     # The CoNav policy's CNN dtype (`conav train policy --conv-dtype`): bfloat16 runs the 112x448
     # update 1.57x faster on an H100 (BENCHMARKS.md); float32 keeps the small runs' commands.
@@ -69,7 +73,7 @@ BUDGETS = {
     "tiny": Budget(intention_steps=100, trajectory_steps=100, policy_steps=100, policy_batch=8, dagger_rounds=1,
                    dagger_steps=50, baseline_steps=100, baseline_dagger_rounds=0, eval_batch=64),
     "small": Budget(policy_episodes=500, eval_batch=512),
-    "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16"),
+    "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16", baseline_episodes=2000, val_every=1000),
 }
 
 
@@ -147,7 +151,9 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     b, out, res = cfg.budget, Path(cfg.out), _res(cfg)
     data, runs, evals = out / "data", out / "runs", out / "eval"
     quiet = ("--no-progress",)
+    validated = quiet + (("--val-every", str(b.val_every)) if b.val_every else ())  # the imitation runs
     intention, trajectory = runs / "intention", runs / "trajectory"
+    baseline_episodes = ("--episodes", str(b.baseline_episodes)) if b.baseline_episodes else ()
     stages = [
         Stage("generate", (("generate", "--preset", cfg.preset, "--out", str(data), "--seed", str(cfg.data_seed),
                             "--workers", str(cfg.workers)),), (data / "manifest.json",)),
@@ -159,15 +165,15 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
             trajectory / "ckpt_{:08d}.npz".format(b.trajectory_steps))),
         Stage("baselines", (
             ("train", "objectnav", "--data", str(data), "--out", str(runs / "objectnav"), "--resolution", res,
-             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *quiet),
+             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline_episodes, *validated),
             ("train", "imagenav", "--data", str(data), "--out", str(runs / "imagenav"), "--resolution", res,
-             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *quiet),
+             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline_episodes, *validated),
         ), (runs / "objectnav" / "log.jsonl", runs / "imagenav" / "log.jsonl")),
     ]
     policy = ("--data", str(data), "--intention", str(intention), "--trajectory", str(trajectory),
               "--train-intentions", "predicted", "--resolution", res, "--steps", str(b.policy_steps),
               "--batch", str(b.policy_batch), *(("--episodes", str(b.policy_episodes)) if b.policy_episodes else ()),
-              *(("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()), *quiet)
+              *(("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()), *validated)
     bc = [("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(runs / f"bc_{a}_s{s}"))
           for s in range(cfg.seeds) for a in ABLATIONS]
     stages.append(Stage("bc", tuple(bc), tuple(runs / f"bc_{a}_s{s}" / "log.jsonl" for s in range(cfg.seeds) for a in ABLATIONS)))

@@ -351,3 +351,27 @@ def test_predictor_runs_default_to_the_ones_the_policy_run_names(tmp_path):
         predictor_runs(PCFG, "run", {"intention_run": str(tmp_path / "gone"), "trajectory_run": str(trajectory)})
     with pytest.raises(ValueError, match=r"\(given\) not found"):
         predictor_runs(PCFG, "run", named, str(tmp_path / "gone"))
+
+
+def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_batches(tiny_data, tmp_path, monkeypatch):
+    from train import policy as tp
+
+    # 1,000 steps of 32x128 records: 20.5 MB an episode (uint8 RGB + float16 depth), 32.8 MB with a goal image.
+    assert tp.recording_lanes(1000, (32, 128), budget_bytes=2**30) == 2**30 // (1000 * 4096 * 5) == 52
+    assert tp.recording_lanes(1000, (32, 128), goal_image=True, budget_bytes=2**30) == 32
+    assert tp.recording_lanes(10, (8, 32)) == tp.MAX_ROLLOUT_LANES and tp.recording_lanes(10**9, (112, 448)) == 1
+    with pytest.raises(ValueError, match="rollout_batch must be >= 1"):
+        ImitationConfig(rollout_batch=0)
+
+    calls = []
+    real = im.run_batched
+    monkeypatch.setattr(im, "run_batched", lambda *a, **k: calls.append(a[5]) or real(*a, **k))
+    cfg, imitation = TrainConfig(steps=2, batch=2, warmup_steps=0), ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ,
+                                                                                      burn_in=BURN_IN, val_batch=5)
+    train_policy(tiny_data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False)
+    # The expert's ceiling, round 0's recording (every lane at once), the final validation.
+    assert calls == [5, tp.MAX_ROLLOUT_LANES, 5]
+    # A finished run resumed records nothing again and keeps its validation.
+    (tmp_path / "run" / "data" / "round_0.npz").unlink()
+    calls.clear()
+    assert train_policy(tiny_data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False).val and calls == []

@@ -40,6 +40,14 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
         assert argv[argv.index("--conv-dtype") + 1] == "bfloat16"
     small = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1))
     assert not any("--conv-dtype" in argv for st in small for argv in st.commands)
+    # The paper preset's baselines record a subset of its 20,293 train episodes, and its imitation
+    # runs validate on the 1,000 minival episodes less often; the small preset's commands as run.
+    for argv in {s.name: s for s in stages}["baselines"].commands:
+        assert argv[argv.index("--episodes") + 1] == "2000"
+    for argv in (*{s.name: s for s in stages}["baselines"].commands, *bc, *dagger[1::2]):
+        assert argv[argv.index("--val-every") + 1] == "1000"
+    assert not any("--val-every" in argv or argv[1] != "policy" and "--episodes" in argv
+                   for st in small for argv in st.commands if argv[0] == "train")
     # The intention predictor crops from the panorama the agents render.
     for res in ((112, 448), (32, 128)):
         (intention,) = [argv for argv in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, resolution=res))[1].commands

@@ -45,7 +45,11 @@ from train.loop import TrainConfig
 KIND = runs.POLICY
 # ImitationConfig fields a resumed run may change: more DAgger rounds continue a finished run;
 # batching and the validation subset do not change the weights.
-RESUME_FREE = ("dagger_rounds", "rollout_batch", "val_episodes")
+RESUME_FREE = ("dagger_rounds", "rollout_batch", "val_batch", "val_episodes")
+# Device memory one recording call's records may take (RECORD_BUDGET_BYTES) and the most lanes a
+# call runs: a call steps its lanes together, so a few large calls beat many small ones.
+RECORD_BUDGET_BYTES = 16 * 2**30
+MAX_ROLLOUT_LANES = 1024
 # Recorded in the run's config, yet a resumed run may change them: the length of DAgger rounds
 # to come (a round already begun takes it as its new length; its schedule stretches).
 RESUME_CHANGEABLE = ("imitation.dagger_steps",)
@@ -66,7 +70,10 @@ class ImitationConfig:
     dagger_steps: int | None = None  # updates per DAgger round (None: TrainConfig.steps)
     seq_len: int = 32  # steps per training window in the loss (truncated BPTT)
     burn_in: int = 16  # steps before each window that only warm up the LSTM
-    rollout_batch: int = 64  # episodes per simulator call (recording and validation)
+    # Episodes per recording call (None: as many as RECORD_BUDGET_BYTES of records hold, see
+    # `recording_lanes`) and per validation call (validation keeps no observations).
+    rollout_batch: int | None = None
+    val_batch: int = MAX_ROLLOUT_LANES
     # Intention inputs in the training data: "ground_truth" (the paper, sec. 4.2) or "predicted"
     # (the predictor runs' outputs, recorded along every rollout: what the policy reads at
     # evaluation, so it learns how far to trust them).
@@ -75,11 +82,21 @@ class ImitationConfig:
     def __post_init__(self):
         if self.train_intentions not in TRAIN_INTENTIONS:
             raise ValueError(f"unknown train_intentions {self.train_intentions!r}; expected one of {TRAIN_INTENTIONS}")
-        if self.dagger_rounds < 0 or self.seq_len < 1 or self.burn_in < 0 or self.rollout_batch < 1:
-            raise ValueError("need dagger_rounds >= 0, seq_len >= 1, burn_in >= 0, rollout_batch >= 1")
-        for name in ("episodes", "val_episodes", "dagger_steps"):
+        if self.dagger_rounds < 0 or self.seq_len < 1 or self.burn_in < 0 or self.val_batch < 1:
+            raise ValueError("need dagger_rounds >= 0, seq_len >= 1, burn_in >= 0, val_batch >= 1")
+        for name in ("episodes", "val_episodes", "dagger_steps", "rollout_batch"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"ImitationConfig.{name} must be >= 1 (or None), got {getattr(self, name)}")
+
+
+def recording_lanes(max_steps: int, image_hw: tuple[int, int], goal_image: bool = False,
+                    budget_bytes: int = RECORD_BUDGET_BYTES) -> int:
+    """Episodes one recording call runs: its records (every lane runs the bank's longest episode,
+    `max_steps` control steps, keeping uint8 RGB + float16 depth per pixel, and a uint8 goal image
+    where the policy reads one) within `budget_bytes`, at least 1, at most MAX_ROLLOUT_LANES."""
+    h, w = image_hw
+    episode_bytes = max_steps * h * w * (5 + (3 if goal_image else 0))
+    return int(np.clip(budget_bytes // episode_bytes, 1, MAX_ROLLOUT_LANES))
 
 
 class ImitationTask(NamedTuple):
@@ -248,10 +265,12 @@ def train_policy(
     # when no predictor run is given: a training-time check, not a benchmark result).
     val_source = intention_source(model, intention, trajectory)
     train_eps, val_eps = np.arange(train_env.num_episodes), np.arange(val_env.num_episodes)
+    record_batch = imitation.rollout_batch or recording_lanes(
+        train_env.bank.max_steps, (h, w), goal_image=task is not None and task.goal_obs is not None)
     val_key = jax.random.PRNGKey(cfg.seed + 1)
 
     def val_metrics(p, beta: float) -> dict:
-        m, _ = im.run_batched(validate, p, val_key, val_eps, beta, imitation.rollout_batch, mesh=mesh)
+        m, _ = im.run_batched(validate, p, val_key, val_eps, beta, imitation.val_batch, mesh=mesh)
         return {**summarize(m), "intention_source": val_source}
 
     def policy_val(p) -> dict:
@@ -266,6 +285,8 @@ def train_policy(
 
     parts = []
     for r, steps in enumerate(round_steps):
+        if done >= len(round_steps) - 1:  # every round trained: no data to record or load
+            break
         path = run_dir / "data" / f"round_{r}.npz"
         round_dir = run_dir / f"round_{r}"
         if path.exists():
@@ -278,7 +299,7 @@ def train_policy(
                 log(f"round {r}: {path} is missing; recording it again (the {teacher_name}'s rollouts: same seed, same data)")
             t0 = time.perf_counter()
             key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
-            m, recs = im.run_batched(record, params, key, train_eps, beta, imitation.rollout_batch, mesh=mesh)
+            m, recs = im.run_batched(record, params, key, train_eps, beta, record_batch, mesh=mesh)
             parts.append(im.sequences(recs, imitation.seq_len, imitation.burn_in))
             im.save_sequences(path, parts[-1])
             append_log(log_path, {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent,
