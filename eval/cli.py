@@ -760,7 +760,7 @@ def _run_reproduce(args: argparse.Namespace) -> int:
 
     from eval import reproduce as rp
 
-    cfg = rp.ReproduceConfig(out=Path(args.out), preset=args.preset, seeds=args.seeds,
+    cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers)
     cfg.out.mkdir(parents=True, exist_ok=True)
     if args.unpack:

@@ -125,7 +125,10 @@ def write_progress(out: Path, progress: dict) -> None:
 
 def command_key(argv: tuple[str, ...], out: Path) -> str:
     """How progress.json names a command: its words, with the run's directory as OUT (a run
-    packed on one machine continues in another directory on the next)."""
+    packed on one machine continues in another directory on the next). `out` is absolute: a
+    relative one ("." above all) would match inside other words."""
+    if not Path(out).is_absolute():
+        raise ValueError(f"command_key needs the run's absolute directory, got {out}")
     return " ".join(argv).replace(str(out), "OUT")
 
 
@@ -222,19 +225,29 @@ def collect_results(out: Path, seeds: int, extra: dict) -> dict:
     A seed's CoNav rows come from `eval/conav_s{s}` (the DAgger run as the agent, the five BC
     runs as its ablations). A seed whose DAgger run was not made may instead be evaluated into
     `eval/conav_bc_s{s}` (`BC_ONLY_EVAL`: the BC all-inputs run as the agent): it adds to the five
-    BC rows only, so every row lists the seeds it was measured on. FileNotFoundError when a seed
-    has neither."""
+    BC rows only, so every row lists the seeds it was measured on. An evaluation not made yet (a
+    learned baseline, a seed with neither file) is listed under "missing" and the tables say so;
+    FileNotFoundError without the scripted agents' evaluation (nothing to tabulate)."""
     evals = Path(out) / "eval"
+    if not (evals / "scripted" / "metrics.json").is_file():
+        raise FileNotFoundError(f"no evaluation of the scripted agents at {evals / 'scripted' / 'metrics.json'}")
     agents: dict[str, dict] = {}
+    missing: list[str] = []
     for name in ("scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"):
-        doc = json.loads((evals / name / "metrics.json").read_text())
+        path = evals / name / "metrics.json"
+        if not path.is_file():
+            missing.append(f"eval/{name}")
+            continue
+        doc = json.loads(path.read_text())
         for key, entry in doc["agents"].items():
             agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
     conav: dict[str, dict] = {}
     for s in range(seeds):
         full, bc_only = evals / f"conav_s{s}" / "metrics.json", evals / BC_ONLY_EVAL.format(s) / "metrics.json"
+        if not full.is_file():
+            missing.append(f"eval/conav_s{s}" + ("" if bc_only.is_file() else f" (or {BC_ONLY_EVAL.format(s)})"))
         if not full.is_file() and not bc_only.is_file():
-            raise FileNotFoundError(f"seed {s} has no CoNav evaluation: neither {full} nor {bc_only}")
+            continue
         has_dagger = full.is_file()
         doc = json.loads((full if has_dagger else bc_only).read_text())
         rows = {"dagger": doc["agents"]["conav"]} if has_dagger else {}
@@ -242,7 +255,7 @@ def collect_results(out: Path, seeds: int, extra: dict) -> dict:
         for row, entry in rows.items():
             slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
             slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": doc["episodes"]}
-    return {**extra, "agents": agents, "conav": conav}
+    return {**extra, "agents": agents, "conav": conav, "missing": missing}
 
 
 def _cell(value: float) -> str:
@@ -314,6 +327,7 @@ def render_tables(results: dict) -> str:
         "| agent | given (privileged inputs) | source " + head,
         "|---|---|---" + "|---:" * len(cols) + "|",
     ]
+    not_run = " | ".join("-" for _ in cols)
     for key, (paper_title, paper) in PAPER_TABLE2.items():
         if key == "conav":
             row = results["conav"].get("all")
@@ -321,15 +335,21 @@ def render_tables(results: dict) -> str:
                 title = row["title"].removeprefix("all: ")  # the evaluation names its ablation rows "NAME: title"
                 lines.append(f"| {title} (BC) | {', '.join(row['privileged']) or 'none'} | "
                              f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
+            else:
+                lines.append(f"| CoNav Agent (BC) | | not run yet | {not_run} |")
             row = results["conav"].get("dagger")
             if row is not None:
                 lines.append(f"| {row['title']} (BC + DAgger) | {', '.join(row['privileged']) or 'none'} | "
                              f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
+            else:
+                lines.append(f"| CoNav Agent (BC + DAgger) | | not run yet | {not_run} |")
         else:
             entry = results["agents"].get(key)
             if entry is not None:
                 lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
                              + _our_cells(entry["metrics"]) + " |")
+            else:
+                lines.append(f"| {key} | | not run yet | {not_run} |")
         lines.append(f"| {paper_title} | | paper | " + _paper_cells(paper) + " |")
     for key, entry in results["agents"].items():
         if key not in PAPER_TABLE2:  # ours without a paper row (e.g. the planner, the expert)
@@ -343,7 +363,14 @@ def render_tables(results: dict) -> str:
         row = results["conav"].get(name)
         if row is not None:
             lines.append(f"| {k} | {marks} | {_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
+        else:
+            lines.append(f"| {k} | {marks} | not run yet | {not_run} |")
         lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
+    if results.get("missing"):
+        lines += ["", "## Not run yet", "",
+                  "These evaluations are not made yet; the rows above that need them are marked so, and the learned "
+                  "rows name the seeds they hold. Running `conav reproduce` again with the same arguments continues.", ""]
+        lines += [f"- `{m}`" for m in results["missing"]]
     return "\n".join(lines) + "\n"
 
 

@@ -113,8 +113,21 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 40.0 [") for line in lines)
     assert any(line.startswith("| T conav (BC) | oracle map | ours | 15.0 ± 7.1 [") for line in lines)
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours | 15.0 ± 7.1 [") for line in lines)
+    assert results["missing"] == ["eval/conav_s1"] and "## Not run yet" in rp.render_tables(results)
+    # Evaluations not made yet are listed, their rows marked; the learned rows name their seeds.
     (evals / rp.BC_ONLY_EVAL.format(1) / "metrics.json").unlink()
-    with pytest.raises(FileNotFoundError, match="seed 1 has no CoNav evaluation"):
+    (evals / "imagegoal" / "metrics.json").unlink()
+    results = rp.collect_results(tmp_path, 2, {"seeds": 2})
+    assert results["missing"] == ["eval/imagegoal", f"eval/conav_s1 (or {rp.BC_ONLY_EVAL.format(1)})"]
+    lines = rp.render_tables(results).splitlines()
+    assert "| imagegoal | | not run yet | - | - | - | - | - | - | - |" in lines and "- `eval/imagegoal`" in lines
+    assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours (seed 0 of 2) | 10.0 [") for line in lines)
+    (evals / "conav_s0" / "metrics.json").unlink()
+    lines = rp.render_tables(rp.collect_results(tmp_path, 2, {"seeds": 2})).splitlines()
+    assert "| CoNav Agent (BC + DAgger) | | not run yet | - | - | - | - | - | - | - |" in lines
+    assert "| 5 | ✓ | ✓ | ✓ | not run yet | - | - | - | - | - | - | - |" in lines
+    (evals / "scripted" / "metrics.json").unlink()
+    with pytest.raises(FileNotFoundError, match="no evaluation of the scripted agents"):
         rp.collect_results(tmp_path, 2, {"seeds": 2})
 
 
@@ -243,3 +256,17 @@ def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fak
     bc_keys = [rp.command_key(argv, out) for argv in {s.name: s for s in plan}["bc"].commands]
     assert results["stage_seconds"]["bc"] == pytest.approx(sum(results["command_seconds"][k] for k in bc_keys), abs=0.2)
     assert results["stage_seconds"]["bc"] >= 100.0 * len(rp.ABLATIONS)
+
+
+def test_a_relative_out_directory_names_commands_by_out(fake_conav, tmp_path, monkeypatch):
+    calls, _ = fake_conav
+    monkeypatch.chdir(tmp_path)
+    assert _reproduce(".") == 0  # "." must not be replaced inside every word of a command
+    keys = rp.read_progress(tmp_path)["commands"]
+    assert "generate --preset tiny --out OUT/data --seed 0 --workers 2" in keys
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["stage_seconds"]["generate"] == keys["generate --preset tiny --out OUT/data --seed 0 --workers 2"]
+    calls.clear()
+    assert _reproduce(".") == 0 and calls == []  # done: nothing runs again
+    with pytest.raises(ValueError, match="absolute"):
+        rp.command_key(("generate",), Path("."))
