@@ -76,6 +76,35 @@ def _intention_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ground-truth-intentions", action="store_true",
                    help="conav/ppo: feed the env's ground-truth intentions instead of predictions (privileged "
                    "upper bound, labelled so in every output)")
+    p.add_argument("--pretrained", action="store_true",
+                   help="conav: the policy and intention predictor shipped with the package (trained on the paper "
+                   "preset at 32x128; conav_jax/pretrained/PROVENANCE.json) in place of --checkpoint/--intention")
+
+
+def _use_pretrained(args: argparse.Namespace, agents: tuple[str, ...]) -> None:
+    """--pretrained: the conav agent's run and the intention predictor become the shipped ones
+    (ValueError when conav is not run, or --checkpoint / --intention would also name them)."""
+    if not args.pretrained:
+        return
+    from conav_jax.pretrained import pretrained_runs
+    from envs.agents.registry import AGENTS
+
+    if "conav" not in agents:
+        raise ValueError("--pretrained is the conav agent's: add conav to --agent")
+    if args.intention is not None or args.trajectory is not None or args.ground_truth_intentions:
+        raise ValueError("--pretrained brings its own intention predictor: drop --intention / --trajectory / "
+                         "--ground-truth-intentions")
+    runs = pretrained_runs()
+    given = parse_checkpoints(args.checkpoint)
+    others = [a for a in agents if a != "conav" and AGENTS[a].needs_checkpoint] if all(a in AGENTS for a in agents) else []
+    if isinstance(given, dict) and "conav" in given or isinstance(given, str) and not others:
+        raise ValueError("--pretrained is the conav agent's run: drop its --checkpoint")
+    if isinstance(given, str):  # a bare RUN stays the other learned agents'
+        given = {None: given}
+    checkpoint = {**(given or {}), "conav": str(runs["policy"])}
+    args.checkpoint = (str(runs["policy"]) if len(checkpoint) == 1
+                       else ",".join(f"{k}={v}" if k else v for k, v in checkpoint.items()))
+    args.intention = str(runs["intention"])
 
 
 def _intention_kwargs(args: argparse.Namespace) -> dict:
@@ -628,8 +657,10 @@ def parse_checkpoints(text: str | None) -> str | dict[str | None, str] | None:
 def _run_eval(args: argparse.Namespace) -> int:
     from eval import sweep
 
+    agents = tuple(n.strip() for n in args.agent.split(",") if n.strip())
+    _use_pretrained(args, agents)
     plan = sweep.plan_eval(
-        args.data, args.split, tuple(n.strip() for n in args.agent.split(",") if n.strip()), args.out,
+        args.data, args.split, agents, args.out,
         checkpoint=parse_checkpoints(args.checkpoint), intention_kwargs=_intention_kwargs(args),
         ablations=parse_ablations(args.ablation_checkpoints), episodes=args.episodes, batch=args.batch,
         seed=args.seed, resolution=args.resolution, devices=args.devices,
@@ -664,6 +695,7 @@ def _add_view(sub) -> None:
 def _run_view(args: argparse.Namespace) -> int:
     from eval.viewer import view_episode
 
+    _use_pretrained(args, (args.agent,))
     print(view_episode(args.data, args.split, args.episode, args.agent, args.out, args.checkpoint,
                        _intention_kwargs(args), args.resolution, args.seed, args.spawn))
     return 0
@@ -700,7 +732,10 @@ def _add_demo(sub) -> None:
     p.add_argument("--out", required=True, help="output directory (data, runs, eval, episode.rrd)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", default="16x64", type=parse_resolution, metavar="HxW",
-                   help="panorama HxW used throughout (small: CPU; default 16x64)")
+                   help="panorama HxW the demo trains at (small: CPU; default 16x64)")
+    p.add_argument("--no-pretrained", dest="pretrained", action="store_false",
+                   help="evaluate and record the demo's own briefly trained policy (at --resolution) instead of the "
+                   "shipped one (conav_jax/pretrained, 32x128)")
     p.set_defaults(func=_run_demo)
 
 
@@ -710,7 +745,7 @@ def _run_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    for argv in demo_commands(out, args.seed, "x".join(map(str, args.resolution))):
+    for argv in demo_commands(out, args.seed, "x".join(map(str, args.resolution)), args.pretrained):
         print(f"\n$ conav {shlex.join(argv)}", flush=True)
         t0 = time.perf_counter()
         rc = main(argv, compile_cache=False)  # the cache was set up once, for the demo as a whole

@@ -3,6 +3,11 @@ user would type (the command line runs them one after another and prints each).
 
 generate -> train intention -> train trajectory -> train policy (BC + one DAgger round) ->
 evaluate every agent (report, plots) -> one rerun recording.
+
+A few hundred updates on 12 episodes show the training pipeline but make no policy that
+reaches the goal, so by default the evaluation and the recording drive the CoNav agent with the
+policy and predictor shipped with the package (`--pretrained`, trained on the paper preset at
+32x128: the evaluation renders that panorama); `pretrained=False` evaluates the demo's own.
 """
 
 from __future__ import annotations
@@ -10,10 +15,11 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def demo_commands(out: Path, seed: int, resolution: str) -> list[list[str]]:
+def demo_commands(out: Path, seed: int, resolution: str, pretrained: bool = True) -> list[list[str]]:
     """The demo's `conav` argument lists, writing under `out` (data/, runs/, eval/, episode0.rrd)."""
     data, runs = out / "data", out / "runs"
     quick = ["--log-every", "25", "--no-progress"]
+    conav = ["--pretrained"] if pretrained else ["--checkpoint", str(runs / "policy")]
     return [
         ["generate", "--preset", "tiny", "--out", str(data), "--seed", str(seed)],
         ["train", "intention", "--data", str(data), "--out", str(runs / "intention"), "--sensor", resolution, "--steps", "100",
@@ -24,9 +30,8 @@ def demo_commands(out: Path, seed: int, resolution: str) -> list[list[str]]:
          "--trajectory", str(runs / "trajectory"), "--resolution", resolution, "--steps", "150", "--batch", "8",
          "--dagger-rounds", "1", "--dagger-steps", "100", "--val-every", "150", "--ckpt-every", "150",
          "--seed", str(seed), *quick],
-        ["eval", "--data", str(data), "--split", "val", "--agent",
-         "random,follower,objectgoal-planner,pioneer,expert,conav", "--checkpoint", str(runs / "policy"),
-         "--seed", str(seed), "--out", str(out / "eval")],
-        ["view", "--data", str(data), "--split", "val", "--episode", "0", "--agent", "conav", "--checkpoint",
-         str(runs / "policy"), "--out", str(out / "episode0.rrd")],
+        ["eval", "--data", str(data), "--split", "val", "--agent", "random,follower,objectgoal-planner,pioneer,expert,conav",
+         *conav, "--seed", str(seed), "--out", str(out / "eval")],
+        ["view", "--data", str(data), "--split", "val", "--episode", "0", "--agent", "conav", *conav,
+         "--out", str(out / "episode0.rrd")],
     ]

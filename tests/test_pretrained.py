@@ -1,0 +1,102 @@
+"""The policy and intention predictor shipped with the package (conav_jax.pretrained) and the
+`--pretrained` flag of `conav eval` / `conav view` / `conav demo`."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conav_jax import pretrained
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from eval.cli import _use_pretrained, build_parser
+
+
+def test_the_shipped_runs_load_fit_the_size_limit_and_say_where_they_come_from():
+    runs = pretrained.pretrained_runs()
+    files = [latest_checkpoint(d) for d in runs.values()]
+    assert sum(f.stat().st_size for f in files) <= pretrained.SIZE_LIMIT_BYTES
+    policy = load_checkpoint(files[0])
+    assert policy.opt_state is None and policy.config["kind"] == "policy"
+    # It names no predictor run of the machine it was trained on: eval passes the shipped one.
+    assert policy.config["intention_run"] is None and policy.config["trajectory_run"] is None
+    assert load_checkpoint(files[1]).config["kind"] == "intention"
+    prov = json.loads((pretrained.PRETRAINED_DIR / pretrained.PROVENANCE_FILE).read_text())
+    assert prov["preset"] == "paper" and prov["resolution"] == "32x128" and "FASR" in prov["val_4962_episodes"]
+    with pytest.raises(FileNotFoundError, match="missing from this install"):
+        pretrained.pretrained_runs(Path("/nonexistent"))
+
+
+def test_the_shipped_conav_agent_builds_for_its_panorama_and_refuses_another(tiny_data):
+    from envs import ConavEnv, EnvConfig, SensorConfig
+    from envs.agents.registry import make_agent
+
+    runs = pretrained.pretrained_runs()
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=32, width=128)))
+    agent = make_agent("conav", env, runs["policy"], intention_run=runs["intention"])
+    assert agent.intention_source == "predicted"
+    small = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64)))
+    with pytest.raises(ValueError, match="32x128|\\(32, 128\\)"):
+        make_agent("conav", small, runs["policy"], intention_run=runs["intention"])
+
+
+def _eval_args(*extra):
+    return build_parser().parse_args(["eval", "--data", "d", "--out", "o", *extra])
+
+
+def test_pretrained_flag_names_the_shipped_runs_and_refuses_to_mix_with_others():
+    runs = pretrained.pretrained_runs()
+    args = _eval_args("--agent", "random,conav", "--pretrained")
+    _use_pretrained(args, ("random", "conav"))
+    assert args.checkpoint == str(runs["policy"]) and args.intention == str(runs["intention"])
+    # A bare RUN stays the other learned agents'.
+    args = _eval_args("--agent", "conav,imagegoal", "--pretrained", "--checkpoint", "runs/imagenav")
+    _use_pretrained(args, ("conav", "imagegoal"))
+    assert args.checkpoint == f"runs/imagenav,conav={runs['policy']}"
+    for agents, extra, match in ((("random",), (), "add conav"),
+                                 (("conav",), ("--checkpoint", "runs/policy"), "drop its --checkpoint"),
+                                 (("conav",), ("--checkpoint", "conav=runs/policy"), "drop its --checkpoint"),
+                                 (("conav",), ("--intention", "runs/intention"), "its own intention predictor"),
+                                 (("conav",), ("--ground-truth-intentions",), "its own intention predictor")):
+        args = _eval_args("--agent", ",".join(agents), "--pretrained", *extra)
+        with pytest.raises(ValueError, match=match):
+            _use_pretrained(args, agents)
+    args = _eval_args("--agent", "conav")  # without the flag nothing changes
+    _use_pretrained(args, ("conav",))
+    assert args.checkpoint is None and args.intention is None
+
+
+def test_the_demo_evaluates_and_records_the_shipped_policy_unless_told_not_to(tmp_path):
+    from eval.demo import demo_commands
+
+    for pretrained_on in (True, False):
+        commands = {argv[0]: argv for argv in demo_commands(tmp_path, 0, "16x64", pretrained_on)}
+        for stage in ("eval", "view"):
+            assert ("--pretrained" in commands[stage]) == pretrained_on
+            assert ("--checkpoint" in commands[stage]) != pretrained_on
+    assert build_parser().parse_args(["demo", "--out", "x", "--no-pretrained"]).pretrained is False
+
+
+def test_export_writes_parameters_only_and_checks_the_pair_and_the_size(tmp_path):
+    params = {"w": np.ones((4, 4), np.float32)}
+    save_checkpoint(checkpoint_path(tmp_path / "runs" / "intention", 6), params=params, opt_state={"m": params},
+                    config={"kind": "intention"}, step=6)
+    save_checkpoint(checkpoint_path(tmp_path / "runs" / "policy", 2), params=params, opt_state=None, step=2,
+                    config={"kind": "policy", "intention_run": "/elsewhere/runs/intention", "trajectory_run": None})
+    out = tmp_path / "shipped"
+    size = pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "intention", {"what": "test"}, out)
+    assert size == sum(latest_checkpoint(out / n).stat().st_size for n in pretrained.PRETRAINED_RUNS)
+    assert load_checkpoint(latest_checkpoint(out / "intention")).opt_state is None
+    assert load_checkpoint(latest_checkpoint(out / "policy")).config["intention_run"] is None
+    assert pretrained.pretrained_runs(out)["policy"] == out / "policy"
+    save_checkpoint(checkpoint_path(tmp_path / "runs" / "other", 6), params=params, opt_state=None,
+                    config={"kind": "intention"}, step=6)
+    with pytest.raises(ValueError, match="read the intention run"):
+        pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "other", {}, out)
+    big = {"w": np.ones((1_300_000,), np.float32)}
+    save_checkpoint(checkpoint_path(tmp_path / "runs" / "policy", 3), params=big, opt_state=None, step=3,
+                    config={"kind": "policy", "intention_run": "runs/intention", "trajectory_run": None})
+    with pytest.raises(ValueError, match="over the package"):
+        pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "intention", {}, out)
+    assert load_checkpoint(latest_checkpoint(out / "policy")).step == 2  # the shipped runs stay as they were
+    assert sorted(p.name for p in out.iterdir()) == ["PROVENANCE.json", "intention", "policy"]
