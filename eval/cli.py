@@ -807,6 +807,10 @@ def _run_reproduce(args: argparse.Namespace) -> int:
         for argv in plan[0].commands:
             progress["commands"].pop(rp.command_key(argv, cfg.out), None)
     stages = [st for st in plan if args.stage in (None, st.name)]
+    if args.stage not in (None, plan[0].name, "tables", "pack") and plan[0].name not in progress["stages"]:
+        # A stage asked for alone on a machine without the data (a fresh one, after --unpack) makes them first.
+        print(f"[{plan[0].name}] the data are missing: making them before [{args.stage}]")
+        stages.insert(0, plan[0])
     # CONAV_COMMIT names the commit of a copy of the tree that is not a git checkout.
     commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,

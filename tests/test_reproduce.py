@@ -215,10 +215,14 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
         rp.unpack(tmp_path / "junk.tar", tmp_path / "junk")
     with pytest.raises(FileNotFoundError, match="no pack"):
         rp.unpack(tmp_path / "missing.tar", tmp_path / "junk")
-    # On the fresh machine the data are made again, then the run goes on where it was cut.
+    # On the fresh machine the data are made again, then the run goes on where it was cut, also
+    # when one stage is asked for alone.
+    calls.clear()
+    assert _reproduce(fresh, "--stage", "dagger") == 0
+    assert calls[0][0] == "generate" and "dagger_s0" in " ".join(calls[1]) and calls[-1][0] == "train"
     calls.clear()
     assert _reproduce(fresh) == 0
-    assert calls[0][0] == "generate" and "dagger_s0" in " ".join(calls[1])
+    assert calls and calls[0][0] == "eval"  # the data are there now: not made again
     assert not any(c[0] == "train" and "bc_" in c[c.index("--out") + 1] for c in calls if "--out" in c)
 
 
