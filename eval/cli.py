@@ -1174,10 +1174,15 @@ def main(argv: list[str] | None = None, compile_cache: bool = True) -> int:
             from conav_jax.parallel import maybe_initialize_distributed
 
             maybe_initialize_distributed()
-        return int(args.func(args) or 0)
+        rc = int(args.func(args) or 0)
+        sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
+        return rc
     except (ValueError, FileNotFoundError) as e:
         print(f"conav {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader of our output stopped (`conav ... | head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so the exit's flush cannot fail again
+        return 1
 
 
 if __name__ == "__main__":

@@ -37,3 +37,18 @@ def test_the_demos_commands_parse_and_its_predictor_crops_the_policys_panorama(t
     commands = demo_commands(tmp_path, seed=0, resolution="16x64")
     parsed = {tuple(argv[:2]): build_parser().parse_args(argv) for argv in commands}
     assert tuple(parsed[("train", "intention")].sensor) == tuple(parsed[("train", "policy")].resolution) == (16, 64)
+
+
+def test_output_read_only_in_part_stops_without_a_traceback(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    # `conav reproduce --dry-run` prints some thirty lines; `head -1` stops reading after one.
+    cmd = (f"{sys.executable} -m eval.cli --compile-cache off reproduce --preset tiny --out {tmp_path / 'r'} --dry-run"
+           " | head -1")
+    proc = subprocess.run(["bash", "-o", "pipefail", "-c", cmd], cwd=root, capture_output=True, text=True, timeout=300,
+                          check=False)
+    assert proc.stdout.strip() == "[generate] to run"
+    assert "Traceback" not in proc.stderr and "BrokenPipeError" not in proc.stderr
