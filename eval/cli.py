@@ -96,7 +96,7 @@ def _use_pretrained(args: argparse.Namespace, agents: tuple[str, ...]) -> None:
                          "--ground-truth-intentions")
     runs = pretrained_runs()
     given = parse_checkpoints(args.checkpoint)
-    others = [a for a in agents if a != "conav" and AGENTS[a].needs_checkpoint] if all(a in AGENTS for a in agents) else []
+    others = [a for a in agents if a != "conav" and a in AGENTS and AGENTS[a].needs_checkpoint]
     if isinstance(given, dict) and "conav" in given or isinstance(given, str) and not others:
         raise ValueError("--pretrained is the conav agent's run: drop its --checkpoint")
     if isinstance(given, str):  # a bare RUN stays the other learned agents'
@@ -844,9 +844,8 @@ def _run_reproduce(args: argparse.Namespace) -> int:
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
                      "stage_seconds": rp.stage_seconds(plan, progress, cfg.out), "command_seconds": progress["commands"]}
-            scripted = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())
-            extra["episodes"] = scripted["episodes"]
-            results = rp.collect_results(cfg.out, cfg.seeds, extra)
+            results = rp.collect_results(cfg.out, cfg.seeds, extra)  # FileNotFoundError without the scripted agents'
+            results["episodes"] = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())["episodes"]
             (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
             (cfg.out / "tables.md").write_text(rp.render_tables(results))
         if st.name == "pack":

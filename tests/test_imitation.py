@@ -360,6 +360,8 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     assert tp.recording_lanes(1000, (32, 128), budget_bytes=2**30) == 2**30 // (1000 * 4096 * 5) == 52
     assert tp.recording_lanes(1000, (32, 128), goal_image=True, budget_bytes=2**30) == 32
     assert tp.recording_lanes(10, (8, 32)) == tp.MAX_ROLLOUT_LANES and tp.recording_lanes(10**9, (112, 448)) == 1
+    if jax.default_backend() == "cpu":  # the host holds every recorded episode too: a smaller budget
+        assert tp.recording_lanes(1000, (32, 128)) == tp.RECORD_BUDGET_BYTES_CPU // (1000 * 4096 * 5) == 104
     with pytest.raises(ValueError, match="rollout_batch must be >= 1"):
         ImitationConfig(rollout_batch=0)
 

@@ -39,6 +39,8 @@ from envs.rollout import map_episodes
 # What a rollout records per step (besides the panorama, kept as "rgb" uint8 and "depth" f16,
 # and a goal sensor's "goal_image", kept as uint8 where there is one).
 RECORDED_KEYS = ("gps_compass", "human_pos") + INTENTION_KEYS
+PANORAMA_BYTES_PER_PIXEL = 3 + 2  # a record's panorama: uint8 RGB + float16 depth (compact_obs)
+GOAL_IMAGE_BYTES_PER_PIXEL = 3  # a goal image, uint8 RGB
 
 
 # -- rollouts and their records ---------------------------------------------------------------

@@ -46,9 +46,11 @@ KIND = runs.POLICY
 # ImitationConfig fields a resumed run may change: more DAgger rounds continue a finished run;
 # batching and the validation subset do not change the weights.
 RESUME_FREE = ("dagger_rounds", "rollout_batch", "val_batch", "val_episodes")
-# Device memory one recording call's records may take (RECORD_BUDGET_BYTES) and the most lanes a
-# call runs: a call steps its lanes together, so a few large calls beat many small ones.
+# Device memory one recording call's records may take (RECORD_BUDGET_BYTES on an accelerator;
+# on the CPU they share the host's memory with every recorded episode, so less) and the most
+# lanes a call runs: a call steps its lanes together, so a few large calls beat many small ones.
 RECORD_BUDGET_BYTES = 16 * 2**30
+RECORD_BUDGET_BYTES_CPU = 2 * 2**30
 MAX_ROLLOUT_LANES = 1024
 # Recorded in the run's config, yet a resumed run may change them: the length of DAgger rounds
 # to come (a round already begun takes it as its new length; its schedule stretches).
@@ -90,12 +92,15 @@ class ImitationConfig:
 
 
 def recording_lanes(max_steps: int, image_hw: tuple[int, int], goal_image: bool = False,
-                    budget_bytes: int = RECORD_BUDGET_BYTES) -> int:
+                    budget_bytes: int | None = None) -> int:
     """Episodes one recording call runs: its records (every lane runs the bank's longest episode,
-    `max_steps` control steps, keeping uint8 RGB + float16 depth per pixel, and a uint8 goal image
-    where the policy reads one) within `budget_bytes`, at least 1, at most MAX_ROLLOUT_LANES."""
+    `max_steps` control steps, keeping the compact panorama, and a goal image where the policy
+    reads one) within `budget_bytes` (default: RECORD_BUDGET_BYTES, on the CPU
+    RECORD_BUDGET_BYTES_CPU), at least 1, at most MAX_ROLLOUT_LANES."""
+    if budget_bytes is None:
+        budget_bytes = RECORD_BUDGET_BYTES_CPU if jax.default_backend() == "cpu" else RECORD_BUDGET_BYTES
     h, w = image_hw
-    episode_bytes = max_steps * h * w * (5 + (3 if goal_image else 0))
+    episode_bytes = max_steps * h * w * (im.PANORAMA_BYTES_PER_PIXEL + (im.GOAL_IMAGE_BYTES_PER_PIXEL if goal_image else 0))
     return int(np.clip(budget_bytes // episode_bytes, 1, MAX_ROLLOUT_LANES))
 
 
