@@ -91,6 +91,8 @@ def test_export_writes_parameters_only_and_checks_the_pair_and_the_size(tmp_path
     assert pretrained.pretrained_runs(out)["policy"] == out / "policy"
     save_checkpoint(checkpoint_path(tmp_path / "runs" / "other", 6), params=params, opt_state=None,
                     config={"kind": "intention"}, step=6)
+    with pytest.raises(FileNotFoundError):  # a missing run is named, not a crash on None
+        pretrained.export_runs(tmp_path / "runs" / "nothing", tmp_path / "runs" / "intention", {}, out)
     with pytest.raises(ValueError, match="read the intention run"):
         pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "other", {}, out)
     big = {"w": np.ones((1_300_000,), np.float32)}

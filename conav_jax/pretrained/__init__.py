@@ -13,7 +13,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax import runs
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
 
 PRETRAINED_DIR = Path(__file__).resolve().parent
 PRETRAINED_RUNS = ("policy", "intention")  # the shipped policy reads no trajectory input
@@ -24,12 +25,12 @@ SIZE_LIMIT_BYTES = 5_000_000  # what the package may carry
 def pretrained_runs(root: Path = PRETRAINED_DIR) -> dict[str, Path]:
     """{"policy": DIR, "intention": DIR}: the shipped runs. FileNotFoundError naming what is
     missing (an install without the package data)."""
-    runs = {name: Path(root) / name for name in PRETRAINED_RUNS}
-    missing = [str(d) for d in runs.values() if latest_checkpoint(d) is None]
+    dirs = {name: Path(root) / name for name in PRETRAINED_RUNS}
+    missing = [str(d) for d in dirs.values() if latest_checkpoint(d) is None]
     if missing:
         raise FileNotFoundError(f"the pretrained runs are missing from this install: {', '.join(missing)} "
                                 "(reinstall the package with its data)")
-    return runs
+    return dirs
 
 
 def export_runs(policy_run: Path, intention_run: Path, provenance: dict, root: Path = PRETRAINED_DIR) -> int:
@@ -38,8 +39,8 @@ def export_runs(policy_run: Path, intention_run: Path, provenance: dict, root: P
     (paths of the machine it was trained on), the rest of each config is kept. Returns the bytes
     written; ValueError (nothing replaced) when they exceed SIZE_LIMIT_BYTES, or when the policy's
     config names an intention run of another directory name than `intention_run`."""
-    policy = load_checkpoint(latest_checkpoint(policy_run))
-    intention = load_checkpoint(latest_checkpoint(intention_run))
+    policy = runs.load_run(policy_run, runs.POLICY)  # FileNotFoundError / ValueError naming the run
+    intention = runs.load_run(intention_run, runs.INTENTION)
     named = policy.config.get("intention_run")
     if named is None or Path(named).name != Path(intention_run).name:
         raise ValueError(f"{policy_run} read the intention run {named}, not {intention_run}")
