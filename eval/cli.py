@@ -367,6 +367,10 @@ def _add_train(sub) -> None:
     p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
                    help="with the object input, also read it as a saliency map over the panorama (default: on; "
                    "--no-object-saliency reads the object distribution as a vector only)")
+    p.add_argument("--share-expert", action=argparse.BooleanOptionalAction, default=True,
+                   help="read the expert's ceiling and round-0 recording from DATA/expert_cache when an earlier run "
+                   "with the same data, resolution, episodes, windows and inputs made them, else write them there (the "
+                   "expert ignores the seed: the same bytes; default: on)")
     p.set_defaults(func=_run_train_policy)
 
     d = PPOConfig()
@@ -509,7 +513,8 @@ def _run_train_policy(args: argparse.Namespace) -> int:
     try:
         result = train_policy(args.data, args.out, _train_config(args), _policy_model(args), imitation,
                               intention_run=args.intention, trajectory_run=args.trajectory,
-                              progress=not args.no_progress, mesh=_mesh(args), remat=args.remat)
+                              progress=not args.no_progress, mesh=_mesh(args), remat=args.remat,
+                              share_expert=args.share_expert)
     except NonFiniteLoss as e:
         print(f"conav train policy: {e}")
         return 1

@@ -195,11 +195,17 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                "--intention", str(intention), "--out", str(evals / "objectgoal-predicted")),
               ("eval", *common, "--agent", "imagegoal", "--checkpoint", str(runs / "imagenav"),
                "--out", str(evals / "imagegoal"))]
+    # Each seed's BC runs (Table 3; the agent is the all-inputs run), then its DAgger run: the
+    # BC rows are measured before, and whether or not, DAgger has run.
     for s in range(cfg.seeds):
         ablations = ",".join(f"{a}={runs / f'bc_{a}_s{s}'}" for a in ABLATIONS)
+        evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"bc_all_s{s}"),
+                       "--ablation-checkpoints", ablations, "--out", str(evals / BC_EVAL.format(s))))
+    for s in range(cfg.seeds):
         evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"dagger_s{s}"),
-                       "--ablation-checkpoints", ablations, "--out", str(evals / f"conav_s{s}")))
-    names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [f"conav_s{s}" for s in range(cfg.seeds)]
+                       "--out", str(evals / DAGGER_EVAL.format(s))))
+    names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [
+        f.format(s) for f in (BC_EVAL, DAGGER_EVAL) for s in range(cfg.seeds)]
     stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
     stages.append(Stage("tables", (), (out / "results.json", out / "tables.md")))
     stages.append(Stage("pack", (), (out / "pack.tar",)))
@@ -215,19 +221,17 @@ def _mean_sd(values: list[float]) -> tuple[float, float]:
     return m, sd
 
 
-BC_ONLY_EVAL = "conav_bc_s{}"  # a seed evaluated without its DAgger run (see collect_results)
+BC_EVAL, DAGGER_EVAL = "conav_bc_s{}", "conav_dagger_s{}"  # a seed's evaluations under OUT/eval
 
 
 def collect_results(out: Path, seeds: int, extra: dict) -> dict:
     """results.json's content from the evaluations under `out/eval`: per agent its title,
     intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
 
-    A seed's CoNav rows come from `eval/conav_s{s}` (the DAgger run as the agent, the five BC
-    runs as its ablations). A seed whose DAgger run was not made may instead be evaluated into
-    `eval/conav_bc_s{s}` (`BC_ONLY_EVAL`: the BC all-inputs run as the agent): it adds to the five
-    BC rows only, so every row lists the seeds it was measured on. An evaluation not made yet (a
-    learned baseline, a seed with neither file) is listed under "missing" and the tables say so;
-    FileNotFoundError without the scripted agents' evaluation (nothing to tabulate)."""
+    A seed's BC rows come from `eval/conav_bc_s{s}` (its five BC runs as the ablations), its
+    DAgger row from `eval/conav_dagger_s{s}`; each row lists the seeds it was measured on. An
+    evaluation not made yet is listed under "missing" and the tables say so; FileNotFoundError
+    without the scripted agents' evaluation (nothing to tabulate)."""
     evals = Path(out) / "eval"
     if not (evals / "scripted" / "metrics.json").is_file():
         raise FileNotFoundError(f"no evaluation of the scripted agents at {evals / 'scripted' / 'metrics.json'}")
@@ -242,19 +246,17 @@ def collect_results(out: Path, seeds: int, extra: dict) -> dict:
         for key, entry in doc["agents"].items():
             agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
     conav: dict[str, dict] = {}
-    for s in range(seeds):
-        full, bc_only = evals / f"conav_s{s}" / "metrics.json", evals / BC_ONLY_EVAL.format(s) / "metrics.json"
-        if not full.is_file():
-            missing.append(f"eval/conav_s{s}" + ("" if bc_only.is_file() else f" (or {BC_ONLY_EVAL.format(s)})"))
-        if not full.is_file() and not bc_only.is_file():
-            continue
-        has_dagger = full.is_file()
-        doc = json.loads((full if has_dagger else bc_only).read_text())
-        rows = {"dagger": doc["agents"]["conav"]} if has_dagger else {}
-        rows.update({k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()})
-        for row, entry in rows.items():
-            slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
-            slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": doc["episodes"]}
+    for name, rows_of in ((BC_EVAL, lambda doc: {k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()}),
+                          (DAGGER_EVAL, lambda doc: {"dagger": doc["agents"]["conav"]})):
+        for s in range(seeds):
+            path = evals / name.format(s) / "metrics.json"
+            if not path.is_file():
+                missing.append(f"eval/{name.format(s)}")
+                continue
+            doc = json.loads(path.read_text())
+            for row, entry in rows_of(doc).items():
+                slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
+                slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": doc["episodes"]}
     return {**extra, "agents": agents, "conav": conav, "missing": missing}
 
 

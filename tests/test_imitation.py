@@ -6,6 +6,8 @@ read ground truth unless asked), feeds the policy its predictors' outputs and ru
 
 import dataclasses
 import functools
+import json
+import shutil
 from types import SimpleNamespace
 
 import jax
@@ -161,11 +163,12 @@ def test_rollouts_are_deterministic_for_a_seed(hall, params0):
 
 
 def test_expert_round_data_do_not_depend_on_the_policy_so_a_run_can_record_them_again(hall, bc, trained, tmp_path):
-    # train.policy records round 0 again when a resumed run lacks its file: the same bytes as
-    # long as the policy's params play no part when the expert acts alone.
-    again = _run(hall, trained.params, 1.0)
-    for a, b in zip(jax.tree.leaves(bc), jax.tree.leaves(again)):
-        assert a.tobytes() == b.tobytes()
+    # train.policy records round 0 again when a resumed run lacks its file, and runs of other
+    # seeds share it: the same bytes as long as neither the policy's params nor the key play a
+    # part when the expert acts alone.
+    for again in (_run(hall, trained.params, 1.0), _run(hall, trained.params, 1.0, seed=7)):
+        for a, b in zip(jax.tree.leaves(bc), jax.tree.leaves(again)):
+            assert a.tobytes() == b.tobytes()
     path = tmp_path / "data" / "round_1.npz"
     check_recordable(0, True, tmp_path / "data" / "round_0.npz", tmp_path)  # round 0: any time
     check_recordable(1, False, path, tmp_path)  # a DAgger round not yet begun
@@ -365,15 +368,33 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     with pytest.raises(ValueError, match="rollout_batch must be >= 1"):
         ImitationConfig(rollout_batch=0)
 
+    data = tmp_path / "data"  # an expert cache of its own
+    shutil.copytree(tiny_data, data, ignore=shutil.ignore_patterns(tp.EXPERT_CACHE_DIR))
     calls = []
     real = im.run_batched
     monkeypatch.setattr(im, "run_batched", lambda *a, **k: calls.append(a[5]) or real(*a, **k))
     cfg, imitation = TrainConfig(steps=2, batch=2, warmup_steps=0), ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ,
                                                                                       burn_in=BURN_IN, val_batch=5)
-    train_policy(tiny_data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False)
+    train_policy(data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False)
     # The expert's ceiling, round 0's recording (every lane at once), the final validation.
     assert calls == [5, tp.MAX_ROLLOUT_LANES, 5]
+    assert len(list((data / tp.EXPERT_CACHE_DIR).iterdir())) == 3  # the ceiling, round 0's windows and log line
     # A finished run resumed records nothing again and keeps its validation.
     (tmp_path / "run" / "data" / "round_0.npz").unlink()
     calls.clear()
-    assert train_policy(tiny_data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False).val and calls == []
+    assert train_policy(data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False).val and calls == []
+    # Another seed shares the expert's ceiling and round 0 (the expert ignores the seed:
+    # test_expert_round_data_...): it validates its own policy only, on the same windows and log lines.
+    train_policy(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, imitation, scan_updates=False)
+    assert calls == [5]
+    [entry] = (data / tp.EXPERT_CACHE_DIR).glob("round0_*.npz")  # the first run's recording (its own file is gone)
+    recorded, shared = im.load_sequences(entry), im.load_sequences(tmp_path / "s1" / "data" / "round_0.npz")
+    for a, b in zip(jax.tree.leaves(recorded), jax.tree.leaves(shared)):
+        assert a.tobytes() == b.tobytes()
+    log_lines = [[json.loads(x) for x in (tmp_path / r / "log.jsonl").read_text().splitlines()[:2]] for r in ("run", "s1")]
+    assert log_lines[0] == log_lines[1] and log_lines[0][1]["round"] == 0
+    # Other train episodes: a recording of their own.
+    others = tp.expert_cache_entries(data, "h", PCFG, imitation, ExpertConfig(), False, None, None)
+    fewer = tp.expert_cache_entries(data, "h", PCFG, dataclasses.replace(imitation, episodes=2), ExpertConfig(), False,
+                                    None, None)
+    assert others[0] == fewer[0] and others[1] != fewer[1]

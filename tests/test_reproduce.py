@@ -100,11 +100,12 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     for name, agent in (("scripted", "random"), ("objectgoal-oracle", "objectgoal-oracle"),
                         ("objectgoal-predicted", "objectgoal-predicted"), ("imagegoal", "imagegoal")):
         _write_eval(evals / name, _eval_doc({agent: (1, 2, 3, 4, 5, 6)}))
-    bc = {a: (10, 20, 5, 6, 30, 100) for a in rp.ABLATIONS}
-    _write_eval(evals / "conav_s0", _eval_doc({"conav": (40, 50, 5, 6, 30, 100)}, bc))
-    # Seed 1's agent is its BC all-inputs run: were it read as DAgger, DAgger's mean would move.
-    _write_eval(evals / rp.BC_ONLY_EVAL.format(1), _eval_doc({"conav": (20, 30, 7, 8, 10, 200)},
-                                                              {a: (20, 30, 7, 8, 10, 200) for a in rp.ABLATIONS}))
+    _write_eval(evals / rp.BC_EVAL.format(0), _eval_doc({"conav": (10, 20, 5, 6, 30, 100)},
+                                                         {a: (10, 20, 5, 6, 30, 100) for a in rp.ABLATIONS}))
+    _write_eval(evals / rp.DAGGER_EVAL.format(0), _eval_doc({"conav": (40, 50, 5, 6, 30, 100)}))
+    # Seed 1 has BC runs only: its BC evaluation's agent (the all-inputs run) is no DAgger row.
+    _write_eval(evals / rp.BC_EVAL.format(1), _eval_doc({"conav": (20, 30, 7, 8, 10, 200)},
+                                                         {a: (20, 30, 7, 8, 10, 200) for a in rp.ABLATIONS}))
     results = rp.collect_results(tmp_path, 2, {"seeds": 2})
     assert set(results["conav"]["dagger"]["seeds"]) == {"0"}
     assert all(set(results["conav"][a]["seeds"]) == {"0", "1"} for a in rp.ABLATIONS)
@@ -113,16 +114,17 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 40.0 [") for line in lines)
     assert any(line.startswith("| T conav (BC) | oracle map | ours | 15.0 ± 7.1 [") for line in lines)
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours | 15.0 ± 7.1 [") for line in lines)
-    assert results["missing"] == ["eval/conav_s1"] and "## Not run yet" in rp.render_tables(results)
+    assert results["missing"] == ["eval/conav_dagger_s1"] and "## Not run yet" in rp.render_tables(results)
     # Evaluations not made yet are listed, their rows marked; the learned rows name their seeds.
-    (evals / rp.BC_ONLY_EVAL.format(1) / "metrics.json").unlink()
+    (evals / rp.BC_EVAL.format(1) / "metrics.json").unlink()
     (evals / "imagegoal" / "metrics.json").unlink()
     results = rp.collect_results(tmp_path, 2, {"seeds": 2})
-    assert results["missing"] == ["eval/imagegoal", f"eval/conav_s1 (or {rp.BC_ONLY_EVAL.format(1)})"]
+    assert results["missing"] == ["eval/imagegoal", "eval/conav_bc_s1", "eval/conav_dagger_s1"]
     lines = rp.render_tables(results).splitlines()
     assert "| imagegoal | | not run yet | - | - | - | - | - | - | - |" in lines and "- `eval/imagegoal`" in lines
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours (seed 0 of 2) | 10.0 [") for line in lines)
-    (evals / "conav_s0" / "metrics.json").unlink()
+    (evals / rp.DAGGER_EVAL.format(0) / "metrics.json").unlink()
+    (evals / rp.BC_EVAL.format(0) / "metrics.json").unlink()
     lines = rp.render_tables(rp.collect_results(tmp_path, 2, {"seeds": 2})).splitlines()
     assert "| CoNav Agent (BC + DAgger) | | not run yet | - | - | - | - | - | - | - |" in lines
     assert "| 5 | ✓ | ✓ | ✓ | not run yet | - | - | - | - | - | - | - |" in lines

@@ -7,6 +7,9 @@ checkpoints: it resumes exactly), with a fresh Adam and its own warm-up + cosine
 warm-started from the previous round's weights; validation runs the policy in the simulator
 on the minival split (hyper-parameters are chosen there, never on the reported val split).
 RUN/log.jsonl holds the expert's validation metrics (the ceiling) and the recordings;
+the expert's ceiling and its round-0 recording depend on neither the seed nor the weights, so
+runs that agree on what they do depend on (`expert_cache_key`) share them through the dataset's
+`expert_cache/` directory (Table 3's seeds and a DAgger run continuing its BC run record once);
 RUN/ckpt_<step>.npz the policy at the end of each round (read by envs.agents.policy and
 train.ppo's --init-from). With a device mesh (conav_jax.parallel) every update's windows and
 every simulator batch are split over the devices, parameters replicated. The same rounds train
@@ -17,6 +20,10 @@ goal sensor and their run's kind in place of the CoNav expert.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
+import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +34,7 @@ import numpy as np
 
 from conav_jax import runs
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.data.arrayio import save_json, sha256_file
 from conav_jax.data.episodes import read_manifest
 from conav_jax.models import policy
 from conav_jax.models.policy import config_dict
@@ -56,6 +64,10 @@ MAX_ROLLOUT_LANES = 1024
 # to come (a round already begun takes it as its new length; its schedule stretches).
 RESUME_CHANGEABLE = ("imitation.dagger_steps",)
 TRAIN_INTENTIONS = ("ground_truth", "predicted")
+# The dataset's subdirectory where runs share the expert's ceiling and round-0 recordings, and
+# the layout of its entries (a change to what a recording holds bumps it: older entries unread).
+EXPERT_CACHE_DIR = "expert_cache"
+EXPERT_CACHE_VERSION = 1
 # Each round draws its own minibatches: round r trains with TrainConfig.seed + ROUND_SEED_STRIDE * r.
 ROUND_SEED_STRIDE = 7919
 
@@ -156,6 +168,52 @@ def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, cont
     }
 
 
+def expert_cache_key(fields: dict) -> str:
+    """A cache entry's name: the digest of everything its content depends on (canonical JSON)."""
+    fields = {"version": EXPERT_CACHE_VERSION, **fields}
+    return hashlib.sha256(json.dumps(fields, sort_keys=True, default=str).encode()).hexdigest()[:20]
+
+
+def expert_cache_entries(cache: Path, content_hash: str, model, imitation: ImitationConfig, expert, predicted: bool,
+                         intention_run, trajectory_run) -> tuple[Path, Path]:
+    """The CoNav expert's (ceiling .json, round-0 .npz) entries in `cache`, each named by what its
+    content depends on: the data, the expert and the panorama size; for the ceiling its split
+    and episodes; for round 0 the train episodes, the policy's config (the inputs it records),
+    the windowing and, when it records the predictors' outputs, their checkpoints. Not the seed
+    nor the weights: the expert ignores the rollout key (reset too: the episode fixes it) and,
+    acting alone, the policy."""
+    same = {"data_hash": content_hash, "expert": dataclasses.asdict(expert), "image_hw": list(model.image_hw)}
+    ceiling = expert_cache_key({**same, "split": imitation.val_split, "episodes": imitation.val_episodes})
+    round0 = expert_cache_key({
+        **same, "split": "train", "episodes": imitation.episodes, "model": config_dict(model), "seq_len": imitation.seq_len,
+        "burn_in": imitation.burn_in, "predicted": predicted,
+        "predictors": [predictor_digest(intention_run), predictor_digest(trajectory_run)] if predicted else None})
+    return cache / f"ceiling_{ceiling}.json", cache / f"round0_{round0}.npz"
+
+
+def predictor_digest(run) -> str | None:
+    """The sha256 of a predictor run's latest checkpoint (None without a run): what a recording
+    of its outputs depends on, wherever the run lies."""
+    if run is None:
+        return None
+    found = latest_checkpoint(run)
+    if found is None:
+        raise FileNotFoundError(f"no checkpoint in predictor run {run}")
+    return sha256_file(found)
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """`dst` as a hard link to `src` (no second copy of a recording on disk), else a copy;
+    atomically either way."""
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    tmp.unlink(missing_ok=True)
+    try:
+        os.link(src, tmp)
+    except OSError:  # another filesystem, or one without hard links
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
 def check_recordable(r: int, begun: bool, path: Path, run_dir: Path) -> None:
     """Round `r`'s data file `path` is missing: fine before the round has begun, and for round 0
     at any time (the expert acts alone there, so its data depend on the seed only: a run copied
@@ -188,6 +246,7 @@ def train_policy(
     remat: bool = False,
     scan_updates: bool | None = None,
     task: ImitationTask | None = None,
+    share_expert: bool = True,
 ) -> PolicyResult:
     """Imitation-train the policy `model` (a conav_jax.models.policy.PolicyConfig: network,
     resolution, ablation) on `data_dir`'s train split into `run_dir`, resuming a run of the same
@@ -207,6 +266,9 @@ def train_policy(
     the CPU) as train.loop.train. With a `task` the policy imitates its teacher instead of the
     CoNav expert and also reads its goal sensor's observations; the run is of its kind (no
     `expert`, no predictor runs: a task's policy trains and validates on its goal itself).
+    With `share_expert` the CoNav expert's ceiling and round-0 recording are read from the
+    dataset's EXPERT_CACHE_DIR when an earlier run made them, else written there (same bytes as
+    recording them: see `expert_cache_key`); a task's teacher is not shared.
     Nothing is written before the dataset has been checked."""
     content_hash = read_manifest(data_dir)["content_hash"]  # before anything is written
     if task is not None and (expert is not None or intention_run is not None or trajectory_run is not None
@@ -273,6 +335,10 @@ def train_policy(
     record_batch = imitation.rollout_batch or recording_lanes(
         train_env.bank.max_steps, (h, w), goal_image=task is not None and task.goal_obs is not None)
     val_key = jax.random.PRNGKey(cfg.seed + 1)
+    cache = Path(data_dir) / EXPERT_CACHE_DIR if share_expert and task is None else None
+    if cache is not None:
+        ceiling_entry, round0_entry = expert_cache_entries(cache, content_hash, model, imitation, expert, predicted,
+                                                           intention_run, trajectory_run)
 
     def val_metrics(p, beta: float) -> dict:
         m, _ = im.run_batched(validate, p, val_key, val_eps, beta, imitation.val_batch, mesh=mesh)
@@ -282,11 +348,17 @@ def train_policy(
         return {k: v for k, v in val_metrics(p, 0.0).items() if k != "intention_source"}
 
     if not expert_val:
-        t0 = time.perf_counter()
-        expert_val = {k: v for k, v in val_metrics(params, 1.0).items() if k != "intention_source"}
+        t0, shared = time.perf_counter(), ""
+        if cache is not None and ceiling_entry.is_file():
+            expert_val, shared = json.loads(ceiling_entry.read_text()), f", shared: {ceiling_entry}"
+        else:
+            expert_val = {k: v for k, v in val_metrics(params, 1.0).items() if k != "intention_source"}
+            if cache is not None:
+                cache.mkdir(exist_ok=True)
+                save_json(ceiling_entry, expert_val)
         append_log(log_path, {"split": imitation.val_split, "agent": teacher_name, "episodes": len(val_eps), **expert_val})
         log(f"{teacher_name} (the ceiling) on {imitation.val_split}, {len(val_eps)} episodes: {rates_line(expert_val)}  "
-            f"[{time.perf_counter() - t0:.0f} s]")
+            f"[{time.perf_counter() - t0:.0f} s{shared}]")
 
     parts = []
     for r, steps in enumerate(round_steps):
@@ -302,15 +374,27 @@ def train_policy(
             agent, beta = (teacher_name, 1.0) if r == 0 else ("policy", 0.0)
             if r <= done:
                 log(f"round {r}: {path} is missing; recording it again (the {teacher_name}'s rollouts: same seed, same data)")
-            t0 = time.perf_counter()
-            key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
-            m, recs = im.run_batched(record, params, key, train_eps, beta, record_batch, mesh=mesh)
-            parts.append(im.sequences(recs, imitation.seq_len, imitation.burn_in))
-            im.save_sequences(path, parts[-1])
-            append_log(log_path, {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent,
-                                   "episodes": len(train_eps), "windows": len(parts[-1]["label"]), **summarize(m)})
-            log(f"round {r}: recorded {len(train_eps)} train episodes, {agent} acting ({rates_line(summarize(m))}): "
-                f"{len(parts[-1]['label'])} windows  [{time.perf_counter() - t0:.0f} s]")
+            t0, shared = time.perf_counter(), r == 0 and cache is not None
+            if shared and round0_entry.is_file():  # its log line beside it, written first
+                _link_or_copy(round0_entry, path)
+                parts.append(im.load_sequences(path))
+                entry = json.loads(round0_entry.with_suffix(".json").read_text())
+                how = f"shared: {round0_entry}"
+            else:
+                key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
+                m, recs = im.run_batched(record, params, key, train_eps, beta, record_batch, mesh=mesh)
+                parts.append(im.sequences(recs, imitation.seq_len, imitation.burn_in))
+                im.save_sequences(path, parts[-1])
+                entry = {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent,
+                         "episodes": len(train_eps), "windows": len(parts[-1]["label"]), **summarize(m)}
+                if shared:
+                    cache.mkdir(exist_ok=True)
+                    save_json(round0_entry.with_suffix(".json"), entry)
+                    _link_or_copy(path, round0_entry)
+                how = "recorded"
+            append_log(log_path, entry)
+            log(f"round {r}: {entry['episodes']} train episodes, {agent} acting ({rates_line(entry)}): "
+                f"{entry['windows']} windows  [{time.perf_counter() - t0:.0f} s, {how}]")
         if r <= done:
             continue
         round_cfg = dataclasses.replace(cfg, steps=steps, warmup_steps=min(cfg.warmup_steps, steps),
