@@ -124,9 +124,12 @@ def map_episodes(
     mesh: Mesh | None = None,
     progress: Callable | None = None,
     per_batch_keys: bool = True,
+    host_fn: Callable[[Any], Any] | None = None,
 ) -> Any:
     """`fn(key, indices) -> pytree of (size, ...) arrays` over `episodes` in batches of `batch`
-    -> host (numpy) pytree of `(len(episodes), ...)`.
+    -> host (numpy) pytree of `(len(episodes), ...)`; with `host_fn`, each batch's host pytree
+    goes through it before the batches are concatenated (to shrink what the host keeps, e.g.
+    records cut into training windows).
 
     Batch `s` (starting at episode `s0`) gets `fold_in(key, s0)` (`key` itself with
     `per_batch_keys=False`, for rollouts that key each episode by its index). Each batch is padded by
@@ -151,7 +154,8 @@ def map_episodes(
             out = fn(k, jnp.asarray(idx))
         else:
             out = fn(replicate(k, mesh), shard_batch(idx, mesh))
-        chunks.append(jax.tree.map(lambda x: x[:n], to_host(out)))
+        out = jax.tree.map(lambda x: x[:n], to_host(out))
+        chunks.append(out if host_fn is None else host_fn(out))
     return jax.tree.map(lambda *xs: np.concatenate(xs), *chunks)
 
 

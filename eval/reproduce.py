@@ -57,7 +57,10 @@ class Budget:
     dagger_steps: int = 4000
     baseline_steps: int = 2000  # object-goal and image-goal BC updates
     baseline_dagger_rounds: int = 1
-    baseline_episodes: int | None = None  # train episodes each of their rounds records (None: all)
+    # Train episodes each of their rounds records (None: all). A DAgger round's policy rarely
+    # reaches its goal, so its episodes run to the end: about 18 windows each, 1 MB a window
+    # at 32x128 (the paper preset's 1,000 episodes: some 18 GB a round on the device).
+    baseline_episodes: int | None = None
     # Updates between validations on minival while training (None: the commands' default, 500);
     # the paper preset's minival is 1,000 episodes, so it validates less often.
     val_every: int | None = None
@@ -73,7 +76,7 @@ BUDGETS = {
     "tiny": Budget(intention_steps=100, trajectory_steps=100, policy_steps=100, policy_batch=8, dagger_rounds=1,
                    dagger_steps=50, baseline_steps=100, baseline_dagger_rounds=0, eval_batch=64),
     "small": Budget(policy_episodes=500, eval_batch=512),
-    "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16", baseline_episodes=2000, val_every=1000),
+    "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16", baseline_episodes=1000, val_every=1000),
 }
 
 

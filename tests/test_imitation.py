@@ -176,6 +176,18 @@ def test_expert_round_data_do_not_depend_on_the_policy_so_a_run_can_record_them_
         check_recordable(1, True, path, tmp_path)
 
 
+def test_records_cut_into_windows_batch_by_batch_are_the_windows_of_all_of_them(hall, params0):
+    # Recording keeps only each batch's windows (the padded records of every episode at once
+    # would not fit a host at paper scale): the same windows, in the same order.
+    key, eps = jax.random.PRNGKey(0), np.arange(3)
+    m_whole, recs = im.run_batched(hall.rollout, params0, key, eps, 1.0, batch=2)
+    m_cut, windows = im.run_batched(hall.rollout, params0, key, eps, 1.0, batch=2, windows=(SEQ, BURN_IN))
+    whole = im.sequences(recs, SEQ, BURN_IN)
+    assert jax.tree.structure(windows) == jax.tree.structure(whole)
+    for a, b in zip(jax.tree.leaves((m_whole, whole)), jax.tree.leaves((m_cut, windows))):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
 def test_sequences_are_windows_with_burn_in_masked_after_the_end():
     e, t = 2, 10
     valid = np.zeros((e, t), bool)

@@ -43,7 +43,7 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
     # The paper preset's baselines record a subset of its 20,293 train episodes, and its imitation
     # runs validate on the 1,000 minival episodes less often; the small preset's commands as run.
     for argv in {s.name: s for s in stages}["baselines"].commands:
-        assert argv[argv.index("--episodes") + 1] == "2000"
+        assert argv[argv.index("--episodes") + 1] == "1000"
     for argv in (*{s.name: s for s in stages}["baselines"].commands, *bc, *dagger[1::2]):
         assert argv[argv.index("--val-every") + 1] == "1000"
     assert not any("--val-every" in argv or argv[1] != "policy" and "--episodes" in argv

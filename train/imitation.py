@@ -173,14 +173,19 @@ def run_batched(
     batch: int,
     progress: Callable | None = None,
     mesh: Mesh | None = None,
-) -> tuple[dict[str, np.ndarray], StepRecord | None]:
+    windows: tuple[int, int] | None = None,
+) -> tuple[dict[str, np.ndarray], StepRecord | dict | None]:
     """A jitted `make_rollout_fn` over many episodes in batches of `batch` -> host (metrics,
     records) over all of them (envs.rollout.map_episodes: padding, keys, and with a `mesh` each
-    batch split over its devices, `params` replicated; same results as on one device)."""
+    batch split over its devices, `params` replicated; same results as on one device). With
+    `windows=(seq_len, burn_in)` the records come back as `sequences` cuts them, cut batch by
+    batch: every episode's records, padded to the longest, never sit on the host at once."""
     episodes = np.asarray(episodes, np.int32)
     if mesh is not None:
         params = replicate(params, mesh)
-    metrics, records = map_episodes(lambda k, idx: rollout(params, k, idx, beta), episodes, batch, key, mesh, progress)
+    cut = None if windows is None else (lambda out: (out[0], sequences(out[1], *windows)))
+    metrics, records = map_episodes(lambda k, idx: rollout(params, k, idx, beta), episodes, batch, key, mesh, progress,
+                                    host_fn=cut)
     metrics["episode"] = episodes
     return metrics, records
 

@@ -382,8 +382,9 @@ def train_policy(
                 how = f"shared: {round0_entry}"
             else:
                 key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
-                m, recs = im.run_batched(record, params, key, train_eps, beta, record_batch, mesh=mesh)
-                parts.append(im.sequences(recs, imitation.seq_len, imitation.burn_in))
+                m, windows = im.run_batched(record, params, key, train_eps, beta, record_batch, mesh=mesh,
+                                            windows=(imitation.seq_len, imitation.burn_in))
+                parts.append(windows)
                 im.save_sequences(path, parts[-1])
                 entry = {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent,
                          "episodes": len(train_eps), "windows": len(parts[-1]["label"]), **summarize(m)}
