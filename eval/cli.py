@@ -15,6 +15,7 @@ import dataclasses
 import json
 import os
 import shlex
+import signal
 import sys
 import tempfile
 import time
@@ -794,7 +795,20 @@ def _add_reproduce(sub) -> None:
     p.set_defaults(func=_run_reproduce)
 
 
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def _run_reproduce(args: argparse.Namespace) -> int:
+    # `timeout` and batch schedulers stop a run with SIGTERM: raise, so the command it cut records its time.
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        return _reproduce_stages(args)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _reproduce_stages(args: argparse.Namespace) -> int:
     import shutil
     import subprocess
 
@@ -834,21 +848,28 @@ def _run_reproduce(args: argparse.Namespace) -> int:
         t_stage = time.perf_counter()
         for argv in todo:
             print(f"\n$ conav {shlex.join(argv)}" if argv[0] != "@copy" else f"\ncopy {argv[1]} -> {argv[2]}", flush=True)
-            t0 = time.perf_counter()
-            if argv[0] == "@copy":
-                if not Path(argv[2]).exists():
-                    shutil.copytree(argv[1], argv[2])
-            else:
-                rc = main(list(argv), compile_cache=False)  # the cache was set up for the whole command
-                if rc:
-                    print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: conav {shlex.join(argv)}")
-                    return rc
-            progress["commands"][rp.command_key(argv, cfg.out)] = round(time.perf_counter() - t0, 1)
-            rp.write_progress(cfg.out, progress)
+            t0, rc = time.perf_counter(), 0
+            try:
+                if argv[0] == "@copy":
+                    if not Path(argv[2]).exists():
+                        shutil.copytree(argv[1], argv[2])
+                else:
+                    rc = main(list(argv), compile_cache=False)  # the cache was set up for the whole command
+            finally:  # a command cut short (failed, interrupted, SIGTERM) still counts its time
+                key, seconds = rp.command_key(argv, cfg.out), round(time.perf_counter() - t0, 1)
+                if rc or sys.exc_info()[0] is not None:
+                    progress.setdefault("cut", {})[key] = round(progress.get("cut", {}).get(key, 0.0) + seconds, 1)
+                else:
+                    progress["commands"][key] = seconds
+                rp.write_progress(cfg.out, progress)
+            if rc:
+                print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: conav {shlex.join(argv)}")
+                return rc
         if st.name == "tables":
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
-                     "stage_seconds": rp.stage_seconds(plan, progress, cfg.out), "command_seconds": progress["commands"]}
+                     "stage_seconds": rp.stage_seconds(plan, progress, cfg.out), "command_seconds": progress["commands"],
+                     "cut_seconds": progress.get("cut", {})}
             results = rp.collect_results(cfg.out, cfg.seeds, extra)  # FileNotFoundError without the scripted agents'
             results["episodes"] = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())["episodes"]
             (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")

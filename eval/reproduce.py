@@ -112,7 +112,9 @@ class Stage:
     outputs: tuple[Path, ...] = field(default=())
 
 
-PROGRESS_FILE = "progress.json"  # the commands and stages done, with their wall times (s)
+# The commands and stages done, with their wall times (s), and under "cut" the time of attempts
+# cut short (a command's summed over its attempts; it counts in its stage's time).
+PROGRESS_FILE = "progress.json"
 
 
 def read_progress(out: Path) -> dict:
@@ -136,11 +138,13 @@ def command_key(argv: tuple[str, ...], out: Path) -> str:
 
 
 def stage_seconds(plan: list["Stage"], progress: dict, out: Path) -> dict[str, float]:
-    """Each stage's time: the sum of its commands' recorded wall times (a stage run over several
-    calls or machines counts every part once); a stage without commands, its own record."""
+    """Each stage's time: the sum of its commands' recorded wall times, with the time of their
+    attempts cut short ("cut": failed, interrupted; a stage run over several calls or machines
+    counts every part once); a stage without commands, its own record."""
     seconds = {}
     for st in plan:
-        done = [progress["commands"][k] for k in (command_key(a, out) for a in st.commands) if k in progress["commands"]]
+        keys = [command_key(a, out) for a in st.commands]
+        done = [log[k] for log in (progress["commands"], progress.get("cut", {})) for k in keys if k in log]
         if done:
             seconds[st.name] = round(sum(done), 1)
         elif st.name in progress["stages"]:

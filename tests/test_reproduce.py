@@ -2,6 +2,9 @@
 runner skipping what is done and resuming after a failure, tables rendered from results."""
 
 import json
+import os
+import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -137,13 +140,17 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
 def fake_conav(monkeypatch):
     """`conav` commands replaced by a recorder that writes what the real ones would: a run's
     log, an evaluation's metrics.json. `fail_on` makes one command fail (a cut-off run)."""
-    calls, state = [], {"fail_on": None}
+    calls, state = [], {"fail_on": None, "term_on": None}
 
     def fake_main(argv, compile_cache=True):
         calls.append(tuple(argv))
         if state["fail_on"] is not None and any(state["fail_on"] in a for a in argv):
             state["fail_on"] = None
             return 1
+        if state["term_on"] is not None and any(state["term_on"] in a for a in argv):
+            state["term_on"] = None
+            os.kill(os.getpid(), signal.SIGTERM)  # as `timeout` stops a run
+            time.sleep(5)
         out = Path(argv[argv.index("--out") + 1])
         if argv[0] == "eval":
             out.mkdir(parents=True, exist_ok=True)
@@ -185,12 +192,38 @@ def test_a_run_cut_short_resumes_where_it_stopped_and_gives_the_same_results(fak
     assert len(done_before) + len(calls) == len(straight)
     resumed = json.loads((tmp_path / "b" / "results.json").read_text())
     for doc in (results, resumed):
-        for key in ("command", "stage_seconds", "command_seconds"):
+        for key in ("command", "stage_seconds", "command_seconds", "cut_seconds"):
             doc.pop(key)
     assert json.dumps(resumed, sort_keys=True).replace("/b/", "/a/") == json.dumps(results, sort_keys=True)
     # Everything done: a third call runs nothing.
     calls.clear()
     assert _reproduce(tmp_path / "b") == 0 and calls == []
+
+
+def test_a_command_cut_short_counts_its_time_in_its_stage(fake_conav, tmp_path, monkeypatch):
+    calls, state = fake_conav
+    out = tmp_path / "r"
+    state["term_on"] = "bc_none_s0"
+    handler = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt):
+        _reproduce(out)
+    assert signal.getsignal(signal.SIGTERM) == handler  # the command's own handler is gone
+    plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
+    cut_key = rp.command_key({s.name: s for s in plan}["bc"].commands[0], out)
+    assert "bc_none_s0" in cut_key
+    progress = rp.read_progress(out)
+    assert progress["cut"][cut_key] >= 0.0 and cut_key not in progress["commands"]
+    progress["cut"][cut_key] = 300.0  # what the cut attempt took
+    rp.write_progress(out, progress)
+    state["fail_on"] = "bc_none_s0"  # a second attempt fails: its time adds up
+    assert _reproduce(out) == 1
+    assert 300.0 <= rp.read_progress(out)["cut"][cut_key] < 310.0
+    assert _reproduce(out) == 0
+    results = json.loads((out / "results.json").read_text())
+    bc = [rp.command_key(argv, out) for argv in {s.name: s for s in plan}["bc"].commands]
+    assert results["cut_seconds"] == rp.read_progress(out)["cut"]
+    assert results["stage_seconds"]["bc"] == pytest.approx(
+        sum(results["command_seconds"][k] for k in bc) + results["cut_seconds"][cut_key], abs=0.2)
 
 
 def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, tmp_path):
