@@ -821,7 +821,9 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         print(f"unpacked {len(rp.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
     progress = rp.read_progress(cfg.out)
     plan = rp.plan_stages(cfg)
-    if not all(p.exists() for p in plan[0].outputs):  # data are regenerated from their seed (a fresh machine)
+    # Data are regenerated from their seed on a fresh machine (tables and pack read none: their
+    # record of the data's making stays).
+    if args.stage not in ("tables", "pack") and not all(p.exists() for p in plan[0].outputs):
         progress["stages"].pop(plan[0].name, None)
         for argv in plan[0].commands:
             progress["commands"].pop(rp.command_key(argv, cfg.out), None)

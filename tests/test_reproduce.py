@@ -250,6 +250,9 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
         rp.unpack(tmp_path / "junk.tar", tmp_path / "junk")
     with pytest.raises(FileNotFoundError, match="no pack"):
         rp.unpack(tmp_path / "missing.tar", tmp_path / "junk")
+    # Packing there reads no data: the record of their making stays.
+    gen_key = rp.command_key(rp.plan_stages(rp.ReproduceConfig(out=fresh, preset="tiny", seeds=2))[0].commands[0], fresh)
+    assert _reproduce(fresh, "--stage", "pack") == 0 and gen_key in rp.read_progress(fresh)["commands"]
     # On the fresh machine the data are made again, then the run goes on where it was cut, also
     # when one stage is asked for alone.
     calls.clear()
