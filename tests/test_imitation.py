@@ -405,8 +405,11 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
         assert a.tobytes() == b.tobytes()
     log_lines = [[json.loads(x) for x in (tmp_path / r / "log.jsonl").read_text().splitlines()[:2]] for r in ("run", "s1")]
     assert log_lines[0] == log_lines[1] and log_lines[0][1]["round"] == 0
-    # Other train episodes: a recording of their own.
-    others = tp.expert_cache_entries(data, "h", PCFG, imitation, ExpertConfig(), False, None, None)
-    fewer = tp.expert_cache_entries(data, "h", PCFG, dataclasses.replace(imitation, episodes=2), ExpertConfig(), False,
-                                    None, None)
-    assert others[0] == fewer[0] and others[1] != fewer[1]
+    # Other train episodes: a recording of their own (the same ceiling); another batching: both.
+    entries = functools.partial(tp.expert_cache_entries, data, "h", PCFG, expert=ExpertConfig(), predicted=False,
+                                intention_run=None, trajectory_run=None, devices=1)
+    base = entries(imitation, record_batch=64)
+    fewer = entries(dataclasses.replace(imitation, episodes=2), record_batch=64)
+    assert base[0] == fewer[0] and base[1] != fewer[1]
+    other_batches = entries(dataclasses.replace(imitation, val_batch=7), record_batch=32)
+    assert base[0] != other_batches[0] and base[1] != other_batches[1]

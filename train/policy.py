@@ -7,11 +7,11 @@ checkpoints: it resumes exactly), with a fresh Adam and its own warm-up + cosine
 warm-started from the previous round's weights; validation runs the policy in the simulator
 on the minival split (hyper-parameters are chosen there, never on the reported val split).
 RUN/log.jsonl holds the expert's validation metrics (the ceiling) and the recordings;
-the expert's ceiling and its round-0 recording depend on neither the seed nor the weights, so
-runs that agree on what they do depend on (`expert_cache_key`) share them through the dataset's
-`expert_cache/` directory (Table 3's seeds and a DAgger run continuing its BC run record once);
 RUN/ckpt_<step>.npz the policy at the end of each round (read by envs.agents.policy and
-train.ppo's --init-from). With a device mesh (conav_jax.parallel) every update's windows and
+train.ppo's --init-from). The expert's ceiling and round-0 recording depend on neither the seed
+nor the weights: runs that agree on what they do depend on share them through the dataset's
+`expert_cache/` (`expert_cache_entries`; Table 3's seeds and a DAgger run continuing its BC run
+record once). With a device mesh (conav_jax.parallel) every update's windows and
 every simulator batch are split over the devices, parameters replicated. The same rounds train
 the goal-navigation baselines (train/goalnav.py): an `ImitationTask` names their teacher, their
 goal sensor and their run's kind in place of the CoNav expert.
@@ -175,18 +175,20 @@ def expert_cache_key(fields: dict) -> str:
 
 
 def expert_cache_entries(cache: Path, content_hash: str, model, imitation: ImitationConfig, expert, predicted: bool,
-                         intention_run, trajectory_run) -> tuple[Path, Path]:
+                         intention_run, trajectory_run, record_batch: int, devices: int) -> tuple[Path, Path]:
     """The CoNav expert's (ceiling .json, round-0 .npz) entries in `cache`, each named by what its
-    content depends on: the data, the expert and the panorama size; for the ceiling its split
-    and episodes; for round 0 the train episodes, the policy's config (the inputs it records),
-    the windowing and, when it records the predictors' outputs, their checkpoints. Not the seed
-    nor the weights: the expert ignores the rollout key (reset too: the episode fixes it) and,
-    acting alone, the policy."""
-    same = {"data_hash": content_hash, "expert": dataclasses.asdict(expert), "image_hw": list(model.image_hw)}
-    ceiling = expert_cache_key({**same, "split": imitation.val_split, "episodes": imitation.val_episodes})
+    content depends on: the data, the expert, the panorama size and the batching (floating-point
+    reductions follow a batch's shape); for the ceiling its split and episodes; for round 0 the
+    train episodes, the policy's config (the inputs it records), the windowing and, when it
+    records the predictors' outputs, their checkpoints. Not the seed nor the weights: the expert
+    ignores the rollout key (reset too: the episode fixes it) and, acting alone, the policy."""
+    same = {"data_hash": content_hash, "expert": dataclasses.asdict(expert), "image_hw": list(model.image_hw),
+            "devices": devices}
+    ceiling = expert_cache_key({**same, "split": imitation.val_split, "episodes": imitation.val_episodes,
+                                "batch": imitation.val_batch})
     round0 = expert_cache_key({
-        **same, "split": "train", "episodes": imitation.episodes, "model": config_dict(model), "seq_len": imitation.seq_len,
-        "burn_in": imitation.burn_in, "predicted": predicted,
+        **same, "split": "train", "episodes": imitation.episodes, "batch": record_batch, "model": config_dict(model),
+        "seq_len": imitation.seq_len, "burn_in": imitation.burn_in, "predicted": predicted,
         "predictors": [predictor_digest(intention_run), predictor_digest(trajectory_run)] if predicted else None})
     return cache / f"ceiling_{ceiling}.json", cache / f"round0_{round0}.npz"
 
@@ -216,8 +218,8 @@ def _link_or_copy(src: Path, dst: Path) -> None:
 
 def check_recordable(r: int, begun: bool, path: Path, run_dir: Path) -> None:
     """Round `r`'s data file `path` is missing: fine before the round has begun, and for round 0
-    at any time (the expert acts alone there, so its data depend on the seed only: a run copied
-    without its data resumes). A later round's data came from a policy that no longer exists:
+    at any time (the expert acts alone there, so its data depend on neither the weights nor the
+    seed: a run copied without its data resumes). A later round's data came from a policy that no longer exists:
     FileNotFoundError."""
     if not begun or r == 0:
         return
@@ -338,7 +340,8 @@ def train_policy(
     cache = Path(data_dir) / EXPERT_CACHE_DIR if share_expert and task is None else None
     if cache is not None:
         ceiling_entry, round0_entry = expert_cache_entries(cache, content_hash, model, imitation, expert, predicted,
-                                                           intention_run, trajectory_run)
+                                                           intention_run, trajectory_run, record_batch,
+                                                           1 if mesh is None else mesh.size)
 
     def val_metrics(p, beta: float) -> dict:
         m, _ = im.run_batched(validate, p, val_key, val_eps, beta, imitation.val_batch, mesh=mesh)
