@@ -370,8 +370,8 @@ def _add_train(sub) -> None:
                    "--no-object-saliency reads the object distribution as a vector only)")
     p.add_argument("--share-expert", action=argparse.BooleanOptionalAction, default=True,
                    help="read the expert's ceiling and round-0 recording from DATA/expert_cache when an earlier run "
-                   "with the same data, resolution, episodes, windows and inputs made them, else write them there (the "
-                   "expert ignores the seed: the same bytes; default: on)")
+                   "with the same data, resolution, episodes, batching, windows and inputs made them, else write them "
+                   "there (the expert ignores the seed: the same bytes; default: on)")
     p.set_defaults(func=_run_train_policy)
 
     d = PPOConfig()
@@ -860,7 +860,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             finally:  # a command cut short (failed, interrupted, SIGTERM) still counts its time
                 key, seconds = rp.command_key(argv, cfg.out), round(time.perf_counter() - t0, 1)
                 if rc or sys.exc_info()[0] is not None:
-                    progress.setdefault("cut", {})[key] = round(progress.get("cut", {}).get(key, 0.0) + seconds, 1)
+                    cut = progress.setdefault("cut", {})
+                    cut[key] = round(cut.get(key, 0.0) + seconds, 1)
                 else:
                     progress["commands"][key] = seconds
                 rp.write_progress(cfg.out, progress)
