@@ -188,6 +188,20 @@ def test_records_cut_into_windows_batch_by_batch_are_the_windows_of_all_of_them(
         assert a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
+def test_shared_recordings_are_linked_into_place_leaving_no_temp_files(tmp_path):
+    from train.policy import _link_or_copy
+
+    (tmp_path / "entry.npz").write_bytes(b"windows")
+    (tmp_path / "run").mkdir()
+    for _ in range(2):  # again onto the same file: nothing changes
+        _link_or_copy(tmp_path / "entry.npz", tmp_path / "run" / "round_0.npz")
+    (tmp_path / "other.npz").write_bytes(b"other")
+    _link_or_copy(tmp_path / "other.npz", tmp_path / "run" / "round_0.npz")  # replaces
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["round_0.npz"]
+    assert (tmp_path / "run" / "round_0.npz").read_bytes() == b"other"
+    assert (tmp_path / "entry.npz").read_bytes() == b"windows"
+
+
 def test_sequences_are_windows_with_burn_in_masked_after_the_end():
     e, t = 2, 10
     valid = np.zeros((e, t), bool)

@@ -206,14 +206,16 @@ def predictor_digest(run) -> str | None:
 
 def _link_or_copy(src: Path, dst: Path) -> None:
     """`dst` as a hard link to `src` (no second copy of a recording on disk), else a copy;
-    atomically either way."""
-    tmp = dst.with_name(f".{dst.name}.tmp")
-    tmp.unlink(missing_ok=True)
+    atomically either way, also with runs on the same data writing at once (a temp name each)."""
+    if dst.exists() and os.path.samefile(src, dst):
+        return
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.{time.monotonic_ns()}.tmp")
     try:
         os.link(src, tmp)
     except OSError:  # another filesystem, or one without hard links
         shutil.copyfile(src, tmp)
     os.replace(tmp, dst)
+    tmp.unlink(missing_ok=True)  # renaming one link of a file onto another leaves both
 
 
 def check_recordable(r: int, begun: bool, path: Path, run_dir: Path) -> None:
