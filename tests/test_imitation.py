@@ -202,6 +202,26 @@ def test_shared_recordings_are_linked_into_place_leaving_no_temp_files(tmp_path)
     assert (tmp_path / "entry.npz").read_bytes() == b"windows"
 
 
+def test_a_broken_expert_cache_entry_is_named_with_the_way_out(tiny_data, tmp_path):
+    from conav_jax.data.episodes import read_manifest
+    from train import policy as tp
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_data, data, ignore=shutil.ignore_patterns(tp.EXPERT_CACHE_DIR))
+    imitation = ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ, burn_in=BURN_IN)
+    ceiling, round0 = tp.expert_cache_entries(data / tp.EXPERT_CACHE_DIR, read_manifest(data)["content_hash"], PCFG,
+                                              imitation, ExpertConfig(), False, None, None, record_batch=1, devices=1)
+    ceiling.parent.mkdir()
+    ceiling.write_text('{"FASR": 1')  # cut short
+    with pytest.raises(ValueError, match=r"expert cache entry .*ceiling_.*unreadable.*--no-share-expert"):
+        train_policy(data, tmp_path / "run", TrainConfig(steps=2, batch=2, warmup_steps=0), PCFG, imitation,
+                     scan_updates=False)
+    (round0.with_suffix(".json")).write_text("{}")
+    round0.write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match=r"expert cache entry .*round0_.*\.npz is unreadable"):
+        tp.read_shared(round0)
+
+
 def test_sequences_are_windows_with_burn_in_masked_after_the_end():
     e, t = 2, 10
     valid = np.zeros((e, t), bool)

@@ -204,6 +204,17 @@ def predictor_digest(run) -> str | None:
     return sha256_file(found)
 
 
+def read_shared(path: Path):
+    """An expert cache entry: a .json's content or a .npz's windows. ValueError naming the entry
+    and the way out when it is missing or unreadable (entries are written atomically: only a
+    change by hand breaks one)."""
+    try:
+        return json.loads(path.read_text()) if path.suffix == ".json" else im.load_sequences(path)
+    except Exception as e:  # a truncated .npz raises zipfile's, numpy's or OSError, a bad .json its own
+        raise ValueError(f"the expert cache entry {path} is unreadable ({type(e).__name__}: {e}); delete "
+                         f"{path.parent} or train with --no-share-expert") from e
+
+
 def _link_or_copy(src: Path, dst: Path) -> None:
     """`dst` as a hard link to `src` (no second copy of a recording on disk), else a copy;
     atomically either way, also with runs on the same data writing at once (a temp name each)."""
@@ -355,7 +366,7 @@ def train_policy(
     if not expert_val:
         t0, shared = time.perf_counter(), ""
         if cache is not None and ceiling_entry.is_file():
-            expert_val, shared = json.loads(ceiling_entry.read_text()), f", shared: {ceiling_entry}"
+            expert_val, shared = read_shared(ceiling_entry), f", shared: {ceiling_entry}"
         else:
             expert_val = {k: v for k, v in val_metrics(params, 1.0).items() if k != "intention_source"}
             if cache is not None:
@@ -381,9 +392,9 @@ def train_policy(
                 log(f"round {r}: {path} is missing; recording it again (the {teacher_name}'s rollouts: same seed, same data)")
             t0, shared = time.perf_counter(), r == 0 and cache is not None
             if shared and round0_entry.is_file():  # its log line beside it, written first
+                entry = read_shared(round0_entry.with_suffix(".json"))
+                parts.append(read_shared(round0_entry))
                 _link_or_copy(round0_entry, path)
-                parts.append(im.load_sequences(path))
-                entry = json.loads(round0_entry.with_suffix(".json").read_text())
                 how = f"shared: {round0_entry}"
             else:
                 key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
