@@ -321,10 +321,16 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
     built = build_evaluators(env, [(name, ckpt, plan.intention_kwargs if AGENTS[name].takes_intentions else {})
                                    for _, name, ckpt in runs], plan.batch, plan.seed, mesh)
     results, summaries, given, maps = {}, {}, {}, []
+    # A run listed twice (Table 3's all-inputs row is usually the agent itself) is swept once:
+    # keys are per episode, so a second sweep would give the same numbers.
+    swept = {}
     bar = tqdm(total=len(runs), desc="eval", unit="agent", disable=not progress, dynamic_ncols=True)
-    for (key, _, _), (agent, evaluator) in zip(runs, built):
-        bar.set_postfix_str(f"{key} ({len(episodes)} episodes, compile + run)")
-        metrics, i, first_path = evaluator(episodes)
+    for (key, name, ckpt), (agent, evaluator) in zip(runs, built):
+        same = (name, None if ckpt is None else str(Path(ckpt).resolve()))
+        bar.set_postfix_str(f"{key} ({len(episodes)} episodes, {'as swept above' if same in swept else 'compile + run'})")
+        if same not in swept:
+            swept[same] = evaluator(episodes)
+        metrics, i, first_path = swept[same]
         j = int(np.flatnonzero(metrics["episode"] == i)[0])
         bar.update(1)
         given[key] = describe(agent)

@@ -208,3 +208,27 @@ def test_learning_curve_pools_reach_rates_over_reset_cycles(tmp_path):
     assert out.stat().st_size > 1000
     with pytest.raises(ValueError, match="no PPO training records"):
         learning_curve({"imitation": [{"split": "train", "step": 10, "loss": 0.1}]}, tmp_path / "bad.png")
+
+
+def test_a_run_listed_as_agent_and_ablation_is_swept_once_with_the_same_numbers(tiny_data, tmp_path, monkeypatch):
+    from conav_jax import pretrained
+
+    calls = []
+    real = sweep._evaluate_with
+
+    def counting(evaluator, params):
+        run = real(evaluator, params)
+        return lambda episodes: calls.append(len(episodes)) or run(episodes)
+
+    monkeypatch.setattr(sweep, "_evaluate_with", counting)
+    policy_run = pretrained.pretrained_runs()["policy"]
+    out = tmp_path / "o"
+    argv = ["--data", str(tiny_data), "--agent", "conav", "--pretrained", "--ablation-checkpoints", f"all={policy_run}",
+            "--episodes", "2", "--batch", "2", "--resolution", "32x128", "--out", str(out)]
+    assert run_eval(_args(*argv)) == 0
+    assert calls == [2]
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["ablations"]["ablation_all"]["metrics"] == doc["agents"]["conav"]["metrics"]
+    assert doc["ablations"]["ablation_all"]["title"].startswith("all: ")
+    agent_rows, ablation_rows = (list(csv.DictReader((out / f"episodes_{k}.csv").open())) for k in ("conav", "ablation_all"))
+    assert [r["t_reach"] for r in agent_rows] == [r["t_reach"] for r in ablation_rows]
