@@ -931,6 +931,18 @@ def _add_bench(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_run_bench_intention)
 
+    p = what.add_parser("labels", help="the expert's labels on its own states and on a policy run's (what a DAgger "
+                        "round trains on): turns in place, forward speed, steps after the human's arrival")
+    p.add_argument("--run", required=True, metavar="RUN", help="a `conav train policy` run")
+    p.add_argument("--data", required=True, metavar="DIR", help="dataset (its train split)")
+    p.add_argument("--episodes", type=int, default=96, help="the first N train episodes (default 96)")
+    p.add_argument("--intention", default=None, metavar="RUN", help="intention run (default: the one the run names)")
+    p.add_argument("--trajectory", default=None, metavar="RUN", help="trajectory run (default: the one the run names)")
+    p.add_argument("--batch", type=int, default=None, help="episodes per rollout call (default: what fits recording's memory budget)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_run_bench_labels)
+
     p = what.add_parser("train", help="training throughput: samples/s of a model's jitted update")
     p.add_argument("--model", choices=sorted(SETUPS), required=True)
     p.add_argument("--batch", type=int, nargs="+", default=None, help=f"samples per update (default {DEFAULT_BATCH})")
@@ -1050,6 +1062,25 @@ def _run_bench_intention(args: argparse.Namespace) -> int:
                   f"top-5 {r[f'{head}_top5']:.3f}; graph route alone {r.get(f'{head}_top1_generator_graph_prior', float('nan')):.3f}")
         print(f"  {name}, direct heads alone: top-1 {v[f'{head}_top1_direct']:.3f}; prior (most frequent B given the "
               f"true A) {v[f'prior_{head}_top1']:.3f}")
+    return 0
+
+
+def _run_bench_labels(args: argparse.Namespace) -> int:
+    from train.policy import expert_label_statistics
+
+    res = expert_label_statistics(args.data, args.run, args.episodes, args.intention, args.trajectory, args.batch,
+                                  args.seed)
+    if args.json:
+        print(json.dumps({"run": str(args.run), "data": str(args.data), **res}), flush=True)
+        return 0
+    note = "" if res["data_is_the_runs"] else " (not the data the run was trained on)"
+    print(f"{args.run} on the first {res['episodes']} train episodes of {args.data}{note}:")
+    for who, title in (("expert", "expert acting (behaviour cloning's data)"), ("policy", "policy acting (a DAgger round's)")):
+        r = res[who]
+        print(f"  {title}: {r['steps_per_episode']:.0f} steps an episode, {100 * r['after_arrival_share']:.0f}% after the "
+              f"human's arrival; labels turning in place {100 * r['turn_in_place_share']:.0f}% "
+              f"({100 * r['full_turn_share_of_turns']:.0f}% of them at full rate), label v_lin {r['label_v_lin_mean']:+.2f}, "
+              f"action v_lin {r['action_v_lin_mean']:+.2f}, |action - label| {r['action_label_l1']:.2f}")
     return 0
 
 

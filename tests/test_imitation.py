@@ -239,6 +239,39 @@ def test_sequences_are_windows_with_burn_in_masked_after_the_end():
     assert not w["reset"][1].any()
 
 
+def test_label_statistics_of_hand_made_records():
+    # Episode 0: 4 valid steps, the human arrives after step 1; episode 1: 2 valid steps, never arrives.
+    valid = np.array([[1, 1, 1, 1, 0], [1, 1, 0, 0, 0]], bool)
+    label = np.zeros((2, 5, 2), np.float32)
+    label[0, :, 0] = [1.0, 0.0, 0.04, 0.5, 9.0]  # steps 1, 2 turn in place; step 4 is not recorded
+    label[0, :, 1] = [0.0, 1.0, 0.5, 0.0, 0.0]  # of those, step 1 at full rate
+    label[1, :, 0] = [0.5, 0.5, 0.0, 0.0, 0.0]
+    action = np.zeros((2, 5, 2), np.float32)
+    action[..., 0] = 1.0
+    recs = im.StepRecord({}, label, action, valid, np.zeros((2, 5, 3)))
+    stats = im.label_statistics(recs, {"t_arrive": np.array([1, 99])})
+    assert stats["episodes"] == 2 and stats["steps_per_episode"] == 3.0
+    assert stats["after_arrival_share"] == pytest.approx(2 / 6)  # steps 2, 3 of episode 0
+    assert stats["turn_in_place_share"] == pytest.approx(2 / 6) and stats["full_turn_share_of_turns"] == 0.5
+    assert stats["label_v_lin_mean"] == pytest.approx((1 + 0 + 0.04 + 0.5 + 0.5 + 0.5) / 6)
+    assert stats["action_v_lin_mean"] == 1.0
+    # |action - label| summed over (v_lin, v_ang), averaged over the valid steps.
+    assert stats["action_label_l1"] == pytest.approx((0 + 2 + 1.46 + 0.5 + 0.5 + 0.5) / 6)
+    with pytest.raises(ValueError, match="no recorded step"):
+        im.label_statistics(recs._replace(valid=np.zeros_like(valid)), {"t_arrive": np.array([1, 99])})
+
+
+def test_expert_label_statistics_refuses_bad_input_before_any_rollout(tiny_data):
+    from conav_jax import pretrained
+    from train.policy import expert_label_statistics
+
+    runs = pretrained.pretrained_runs()
+    with pytest.raises(ValueError, match="episodes must be at least 1"):
+        expert_label_statistics(tiny_data, runs["policy"], episodes=0)
+    with pytest.raises(ValueError, match="intention"):  # an intention run is not a policy run
+        expert_label_statistics(tiny_data, runs["intention"])
+
+
 def test_policy_overfits_expert_actions(trained):
     assert trained.losses[-1] < 0.1 * trained.losses[0], trained.losses[::25]
 

@@ -190,6 +190,35 @@ def run_batched(
     return metrics, records
 
 
+TURN_IN_PLACE_V_LIN = 0.05  # |v_lin| of a label at or below this: it turns the robot in place
+FULL_TURN_V_ANG = 0.9  # |v_ang| of a turn in place above this: at (nearly) full rate
+
+
+def label_statistics(records: StepRecord, metrics: dict) -> dict[str, float]:
+    """What imitation data cut from `records` (fields (E, T, ...), without "obs" is fine) would
+    teach, over the recorded steps (`valid`): steps per episode; the share after the human
+    reached the goal (`metrics["t_arrive"]`: by then the first arrival is lost); the share of
+    labels turning in place (|v_lin| <= TURN_IN_PLACE_V_LIN) and, of those, at full rate
+    (|v_ang| > FULL_TURN_V_ANG); the mean forward speed of the labels and of the actions taken;
+    the mean L1 distance from action to label."""
+    valid = np.asarray(records.valid, bool)
+    if not valid.any():
+        raise ValueError("no recorded step is valid")
+    label, action = np.asarray(records.label)[valid], np.asarray(records.action)[valid]
+    after = (np.arange(valid.shape[1])[None] > np.asarray(metrics["t_arrive"])[:, None])[valid]
+    turn = np.abs(label[:, 0]) <= TURN_IN_PLACE_V_LIN
+    return {
+        "episodes": int(valid.shape[0]),
+        "steps_per_episode": float(valid.sum() / valid.shape[0]),
+        "after_arrival_share": float(after.mean()),
+        "turn_in_place_share": float(turn.mean()),
+        "full_turn_share_of_turns": float((np.abs(label[turn, 1]) > FULL_TURN_V_ANG).mean()) if turn.any() else 0.0,
+        "label_v_lin_mean": float(label[:, 0].mean()),
+        "action_v_lin_mean": float(action[:, 0].mean()),
+        "action_label_l1": float(np.abs(action - label).sum(-1).mean()),
+    }
+
+
 # -- imitation data ------------------------------------------------------------------------------
 
 

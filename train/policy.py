@@ -141,6 +141,47 @@ def records_predictions(imitation: ImitationConfig, model, intention=None, traje
             and intention_source(model, intention, trajectory) != NO_INTENTIONS)
 
 
+def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episodes: int = 96,
+                            intention_run=None, trajectory_run=None, batch: int | None = None,
+                            seed: int = 0) -> dict:
+    """The CoNav expert's labels on its own states (behaviour cloning's data, beta = 1) and on
+    the states of a `conav train policy` run acting (what a DAgger round adds, beta = 0), over
+    the first `episodes` train episodes of `data_dir` at the run's panorama, the rollouts
+    recording as the run's rounds do (its expert config; predicted intentions where it trained
+    on them, from `intention_run`/`trajectory_run` or the runs it names) ->
+    {"expert": ..., "policy": ...} of imitation.label_statistics, plus whether the data are
+    those the run was trained on."""
+    from envs.agents.policy import load_policy_run
+    from envs.rollout import map_episodes
+
+    if episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
+    params, model, config = load_policy_run(policy_run)  # ValueError for a run of another kind
+    content_hash = read_manifest(data_dir)["content_hash"]
+    imitation = ImitationConfig(train_intentions=config["imitation"]["train_intentions"])
+    intention_run = intention_run or config.get("intention_run")
+    trajectory_run = trajectory_run or config.get("trajectory_run")
+    intention, trajectory = load_predictors(intention_run, trajectory_run)
+    predicted = records_predictions(imitation, model, intention, trajectory)
+    if imitation.train_intentions == "predicted" and not predicted and intention_source(model, intention, trajectory) != NO_INTENTIONS:
+        raise ValueError(f"{policy_run} trained on predicted intentions: pass its --intention and --trajectory runs")
+    expert = ExpertConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config["expert"].items()})
+    h, w = model.image_hw
+    env = ConavEnv(data_dir, "train", EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True),
+                   max_episodes=episodes)
+    rollout = jit_with_bank(env, im.make_rollout_fn(
+        env, model, expert, record=True, record_predicted=predicted,
+        **({"intention": intention, "trajectory": trajectory} if predicted else {})))
+    batch = batch or recording_lanes(env.bank.max_steps, (h, w))
+    ids = np.arange(env.num_episodes, dtype=np.int32)
+    out = {"data_is_the_runs": content_hash == config.get("data_hash"), "episodes": int(env.num_episodes)}
+    for who, beta in (("expert", 1.0), ("policy", 0.0)):
+        m, recs = map_episodes(lambda k, idx: rollout(params, k, idx, beta), ids, batch, jax.random.PRNGKey(seed),
+                               host_fn=lambda o: (o[0], o[1]._replace(obs={})))  # the labels, not the panoramas
+        out[who] = im.label_statistics(recs, m)
+    return out
+
+
 def run_config(model, imitation: ImitationConfig, expert, content_hash: str, intention_run, trajectory_run) -> dict:
     """The checkpoint's config: "kind", the PolicyConfig as "model" (what train.ppo's
     --init-from and envs.agents.policy rebuild the network from: its resolution, ablation and
