@@ -270,6 +270,9 @@ def test_expert_label_statistics_refuses_bad_input_before_any_rollout(tiny_data)
         expert_label_statistics(tiny_data, runs["policy"], episodes=0)
     with pytest.raises(ValueError, match="intention"):  # an intention run is not a policy run
         expert_label_statistics(tiny_data, runs["intention"])
+    # It trained on predicted intentions and names no predictor run: never ground truth in their place.
+    with pytest.raises(ValueError, match="trained on predicted intentions"):
+        expert_label_statistics(tiny_data, runs["policy"])
 
 
 def test_policy_overfits_expert_actions(trained):

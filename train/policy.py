@@ -163,7 +163,7 @@ def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episod
     trajectory_run = trajectory_run or config.get("trajectory_run")
     intention, trajectory = load_predictors(intention_run, trajectory_run)
     predicted = records_predictions(imitation, model, intention, trajectory)
-    if imitation.train_intentions == "predicted" and not predicted and intention_source(model, intention, trajectory) != NO_INTENTIONS:
+    if imitation.train_intentions == "predicted" and needed_predictors(model) and not predicted:
         raise ValueError(f"{policy_run} trained on predicted intentions: pass its --intention and --trajectory runs")
     expert = ExpertConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config["expert"].items()})
     h, w = model.image_hw
