@@ -55,7 +55,8 @@ def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, n
     obs_keys = set(jax.eval_shape(env.reset_to_episode, jax.random.PRNGKey(0), ep).obs)
     sources = {k: "predicted" if k in predicted else "ground_truth" for k in PREDICTION_KEYS if k in predicted or k in obs_keys}
 
-    @jax.jit
+    from envs.rollout import jit_with_bank
+
     def run(key):
         k_init, k_run = jax.random.split(key)
         state = env.reset_to_episode(k_init, ep)
@@ -72,7 +73,8 @@ def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, n
         _, frames = jax.lax.scan(body, (state, agent.init(k_init, ep)), jax.random.split(k_run, steps + 1))
         return frames
 
-    frames = jax.tree.map(np.asarray, run(jax.random.PRNGKey(seed)))
+    # The episode bank as an argument, not constants in the program (envs.rollout.jit_with_bank).
+    frames = jax.tree.map(np.asarray, jit_with_bank(env, run)(jax.random.PRNGKey(seed)))
     return frames, sources
 
 
