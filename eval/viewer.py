@@ -48,14 +48,14 @@ def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, n
     import jax
     import jax.numpy as jnp
 
+    from envs.rollout import jit_with_bank
+
     steps = int(env.split.episodes["t_end"][episode])
     ep = jnp.int32(episode)
     carry_shape = jax.eval_shape(agent.init, jax.random.PRNGKey(0), ep)
     predicted = set(agent_predictions(carry_shape))
     obs_keys = set(jax.eval_shape(env.reset_to_episode, jax.random.PRNGKey(0), ep).obs)
     sources = {k: "predicted" if k in predicted else "ground_truth" for k in PREDICTION_KEYS if k in predicted or k in obs_keys}
-
-    from envs.rollout import jit_with_bank
 
     def run(key):
         k_init, k_run = jax.random.split(key)

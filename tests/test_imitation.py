@@ -266,8 +266,10 @@ def test_expert_label_statistics_refuses_bad_input_before_any_rollout(tiny_data)
     from train.policy import expert_label_statistics
 
     runs = pretrained.pretrained_runs()
-    with pytest.raises(ValueError, match="episodes must be at least 1"):
+    with pytest.raises(ValueError, match="episodes and batch must be at least 1"):
         expert_label_statistics(tiny_data, runs["policy"], episodes=0)
+    with pytest.raises(ValueError, match="episodes and batch must be at least 1"):  # not "the default batch"
+        expert_label_statistics(tiny_data, runs["policy"], batch=0)
     with pytest.raises(ValueError, match="intention"):  # an intention run is not a policy run
         expert_label_statistics(tiny_data, runs["intention"])
     # It trained on predicted intentions and names no predictor run: never ground truth in their place.

@@ -154,8 +154,8 @@ def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episod
     from envs.agents.policy import load_policy_run
     from envs.rollout import map_episodes
 
-    if episodes < 1:
-        raise ValueError(f"episodes must be at least 1, got {episodes}")
+    if episodes < 1 or (batch is not None and batch < 1):
+        raise ValueError(f"episodes and batch must be at least 1, got {episodes} and {batch}")
     params, model, config = load_policy_run(policy_run)  # ValueError for a run of another kind
     content_hash = read_manifest(data_dir)["content_hash"]
     imitation = ImitationConfig(train_intentions=config["imitation"]["train_intentions"])
