@@ -348,6 +348,9 @@ def _add_train(sub) -> None:
                    help="DAgger rounds after behaviour cloning (a finished run resumes with more)")
     p.add_argument("--dagger-steps", type=int, default=None,
                    help="updates per DAgger round (default: --steps); a resumed run may change it for the rounds to come")
+    p.add_argument("--dagger-beta", type=float, default=d.dagger_beta, metavar="P",
+                   help="DAgger round r records with the expert acting at a step with probability P**r, else the "
+                        "policy (default 0: the policy alone); a resumed run may change it for the rounds to come")
     _resolution_arg(p, "rendered and read by the policy")
     p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
     p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
@@ -424,6 +427,9 @@ def _add_train_goalnav(models) -> None:
                        help="DAgger rounds after behaviour cloning (a finished run resumes with more)")
         p.add_argument("--dagger-steps", type=int, default=None,
                        help="updates per DAgger round (default: --steps); a resumed run may change it for the rounds to come")
+        p.add_argument("--dagger-beta", type=float, default=d.dagger_beta, metavar="P",
+                       help="DAgger round r records with the planner acting at a step with probability P**r, else the "
+                            "policy (default 0: the policy alone)")
         _resolution_arg(p, "rendered and read by the policy")
         p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
         p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
@@ -539,7 +545,8 @@ def _imitation_config(args: argparse.Namespace, **extra):
 
     return ImitationConfig(
         episodes=args.episodes, val_episodes=args.val_episodes, val_split=args.val_split,
-        dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps, seq_len=args.seq_len, burn_in=args.burn_in,
+        dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps, dagger_beta=args.dagger_beta,
+        seq_len=args.seq_len, burn_in=args.burn_in,
         rollout_batch=args.rollout_batch, val_batch=args.val_batch, **extra,
     )
 

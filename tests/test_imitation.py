@@ -261,6 +261,18 @@ def test_label_statistics_of_hand_made_records():
         im.label_statistics(recs._replace(valid=np.zeros_like(valid)), {"t_arrive": np.array([1, 99])})
 
 
+def test_dagger_rounds_mix_the_expert_in_at_a_geometric_share():
+    from train.policy import round_actor
+
+    assert round_actor(0, ImitationConfig(dagger_beta=0.5), "expert") == ("expert", 1.0)  # behaviour cloning
+    assert round_actor(1, ImitationConfig(), "expert") == ("policy", 0.0)
+    assert round_actor(1, ImitationConfig(dagger_beta=0.5), "expert") == ("policy, expert at beta 0.5", 0.5)
+    assert round_actor(2, ImitationConfig(dagger_beta=0.5), "expert")[1] == 0.25
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="dagger_beta is a probability"):
+            ImitationConfig(dagger_beta=bad)
+
+
 def test_expert_label_statistics_refuses_bad_input_before_any_rollout(tiny_data):
     from conav_jax import pretrained
     from train.policy import expert_label_statistics

@@ -135,6 +135,11 @@ def test_resume_accepts_changes_to_the_keys_it_is_told_to_ignore_and_no_others(t
     with pytest.raises(ValueError, match="imitation.seq_len"):
         resume(tmp_path, {"kind": "policy", "imitation": {"dagger_steps": 4000, "seq_len": 16}}, params, opt_state,
                ignore=RESUME_CHANGEABLE)
+    # A run saved before the expert's share existed continues as DAgger with one.
+    mixed = {"kind": "policy", "imitation": {"dagger_steps": 1000, "dagger_beta": 0.5, "seq_len": 32}}
+    assert resume(tmp_path, mixed, params, opt_state, ignore=RESUME_CHANGEABLE).step == 5
+    with pytest.raises(ValueError, match="imitation.dagger_beta"):
+        resume(tmp_path, mixed, params, opt_state, ignore=("imitation.dagger_steps",))
 
 
 def test_single_updates_on_a_mesh_compile_once(tmp_path):

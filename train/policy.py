@@ -61,8 +61,9 @@ RECORD_BUDGET_BYTES = 16 * 2**30
 RECORD_BUDGET_BYTES_CPU = 2 * 2**30
 MAX_ROLLOUT_LANES = 1024
 # Recorded in the run's config, yet a resumed run may change them: the length of DAgger rounds
-# to come (a round already begun takes it as its new length; its schedule stretches).
-RESUME_CHANGEABLE = ("imitation.dagger_steps",)
+# to come (a round already begun takes it as its new length; its schedule stretches) and the
+# expert's share in the rounds not yet recorded (a BC run continues with DAgger of either kind).
+RESUME_CHANGEABLE = ("imitation.dagger_steps", "imitation.dagger_beta")
 TRAIN_INTENTIONS = ("ground_truth", "predicted")
 # The dataset's subdirectory where runs share the expert's ceiling and round-0 recordings, and
 # the layout of its entries (a change to what a recording holds bumps it: older entries unread).
@@ -82,6 +83,10 @@ class ImitationConfig:
     val_split: str = "minival"  # validated on while training; the reported val split stays unseen
     dagger_rounds: int = 0  # rounds after behaviour cloning
     dagger_steps: int | None = None  # updates per DAgger round (None: TrainConfig.steps)
+    # DAgger round r >= 1 records a mixture: at each step the expert acts with probability
+    # dagger_beta ** r, else the policy (Ross et al. 2011's beta_i = p ** (i - 1), round 0 being
+    # the expert's); 0: the policy alone.
+    dagger_beta: float = 0.0
     seq_len: int = 32  # steps per training window in the loss (truncated BPTT)
     burn_in: int = 16  # steps before each window that only warm up the LSTM
     # Episodes per recording call (None: as many as RECORD_BUDGET_BYTES of records hold, see
@@ -98,9 +103,21 @@ class ImitationConfig:
             raise ValueError(f"unknown train_intentions {self.train_intentions!r}; expected one of {TRAIN_INTENTIONS}")
         if self.dagger_rounds < 0 or self.seq_len < 1 or self.burn_in < 0 or self.val_batch < 1:
             raise ValueError("need dagger_rounds >= 0, seq_len >= 1, burn_in >= 0, val_batch >= 1")
+        if not 0.0 <= self.dagger_beta <= 1.0:
+            raise ValueError(f"ImitationConfig.dagger_beta is a probability in [0, 1], got {self.dagger_beta}")
         for name in ("episodes", "val_episodes", "dagger_steps", "rollout_batch"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"ImitationConfig.{name} must be >= 1 (or None), got {getattr(self, name)}")
+
+
+def round_actor(r: int, imitation: ImitationConfig, teacher_name: str) -> tuple[str, float]:
+    """Who acts while round `r` is recorded, and the probability the teacher acts at a step:
+    round 0 the teacher (behaviour cloning); DAgger round r the policy, with the teacher mixed in
+    at `imitation.dagger_beta ** r`."""
+    if r == 0:
+        return teacher_name, 1.0
+    beta = imitation.dagger_beta ** r
+    return ("policy" if beta == 0.0 else f"policy, {teacher_name} at beta {beta:g}"), beta
 
 
 def recording_lanes(max_steps: int, image_hw: tuple[int, int], goal_image: bool = False,
@@ -427,8 +444,7 @@ def train_policy(
             parts.append(im.load_sequences(path))
         else:
             check_recordable(r, r <= done or latest_checkpoint(round_dir) is not None, path, run_dir)
-            # Round 0: the expert acts (behaviour cloning); later: the current policy (DAgger).
-            agent, beta = (teacher_name, 1.0) if r == 0 else ("policy", 0.0)
+            agent, beta = round_actor(r, imitation, teacher_name)
             if r <= done:
                 log(f"round {r}: {path} is missing; recording it again (the {teacher_name}'s rollouts: same seed, same data)")
             t0, shared = time.perf_counter(), r == 0 and cache is not None
@@ -443,7 +459,7 @@ def train_policy(
                                             windows=(imitation.seq_len, imitation.burn_in))
                 parts.append(windows)
                 im.save_sequences(path, parts[-1])
-                entry = {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent,
+                entry = {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent, "beta": beta,
                          "episodes": len(train_eps), "windows": len(parts[-1]["label"]), **summarize(m)}
                 if shared:
                     cache.mkdir(exist_ok=True)
