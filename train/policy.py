@@ -1,11 +1,12 @@
 """`conav train policy`'s stage: the CoNav LSTM policy imitates the expert (BC, then DAgger rounds).
 
 Round 0 records the expert on the train split; each DAgger round rolls out the current policy
-(the expert mixed in at `ImitationConfig.dagger_beta`), the expert labels the states it visits, and the aggregated windows (RUN/data/round_R.npz)
-train it further. Every round trains on train.loop in RUN/round_R/ (its own log.jsonl and
-checkpoints: it resumes exactly), with a fresh Adam and its own warm-up + cosine schedule,
-warm-started from the previous round's weights; validation runs the policy in the simulator
-on the minival split (hyper-parameters are chosen there, never on the reported val split).
+(the expert mixed in at `ImitationConfig.dagger_beta`), the expert labels the states it
+visits, and the aggregated windows (RUN/data/round_R.npz) train it further. Every round trains
+on train.loop in RUN/round_R/ (its own log.jsonl and checkpoints: it resumes exactly), with a
+fresh Adam and its own warm-up + cosine schedule, warm-started from the previous round's
+weights; validation runs the policy in the simulator on the minival split (hyper-parameters
+are chosen there, never on the reported val split).
 RUN/log.jsonl holds the expert's validation metrics (the ceiling) and the recordings;
 RUN/ckpt_<step>.npz the policy at the end of each round (read by envs.agents.policy and
 train.ppo's --init-from). The expert's ceiling and round-0 recording depend on neither the seed
