@@ -302,10 +302,11 @@ def test_train_commands_build_the_baselines_networks(model, flags, monkeypatch, 
 
     monkeypatch.setattr(goalnav, f"train_{model}", fake)
     args = build_parser().parse_args(["train", model, "--data", str(tmp_path), "--out", str(tmp_path / "run"),
-                                      "--resolution", "16x64", "--steps", "700", "--dagger-rounds", "2", *flags])
+                                      "--resolution", "16x64", "--steps", "700", "--dagger-rounds", "2", "--dagger-beta", "0.5",
+                                      *flags])
     assert args.func(args) == 0
     net = seen["net"]
     assert net.image_hw == (16, 64) and not net.use_human_pos and not net.use_activity and not net.use_trajectory
     assert (net.use_object, net.goal_image) == ((True, False) if model == "objectnav" else (False, True))
     assert net.uses_saliency is (model == "objectnav" and not flags)
-    assert seen["cfg"].steps == 700 and seen["imitation"].dagger_rounds == 2
+    assert seen["cfg"].steps == 700 and (seen["imitation"].dagger_rounds, seen["imitation"].dagger_beta) == (2, 0.5)
