@@ -796,6 +796,10 @@ def _add_reproduce(sub) -> None:
                    help=f"panorama HxW of every agent (default the paper's {h}x{w})")
     p.add_argument("--workers", type=int, default=min(d["workers"], os.cpu_count() or 1),
                    help="dataset generation processes")
+    p.add_argument("--dagger-beta", type=float, default=d["dagger_beta"], metavar="P",
+                   help="DAgger with the expert acting at a step of round r with probability P**r (`conav train "
+                        "policy --dagger-beta`); 0 (default): the policy alone. Other values train and evaluate runs "
+                        "of their own (runs/dagger_betaP_s*), and the tables show every DAgger variant evaluated")
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
@@ -822,7 +826,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     from eval import reproduce as rp
 
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
-                             resolution=tuple(args.resolution), workers=args.workers)
+                             resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta)
     cfg.out.mkdir(parents=True, exist_ok=True)
     if args.unpack:
         print(f"unpacked {len(rp.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
@@ -880,7 +884,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
                      "stage_seconds": rp.stage_seconds(plan, progress, cfg.out), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}
-            results = rp.collect_results(cfg.out, cfg.seeds, extra)  # FileNotFoundError without the scripted agents'
+            # FileNotFoundError without the scripted agents'
+            results = rp.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger_beta)
             results["episodes"] = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())["episodes"]
             (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
             (cfg.out / "tables.md").write_text(rp.render_tables(results))

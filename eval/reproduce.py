@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -90,16 +91,31 @@ class ReproduceConfig:
     resolution: tuple[int, int] = (112, 448)  # the panorama every agent reads (the paper's)
     data_seed: int = 0
     workers: int = 2  # dataset generation processes
+    # The expert's share in the DAgger rounds (`conav train policy --dagger-beta`): 0, the policy
+    # alone (runs/dagger_s*); any other value trains and evaluates runs of its own name beside them.
+    dagger_beta: float = 0.0
 
     def __post_init__(self):
         if self.preset not in BUDGETS:
             raise ValueError(f"unknown preset {self.preset!r}; choose from {', '.join(BUDGETS)}")
         if self.seeds < 1:
             raise ValueError(f"--seeds must be at least 1, got {self.seeds}")
+        if not 0.0 <= self.dagger_beta <= 1.0:
+            raise ValueError(f"--dagger-beta is a probability in [0, 1], got {self.dagger_beta}")
+
+    @property
+    def dagger_name(self) -> str:
+        """The DAgger runs' name: runs/NAME_s{seed}, eval/conav_NAME_s{seed}, results.json's row."""
+        return dagger_row(self.dagger_beta)
 
     @property
     def budget(self) -> Budget:
         return BUDGETS[self.preset]
+
+
+def dagger_row(beta: float) -> str:
+    """The DAgger row's name for the expert's share `beta` ("dagger" for the policy alone)."""
+    return "dagger" if beta == 0.0 else f"dagger_beta{beta:g}"
 
 
 @dataclass(frozen=True)
@@ -187,12 +203,14 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     bc = [("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(runs / f"bc_{a}_s{s}"))
           for s in range(cfg.seeds) for a in ABLATIONS]
     stages.append(Stage("bc", tuple(bc), tuple(runs / f"bc_{a}_s{s}" / "log.jsonl" for s in range(cfg.seeds) for a in ABLATIONS)))
-    dagger = []
+    dagger, name = [], cfg.dagger_name
+    mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
-        dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"dagger_s{s}")))
+        dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"{name}_s{s}")))
         dagger.append(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
-                       str(b.dagger_rounds), "--dagger-steps", str(b.dagger_steps), "--out", str(runs / f"dagger_s{s}")))
-    stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"dagger_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
+                       str(b.dagger_rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
+                       "--out", str(runs / f"{name}_s{s}")))
+    stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
     common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
     evals_ = [("eval", *common, "--agent", "random,follower,pioneer,pioneer-drive,objectgoal-planner,expert",
                "--out", str(evals / "scripted")),
@@ -208,11 +226,12 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
         ablations = ",".join(f"{a}={runs / f'bc_{a}_s{s}'}" for a in ABLATIONS)
         evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"bc_all_s{s}"),
                        "--ablation-checkpoints", ablations, "--out", str(evals / BC_EVAL.format(s))))
+    dagger_eval = CONAV_EVAL.format(row=name, seed="{}")
     for s in range(cfg.seeds):
-        evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"dagger_s{s}"),
-                       "--out", str(evals / DAGGER_EVAL.format(s))))
+        evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"{name}_s{s}"),
+                       "--out", str(evals / dagger_eval.format(s))))
     names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [
-        f.format(s) for f in (BC_EVAL, DAGGER_EVAL) for s in range(cfg.seeds)]
+        f.format(s) for f in (BC_EVAL, dagger_eval) for s in range(cfg.seeds)]
     stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
     stages.append(Stage("tables", (), (out / "results.json", out / "tables.md")))
     stages.append(Stage("pack", (), (out / "pack.tar",)))
@@ -228,17 +247,30 @@ def _mean_sd(values: list[float]) -> tuple[float, float]:
     return m, sd
 
 
-BC_EVAL, DAGGER_EVAL = "conav_bc_s{}", "conav_dagger_s{}"  # a seed's evaluations under OUT/eval
+# A seed's evaluations under OUT/eval: its BC runs (the five ablations), a DAgger row's run.
+CONAV_EVAL = "conav_{row}_s{seed}"
+BC_EVAL, DAGGER_EVAL = (CONAV_EVAL.format(row=row, seed="{}") for row in ("bc", "dagger"))
+_DAGGER_EVAL_DIR = re.compile(r"conav_dagger(?:_beta([01](?:\.[0-9]+)?))?_s[0-9]+")
 
 
-def collect_results(out: Path, seeds: int, extra: dict) -> dict:
+def dagger_rows(evals: Path, planned_beta: float) -> list[str]:
+    """The DAgger rows to tabulate: the run's own (the expert's share `planned_beta`) and every
+    other one evaluated under `evals`, by the expert's share (plain DAgger, share 0, first)."""
+    found = (_DAGGER_EVAL_DIR.fullmatch(d.name) for d in Path(evals).glob("conav_dagger*"))
+    shares = {float(m.group(1) or 0.0) for m in found if m}
+    return [dagger_row(share) for share in sorted(shares | {planned_beta})]
+
+
+def collect_results(out: Path, seeds: int, extra: dict, dagger_beta: float = 0.0) -> dict:
     """results.json's content from the evaluations under `out/eval`: per agent its title,
     intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
 
-    A seed's BC rows come from `eval/conav_bc_s{s}` (its five BC runs as the ablations), its
-    DAgger row from `eval/conav_dagger_s{s}`; each row lists the seeds it was measured on. An
-    evaluation not made yet is listed under "missing" and the tables say so; FileNotFoundError
-    without the scripted agents' evaluation (nothing to tabulate)."""
+    A seed's BC rows come from `eval/conav_bc_s{s}` (its five BC runs as the ablations), a DAgger
+    row ("dagger", or "dagger_beta{share}" with the expert mixed in) from
+    `eval/conav_{row}_s{s}`; each row lists the seeds it was measured on. An evaluation of the
+    run's own DAgger row (the expert's share `dagger_beta`) or BC rows not made yet is listed under "missing" and the
+    tables say so; other DAgger rows appear where evaluated. FileNotFoundError without the
+    scripted agents' evaluation (nothing to tabulate)."""
     evals = Path(out) / "eval"
     if not (evals / "scripted" / "metrics.json").is_file():
         raise FileNotFoundError(f"no evaluation of the scripted agents at {evals / 'scripted' / 'metrics.json'}")
@@ -253,12 +285,15 @@ def collect_results(out: Path, seeds: int, extra: dict) -> dict:
         for key, entry in doc["agents"].items():
             agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
     conav: dict[str, dict] = {}
-    for name, rows_of in ((BC_EVAL, lambda doc: {k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()}),
-                          (DAGGER_EVAL, lambda doc: {"dagger": doc["agents"]["conav"]})):
+    sources = [(BC_EVAL, lambda doc: {k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()}, True)]
+    sources += [(CONAV_EVAL.format(row=row, seed="{}"), lambda doc, row=row: {row: doc["agents"]["conav"]},
+                 row == dagger_row(dagger_beta)) for row in dagger_rows(evals, dagger_beta)]
+    for name, rows_of, planned in sources:
         for s in range(seeds):
             path = evals / name.format(s) / "metrics.json"
             if not path.is_file():
-                missing.append(f"eval/{name.format(s)}")
+                if planned:
+                    missing.append(f"eval/{name.format(s)}")
                 continue
             doc = json.loads(path.read_text())
             for row, entry in rows_of(doc).items():
@@ -346,11 +381,13 @@ def render_tables(results: dict) -> str:
                              f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
             else:
                 lines.append(f"| CoNav Agent (BC) | | not run yet | {not_run} |")
-            row = results["conav"].get("dagger")
-            if row is not None:
-                lines.append(f"| {row['title']} (BC + DAgger) | {', '.join(row['privileged']) or 'none'} | "
+            daggers = [k for k in results["conav"] if k.startswith("dagger")]
+            for name in daggers:
+                row, share = results["conav"][name], name.removeprefix("dagger_beta")
+                how = "BC + DAgger" if name == "dagger" else f"BC + DAgger, the expert acting at {share}^r of round r's steps"
+                lines.append(f"| {row['title']} ({how}) | {', '.join(row['privileged']) or 'none'} | "
                              f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
-            else:
+            if not daggers:
                 lines.append(f"| CoNav Agent (BC + DAgger) | | not run yet | {not_run} |")
         else:
             entry = results["agents"].get(key)

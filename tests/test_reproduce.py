@@ -136,6 +136,39 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
         rp.collect_results(tmp_path, 2, {"seeds": 2})
 
 
+def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_show_every_variant(tmp_path):
+    runs, evals = tmp_path / "runs", tmp_path / "eval"
+    plan = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=2, dagger_beta=0.5))}
+    copy, train = plan["dagger"].commands[:2]
+    assert copy == ("@copy", str(runs / "bc_all_s0"), str(runs / "dagger_beta0.5_s0"))
+    assert train[train.index("--dagger-beta") + 1] == "0.5" and train[-2:] == ("--out", str(runs / "dagger_beta0.5_s0"))
+    assert ("--checkpoint", str(runs / "dagger_beta0.5_s1"), "--out", str(evals / "conav_dagger_beta0.5_s1")) == \
+        plan["eval"].commands[-1][-4:]
+    # The policy-alone runs keep their commands (and so their progress.json records).
+    plain = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=2))}
+    assert "--dagger-beta" not in plain["dagger"].commands[1] and plain["dagger"].commands[1][-1] == str(runs / "dagger_s0")
+    with pytest.raises(ValueError, match="--dagger-beta is a probability"):
+        rp.ReproduceConfig(out=tmp_path, dagger_beta=1.5)
+
+    _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
+    for s in (0, 1):
+        _write_eval(evals / rp.BC_EVAL.format(s), _eval_doc({"conav": (10, 20, 5, 6, 30, 100)},
+                                                             {a: (10, 20, 5, 6, 30, 100) for a in rp.ABLATIONS}))
+        _write_eval(evals / f"conav_dagger_beta0.5_s{s}", _eval_doc({"conav": (30 + s, 40, 5, 6, 20, 100)}))
+    _write_eval(evals / rp.DAGGER_EVAL.format(0), _eval_doc({"conav": (5, 50, 5, 6, 30, 100)}))
+    (evals / "conav_daggerish_s0").mkdir()  # not a DAgger row's evaluation
+    mixed = rp.collect_results(tmp_path, 2, {"seeds": 2}, dagger_beta=0.5)
+    assert [k for k in mixed["conav"] if k.startswith("dagger")] == ["dagger", "dagger_beta0.5"]
+    assert set(mixed["conav"]["dagger_beta0.5"]["seeds"]) == {"0", "1"}
+    # Only the run's own variant can be missing; the other is shown with the seeds it has.
+    assert mixed["missing"] == ["eval/objectgoal-oracle", "eval/objectgoal-predicted", "eval/imagegoal"]
+    lines = rp.render_tables(mixed).splitlines()
+    assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 5.0 [") for line in lines)
+    assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps) | oracle map | "
+                               "ours | 30.5 ± 0.7 [") for line in lines)
+    assert "eval/conav_dagger_s1" in rp.collect_results(tmp_path, 2, {"seeds": 2})["missing"]
+
+
 @pytest.fixture
 def fake_conav(monkeypatch):
     """`conav` commands replaced by a recorder that writes what the real ones would: a run's
@@ -269,13 +302,16 @@ def test_every_planned_command_parses_into_a_valid_training_config(preset, tmp_p
     """Each stage's command line is one the real `conav` accepts, and its budget is a valid
     TrainConfig (e.g. at least the learning-rate warm-up's updates)."""
     parser = cli.build_parser()
-    for stage in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset=preset, seeds=1)):
+    mixed = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset=preset, seeds=1, dagger_beta=0.5))}
+    for stage in [*rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset=preset, seeds=1)), mixed["dagger"]]:
         for argv in stage.commands:
             if argv[0] == "@copy":
                 continue
             args = parser.parse_args(list(argv))
             if argv[0] == "train":
                 cli._train_config(args)
+                if argv[1] == "policy":
+                    cli._imitation_config(args)
 
 
 def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fake_conav, tmp_path):
