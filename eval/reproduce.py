@@ -268,9 +268,9 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger_beta: float = 0.0
     A seed's BC rows come from `eval/conav_bc_s{s}` (its five BC runs as the ablations), a DAgger
     row ("dagger", or "dagger_beta{share}" with the expert mixed in) from
     `eval/conav_{row}_s{s}`; each row lists the seeds it was measured on. An evaluation of the
-    run's own DAgger row (the expert's share `dagger_beta`) or BC rows not made yet is listed under "missing" and the
-    tables say so; other DAgger rows appear where evaluated. FileNotFoundError without the
-    scripted agents' evaluation (nothing to tabulate)."""
+    BC rows or of the run's own DAgger row (the expert's share `dagger_beta`) not made yet is
+    listed under "missing" and the tables say so; other DAgger rows appear where evaluated.
+    FileNotFoundError without the scripted agents' evaluation (nothing to tabulate)."""
     evals = Path(out) / "eval"
     if not (evals / "scripted" / "metrics.json").is_file():
         raise FileNotFoundError(f"no evaluation of the scripted agents at {evals / 'scripted' / 'metrics.json'}")
@@ -384,7 +384,7 @@ def render_tables(results: dict) -> str:
             daggers = [k for k in results["conav"] if k.startswith("dagger")]
             for name in daggers:
                 row, share = results["conav"][name], name.removeprefix("dagger_beta")
-                how = "BC + DAgger" if name == "dagger" else f"BC + DAgger, the expert acting at {share}^r of round r's steps"
+                how = "BC + DAgger" + ("" if name == "dagger" else f", the expert acting at {share}^r of round r's steps")
                 lines.append(f"| {row['title']} ({how}) | {', '.join(row['privileged']) or 'none'} | "
                              f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
             if not daggers:
