@@ -336,6 +336,25 @@ def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fak
     assert results["stage_seconds"]["bc"] >= 100.0 * len(rp.ABLATIONS)
 
 
+def test_a_finished_run_continued_with_the_expert_mixed_in_runs_only_its_dagger_runs(fake_conav, tmp_path):
+    calls, _ = fake_conav
+    out = tmp_path / "r"
+    assert _reproduce(out) == 0
+    calls.clear()
+    assert _reproduce(out, "--dagger-beta", "0.5") == 0
+    assert {argv[0] for argv in calls} == {"train", "eval"} and all("dagger_beta0.5_s" in " ".join(argv) for argv in calls)
+    assert all(argv[argv.index("--dagger-beta") + 1] == "0.5" for argv in calls if argv[0] == "train")
+    assert len(calls) == 4  # two seeds: a DAgger run and its evaluation each
+    results = json.loads((out / "results.json").read_text())
+    assert {"dagger", "dagger_beta0.5"} <= set(results["conav"]) and results["missing"] == []
+    assert "the expert acting at 0.5^r of round r's steps" in (out / "tables.md").read_text()
+    # Its own evaluations are the ones the tables call missing; the plain run's are not needed.
+    (out / "eval" / "conav_dagger_beta0.5_s1" / "metrics.json").unlink()
+    (out / "eval" / rp.DAGGER_EVAL.format(1) / "metrics.json").unlink()
+    assert _reproduce(out, "--dagger-beta", "0.5", "--stage", "tables") == 0
+    assert json.loads((out / "results.json").read_text())["missing"] == ["eval/conav_dagger_beta0.5_s1"]
+
+
 def test_a_relative_out_directory_names_commands_by_out(fake_conav, tmp_path, monkeypatch):
     calls, _ = fake_conav
     monkeypatch.chdir(tmp_path)
