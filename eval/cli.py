@@ -344,21 +344,7 @@ def _add_train(sub) -> None:
     p.add_argument("--trajectory", default=None, metavar="RUN",
                    help="trajectory run (conav train trajectory): validate with its predictions")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="all", help="intention inputs kept (Table 3 row; default all)")
-    p.add_argument("--dagger-rounds", type=int, default=d.dagger_rounds,
-                   help="DAgger rounds after behaviour cloning (a finished run resumes with more)")
-    p.add_argument("--dagger-steps", type=int, default=None,
-                   help="updates per DAgger round (default: --steps); a resumed run may change it for the rounds to come")
-    p.add_argument("--dagger-beta", type=float, default=d.dagger_beta, metavar="P",
-                   help="DAgger round r records with the expert acting at a step with probability P**r, else the "
-                        "policy (default 0: the policy alone); a resumed run may change it for the rounds to come")
-    _resolution_arg(p, "rendered and read by the policy")
-    p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
-    p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
-    p.add_argument("--val-split", default=d.val_split, help=f"split validated on (default {d.val_split}: hyper-parameters "
-                   "are chosen there, never on the reported val split)")
-    p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
-    p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
-    _add_rollout_batches(p)
+    _add_imitation_args(p, "expert")
     p.add_argument("--remat", action="store_true",
                    help="recompute the CNN per window step in the backward pass: less memory (float32 112x448 windows "
                    "at batch >= 256 need it on an H100), ~1.7x the update time")
@@ -410,9 +396,7 @@ def _add_train_goalnav(models) -> None:
     """`conav train objectnav` and `conav train imagenav`: the learned goal-navigation baselines."""
     from conav_jax.models.policy import PolicyConfig
     from train.loop import TrainConfig
-    from train.policy import ImitationConfig
 
-    d = ImitationConfig()
     for name, what in (("objectnav", "the object-goal agent (after ZSON): panorama, GPS+compass and a goal category, "
                         "imitating the object-goal planner (nearest instance of object B's category)"),
                        ("imagenav", "the image-goal agent (after FGPrompt): panorama, GPS+compass and a goal image "
@@ -423,20 +407,7 @@ def _add_train_goalnav(models) -> None:
                               f"the run with `conav eval --agent {'objectgoal-oracle|objectgoal-predicted' if name == 'objectnav' else 'imagegoal'} "
                               "--checkpoint RUN`.")
         _train_args(p, TrainConfig(steps=2000, batch=16, lr=3e-4, warmup_steps=100, val_every=1000, ckpt_every=500))
-        p.add_argument("--dagger-rounds", type=int, default=d.dagger_rounds,
-                       help="DAgger rounds after behaviour cloning (a finished run resumes with more)")
-        p.add_argument("--dagger-steps", type=int, default=None,
-                       help="updates per DAgger round (default: --steps); a resumed run may change it for the rounds to come")
-        p.add_argument("--dagger-beta", type=float, default=d.dagger_beta, metavar="P",
-                       help="DAgger round r records with the planner acting at a step with probability P**r, else the "
-                            "policy (default 0: the policy alone)")
-        _resolution_arg(p, "rendered and read by the policy")
-        p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
-        p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
-        p.add_argument("--val-split", default=d.val_split, help=f"split validated on (default {d.val_split})")
-        p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
-        p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
-        _add_rollout_batches(p)
+        _add_imitation_args(p, "planner")
         p.add_argument("--remat", action="store_true", help="recompute the CNN per window step in the backward pass")
         if name == "objectnav":
             p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
@@ -529,9 +500,25 @@ def _run_train_policy(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_rollout_batches(p) -> None:
+def _add_imitation_args(p, teacher: str) -> None:
+    """The imitation flags `conav train policy|objectnav|imagenav` share (read by `_imitation_config`)."""
     from train.policy import RECORD_BUDGET_BYTES, ImitationConfig
 
+    d = ImitationConfig()
+    p.add_argument("--dagger-rounds", type=int, default=d.dagger_rounds,
+                   help="DAgger rounds after behaviour cloning (a finished run resumes with more)")
+    p.add_argument("--dagger-steps", type=int, default=None,
+                   help="updates per DAgger round (default: --steps); a resumed run may change it for the rounds to come")
+    p.add_argument("--dagger-beta", type=float, default=d.dagger_beta, metavar="P",
+                   help=f"DAgger round r records with the {teacher} acting at a step with probability P**r, else the "
+                        "policy (default 0: the policy alone); a resumed run may change it for the rounds to come")
+    _resolution_arg(p, "rendered and read by the policy")
+    p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
+    p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
+    p.add_argument("--val-split", default=d.val_split, help=f"split validated on (default {d.val_split}: hyper-parameters "
+                   "are chosen there, never on the reported val split)")
+    p.add_argument("--seq-len", type=int, default=d.seq_len, help="steps per training window")
+    p.add_argument("--burn-in", type=int, default=d.burn_in, help="LSTM warm-up steps before each window")
     p.add_argument("--rollout-batch", type=int, default=None,
                    help=f"episodes per recording call (default: as many as {RECORD_BUDGET_BYTES / 2**30:.0f} GiB of "
                    "records hold; results do not depend on it)")
@@ -884,7 +871,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
                      "stage_seconds": rp.stage_seconds(plan, progress, cfg.out), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}
-            # FileNotFoundError without the scripted agents'
+            # FileNotFoundError without the scripted agents' evaluation
             results = rp.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger_beta)
             results["episodes"] = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())["episodes"]
             (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
