@@ -104,17 +104,13 @@ class ReproduceConfig:
             raise ValueError(f"--dagger-beta is a probability in [0, 1], got {self.dagger_beta}")
 
     @property
-    def dagger_name(self) -> str:
-        """The DAgger runs' name: runs/NAME_s{seed}, eval/conav_NAME_s{seed}, results.json's row."""
-        return dagger_row(self.dagger_beta)
-
-    @property
     def budget(self) -> Budget:
         return BUDGETS[self.preset]
 
 
 def dagger_row(beta: float) -> str:
-    """The DAgger row's name for the expert's share `beta` ("dagger" for the policy alone)."""
+    """The DAgger row's name for the expert's share `beta` ("dagger" for the policy alone): its
+    runs are runs/NAME_s{seed}, their evaluations eval/conav_NAME_s{seed}."""
     return "dagger" if beta == 0.0 else f"dagger_beta{beta:g}"
 
 
@@ -203,7 +199,7 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     bc = [("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(runs / f"bc_{a}_s{s}"))
           for s in range(cfg.seeds) for a in ABLATIONS]
     stages.append(Stage("bc", tuple(bc), tuple(runs / f"bc_{a}_s{s}" / "log.jsonl" for s in range(cfg.seeds) for a in ABLATIONS)))
-    dagger, name = [], cfg.dagger_name
+    dagger, name = [], dagger_row(cfg.dagger_beta)
     mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
         dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"{name}_s{s}")))
