@@ -787,6 +787,10 @@ def _add_reproduce(sub) -> None:
                    help="DAgger with the expert acting at a step of round r with probability P**r (`conav train "
                         "policy --dagger-beta`); 0 (default): the policy alone. Other values train and evaluate runs "
                         "of their own (runs/dagger_betaP_s*), and the tables show every DAgger variant evaluated")
+    p.add_argument("--dagger-rounds", type=int, default=d["dagger_rounds"], metavar="N",
+                   help="DAgger rounds after BC (default: the preset's, " +
+                        ", ".join(f"{k} {b.dagger_rounds}" for k, b in BUDGETS.items()) +
+                        "); another count trains and evaluates runs of its own (runs/dagger[_betaP]_roundsN_s*)")
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
@@ -813,7 +817,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     from eval import reproduce as rp
 
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
-                             resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta)
+                             resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
+                             dagger_rounds=args.dagger_rounds)
     cfg.out.mkdir(parents=True, exist_ok=True)
     if args.unpack:
         print(f"unpacked {len(rp.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
@@ -872,7 +877,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                      "stage_seconds": rp.stage_seconds(plan, progress, cfg.out), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}
             # FileNotFoundError without the scripted agents' evaluation
-            results = rp.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger_beta)
+            results = rp.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger)
             results["episodes"] = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())["episodes"]
             (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
             (cfg.out / "tables.md").write_text(rp.render_tables(results))

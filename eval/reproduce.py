@@ -94,6 +94,9 @@ class ReproduceConfig:
     # The expert's share in the DAgger rounds (`conav train policy --dagger-beta`): 0, the policy
     # alone (runs/dagger_s*); any other value trains and evaluates runs of its own name beside them.
     dagger_beta: float = 0.0
+    # DAgger rounds after BC (`conav train policy --dagger-rounds`); None: the preset's budget. Other
+    # counts, like other shares, train and evaluate runs of their own name.
+    dagger_rounds: int | None = None
 
     def __post_init__(self):
         if self.preset not in BUDGETS:
@@ -102,16 +105,39 @@ class ReproduceConfig:
             raise ValueError(f"--seeds must be at least 1, got {self.seeds}")
         if not 0.0 <= self.dagger_beta <= 1.0:
             raise ValueError(f"--dagger-beta is a probability in [0, 1], got {self.dagger_beta}")
+        if self.dagger_rounds is not None and self.dagger_rounds < 1:
+            raise ValueError(f"--dagger-rounds must be at least 1, got {self.dagger_rounds}")
 
     @property
     def budget(self) -> Budget:
         return BUDGETS[self.preset]
 
+    @property
+    def rounds(self) -> int:
+        """The DAgger rounds this run trains."""
+        return self.budget.dagger_rounds if self.dagger_rounds is None else self.dagger_rounds
 
-def dagger_row(beta: float) -> str:
-    """The DAgger row's name for the expert's share `beta` ("dagger" for the policy alone): its
-    runs are runs/NAME_s{seed}, their evaluations eval/conav_NAME_s{seed}."""
-    return "dagger" if beta == 0.0 else f"dagger_beta{beta:g}"
+    @property
+    def dagger(self) -> str:
+        """This run's DAgger row (`dagger_row`): the budget's round count names no rounds."""
+        return dagger_row(self.dagger_beta, None if self.rounds == self.budget.dagger_rounds else self.rounds)
+
+
+def dagger_row(beta: float, rounds: int | None = None) -> str:
+    """The DAgger row's name for the expert's share `beta` ("dagger" for the policy alone) and a
+    round count other than the preset's (`rounds`; None: the preset's): its runs are
+    runs/NAME_s{seed}, their evaluations eval/conav_NAME_s{seed}."""
+    return ("dagger" if beta == 0.0 else f"dagger_beta{beta:g}") + ("" if rounds is None else f"_rounds{rounds}")
+
+
+def dagger_variant(row: str) -> tuple[float, int | None] | None:
+    """(the expert's share, the round count or None) of a DAgger row named by `dagger_row`;
+    None for any other name."""
+    m = _DAGGER_ROW.fullmatch(row)
+    return None if m is None else (float(m.group(1) or 0.0), None if m.group(2) is None else int(m.group(2)))
+
+
+_DAGGER_ROW = re.compile(r"dagger(?:_beta([01](?:\.[0-9]+)?))?(?:_rounds([0-9]+))?")
 
 
 @dataclass(frozen=True)
@@ -199,12 +225,12 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     bc = [("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(runs / f"bc_{a}_s{s}"))
           for s in range(cfg.seeds) for a in ABLATIONS]
     stages.append(Stage("bc", tuple(bc), tuple(runs / f"bc_{a}_s{s}" / "log.jsonl" for s in range(cfg.seeds) for a in ABLATIONS)))
-    dagger, name = [], dagger_row(cfg.dagger_beta)
+    dagger, name = [], cfg.dagger
     mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
         dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"{name}_s{s}")))
         dagger.append(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
-                       str(b.dagger_rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
+                       str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
                        "--out", str(runs / f"{name}_s{s}")))
     stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
     common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
@@ -246,26 +272,27 @@ def _mean_sd(values: list[float]) -> tuple[float, float]:
 # A seed's evaluations under OUT/eval: its BC runs (the five ablations), a DAgger row's run.
 CONAV_EVAL = "conav_{row}_s{seed}"
 BC_EVAL, DAGGER_EVAL = (CONAV_EVAL.format(row=row, seed="{}") for row in ("bc", "dagger"))
-_DAGGER_EVAL_DIR = re.compile(r"conav_dagger(?:_beta([01](?:\.[0-9]+)?))?_s[0-9]+")
+_SEEDED_EVAL = re.compile(r"conav_(.+)_s[0-9]+")
 
 
-def dagger_rows(evals: Path, planned_beta: float) -> list[str]:
-    """The DAgger rows to tabulate: the run's own (the expert's share `planned_beta`) and every
-    other one evaluated under `evals`, by the expert's share (plain DAgger, share 0, first)."""
-    found = (_DAGGER_EVAL_DIR.fullmatch(d.name) for d in Path(evals).glob("conav_dagger*"))
-    shares = {float(m.group(1) or 0.0) for m in found if m}
-    return [dagger_row(share) for share in sorted(shares | {planned_beta})]
+def dagger_rows(evals: Path, planned: str = "dagger") -> list[str]:
+    """The DAgger rows to tabulate: the run's own (`planned`, a `dagger_row` name) and every other
+    one evaluated under `evals`, by the expert's share, then round count (the preset's first)."""
+    found = {m.group(1) for m in map(_SEEDED_EVAL.fullmatch, (d.name for d in Path(evals).glob("conav_dagger*"))) if m}
+    variants = {v: row for row in found | {planned} if (v := dagger_variant(row)) is not None}
+    return [variants[v] for v in sorted(variants, key=lambda v: (v[0], v[1] or 0))]
 
 
-def collect_results(out: Path, seeds: int, extra: dict, dagger_beta: float = 0.0) -> dict:
+def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") -> dict:
     """results.json's content from the evaluations under `out/eval`: per agent its title,
     intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
 
     A seed's BC rows come from `eval/conav_bc_s{s}` (its five BC runs as the ablations), a DAgger
-    row ("dagger", or "dagger_beta{share}" with the expert mixed in) from
-    `eval/conav_{row}_s{s}`; each row lists the seeds it was measured on. An evaluation of the
-    BC rows or of the run's own DAgger row (the expert's share `dagger_beta`) not made yet is
-    listed under "missing" and the tables say so; other DAgger rows appear where evaluated.
+    row (a `dagger_row` name: "dagger", "dagger_beta{share}" with the expert mixed in, either with
+    "_rounds{n}" for a round count other than the preset's) from `eval/conav_{row}_s{s}`; each row
+    lists the seeds it was measured on. An evaluation of the BC rows or of the run's own DAgger
+    row (`dagger`) not made yet is listed under "missing" and the tables say so; other DAgger rows
+    appear where evaluated.
     FileNotFoundError without the scripted agents' evaluation (nothing to tabulate)."""
     evals = Path(out) / "eval"
     if not (evals / "scripted" / "metrics.json").is_file():
@@ -283,7 +310,7 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger_beta: float = 0.0
     conav: dict[str, dict] = {}
     sources = [(BC_EVAL, lambda doc: {k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()}, True)]
     sources += [(CONAV_EVAL.format(row=row, seed="{}"), lambda doc, row=row: {row: doc["agents"]["conav"]},
-                 row == dagger_row(dagger_beta)) for row in dagger_rows(evals, dagger_beta)]
+                 row == dagger) for row in dagger_rows(evals, dagger)]
     for name, rows_of, planned in sources:
         for s in range(seeds):
             path = evals / name.format(s) / "metrics.json"
@@ -379,8 +406,9 @@ def render_tables(results: dict) -> str:
                 lines.append(f"| CoNav Agent (BC) | | not run yet | {not_run} |")
             daggers = [k for k in results["conav"] if k.startswith("dagger")]
             for name in daggers:
-                row, share = results["conav"][name], name.removeprefix("dagger_beta")
-                how = "BC + DAgger" + ("" if name == "dagger" else f", the expert acting at {share}^r of round r's steps")
+                row, (share, rounds) = results["conav"][name], dagger_variant(name)
+                how = ("BC + DAgger" + ("" if share == 0.0 else f", the expert acting at {share:g}^r of round r's steps")
+                       + ("" if rounds is None else f", {rounds} round{'s' * (rounds > 1)}"))
                 lines.append(f"| {row['title']} ({how}) | {', '.join(row['privileged']) or 'none'} | "
                              f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
             if not daggers:

@@ -157,7 +157,7 @@ def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_
         _write_eval(evals / f"conav_dagger_beta0.5_s{s}", _eval_doc({"conav": (30 + s, 40, 5, 6, 20, 100)}))
     _write_eval(evals / rp.DAGGER_EVAL.format(0), _eval_doc({"conav": (5, 50, 5, 6, 30, 100)}))
     (evals / "conav_daggerish_s0").mkdir()  # not a DAgger row's evaluation
-    mixed = rp.collect_results(tmp_path, 2, {"seeds": 2}, dagger_beta=0.5)
+    mixed = rp.collect_results(tmp_path, 2, {"seeds": 2}, dagger="dagger_beta0.5")
     assert [k for k in mixed["conav"] if k.startswith("dagger")] == ["dagger", "dagger_beta0.5"]
     assert set(mixed["conav"]["dagger_beta0.5"]["seeds"]) == {"0", "1"}
     # Only the run's own variant can be missing; the other is shown with the seeds it has.
@@ -167,6 +167,35 @@ def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps) | oracle map | "
                                "ours | 30.5 ± 0.7 [") for line in lines)
     assert "eval/conav_dagger_s1" in rp.collect_results(tmp_path, 2, {"seeds": 2})["missing"]
+
+
+def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(tmp_path):
+    runs, evals = tmp_path / "runs", tmp_path / "eval"
+    cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=1, dagger_beta=0.5, dagger_rounds=1)
+    assert (cfg.rounds, cfg.dagger) == (1, "dagger_beta0.5_rounds1")
+    train = {s.name: s for s in rp.plan_stages(cfg)}["dagger"].commands[1]
+    assert train[train.index("--dagger-rounds") + 1] == "1" and train[-1] == str(runs / "dagger_beta0.5_rounds1_s0")
+    # The preset's own count names no rounds: the runs made before the option keep their names.
+    same = rp.ReproduceConfig(out=tmp_path, preset="paper", dagger_rounds=rp.BUDGETS["paper"].dagger_rounds)
+    assert same.dagger == "dagger" and rp.dagger_row(0.0, 3) == "dagger_rounds3"
+    assert rp.dagger_variant("dagger_beta0.5_rounds1") == (0.5, 1) and rp.dagger_variant("daggerish") is None
+    with pytest.raises(ValueError, match="--dagger-rounds must be at least 1"):
+        rp.ReproduceConfig(out=tmp_path, dagger_rounds=0)
+
+    _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
+    for row, fasr in (("dagger", 5), ("dagger_beta0.5_rounds1", 25), ("dagger_beta0.5", 20), ("dagger_rounds1", 8)):
+        _write_eval(evals / f"conav_{row}_s0", _eval_doc({"conav": (fasr, 40, 5, 6, 20, 100)}))
+    results = rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
+    # By share, then round count, the preset's first.
+    assert [k for k in results["conav"] if k.startswith("dagger")] == [
+        "dagger", "dagger_rounds1", "dagger_beta0.5", "dagger_beta0.5_rounds1"]
+    lines = rp.render_tables(results).splitlines()
+    assert any(line.startswith("| T conav (BC + DAgger, 1 round) | oracle map | ours | 8.0 [") for line in lines)
+    assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps, 1 round) | "
+                               "oracle map | ours | 25.0 [") for line in lines)
+    (evals / "conav_dagger_beta0.5_rounds1_s0" / "metrics.json").unlink()
+    assert rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)["missing"][-1] == \
+        "eval/conav_dagger_beta0.5_rounds1_s0"
 
 
 @pytest.fixture
@@ -302,7 +331,8 @@ def test_every_planned_command_parses_into_a_valid_training_config(preset, tmp_p
     """Each stage's command line is one the real `conav` accepts, and its budget is a valid
     TrainConfig (e.g. at least the learning-rate warm-up's updates)."""
     parser = cli.build_parser()
-    mixed = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset=preset, seeds=1, dagger_beta=0.5))}
+    mixed = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset=preset, seeds=1, dagger_beta=0.5,
+                                                                   dagger_rounds=1))}
     for stage in [*rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset=preset, seeds=1)), mixed["dagger"]]:
         for argv in stage.commands:
             if argv[0] == "@copy":
