@@ -78,13 +78,15 @@ def _intention_args(p: argparse.ArgumentParser) -> None:
                    help="conav/ppo: feed the env's ground-truth intentions instead of predictions (privileged "
                    "upper bound, labelled so in every output)")
     p.add_argument("--pretrained", action="store_true",
-                   help="conav: the policy and intention predictor shipped with the package (trained on the paper "
-                   "preset at 32x128; conav_jax/pretrained/PROVENANCE.json) in place of --checkpoint/--intention")
+                   help="conav: the policy and the predictors it reads, shipped with the package (trained on the "
+                   "paper preset at 32x128; conav_jax/pretrained/PROVENANCE.json) in place of --checkpoint/"
+                   "--intention/--trajectory")
 
 
 def _use_pretrained(args: argparse.Namespace, agents: tuple[str, ...]) -> None:
-    """--pretrained: the conav agent's run and the intention predictor become the shipped ones
-    (ValueError when conav is not run, or --checkpoint / --intention would also name them)."""
+    """--pretrained: the conav agent's run and the predictors it reads become the shipped ones
+    (ValueError when conav is not run, or --checkpoint / --intention / --trajectory would also
+    name them)."""
     if not args.pretrained:
         return
     from conav_jax.pretrained import pretrained_runs
@@ -93,7 +95,7 @@ def _use_pretrained(args: argparse.Namespace, agents: tuple[str, ...]) -> None:
     if "conav" not in agents:
         raise ValueError("--pretrained is the conav agent's: add conav to --agent")
     if args.intention is not None or args.trajectory is not None or args.ground_truth_intentions:
-        raise ValueError("--pretrained brings its own intention predictor: drop --intention / --trajectory / "
+        raise ValueError("--pretrained brings its own predictors: drop --intention / --trajectory / "
                          "--ground-truth-intentions")
     runs = pretrained_runs()
     given = parse_checkpoints(args.checkpoint)
@@ -106,6 +108,7 @@ def _use_pretrained(args: argparse.Namespace, agents: tuple[str, ...]) -> None:
     args.checkpoint = (str(runs["policy"]) if len(checkpoint) == 1
                        else ",".join(f"{k}={v}" if k else v for k, v in checkpoint.items()))
     args.intention = str(runs["intention"])
+    args.trajectory = str(runs["trajectory"]) if "trajectory" in runs else None
 
 
 def _intention_kwargs(args: argparse.Namespace) -> dict:

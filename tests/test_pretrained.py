@@ -1,4 +1,4 @@
-"""The policy and intention predictor shipped with the package (conav_jax.pretrained) and the
+"""The policy and the predictors it reads, shipped with the package (conav_jax.pretrained), and the
 `--pretrained` flag of `conav eval` / `conav view` / `conav demo`."""
 
 import json
@@ -21,6 +21,12 @@ def test_the_shipped_runs_load_fit_the_size_limit_and_say_where_they_come_from()
     # It names no predictor run of the machine it was trained on: eval passes the shipped one.
     assert policy.config["intention_run"] is None and policy.config["trajectory_run"] is None
     assert load_checkpoint(files[1]).config["kind"] == "intention"
+    # Every predictor the policy reads is shipped beside it.
+    from envs.agents.policy import needed_predictors, policy_config_from_dict
+
+    model = policy_config_from_dict(policy.config["model"])
+    assert set(runs) == {"policy", *needed_predictors(model)} and "trajectory" in runs
+    assert load_checkpoint(latest_checkpoint(runs["trajectory"])).config["kind"] == "trajectory"
     prov = json.loads((pretrained.PRETRAINED_DIR / pretrained.PROVENANCE_FILE).read_text())
     assert prov["preset"] == "paper" and prov["resolution"] == "32x128" and "FASR" in prov["val_4962_episodes"]
     with pytest.raises(FileNotFoundError, match="missing from this install"):
@@ -33,11 +39,14 @@ def test_the_shipped_conav_agent_builds_for_its_panorama_and_refuses_another(tin
 
     runs = pretrained.pretrained_runs()
     env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=32, width=128)))
-    agent = make_agent("conav", env, runs["policy"], intention_run=runs["intention"])
+    predictors = {"intention_run": runs["intention"], "trajectory_run": runs["trajectory"]}
+    agent = make_agent("conav", env, runs["policy"], **predictors)
     assert agent.intention_source == "predicted"
+    with pytest.raises(ValueError, match="trajectory"):  # it reads the trajectory input: never ground truth instead
+        make_agent("conav", env, runs["policy"], intention_run=runs["intention"])
     small = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64)))
     with pytest.raises(ValueError, match="32x128|\\(32, 128\\)"):
-        make_agent("conav", small, runs["policy"], intention_run=runs["intention"])
+        make_agent("conav", small, runs["policy"], **predictors)
 
 
 def _eval_args(*extra):
@@ -49,6 +58,7 @@ def test_pretrained_flag_names_the_shipped_runs_and_refuses_to_mix_with_others()
     args = _eval_args("--agent", "random,conav", "--pretrained")
     _use_pretrained(args, ("random", "conav"))
     assert args.checkpoint == str(runs["policy"]) and args.intention == str(runs["intention"])
+    assert args.trajectory == str(runs["trajectory"])
     # A bare RUN stays the other learned agents'.
     args = _eval_args("--agent", "conav,imagegoal", "--pretrained", "--checkpoint", "runs/imagenav")
     _use_pretrained(args, ("conav", "imagegoal"))
@@ -56,14 +66,15 @@ def test_pretrained_flag_names_the_shipped_runs_and_refuses_to_mix_with_others()
     for agents, extra, match in ((("random",), (), "add conav"),
                                  (("conav",), ("--checkpoint", "runs/policy"), "drop its --checkpoint"),
                                  (("conav",), ("--checkpoint", "conav=runs/policy"), "drop its --checkpoint"),
-                                 (("conav",), ("--intention", "runs/intention"), "its own intention predictor"),
-                                 (("conav",), ("--ground-truth-intentions",), "its own intention predictor")):
+                                 (("conav",), ("--intention", "runs/intention"), "its own predictors"),
+                                 (("conav",), ("--trajectory", "runs/trajectory"), "its own predictors"),
+                                 (("conav",), ("--ground-truth-intentions",), "its own predictors")):
         args = _eval_args("--agent", ",".join(agents), "--pretrained", *extra)
         with pytest.raises(ValueError, match=match):
             _use_pretrained(args, agents)
     args = _eval_args("--agent", "conav")  # without the flag nothing changes
     _use_pretrained(args, ("conav",))
-    assert args.checkpoint is None and args.intention is None
+    assert args.checkpoint is None and args.intention is None and args.trajectory is None
 
 
 def test_the_demo_evaluates_and_records_the_shipped_policy_unless_told_not_to(tmp_path):
@@ -85,7 +96,7 @@ def test_export_writes_parameters_only_and_checks_the_pair_and_the_size(tmp_path
                     config={"kind": "policy", "intention_run": "/elsewhere/runs/intention", "trajectory_run": None})
     out = tmp_path / "shipped"
     size = pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "intention", {"what": "test"}, out)
-    assert size == sum(latest_checkpoint(out / n).stat().st_size for n in pretrained.PRETRAINED_RUNS)
+    assert size == sum(latest_checkpoint(d).stat().st_size for d in pretrained.pretrained_runs(out).values())
     assert load_checkpoint(latest_checkpoint(out / "intention")).opt_state is None
     assert load_checkpoint(latest_checkpoint(out / "policy")).config["intention_run"] is None
     assert pretrained.pretrained_runs(out)["policy"] == out / "policy"
@@ -102,3 +113,23 @@ def test_export_writes_parameters_only_and_checks_the_pair_and_the_size(tmp_path
         pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "intention", {}, out)
     assert load_checkpoint(latest_checkpoint(out / "policy")).step == 2  # the shipped runs stay as they were
     assert sorted(p.name for p in out.iterdir()) == ["PROVENANCE.json", "intention", "policy"]
+    # A policy that read a trajectory predictor ships it too, and only with it.
+    save_checkpoint(checkpoint_path(tmp_path / "runs" / "trajectory", 3), params=params, opt_state={"m": params},
+                    config={"kind": "trajectory"}, step=3)
+    save_checkpoint(checkpoint_path(tmp_path / "runs" / "policy", 4), params=params, opt_state=None, step=4,
+                    config={"kind": "policy", "intention_run": "runs/intention", "trajectory_run": "/x/runs/trajectory"})
+    with pytest.raises(ValueError, match="read the trajectory run"):
+        pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "intention", {}, out)
+    pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "intention", {}, out,
+                           trajectory_run=tmp_path / "runs" / "trajectory")
+    assert set(pretrained.pretrained_runs(out)) == {"policy", "intention", "trajectory"}
+    assert load_checkpoint(latest_checkpoint(out / "trajectory")).opt_state is None
+    assert load_checkpoint(latest_checkpoint(out / "policy")).config["trajectory_run"] is None
+    # ... and a policy that read none drops the one shipped before.
+    save_checkpoint(checkpoint_path(tmp_path / "runs" / "policy", 5), params=params, opt_state=None, step=5,
+                    config={"kind": "policy", "intention_run": "runs/intention", "trajectory_run": None})
+    with pytest.raises(ValueError, match="read the trajectory run None"):
+        pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "intention", {}, out,
+                               trajectory_run=tmp_path / "runs" / "trajectory")
+    pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "intention", {}, out)
+    assert set(pretrained.pretrained_runs(out)) == {"policy", "intention"}
