@@ -164,6 +164,12 @@ def test_pixel_categories_read_each_category_colour_and_nothing_else():
     # A colour one step away from a category's is not that category.
     off = _colour(CATEGORIES[5].rgb) + np.float32(1 / 255)
     assert int(policy.pixel_categories(off[None, None])[0, 0]) == -1
+    # Any other colour is no category, whatever it hashes to.
+    rng = np.random.default_rng(0)
+    q = rng.integers(0, 256, (4096, 3))
+    by_key = {(r * 256 + g) * 256 + b: i for i, (r, g, b) in enumerate(c.rgb for c in CATEGORIES)}
+    expected = [by_key.get((r * 256 + g) * 256 + b, -1) for r, g, b in q]
+    np.testing.assert_array_equal(np.asarray(policy.pixel_categories(_colour(q)[None]))[0], expected)
 
 
 def test_object_saliency_weights_pixels_by_their_category_probability():
