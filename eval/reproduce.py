@@ -134,10 +134,13 @@ def dagger_variant(row: str) -> tuple[float, int | None] | None:
     """(the expert's share, the round count or None) of a DAgger row named by `dagger_row`;
     None for any other name."""
     m = _DAGGER_ROW.fullmatch(row)
-    return None if m is None else (float(m.group(1) or 0.0), None if m.group(2) is None else int(m.group(2)))
+    try:
+        return None if m is None else (float(m.group(1) or 0.0), None if m.group(2) is None else int(m.group(2)))
+    except ValueError:  # not a number after "_beta"
+        return None
 
 
-_DAGGER_ROW = re.compile(r"dagger(?:_beta([01](?:\.[0-9]+)?))?(?:_rounds([0-9]+))?")
+_DAGGER_ROW = re.compile(r"dagger(?:_beta([0-9.e+-]+))?(?:_rounds([0-9]+))?")  # the shares `:g` writes
 
 
 @dataclass(frozen=True)

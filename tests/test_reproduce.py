@@ -179,6 +179,9 @@ def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(
     same = rp.ReproduceConfig(out=tmp_path, preset="paper", dagger_rounds=rp.BUDGETS["paper"].dagger_rounds)
     assert same.dagger == "dagger" and rp.dagger_row(0.0, 3) == "dagger_rounds3"
     assert rp.dagger_variant("dagger_beta0.5_rounds1") == (0.5, 1) and rp.dagger_variant("daggerish") is None
+    # Every share a row can be named by reads back, however `:g` writes it.
+    assert all(rp.dagger_variant(rp.dagger_row(b, 2)) == (b, 2) for b in (1.0, 0.25, 1e-05))
+    assert rp.dagger_variant("dagger_beta1e-05.") is None
     with pytest.raises(ValueError, match="--dagger-rounds must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, dagger_rounds=0)
 
