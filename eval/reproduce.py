@@ -67,7 +67,7 @@ class Budget:
     val_every: int | None = None
     eval_batch: int = 2048  # evaluation lanes
     # The CoNav policy's CNN dtype (`conav train policy --conv-dtype`): bfloat16 runs the 112x448
-    # update 1.57x faster on an H100 (BENCHMARKS.md); float32 keeps the small runs' commands.
+    # update 1.9x faster on an H100 (BENCHMARKS.md); float32 keeps the small runs' commands.
     policy_conv_dtype: str = "float32"
 
 
