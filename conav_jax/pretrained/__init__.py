@@ -17,7 +17,8 @@ from conav_jax import runs
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
 
 PRETRAINED_DIR = Path(__file__).resolve().parent
-PRETRAINED_RUNS = ("policy", "intention", "trajectory")  # the last only for a policy that reads it
+PRETRAINED_RUNS = ("policy", "intention", "trajectory")
+REQUIRED_RUNS = ("policy", "intention")  # the trajectory predictor ships with a policy that reads it
 PROVENANCE_FILE = "PROVENANCE.json"
 SIZE_LIMIT_BYTES = 5_000_000  # what the package may carry
 
@@ -26,12 +27,12 @@ def pretrained_runs(root: Path = PRETRAINED_DIR) -> dict[str, Path]:
     """{"policy": DIR, "intention": DIR[, "trajectory": DIR]}: the shipped runs (the trajectory
     predictor where shipped). FileNotFoundError naming what is missing (an install without the
     package data)."""
-    dirs = {name: Path(root) / name for name in PRETRAINED_RUNS}
-    missing = [str(dirs[name]) for name in PRETRAINED_RUNS[:2] if latest_checkpoint(dirs[name]) is None]
+    found = {name: Path(root) / name for name in PRETRAINED_RUNS if latest_checkpoint(Path(root) / name) is not None}
+    missing = [str(Path(root) / name) for name in REQUIRED_RUNS if name not in found]
     if missing:
         raise FileNotFoundError(f"the pretrained runs are missing from this install: {', '.join(missing)} "
                                 "(reinstall the package with its data)")
-    return {name: d for name, d in dirs.items() if latest_checkpoint(d) is not None}
+    return found
 
 
 def export_runs(policy_run: Path, intention_run: Path, provenance: dict, root: Path = PRETRAINED_DIR,
