@@ -13,7 +13,7 @@ from conav_jax.models import perceiver
 from conav_jax.models.perceiver import PerceiverConfig
 from conav_jax.nav.navigation import line_of_sight
 from conav_jax.runs import read_log
-from envs.agents.predictors import FrameSpec, intention_frame, load_intention_predictor
+from envs.agents.predictors import FrameSpec, intention_frame, load_intention_predictor, make_intention_predictor
 from envs.humanoid import capsule_colours
 from envs.panorama import front_view
 from train.intention import (
@@ -204,6 +204,35 @@ def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered,
     carry, _ = _run_predictor(strided, jax.tree.map(lambda x: jnp.concatenate([x, x[:1]]), obs))
     expected = -(-5 // strided.frame_stride)
     assert int(carry.num_frames) == expected == int(carry.num_predictions) and int(carry.t) == 5
+
+
+def test_under_vmap_each_lane_gets_what_it_gets_alone(tiny_data):
+    """A batch of envs at different steps: the Perceiver runs only where a lane records (in
+    chunks, several passes when most lanes record at once), and every lane's outputs and
+    carry are those of the same predictor stepped alone."""
+    model = PerceiverConfig(image_hw=(16, 16), dim=16, num_latents=4, num_heads=2, num_blocks=1)
+    predictor = make_intention_predictor(perceiver.init(jax.random.key(0), model), model, 4,
+                                         FrameSpec("front", (16, 64)), frame_stride=3, history=4, top_k=2)
+    lanes, steps = 9, 7
+    rgbd = jax.random.uniform(jax.random.key(1), (lanes, steps, 16, 64, 4), maxval=4.0)
+    obs = {"rgbd": rgbd, "human_pos": jnp.ones((lanes, steps, 2))}
+    # Seven lanes record on the first step (two passes of chunks of six), the others later.
+    starts = jnp.array([0] * 7 + [1, 2], jnp.int32)
+
+    def run(start, obs):
+        def body(carry, o):
+            act, obj, carry = predictor.step(carry, o)
+            return carry, (act, obj)
+        return jax.lax.scan(body, predictor.init()._replace(t=start), obs)
+
+    batched = jax.jit(jax.vmap(run))(starts, obs)
+    for lane in range(lanes):
+        alone = jax.jit(run)(starts[lane], jax.tree.map(lambda x: x[lane], obs))
+        for got, want in zip(jax.tree.leaves(batched), jax.tree.leaves(alone)):
+            np.testing.assert_allclose(got[lane], want, atol=1e-6, err_msg=f"lane {lane}")
+    carry, (act, _) = batched
+    assert np.asarray(carry.num_predictions).tolist() == [3] * 7 + [2, 2]
+    assert len({tuple(np.round(a, 4)) for a in np.asarray(act[:, -1])}) == lanes  # lanes saw different frames
 
 
 def test_the_predictor_refuses_bad_observations(intention_run, rendered):

@@ -104,6 +104,50 @@ def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Arr
     return buffer.at[jnp.minimum(count, size - 1)].set(item), jnp.minimum(count + 1, size)
 
 
+def _perceiver_when_recording(params, config: PerceiverConfig, transition, frame_stride: int):
+    """`perceive(record, frames (F, h, w, C) uint8, mask (F,)) -> (activity_probs, object_probs)`
+    for one env: the Perceiver's output where `record`, zeros where not (the caller keeps its
+    history then). An env records one step in `frame_stride`, so most calls skip it: alone by
+    `lax.cond`, and under vmap (where a per-lane `cond` would run both branches for every lane)
+    by running the Perceiver only on the recording lanes, gathered in chunks. Each lane's output
+    is what the Perceiver gives it in a full batch, to float rounding."""
+    shapes = (config.num_activities, config.num_objects)
+
+    def run(frames, mask):
+        return perceiver.intention_probs(config, perceiver.apply(params, config, frames, mask), transition)
+
+    @jax.custom_batching.custom_vmap
+    def perceive(record, frames, mask):
+        def recorded():
+            return tuple(x[0] for x in run(frames[None], mask[None]))
+        return jax.lax.cond(record, recorded, lambda: tuple(jnp.zeros(n, jnp.float32) for n in shapes))
+
+    @perceive.def_vmap
+    def _batched(axis_size, in_batched, record, frames, mask):
+        record, frames, mask = (x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
+                                for x, batched in zip((record, frames, mask), in_batched))
+        # Lanes drift apart in step once episodes refill, so a step records on about
+        # axis_size / frame_stride lanes: chunks twice that size take one pass on most steps.
+        chunk = min(axis_size, 2 * -(-axis_size // frame_stride))
+        passes = -(-axis_size // chunk)
+        lanes = jnp.nonzero(record, size=passes * chunk, fill_value=axis_size)[0]  # recording lanes first
+        count = jnp.sum(record)
+
+        def body(carry):
+            i, outs = carry
+            idx = jax.lax.dynamic_slice(lanes, (i * chunk,), (chunk,))
+            take = jnp.minimum(idx, axis_size - 1)
+            probs = run(frames[take], mask[take])
+            # Padding lanes point past the batch: their rows are dropped.
+            return i + 1, tuple(out.at[idx].set(p, mode="drop") for out, p in zip(outs, probs))
+
+        zeros = tuple(jnp.zeros((axis_size, n), jnp.float32) for n in shapes)
+        _, outs = jax.lax.while_loop(lambda c: c[0] * chunk < count, body, (jnp.zeros((), jnp.int32), zeros))
+        return outs, (True, True)
+
+    return perceive
+
+
 def make_intention_predictor(
     params, config: PerceiverConfig, frames: int, spec: FrameSpec, frame_stride: int = 1, history: int = 16,
     top_k: int = 5, transition: np.ndarray | None = None,
@@ -115,6 +159,7 @@ def make_intention_predictor(
     (perceiver.intention_routes)."""
     h, w = config.image_hw
     f32 = jnp.float32
+    perceive = _perceiver_when_recording(params, config, transition, frame_stride)
 
     def init() -> IntentionCarry:
         zero = jnp.zeros((), jnp.int32)
@@ -134,9 +179,7 @@ def make_intention_predictor(
         bad = carry.bad_input | (record & ~jnp.all(jnp.isfinite(human_pos)))
         buf, n = _push(carry.frames, carry.num_frames, frame)
         buf, n = jnp.where(record, buf, carry.frames), jnp.where(record, n, carry.num_frames)
-        mask = jnp.arange(frames) < n
-        logits = perceiver.apply(params, config, buf[None], mask[None])
-        act_p, obj_p = (x[0] for x in perceiver.intention_probs(config, logits, transition))
+        act_p, obj_p = perceive(record, buf, jnp.arange(frames) < n)
         # Only a new frame adds a prediction: repeated steps on the same buffer would
         # otherwise crowd the history with one prediction.
         act_h, m = _push(carry.activity_history, carry.num_predictions, act_p)
