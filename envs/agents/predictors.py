@@ -12,6 +12,7 @@ close over their parameters, are jittable and vmappable, and run inside the agen
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from functools import partial
 from pathlib import Path
 from typing import NamedTuple
 
@@ -104,28 +105,36 @@ def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Arr
     return buffer.at[jnp.minimum(count, size - 1)].set(item), jnp.minimum(count + 1, size)
 
 
-def _perceiver_when_recording(params, config: PerceiverConfig, transition, frame_stride: int):
-    """`perceive(record, frames (F, h, w, C) uint8, mask (F,)) -> (activity_probs, object_probs)`
-    for one env: the Perceiver's output where `record`, zeros where not (the caller keeps its
-    history then). An env records one step in `frame_stride`, so most calls skip it: alone by
-    `lax.cond`, and under vmap (where a per-lane `cond` would run both branches for every lane)
-    by running the Perceiver only on the recording lanes, gathered in chunks. Each lane's output
-    is what the Perceiver gives it in a full batch, to float rounding."""
+def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition, frame_stride: int):
+    """`record_frame(record, rgbd, human_pos, frames, num_frames) -> (frames, num_frames,
+    activity_probs, object_probs)` for one env: where `record`, the observation's frame
+    (`intention_frame`) pushed into the buffer and the Perceiver's output on it; where not, the
+    buffer as it was and zeros (the caller keeps its history then). An env records one step in
+    `frame_stride`, so most calls skip the crop, the push and the Perceiver: alone by `lax.cond`,
+    and under vmap (where a per-lane `cond` would run both branches on every lane) by running
+    them only on the recording lanes, gathered in chunks. Each lane's output is what the
+    Perceiver gives it in a full batch, to float rounding."""
     shapes = (config.num_activities, config.num_objects)
 
-    def run(frames, mask):
-        return perceiver.intention_probs(config, perceiver.apply(params, config, frames, mask), transition)
+    def record_lanes(rgbd, human_pos, frames, num_frames):  # (N, ...) each: N lanes that record
+        new = jax.vmap(lambda r, p: intention_frame(spec, config, r, p))(rgbd, human_pos)
+        frames, num_frames = jax.vmap(_push)(frames, num_frames, new)
+        mask = jnp.arange(frames.shape[1]) < num_frames[:, None]
+        probs = perceiver.intention_probs(config, perceiver.apply(params, config, frames, mask), transition)
+        return (frames, num_frames, *probs)
 
     @jax.custom_batching.custom_vmap
-    def perceive(record, frames, mask):
+    def record_frame(record, rgbd, human_pos, frames, num_frames):
         def recorded():
-            return tuple(x[0] for x in run(frames[None], mask[None]))
-        return jax.lax.cond(record, recorded, lambda: tuple(jnp.zeros(n, jnp.float32) for n in shapes))
+            return tuple(x[0] for x in record_lanes(*(x[None] for x in (rgbd, human_pos, frames, num_frames))))
+        return jax.lax.cond(record, recorded,
+                            lambda: (frames, num_frames, *(jnp.zeros(n, jnp.float32) for n in shapes)))
 
-    @perceive.def_vmap
-    def _batched(axis_size, in_batched, record, frames, mask):
-        record, frames, mask = (x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
-                                for x, batched in zip((record, frames, mask), in_batched))
+    @record_frame.def_vmap
+    def _batched(axis_size, in_batched, record, *args):
+        record, *args = (x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
+                         for x, batched in zip((record, *args), in_batched))
+        rgbd, human_pos, frames, num_frames = args
         # Lanes drift apart in step once episodes refill, so a step records on about
         # axis_size / frame_stride lanes: chunks twice that size take one pass on most steps.
         chunk = min(axis_size, 2 * -(-axis_size // frame_stride))
@@ -137,15 +146,15 @@ def _perceiver_when_recording(params, config: PerceiverConfig, transition, frame
             i, outs = carry
             idx = jax.lax.dynamic_slice(lanes, (i * chunk,), (chunk,))
             take = jnp.minimum(idx, axis_size - 1)
-            probs = run(frames[take], mask[take])
+            done = record_lanes(rgbd[take], human_pos[take], frames[take], num_frames[take])
             # Padding lanes point past the batch: their rows are dropped.
-            return i + 1, tuple(out.at[idx].set(p, mode="drop") for out, p in zip(outs, probs))
+            return i + 1, tuple(out.at[idx].set(x, mode="drop") for out, x in zip(outs, done))
 
-        zeros = tuple(jnp.zeros((axis_size, n), jnp.float32) for n in shapes)
-        _, outs = jax.lax.while_loop(lambda c: c[0] * chunk < count, body, (jnp.zeros((), jnp.int32), zeros))
-        return outs, (True, True)
+        outs = (frames, num_frames, *(jnp.zeros((axis_size, n), jnp.float32) for n in shapes))
+        _, outs = jax.lax.while_loop(lambda c: c[0] * chunk < count, body, (jnp.zeros((), jnp.int32), outs))
+        return outs, (True,) * len(outs)
 
-    return perceive
+    return record_frame
 
 
 def make_intention_predictor(
@@ -159,7 +168,7 @@ def make_intention_predictor(
     (perceiver.intention_routes)."""
     h, w = config.image_hw
     f32 = jnp.float32
-    perceive = _perceiver_when_recording(params, config, transition, frame_stride)
+    record_frame = _frame_recorder(params, config, spec, transition, frame_stride)
 
     def init() -> IntentionCarry:
         zero = jnp.zeros((), jnp.int32)
@@ -174,12 +183,14 @@ def make_intention_predictor(
             raise ValueError("the intention predictor steps on the env's observation of one env, a mapping "
                              "with 'rgbd' (H, W, 4) and 'human_pos' (2,)")
         rgbd, human_pos = jnp.asarray(obs["rgbd"]), jnp.asarray(obs["human_pos"])
+        # Bad input raises here, whether or not this step records: shapes always, a non-finite
+        # position outside jit (under jit it turns the outputs NaN, below).
+        jax.eval_shape(partial(intention_frame, spec, config), rgbd, human_pos)
+        if not isinstance(human_pos, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(human_pos))):
+            raise ValueError(f"human_pos must be finite, got {np.asarray(human_pos)}")
         record = carry.t % frame_stride == 0
-        frame = intention_frame(spec, config, rgbd, human_pos)
         bad = carry.bad_input | (record & ~jnp.all(jnp.isfinite(human_pos)))
-        buf, n = _push(carry.frames, carry.num_frames, frame)
-        buf, n = jnp.where(record, buf, carry.frames), jnp.where(record, n, carry.num_frames)
-        act_p, obj_p = perceive(record, buf, jnp.arange(frames) < n)
+        buf, n, act_p, obj_p = record_frame(record, rgbd, human_pos, carry.frames, carry.num_frames)
         # Only a new frame adds a prediction: repeated steps on the same buffer would
         # otherwise crowd the history with one prediction.
         act_h, m = _push(carry.activity_history, carry.num_predictions, act_p)
