@@ -206,10 +206,10 @@ def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered,
     assert int(carry.num_frames) == expected == int(carry.num_predictions) and int(carry.t) == 5
 
 
-def test_under_vmap_each_lane_gets_what_it_gets_alone(tiny_data):
-    """A batch of envs at different steps: the Perceiver runs only where a lane records (in
-    chunks, several passes when most lanes record at once), and every lane's outputs and
-    carry are those of the same predictor stepped alone."""
+def test_under_vmap_each_lane_gets_what_it_gets_alone():
+    """A batch of envs at different steps, whose recording lanes the batched predictor gathers
+    in chunks (two passes when most lanes record at once): every lane's outputs and carry are
+    those of the same predictor stepped alone."""
     model = PerceiverConfig(image_hw=(16, 16), dim=16, num_latents=4, num_heads=2, num_blocks=1)
     predictor = make_intention_predictor(perceiver.init(jax.random.key(0), model), model, 4,
                                          FrameSpec("front", (16, 64)), frame_stride=3, history=4, top_k=2)

@@ -3,8 +3,8 @@
 `load_intention_predictor(run)` turns a `conav train intention` run into a per-env, per-step
 predictor: the observation's panorama, cropped around the human (`obs["rgbd"]` at
 `obs["human_pos"]`, envs.human_crop; `intention_frame`, which also makes the training frames),
-goes into a frame ring buffer, the Perceiver reads it, and the output is the mean of the
-lowest-entropy recent predictions (paper sec. 4.2). `load_trajectory_predictor
+goes into a frame ring buffer every `frame_stride` steps, the Perceiver reads it on those
+steps, and the output is the mean of the lowest-entropy recent predictions (paper sec. 4.2). `load_trajectory_predictor
 (run)` turns a `conav train trajectory` run into `predict(history) -> next positions`. Both
 close over their parameters, are jittable and vmappable, and run inside the agents' `act`.
 """
