@@ -79,9 +79,9 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
     Runs `num_steps` steps; episodes that end earlier stay frozen (the env's contract), so
     the final metrics are each episode's result at its end."""
 
-    def one(params, key, episode):
+    def one(params, start):
         agent = agent_fn(params)
-        state, carry, k_run = _start(env, agent, key, episode)
+        state, carry, k_run = start
 
         def body(c, i):
             state, carry = c
@@ -96,7 +96,10 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
         return state.metrics, trace
 
     def run(params, key, episodes):
-        return jax.vmap(one, in_axes=(None, None, 0))(params, key, episodes)
+        # The start on its own: every carry leaf then enters the scan batched (a partly unbatched
+        # carry makes vmap trace the scan's body, the whole env step, again until it settles).
+        start = jax.vmap(lambda episode: _start(env, agent_fn(params), key, episode))(episodes)
+        return jax.vmap(one, in_axes=(None, 0))(params, start)
 
     return jit_with_bank(env, run)
 

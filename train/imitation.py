@@ -127,9 +127,12 @@ def make_rollout_fn(
         teacher_init, teacher_act = teacher.init, teacher.act
     steps = num_steps or env.bank.max_steps
 
-    def one(params, key, episode, beta):
-        k_reset, k_run = jax.random.split(key)
-        state = env.reset_to_episode(k_reset, episode)
+    def start(key, episode):
+        k_reset, _ = jax.random.split(key)
+        return env.reset_to_episode(k_reset, episode), teacher_init(k_reset, episode), pol.init()
+
+    def one(params, key, init, beta):
+        _, k_run = jax.random.split(key)
 
         def body(c, k):
             state, ecarry, pcarry = c
@@ -153,13 +156,16 @@ def make_rollout_fn(
                 rec = StepRecord(compact_obs(kept), label, action, state.done < 0.5, state.pipeline_state.qpos)
             return (env.step(state, action), ecarry, pcarry), rec
 
-        init = (state, teacher_init(k_reset, episode), pol.init())
         (state, _, _), recs = jax.lax.scan(body, init, jax.random.split(k_run, steps))
         return state.metrics, recs
 
     def run(params, key, episodes, beta):
         keys = jax.random.split(key, episodes.shape[0])
-        return jax.vmap(one, in_axes=(None, 0, 0, None))(params, keys, episodes, jnp.asarray(beta, jnp.float32))
+        # The start is vmapped on its own so that every carry leaf enters the scan batched (vmap
+        # stacks even the constant ones): vmap of a scan whose carry is partly unbatched traces
+        # its body again until the batched leaves settle, and this body is the whole env step.
+        init = jax.vmap(start)(keys, episodes)
+        return jax.vmap(one, in_axes=(None, 0, 0, None))(params, keys, init, jnp.asarray(beta, jnp.float32))
 
     return run
 
