@@ -96,8 +96,9 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
         return state.metrics, trace
 
     def run(params, key, episodes):
-        # The start on its own: every carry leaf then enters the scan batched (a partly unbatched
-        # carry makes vmap trace the scan's body, the whole env step, again until it settles).
+        # The start on its own: every carry leaf then enters the scan batched (for a partly
+        # unbatched carry, vmap batches the scan's body, the whole env step, again until the
+        # batched leaves settle: seconds of compile time).
         start = jax.vmap(lambda episode: _start(env, agent_fn(params), key, episode))(episodes)
         return jax.vmap(one, in_axes=(None, 0))(params, start)
 

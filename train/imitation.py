@@ -162,8 +162,8 @@ def make_rollout_fn(
     def run(params, key, episodes, beta):
         keys = jax.random.split(key, episodes.shape[0])
         # The start is vmapped on its own so that every carry leaf enters the scan batched (vmap
-        # stacks even the constant ones): vmap of a scan whose carry is partly unbatched traces
-        # its body again until the batched leaves settle, and this body is the whole env step.
+        # stacks even the constant ones): for a partly unbatched carry, vmap batches the scan's
+        # body, the whole env step, again until the batched leaves settle.
         init = jax.vmap(start)(keys, episodes)
         return jax.vmap(one, in_axes=(None, 0, 0, None))(params, keys, init, jnp.asarray(beta, jnp.float32))
 
