@@ -347,9 +347,10 @@ def apply_sequence(
     `(actions (B, T, 2), values (B, T), final_carry)`; equals calling `apply` step by step.
     The CNN runs once over all B*T frames; only the LSTM is scanned over time. With `remat`
     the CNN runs one time step at a time under `jax.checkpoint` and is recomputed for the
-    gradient: activation memory of B frames instead of B*T, for 1.7x the update's time at
-    32x128 on an H100 (112x448 windows of 32 steps do not fit an H100 at batch 256 without
-    it; with it they run at batch 1024; BENCHMARKS.md). `prepare` maps stored observations to
+    gradient: activation memory of B frames instead of B*T. On an H100 it cost 1.7x the
+    update's time at 32x128 (measured with an earlier loss); at 112x448 with the bfloat16
+    CNN it is the faster update (1.96x at batch 256), and float32 112x448 windows do not fit
+    at batch 256 without it (BENCHMARKS.md). `prepare` maps stored observations to
     the model's (e.g. compact uint8 panoramas to float rgbd); with `remat` it runs per step
     inside the checkpoint, so the widened frames never exist for all T steps at once."""
     prepare = prepare or (lambda obs: obs)
