@@ -350,7 +350,8 @@ def _add_train(sub) -> None:
     _add_imitation_args(p, "expert")
     p.add_argument("--remat", action="store_true",
                    help="recompute the CNN per window step in the backward pass: less memory (float32 112x448 windows "
-                   "at batch >= 256 need it on an H100), ~1.7x the update time")
+                   "at batch >= 256 need it on an H100); slower at 32x128, about 2x faster at 112x448 with "
+                   "--conv-dtype bfloat16 (BENCHMARKS.md)")
     p.add_argument("--conv-dtype", choices=sorted(CONV_DTYPES), default=PolicyConfig.conv_dtype,
                    help="dtype of the policy's convolutions and of the activations between them: bfloat16 halves the "
                    "CNN's memory traffic and runs it on tensor cores, accumulating in float32 (default float32; part "
