@@ -11,6 +11,7 @@ the devices.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -79,8 +80,7 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
     Runs `num_steps` steps; episodes that end earlier stay frozen (the env's contract), so
     the final metrics are each episode's result at its end."""
 
-    def one(params, start):
-        agent = agent_fn(params)
+    def one(agent, start):
         state, carry, k_run = start
 
         def body(c, i):
@@ -99,8 +99,9 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
         # The start on its own: every carry leaf then enters the scan batched (for a partly
         # unbatched carry, vmap batches the scan's body, the whole env step, again until the
         # batched leaves settle: seconds of compile time).
-        start = jax.vmap(lambda episode: _start(env, agent_fn(params), key, episode))(episodes)
-        return jax.vmap(one, in_axes=(None, 0))(params, start)
+        agent = agent_fn(params)
+        start = jax.vmap(lambda episode: _start(env, agent, key, episode))(episodes)
+        return jax.vmap(partial(one, agent))(start)
 
     return jit_with_bank(env, run)
 

@@ -128,11 +128,11 @@ def make_rollout_fn(
     steps = num_steps or env.bank.max_steps
 
     def start(key, episode):
-        k_reset, _ = jax.random.split(key)
-        return env.reset_to_episode(k_reset, episode), teacher_init(k_reset, episode), pol.init()
+        """(the scan's initial carry, the episode's step key)."""
+        k_reset, k_run = jax.random.split(key)
+        return (env.reset_to_episode(k_reset, episode), teacher_init(k_reset, episode), pol.init()), k_run
 
-    def one(params, key, init, beta):
-        _, k_run = jax.random.split(key)
+    def one(params, init, k_run, beta):
 
         def body(c, k):
             state, ecarry, pcarry = c
@@ -164,8 +164,8 @@ def make_rollout_fn(
         # The start is vmapped on its own so that every carry leaf enters the scan batched (vmap
         # stacks even the constant ones): for a partly unbatched carry, vmap batches the scan's
         # body, the whole env step, again until the batched leaves settle.
-        init = jax.vmap(start)(keys, episodes)
-        return jax.vmap(one, in_axes=(None, 0, 0, None))(params, keys, init, jnp.asarray(beta, jnp.float32))
+        init, k_runs = jax.vmap(start)(keys, episodes)
+        return jax.vmap(one, in_axes=(None, 0, 0, None))(params, init, k_runs, jnp.asarray(beta, jnp.float32))
 
     return run
 
