@@ -292,7 +292,7 @@ def _run_generate(args: argparse.Namespace) -> int:
 
 def _add_train(sub) -> None:
     from conav_jax.models.perceiver import PerceiverConfig
-    from conav_jax.models.policy import ABLATIONS, CONV_DTYPES, PolicyConfig
+    from conav_jax.models.policy import ABLATIONS, CONV_DTYPES, DEFAULT_ENCODER, ENCODERS, PolicyConfig
     from conav_jax.models.trajectory import TrajectoryConfig
     from train.intention import IntentionDataConfig
     from train.loop import TrainConfig
@@ -356,6 +356,10 @@ def _add_train(sub) -> None:
                    help="dtype of the policy's convolutions and of the activations between them: bfloat16 halves the "
                    "CNN's memory traffic and runs it on tensor cores, accumulating in float32 (default float32; part "
                    "of the run's model: a run resumes only with the value it began with)")
+    p.add_argument("--encoder", choices=sorted(ENCODERS), default=DEFAULT_ENCODER,
+                   help="the policy's panorama CNN: conv, stride-2 convolutions (every published run and the shipped "
+                   "policy), or patch, whose first layer embeds 4x4 pixel blocks (1.9x the 112x448 update on a GPU; "
+                   "part of the run's model, BENCHMARKS.md)")
     p.add_argument("--train-intentions", choices=TRAIN_INTENTIONS, default=d.train_intentions,
                    help="intention inputs in the training data: ground truth (the paper) or the predictor runs' outputs")
     p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
@@ -476,12 +480,12 @@ def _run_train_trajectory(args: argparse.Namespace) -> int:
 
 def _policy_model(args: argparse.Namespace):
     """The PolicyConfig a `conav train policy` command asks for."""
-    from conav_jax.models.policy import PolicyConfig, ablation_config
+    from conav_jax.models.policy import PolicyConfig, ablation_config, encoder_config
     from envs.agents.registry import run_resolution
 
     h, w = run_resolution([], args.resolution)
-    return ablation_config(PolicyConfig(image_hw=(h, w), object_saliency=args.object_saliency,
-                                        conv_dtype=args.conv_dtype), args.ablation)
+    base = PolicyConfig(image_hw=(h, w), object_saliency=args.object_saliency, conv_dtype=args.conv_dtype)
+    return ablation_config(encoder_config(base, args.encoder), args.ablation)
 
 
 def _run_train_policy(args: argparse.Namespace) -> int:
@@ -900,7 +904,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
 
 
 def _add_bench(sub) -> None:
-    from conav_jax.models.policy import CONV_DTYPES
+    from conav_jax.models.policy import CONV_DTYPES, DEFAULT_ENCODER, ENCODERS
     from envs.agents.registry import AGENTS
     from envs.config import SENSOR_KINDS
     from train.bench import DEFAULT_BATCH, SETUPS
@@ -961,6 +965,8 @@ def _add_bench(sub) -> None:
                    help="policy: encode one time step at a time under jax.checkpoint (less memory, more compute)")
     p.add_argument("--conv-dtype", choices=sorted(CONV_DTYPES), default="float32",
                    help="policy: dtype of the CNN's convolutions and activations (PolicyConfig.conv_dtype; float32 accumulation)")
+    p.add_argument("--encoder", choices=sorted(ENCODERS), default=None,
+                   help=f"policy: the panorama CNN (PolicyConfig's ENCODERS; default {DEFAULT_ENCODER})")
     p.add_argument("--json", action="store_true", help="print one JSON line per batch size")
     _devices_arg(p)
     p.set_defaults(func=_run_bench_train)
@@ -1098,11 +1104,13 @@ def _run_bench_train(args: argparse.Namespace) -> int:
 
     mesh = make_mesh(args.devices) if args.devices != 1 else None
     for batch in args.batch or [DEFAULT_BATCH[args.model]]:
-        res = bench_train(args.model, batch, args.resolution, args.steps, args.repeats, mesh, args.remat, args.conv_dtype)
+        res = bench_train(args.model, batch, args.resolution, args.steps, args.repeats, mesh, args.remat, args.conv_dtype,
+                          args.encoder)
         if args.json:
             print(json.dumps(res), flush=True)
         else:
-            shape = ", ".join(f"{k}={res[k]}" for k in ("resolution", "frames", "sequence", "history", "conv_dtype") if k in res)
+            shape = ", ".join(f"{k}={res[k]}" for k in ("resolution", "frames", "sequence", "history", "conv_dtype", "encoder")
+                              if k in res)
             print(f"{res['device']} {res['model']} batch={batch} {shape}: {res['samples_per_s']:,.0f} samples/s "
                   f"({res['updates_per_s']:.1f} updates/s, median of {args.repeats}; "
                   f"compile + first call {res['compile_and_first_call_s']} s)", flush=True)

@@ -12,7 +12,7 @@ import pytest
 
 from conav_jax.data.categories import CATEGORIES, FLOOR_RGB, WALL_RGB
 from conav_jax.models import policy
-from conav_jax.models.policy import PolicyConfig, ablation_config
+from conav_jax.models.policy import PolicyConfig, ablation_config, encoder_config
 
 # Tiny shapes on a 2-core CPU: LLVM's optimisation passes cost far more compile time than
 # they save at run time (3x faster compiles), so the tests' jits skip them.
@@ -143,6 +143,63 @@ def test_default_config_builds_for_the_112x448_panorama():
         lambda p, o, c: policy.apply(p, config, o, c), shapes, obs, policy.initial_carry(config, 3)
     )
     assert action.shape == (3, 2) and value.shape == (3,)
+
+
+# -- panorama encoders -------------------------------------------------------------------------
+
+
+def _convolutions(config, params, obs):
+    jaxpr = jax.make_jaxpr(policy.encode, static_argnums=1)(params, config, obs)
+    return [e for e in jaxpr.jaxpr.eqns if e.primitive.name == "conv_general_dilated"]
+
+
+def test_the_patch_encoder_reaches_the_conv_encoders_grid_with_a_patch_product_first():
+    conv, patch = (encoder_config(PolicyConfig(), name) for name in ("conv", "patch"))
+    shapes = {c: jax.eval_shape(lambda k, c=c: policy.init(k, c), jax.random.PRNGKey(0)) for c in (conv, patch)}
+    # 112x448 -> a 7x28 grid of 64 channels either way: the same projection to visual_dim.
+    assert shapes[patch]["visual"]["w"].shape == shapes[conv]["visual"]["w"].shape == (7 * 28 * 64, 256)
+    assert [c["w"].shape for c in shapes[patch]["convs"]] == [(4, 4, 5, 32), (3, 3, 32, 32), (3, 3, 32, 64)]
+    assert policy.encoder_name(conv) == "conv" and policy.encoder_name(patch) == "patch"
+    assert policy.encoder_name(CONFIG) == "custom" and conv == PolicyConfig()
+    # On a small panorama: the first layer runs as one product per 4x4 block, the rest convolve.
+    small = {c: dataclasses.replace(c, image_hw=(16, 64)) for c in (conv, patch)}
+    for c, expected in ((small[conv], 4), (small[patch], 2)):
+        params = jit(policy.init, static_argnums=1)(jax.random.PRNGKey(0), c)
+        assert len(_convolutions(c, params, _obs((B,)))) == expected
+        assert np.isfinite(jit(policy.encode, static_argnums=1)(params, c, _obs((B,)))).all()
+    with pytest.raises(ValueError, match="unknown encoder 'resnet'"):
+        encoder_config(PolicyConfig(), "resnet")
+    with pytest.raises(ValueError, match="one entry per conv layer"):
+        PolicyConfig(conv_strides=(4, 2))
+
+
+def test_runs_store_the_strides_only_for_the_patch_encoder_and_read_them_back():
+    import json
+
+    from envs.agents.policy import policy_config_from_dict
+
+    assert "conv_strides" not in policy.config_dict(PolicyConfig())  # runs before the field resume
+    patch = encoder_config(PolicyConfig(), "patch")
+    stored = json.loads(json.dumps(policy.config_dict(patch)))
+    assert stored["conv_strides"] == [4, 2, 2] and policy_config_from_dict(stored) == patch
+
+
+@pytest.mark.parametrize("flag, encoder", [([], "conv"), (["--encoder", "patch"], "patch")])
+def test_train_policy_flag_sets_the_encoder_of_the_runs_model(flag, encoder, monkeypatch, tmp_path):
+    from eval.cli import build_parser
+    from train import policy as train_policy_mod
+
+    seen = {}
+
+    def fake_train_policy(data, out, cfg, model, imitation, **kw):
+        seen.update(model=model)
+        return train_policy_mod.PolicyResult({}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, tmp_path)
+
+    monkeypatch.setattr(train_policy_mod, "train_policy", fake_train_policy)
+    args = build_parser().parse_args(["train", "policy", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
+                                      "--resolution", "16x64", "--ablation", "object", *flag])
+    assert args.func(args) == 0
+    assert policy.encoder_name(seen["model"]) == encoder and seen["model"].use_object and not seen["model"].use_activity
 
 
 # -- the object saliency channel ---------------------------------------------------------------

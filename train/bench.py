@@ -56,14 +56,16 @@ def _intention_setup(key, batch: int, resolution):
     return perceiver.init(k_p, config), data, loss, {"resolution": f"{h}x{w}", "frames": frames}
 
 
-def _policy_setup(key, batch: int, resolution, remat: bool = False, conv_dtype: str = "float32"):
+def _policy_setup(key, batch: int, resolution, remat: bool = False, conv_dtype: str = "float32",
+                  encoder: str | None = None):
     """Windows as `conav train policy` stores them (compact uint8 RGB, float16 depth; every
     step in the loss) and its loss, train.imitation.bc_loss, with the CNN's convolutions in
-    `conv_dtype` (PolicyConfig.conv_dtype)."""
+    `conv_dtype` (PolicyConfig.conv_dtype) and the panorama encoder `encoder` (ENCODERS)."""
     from conav_jax.models import policy
     from train.imitation import bc_loss
 
-    config = policy.PolicyConfig(image_hw=resolution, conv_dtype=conv_dtype)
+    encoder = encoder or policy.DEFAULT_ENCODER
+    config = policy.encoder_config(policy.PolicyConfig(image_hw=resolution, conv_dtype=conv_dtype), encoder)
     t = POLICY_SEQUENCE
     ks = jax.random.split(key, 8)
     n = batch  # sequences of panoramas are large: (n, T, H, W, 3) uint8 + (n, T, H, W) float16
@@ -85,26 +87,26 @@ def _policy_setup(key, batch: int, resolution, remat: bool = False, conv_dtype: 
     loss = lambda p, b, k: bc_loss(p, config, b, remat)
     h, w = resolution
     return policy.init(ks[7], config), data, loss, {"resolution": f"{h}x{w}", "sequence": t, "remat": remat,
-                                                    "conv_dtype": conv_dtype}
+                                                    "conv_dtype": conv_dtype, "encoder": encoder}
 
 
 SETUPS = {"trajectory": _trajectory_setup, "intention": _intention_setup, "policy": _policy_setup}
 
 
 def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int, repeats: int, mesh=None,
-                remat: bool = False, conv_dtype: str = "float32") -> dict:
+                remat: bool = False, conv_dtype: str = "float32", encoder: str | None = None) -> dict:
     """Time `steps` updates of `model` at `batch` samples (split over `mesh`'s devices if given,
     data and parameters replicated, as train.loop runs them); returns a dict of figures. The
-    policy's `remat` and `conv_dtype` as train.policy and PolicyConfig take them."""
+    policy's `remat`, `conv_dtype` and `encoder` as train.policy and PolicyConfig take them."""
     if model not in SETUPS:
         raise ValueError(f"unknown model {model!r}; choose from {sorted(SETUPS)}")
     if batch <= 0 or steps <= 0 or repeats <= 0:
         raise ValueError(f"batch, steps and repeats must be > 0, got {batch}, {steps}, {repeats}")
     if mesh is not None:
         check_divisible(batch, mesh)
-    if (remat or conv_dtype != "float32") and model != "policy":
-        raise ValueError("--remat and --conv-dtype apply to the policy model")
-    extra = {"remat": remat, "conv_dtype": conv_dtype} if model == "policy" else {}
+    if (remat or conv_dtype != "float32" or encoder is not None) and model != "policy":
+        raise ValueError("--remat, --conv-dtype and --encoder apply to the policy model")
+    extra = {"remat": remat, "conv_dtype": conv_dtype, "encoder": encoder} if model == "policy" else {}
     params, data, loss, shape_info = SETUPS[model](jax.random.PRNGKey(0), batch, resolution, **extra)
     cfg = TrainConfig(steps=steps * (repeats + 1), batch=batch, warmup_steps=0)
     optimizer = make_optimizer(cfg)

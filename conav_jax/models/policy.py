@@ -43,6 +43,18 @@ Obs = dict[str, jax.Array]
 # PolicyConfig.conv_dtype -> conav_jax.nn.conv's compute_dtype (None: no cast, float32 throughout).
 CONV_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
 
+# Panorama encoders, as (conv_channels, conv_kernels, conv_strides) of PolicyConfig. "conv":
+# stride-2 convolutions, the network of every run in results/ and of the shipped policy.
+# "patch": the first layer embeds each 4x4 pixel block by one linear map (kernel = stride = 4)
+# in place of the first two stride-2 convolutions, to the same grid (a 16th of each side, 64
+# channels) with a third of the convolution work: 1.9x the 112x448 imitation update on a GPU
+# (BENCHMARKS.md).
+ENCODERS = {
+    "conv": ((16, 32, 32, 64), (5, 3, 3, 3), None),
+    "patch": ((32, 32, 64), (4, 3, 3), (4, 2, 2)),
+}
+DEFAULT_ENCODER = "conv"
+
 ABLATIONS = {
     # name: (use_activity, use_object, use_trajectory), rows 1-5 of the paper's Table 3
     "none": (False, False, False),
@@ -58,8 +70,12 @@ class PolicyConfig:
     """Sizes and input switches of the CoNav policy."""
 
     image_hw: tuple[int, int] = (112, 448)  # panorama (H, W) in pixels
-    conv_channels: tuple[int, ...] = (16, 32, 32, 64)  # one stride-2 SAME conv per entry
-    conv_kernels: tuple[int, ...] = (5, 3, 3, 3)
+    # The panorama CNN, one SAME conv per entry (ENCODERS); a layer whose kernel equals its
+    # stride embeds non-overlapping patches (conav_jax.nn.conv). Strides None: 2 for each
+    # layer, as every run had before strides could be set.
+    conv_channels: tuple[int, ...] = ENCODERS[DEFAULT_ENCODER][0]
+    conv_kernels: tuple[int, ...] = ENCODERS[DEFAULT_ENCODER][1]
+    conv_strides: tuple[int, ...] | None = ENCODERS[DEFAULT_ENCODER][2]
     visual_dim: int = 256  # flattened CNN features -> this width
     state_dim: int = 32  # pose + human position embedding width
     intention_dim: int = 32  # embedding width of each enabled intention input
@@ -94,6 +110,9 @@ class PolicyConfig:
     conv_dtype: str = "float32"
 
     def __post_init__(self):
+        if not len(self.conv_channels) == len(self.conv_kernels) == len(self.strides) or min(self.strides, default=1) < 1:
+            raise ValueError("conv_channels, conv_kernels and conv_strides need one entry per conv layer, strides >= 1; "
+                             f"got {self.conv_channels}, {self.conv_kernels}, {self.conv_strides}")
         if self.conv_dtype not in CONV_DTYPES:
             raise ValueError(f"unknown conv_dtype {self.conv_dtype!r}; expected one of {sorted(CONV_DTYPES)}")
         if self.uses_saliency and (self.saliency_sectors < 1 or self.image_hw[1] % self.saliency_sectors):
@@ -101,6 +120,11 @@ class PolicyConfig:
         if self.goal_image and (len(self.goal_conv_channels) != len(self.goal_conv_kernels) or self.image_hw[1] % 4):
             raise ValueError("goal_conv_channels and goal_conv_kernels need one entry per conv layer, and the goal "
                              f"image (a quarter of the panorama) a width divisible by 4, got {self.image_hw[1]}")
+
+    @property
+    def strides(self) -> tuple[int, ...]:
+        """The panorama CNN's stride per layer (conv_strides, or 2 each)."""
+        return self.conv_strides if self.conv_strides is not None else (2,) * len(self.conv_channels)
 
     @property
     def conv_compute_dtype(self):
@@ -121,7 +145,8 @@ class PolicyConfig:
 # Fields added after runs were written: a run's config stores them only where they differ from
 # their defaults (`config_dict`), so a run written before them still resumes (its stored config
 # compares equal), and `envs.agents.policy.policy_config_from_dict` fills in the defaults.
-LATER_FIELDS = ("use_human_pos", "goal_image", "goal_conv_channels", "goal_conv_kernels", "goal_dim", "conv_dtype")
+LATER_FIELDS = ("use_human_pos", "goal_image", "goal_conv_channels", "goal_conv_kernels", "goal_dim", "conv_dtype",
+                "conv_strides")
 # The goal encoder's keys come from this fold of init's key, so configs without a goal image
 # draw every other parameter exactly as before the goal input existed.
 _GOAL_KEY_FOLD = 0x60A1
@@ -142,6 +167,24 @@ def ablation_config(base: PolicyConfig, name: str) -> PolicyConfig:
         raise ValueError(f"unknown ablation {name!r}; expected one of {sorted(ABLATIONS)}")
     act, obj, traj = ABLATIONS[name]
     return dataclasses.replace(base, use_activity=act, use_object=obj, use_trajectory=traj)
+
+
+def encoder_config(base: PolicyConfig, name: str) -> PolicyConfig:
+    """`base` with the panorama encoder `name` of ENCODERS."""
+    if name not in ENCODERS:
+        raise ValueError(f"unknown encoder {name!r}; expected one of {sorted(ENCODERS)}")
+    channels, kernels, strides = ENCODERS[name]
+    return dataclasses.replace(base, conv_channels=channels, conv_kernels=kernels, conv_strides=strides)
+
+
+def encoder_name(config: PolicyConfig) -> str:
+    """The ENCODERS name of `config`'s panorama CNN, "custom" for any other."""
+    layers = (config.conv_channels, config.conv_kernels, config.strides)
+    for name in ENCODERS:
+        named = encoder_config(PolicyConfig(), name)
+        if (named.conv_channels, named.conv_kernels, named.strides) == layers:
+            return name
+    return "custom"
 
 
 def _intention_inputs(config: PolicyConfig) -> dict[str, int]:
@@ -210,23 +253,22 @@ def saliency_bearing(config: PolicyConfig, saliency: jax.Array, depth_m: jax.Arr
     return jnp.concatenate([peak, near], axis=-1)
 
 
-def _conv_stack(params: list, x: jax.Array, compute_dtype=None) -> jax.Array:
-    """Stride-2 SAME convs with ReLU: `(..., H, W, C) -> (..., ~H / 2^n, ~W / 2^n, C_last)`,
-    float32 out. With `compute_dtype` (conav_jax.nn.conv.apply's) the activations between the
-    layers are in it, and the first layer, whose few input channels starve GPU convolution
-    kernels, runs over 2x2 pixel blocks when the image's sides are even (the same sums, faster;
-    BENCHMARKS.md)."""
-    for i, layer in enumerate(params):
-        blocks = compute_dtype is not None and i == 0 and x.shape[-3] % 2 == 0 and x.shape[-2] % 2 == 0
-        x = jax.nn.relu(nn.conv.apply(layer, x, stride=2, padding="SAME", compute_dtype=compute_dtype,
+def _conv_stack(params: list, x: jax.Array, compute_dtype=None, strides: tuple[int, ...] | None = None) -> jax.Array:
+    """SAME convs with ReLU at `strides` (default 2 each): `(..., H, W, C) -> (..., ~H / prod,
+    ~W / prod, C_last)`, float32 out. With `compute_dtype` (conav_jax.nn.conv.apply's) the
+    activations between the layers are in it, and a stride-2 first layer, whose few input
+    channels starve GPU convolution kernels, runs over 2x2 pixel blocks when the image's sides
+    are even (the same sums, faster; BENCHMARKS.md)."""
+    strides = strides or (2,) * len(params)
+    for i, (layer, stride) in enumerate(zip(params, strides, strict=True)):
+        blocks = compute_dtype is not None and i == 0 and stride == 2 and x.shape[-3] % 2 == 0 and x.shape[-2] % 2 == 0
+        x = jax.nn.relu(nn.conv.apply(layer, x, stride=stride, padding="SAME", compute_dtype=compute_dtype,
                                       space_to_depth=blocks))
     return x.astype(jnp.float32)
 
 
 def init(key: jax.Array, config: PolicyConfig) -> Params:
     """Parameters for `config`; the CNN output size is derived by shape evaluation."""
-    if len(config.conv_channels) != len(config.conv_kernels):
-        raise ValueError("conv_channels and conv_kernels need one entry per conv layer")
     intentions = _intention_inputs(config)
     keys = iter(jax.random.split(key, len(config.conv_channels) + 6 + len(intentions)))
     in_ch = (4 + config.uses_saliency, *config.conv_channels[:-1])
@@ -235,7 +277,7 @@ def init(key: jax.Array, config: PolicyConfig) -> Params:
         for i, o, k in zip(in_ch, config.conv_channels, config.conv_kernels)
     ]
     image = jax.ShapeDtypeStruct((1, *config.image_hw, in_ch[0]), jnp.float32)
-    _, fh, fw, fc = jax.eval_shape(_conv_stack, convs, image).shape
+    _, fh, fw, fc = jax.eval_shape(lambda p, x: _conv_stack(p, x, strides=config.strides), convs, image).shape
     lstm_in = config.visual_dim + config.state_dim + config.intention_dim * (len(intentions) + config.uses_saliency)
     lstm_in += config.goal_dim if config.goal_image else 0
     saliency_key = next(keys)  # its place in the key order is the one the README's runs were initialised with
@@ -283,7 +325,7 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
         saliency = object_saliency(rgbd[..., :3], obs["object_probs"].astype(jnp.float32))
         channels.append(saliency[..., None])
     image = jnp.concatenate(channels, axis=-1)
-    feat = _conv_stack(params["convs"], image, config.conv_compute_dtype)
+    feat = _conv_stack(params["convs"], image, config.conv_compute_dtype, config.strides)
     feat = feat.reshape(*feat.shape[:-3], -1)
     visual = jax.nn.relu(nn.linear.apply(params["visual"], feat))
 

@@ -3,6 +3,11 @@
 Kernel `w (kh, kw, C_in, C_out)` (HWIO), bias `b (C_out,)`; stride and padding are chosen at
 apply time so the params stay arrays only. Built on `lax.conv_general_dilated`.
 
+A convolution whose kernel equals its stride over an image it tiles exactly (SAME padding adds
+nothing then) embeds non-overlapping patches: it runs as one matrix product over each patch's
+pixels (`_conv_patches`), the same sums, where GPU convolution kernels starve on few input
+channels.
+
 Mixed precision (`compute_dtype`, e.g. bfloat16): the image, kernel and bias are rounded to it
 and the output is in it, so a stack of such layers passes bfloat16 activations; GPU convolution
 kernels accumulate bfloat16 products in float32. Parameters stay float32 (their gradients come
@@ -91,6 +96,22 @@ def _conv_space_to_depth(x: jax.Array, w: jax.Array) -> jax.Array:
                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
+def _tiles(kernel: tuple[int, int], stride: tuple[int, int], padding: Padding, image: tuple[int, ...]) -> bool:
+    """Whether a convolution is a patch embedding: kernel == stride, and the image's sides are
+    multiples of it (no padding under SAME or VALID, no pixel left over)."""
+    return kernel == stride and image[0] % stride[0] == 0 and image[1] % stride[1] == 0
+
+
+def _conv_patches(x: jax.Array, w: jax.Array) -> jax.Array:
+    """The convolution of `x (N, H, W, C)` by `w (kh, kw, C, O)` at stride (kh, kw), H and W
+    multiples of them: each kh x kw patch, flattened row by row as the kernel is, times the
+    flattened kernel."""
+    n, h, wd, c = x.shape
+    kh, kw, _, o = w.shape
+    patches = x.reshape(n, h // kh, kh, wd // kw, kw, c).transpose(0, 1, 3, 2, 4, 5)
+    return jnp.dot(patches.reshape(n, h // kh, wd // kw, kh * kw * c), w.reshape(kh * kw * c, o))
+
+
 def apply(
     params: Params,
     x: jax.Array,
@@ -102,7 +123,8 @@ def apply(
 ) -> jax.Array:
     """`x (..., H, W, C_in) -> (..., H', W', C_out)`; leading dims are flattened into one batch.
 
-    SAME: `H' = ceil(H / stride)`; VALID: `H' = (H - kh) // stride + 1`. `compute_dtype`
+    SAME: `H' = ceil(H / stride)`; VALID: `H' = (H - kh) // stride + 1`. A kernel equal to
+    its stride over an image it tiles runs as a patch embedding (module docstring). `compute_dtype`
     (e.g. `jnp.bfloat16`): the image and kernel are rounded to it and the output and bias are
     in it (module docstring); None: it runs in the dtype of `x` and the params.
     `space_to_depth`: a stride-2 SAME convolution of an image with even H and W runs as a
@@ -119,6 +141,8 @@ def apply(
             raise ValueError("space_to_depth needs a stride-2 SAME convolution of an image with even height and "
                              f"width; got stride {stride}, {padding}, image {image[0]}x{image[1]}")
         y = _conv_space_to_depth(x, w)
+    elif _tiles(w.shape[:2], _pair(stride), padding, image):
+        y = _conv_patches(x, w)
     else:
         y = _conv(x, w, _pair(stride), padding)
     y = y + b
