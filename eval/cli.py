@@ -771,6 +771,7 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 
 def _add_reproduce(sub) -> None:
+    from conav_jax.models.policy import ENCODERS
     from eval.reproduce import BUDGETS, STAGES, ReproduceConfig
 
     d = {f.name: f.default for f in dataclasses.fields(ReproduceConfig)}
@@ -799,6 +800,10 @@ def _add_reproduce(sub) -> None:
                    help="DAgger rounds after BC (default: the preset's, " +
                         ", ".join(f"{k} {b.dagger_rounds}" for k, b in BUDGETS.items()) +
                         "); another count trains and evaluates runs of its own (runs/dagger[_betaP]_roundsN_s*)")
+    p.add_argument("--encoder", choices=sorted(ENCODERS), default=d["encoder"],
+                   help="the CoNav policy's panorama encoder in every BC and DAgger run (`conav train policy "
+                        f"--encoder`; default {d['encoder']}, the published runs'; patch trains about 2x faster at "
+                        "112x448); one OUT directory holds one encoder")
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
@@ -826,7 +831,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
 
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
-                             dagger_rounds=args.dagger_rounds)
+                             dagger_rounds=args.dagger_rounds, encoder=args.encoder)
     cfg.out.mkdir(parents=True, exist_ok=True)
     if args.unpack:
         print(f"unpacked {len(rp.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
@@ -881,6 +886,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                 return rc
         if st.name == "tables":
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
+                     "encoder": cfg.encoder,
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
                      "stage_seconds": rp.stage_seconds(plan, progress, cfg.out), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}

@@ -18,6 +18,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from conav_jax.models.policy import DEFAULT_ENCODER, ENCODERS
 from envs.metrics import METRIC_NAMES
 
 STAGES = ("generate", "predictors", "baselines", "bc", "dagger", "eval", "tables", "pack")
@@ -97,6 +98,10 @@ class ReproduceConfig:
     # DAgger rounds after BC (`conav train policy --dagger-rounds`); None: the preset's budget. Other
     # counts, like other shares, train and evaluate runs of their own name.
     dagger_rounds: int | None = None
+    # The CoNav policy's panorama encoder (`conav train policy --encoder`, PolicyConfig's
+    # ENCODERS) in every BC and DAgger run; one OUT directory holds one encoder, as it holds one
+    # resolution. The default's commands are those of the runs in results/.
+    encoder: str = DEFAULT_ENCODER
 
     def __post_init__(self):
         if self.preset not in BUDGETS:
@@ -107,6 +112,8 @@ class ReproduceConfig:
             raise ValueError(f"--dagger-beta is a probability in [0, 1], got {self.dagger_beta}")
         if self.dagger_rounds is not None and self.dagger_rounds < 1:
             raise ValueError(f"--dagger-rounds must be at least 1, got {self.dagger_rounds}")
+        if self.encoder not in ENCODERS:
+            raise ValueError(f"unknown --encoder {self.encoder!r}; choose from {', '.join(sorted(ENCODERS))}")
 
     @property
     def budget(self) -> Budget:
@@ -224,7 +231,8 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     policy = ("--data", str(data), "--intention", str(intention), "--trajectory", str(trajectory),
               "--train-intentions", "predicted", "--resolution", res, "--steps", str(b.policy_steps),
               "--batch", str(b.policy_batch), *(("--episodes", str(b.policy_episodes)) if b.policy_episodes else ()),
-              *(("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()), *validated)
+              *(("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()),
+              *(("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()), *validated)
     bc = [("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(runs / f"bc_{a}_s{s}"))
           for s in range(cfg.seeds) for a in ABLATIONS]
     stages.append(Stage("bc", tuple(bc), tuple(runs / f"bc_{a}_s{s}" / "log.jsonl" for s in range(cfg.seeds) for a in ABLATIONS)))
@@ -386,7 +394,9 @@ def render_tables(results: dict) -> str:
         "# CoNav: the paper's Tables 2 and 3, reproduced",
         "",
         f"Data: preset `{results.get('preset', '?')}`, split val ({results.get('episodes', '?')} episodes), panorama "
-        f"{results.get('resolution', '?')}; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "
+        f"{results.get('resolution', '?')}"
+        + (f" (the CoNav policy's panorama encoder: `{results['encoder']}`)" if "encoder" in results else "")
+        + f"; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "
         f"commit {results.get('commit', '?')}. Rates and SPLs in percent, AS in steps. Learned rows: mean ± sd over "
         "seeds [pooled 95% interval] (a row measured on fewer seeds says which). CR counts contacts up to the "
         "first reach (the paper's), CR_full up to the end of activity B. Paper: the published figures (a different simulator, scenes and agents' "

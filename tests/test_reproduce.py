@@ -60,6 +60,32 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
         rp.ReproduceConfig(out=tmp_path, seeds=0)
 
 
+def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_path, capsys):
+    plain = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1))}
+    patch = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1,
+                                                                  encoder="patch"))}
+    policy_runs = [argv for name in ("bc", "dagger") for argv in patch[name].commands if argv[0] == "train"]
+    assert len(policy_runs) == len(rp.ABLATIONS) + 1
+    parser = cli.build_parser()
+    for argv in policy_runs:
+        assert argv[argv.index("--encoder") + 1] == "patch"
+        assert cli._policy_model(parser.parse_args(list(argv))).conv_strides == (4, 2, 2)
+    # Nothing else changes: the default's commands are those of the published runs.
+    assert not any("--encoder" in argv for st in plain.values() for argv in st.commands)
+    for name in plain:
+        assert [tuple(a for a in argv if a not in ("--encoder", "patch")) for argv in patch[name].commands] == \
+            list(plain[name].commands)
+    with pytest.raises(ValueError, match="unknown --encoder 'resnet'"):
+        rp.ReproduceConfig(out=tmp_path, encoder="resnet")
+    # The command line passes it on.
+    assert cli.main(["--compile-cache", "off", "reproduce", "--preset", "tiny", "--seeds", "1", "--out",
+                     str(tmp_path / "out"), "--encoder", "patch", "--dry-run"]) == 0
+    assert capsys.readouterr().out.count("--encoder patch") == len(policy_runs)
+    results = {"preset": "small", "seeds": 1, "resolution": "112x448", "agents": {}, "conav": {}}
+    assert "encoder" not in rp.render_tables(results)  # results.json files written before the key
+    assert "panorama 112x448 (the CoNav policy's panorama encoder: `patch`);" in rp.render_tables({**results, "encoder": "patch"})
+
+
 def test_learned_cells_are_the_mean_and_sd_over_seeds_with_the_pooled_interval():
     row = {"title": "CoNav", "privileged": [], "seeds": {
         "0": {"metrics": _metrics((10, 20, 5, 6, 30, 100)), "episodes": 100},
