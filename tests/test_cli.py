@@ -39,6 +39,28 @@ def test_the_demos_commands_parse_and_its_predictor_crops_the_policys_panorama(t
     assert tuple(parsed[("train", "intention")].sensor) == tuple(parsed[("train", "policy")].resolution) == (16, 64)
 
 
+def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, monkeypatch):
+    """As a fresh `conav` process would: a stage lowering functions traced by an earlier stage
+    gets other compile-cache keys than a later run of the command, which then compiles again."""
+    import jax
+
+    from eval import cli
+    from eval.demo import demo_commands
+
+    events = []
+    monkeypatch.setattr(jax, "clear_caches", lambda: events.append("clear"))
+    monkeypatch.setattr(cli, "main", lambda argv, compile_cache=True: events.append(tuple(argv)) or 0)
+    args = cli.build_parser().parse_args(["demo", "--out", str(tmp_path / "demo")])
+    assert cli._run_demo(args) == 0
+    stages = demo_commands(tmp_path / "demo", args.seed, "x".join(map(str, args.resolution)), args.pretrained)
+    assert events == [x for argv in stages for x in ("clear", tuple(argv))]
+    events.clear()
+    args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--out", str(tmp_path / "r"), "--stage",
+                                          "generate"])
+    cli._run_reproduce(args)
+    assert events[0] == "clear" and events[1][0] == "generate"
+
+
 def test_output_read_only_in_part_stops_without_a_traceback(tmp_path):
     import subprocess
     import sys
