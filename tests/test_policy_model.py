@@ -145,6 +145,25 @@ def test_default_config_builds_for_the_112x448_panorama():
     assert action.shape == (3, 2) and value.shape == (3,)
 
 
+def _trained_policy_model(flag, monkeypatch, tmp_path):
+    """(PolicyConfig, ImitationConfig) that `conav train policy ... --ablation object FLAG`
+    hands to train.policy.train_policy (replaced by a recorder)."""
+    from eval.cli import build_parser
+    from train import policy as train_policy_mod
+
+    seen = {}
+
+    def fake_train_policy(data, out, cfg, model, imitation, **kw):
+        seen.update(model=model, imitation=imitation)
+        return train_policy_mod.PolicyResult({}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, tmp_path)
+
+    monkeypatch.setattr(train_policy_mod, "train_policy", fake_train_policy)
+    args = build_parser().parse_args(["train", "policy", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
+                                      "--resolution", "16x64", "--ablation", "object", *flag])
+    assert args.func(args) == 0
+    return seen["model"], seen["imitation"]
+
+
 # -- panorama encoders -------------------------------------------------------------------------
 
 
@@ -186,20 +205,8 @@ def test_runs_store_the_strides_only_for_the_patch_encoder_and_read_them_back():
 
 @pytest.mark.parametrize("flag, encoder", [([], "conv"), (["--encoder", "patch"], "patch")])
 def test_train_policy_flag_sets_the_encoder_of_the_runs_model(flag, encoder, monkeypatch, tmp_path):
-    from eval.cli import build_parser
-    from train import policy as train_policy_mod
-
-    seen = {}
-
-    def fake_train_policy(data, out, cfg, model, imitation, **kw):
-        seen.update(model=model)
-        return train_policy_mod.PolicyResult({}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, tmp_path)
-
-    monkeypatch.setattr(train_policy_mod, "train_policy", fake_train_policy)
-    args = build_parser().parse_args(["train", "policy", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
-                                      "--resolution", "16x64", "--ablation", "object", *flag])
-    assert args.func(args) == 0
-    assert policy.encoder_name(seen["model"]) == encoder and seen["model"].use_object and not seen["model"].use_activity
+    model, _ = _trained_policy_model(flag, monkeypatch, tmp_path)
+    assert policy.encoder_name(model) == encoder and model.use_object and not model.use_activity
 
 
 # -- the object saliency channel ---------------------------------------------------------------
@@ -292,24 +299,12 @@ def test_checkpoint_configs_from_before_the_saliency_channel_load_without_it():
 @pytest.mark.parametrize("flag, saliency", [([], True), (["--no-object-saliency"], False)])
 def test_train_policy_flag_switches_the_saliency_channel_in_the_runs_model(flag, saliency, monkeypatch, tmp_path):
     from conav_jax.nav.expert import ExpertConfig
-    from eval.cli import build_parser
-    from train import policy as train_policy_mod
     from train.policy import run_config
 
-    seen = {}
-
-    def fake_train_policy(data, out, cfg, model, imitation, **kw):
-        seen.update(model=model, imitation=imitation)
-        return train_policy_mod.PolicyResult({}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, tmp_path)
-
-    monkeypatch.setattr(train_policy_mod, "train_policy", fake_train_policy)
-    args = build_parser().parse_args(["train", "policy", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
-                                      "--resolution", "16x64", "--ablation", "object", *flag])
-    assert args.func(args) == 0
-    model = seen["model"]
+    model, imitation = _trained_policy_model(flag, monkeypatch, tmp_path)
     assert model.image_hw == (16, 64) and model.object_saliency is saliency
     assert (model.use_activity, model.use_object, model.use_trajectory) == (False, True, False)
-    config = run_config(model, seen["imitation"], ExpertConfig(), "hash", None, None)
+    config = run_config(model, imitation, ExpertConfig(), "hash", None, None)
     assert config["model"]["object_saliency"] is saliency and "object_saliency" not in config["imitation"]
     shapes = jax.eval_shape(lambda k: policy.init(k, model), jax.random.PRNGKey(0))
     assert ("saliency" in shapes) is saliency
@@ -393,20 +388,8 @@ def test_in_bfloat16_the_first_convolution_runs_over_pixel_blocks():
 
 @pytest.mark.parametrize("flag, dtype", [([], "float32"), (["--conv-dtype", "bfloat16"], "bfloat16")])
 def test_train_policy_flag_sets_the_conv_dtype_of_the_runs_model(flag, dtype, monkeypatch, tmp_path):
-    from eval.cli import build_parser
-    from train import policy as train_policy_mod
-
-    seen = {}
-
-    def fake_train_policy(data, out, cfg, model, imitation, **kw):
-        seen.update(model=model)
-        return train_policy_mod.PolicyResult({}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, tmp_path)
-
-    monkeypatch.setattr(train_policy_mod, "train_policy", fake_train_policy)
-    args = build_parser().parse_args(["train", "policy", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
-                                      "--resolution", "16x64", "--ablation", "object", *flag])
-    assert args.func(args) == 0
-    assert seen["model"].conv_dtype == dtype and seen["model"].use_object and not seen["model"].use_activity
+    model, _ = _trained_policy_model(flag, monkeypatch, tmp_path)
+    assert model.conv_dtype == dtype and model.use_object and not model.use_activity
 
 
 def test_runs_store_conv_dtype_only_where_it_is_bfloat16_and_resume_only_with_the_same(tmp_path):
