@@ -24,6 +24,7 @@ from train.intention import (
     make_env,
     make_renderer,
     make_val_fn,
+    same_object_top1,
     prior_scores,
     render_split,
     robot_poses,
@@ -152,6 +153,17 @@ def test_validation_reports_each_route_over_every_episode(rendered):
         for head, probs in (("activity", act), ("object", obj)):
             hits = np.mean([y in np.argsort(-p)[:k] for p, y in zip(np.asarray(probs), np.asarray(d[head]))])
             assert val[f"{head}_{name}{suffix}"] == pytest.approx(hits), (head, name, suffix)
+    watched = np.asarray(perceiver.apply(params, MODEL, d["frames"], jnp.asarray(mask)).activity_a)
+    assert val["activity_a_object_top1"] == same_object_top1(MODEL, watched, np.asarray(d["activity_a"]))
+
+
+def test_an_activity_of_the_true_activitys_object_counts_as_the_same_object():
+    object_of = np.argmax(perceiver.graph_tables(MODEL)[1], axis=1)
+    a, sibling = next((a, b) for a in range(len(object_of)) for b in range(a + 1, len(object_of))
+                      if object_of[b] == object_of[a])
+    other = next(b for b in range(len(object_of)) if object_of[b] != object_of[a])
+    scores = np.eye(len(object_of))[[a, sibling, other]]  # top-1: the true A, another of its object, neither
+    assert same_object_top1(MODEL, scores, np.array([a, a, a])) == pytest.approx(2 / 3)
 
 
 def _panoramas(env, d, episode):
