@@ -316,6 +316,9 @@ def _add_train(sub) -> None:
     p.add_argument("--view", choices=("human", "front"), default=dd.view,
                    help="what a frame shows: the panorama cropped around the human (default) or its front quarter "
                    "(the input before the crop)")
+    p.add_argument("--mirror", action="store_true",
+                   help="mirror each training sample left-right with probability 1/2 at every update (validation "
+                   "frames never)")
     p.add_argument("--viewpoints", type=int, default=dd.viewpoints,
                    help="robot poses each train episode is rendered from: its start pose, then poses drawn around "
                    f"the human (default {dd.viewpoints}; 16 frames of 64x64 take 0.26 GB of device memory per 1,000 "
@@ -430,7 +433,8 @@ def _run_train_intention(args: argparse.Namespace) -> int:
     from train.intention import IntentionDataConfig, train_intention
     from train.loop import NonFiniteLoss
 
-    data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames, view=args.view, viewpoints=args.viewpoints)
+    data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames, view=args.view, viewpoints=args.viewpoints,
+                               mirror=args.mirror)
     image = args.image or default_crop_hw(args.sensor)
     model = PerceiverConfig(image_hw=image, dim=args.dim, num_latents=args.latents, num_blocks=args.blocks,
                             activity_a_head=args.activity_a_head, graph_mix=args.graph_mix)

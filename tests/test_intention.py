@@ -2,6 +2,8 @@
 run that checkpoints and validates on minival by route, and the per-step predictor under jit
 seeing exactly the training frames."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,11 +25,13 @@ from train.intention import (
     frame_spec,
     make_env,
     make_renderer,
+    intention_loss,
     make_val_fn,
-    same_object_top1,
     prior_scores,
     render_split,
     robot_poses,
+    run_config,
+    same_object_top1,
     topk_accuracy,
     train_intention,
 )
@@ -155,6 +159,26 @@ def test_validation_reports_each_route_over_every_episode(rendered):
             assert val[f"{head}_{name}{suffix}"] == pytest.approx(hits), (head, name, suffix)
     watched = np.asarray(perceiver.apply(params, MODEL, d["frames"], jnp.asarray(mask)).activity_a)
     assert val["activity_a_object_top1"] == same_object_top1(MODEL, watched, np.asarray(d["activity_a"]))
+
+
+def test_mirrored_samples_are_their_frames_flipped_left_right(rendered):
+    d = rendered[1]
+    params = perceiver.init(jax.random.PRNGKey(1), MODEL)
+    batch = {k: jnp.asarray(d[k][:6]) for k in ("frames", "num_frames", "activity", "object", "activity_a")}
+    key = jax.random.PRNGKey(3)
+    mirrored, _ = jax.jit(lambda b: intention_loss(params, MODEL, b, key, mirror=True))(batch)
+    # The loss's draw: which samples are mirrored, and the key left for the rest of the loss.
+    k_rest, k_mirror = jax.random.split(key)
+    flip = np.asarray(jax.random.bernoulli(k_mirror, 0.5, (6,)))
+    assert 0 < flip.sum() < 6
+    frames = np.asarray(batch["frames"])
+    by_hand = {**batch, "frames": jnp.asarray(np.where(flip[:, None, None, None, None], frames[:, :, :, ::-1], frames))}
+    expected, _ = intention_loss(params, MODEL, by_hand, k_rest)
+    plain, _ = intention_loss(params, MODEL, batch, k_rest)
+    assert mirrored == pytest.approx(float(expected), rel=1e-5) and mirrored != pytest.approx(float(plain), rel=1e-5)
+    # A run's config names the mirroring only where it is on (runs from before it resume).
+    assert "mirror" not in run_config(MODEL, DATA, None, 1.0, 1.25)["data"]
+    assert run_config(MODEL, dataclasses.replace(DATA, mirror=True), None, 1.0, 1.25)["data"]["mirror"] is True
 
 
 def test_an_activity_of_the_true_activitys_object_counts_as_the_same_object():

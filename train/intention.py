@@ -56,6 +56,9 @@ class IntentionDataConfig:
     # preset's minival, 4 viewpoints named the watched activity A 0.42 top-1 (1 viewpoint:
     # 0.28; 8 and 16: 0.37 and 0.41) after 3,000 updates, and 0.46 after 6,000.
     viewpoints: int = 4
+    # Mirror each training sample left-right with probability 1/2 (a fresh draw every update;
+    # an activity means the same done to either side). Validation frames are never mirrored.
+    mirror: bool = False
 
     def __post_init__(self):
         if self.frames < 1:
@@ -256,12 +259,16 @@ def _cross_entropy(logits: jax.Array, labels: jax.Array) -> jax.Array:
     return -jnp.mean(jnp.take_along_axis(logp, labels[:, None], axis=-1))
 
 
-def intention_loss(params, config: PerceiverConfig, batch: dict, key: jax.Array):
+def intention_loss(params, config: PerceiverConfig, batch: dict, key: jax.Array, mirror: bool = False):
     """CE(activity B) + CE(object B) (+ CE(activity A) with the A head); each sample sees a
-    random prefix of 1..num_frames frames (the paper: the robot may have watched for any time).
-    Aux: each CE."""
+    random prefix of 1..num_frames frames (the paper: the robot may have watched for any time)
+    and, with `mirror`, its frames mirrored left-right with probability 1/2. Aux: each CE."""
     frames = batch["frames"]  # uint8 as rendered (or float): perceiver.apply reads either
     f = frames.shape[1]
+    if mirror:
+        key, k_mirror = jax.random.split(key)
+        flip = jax.random.bernoulli(k_mirror, 0.5, (frames.shape[0],))
+        frames = jnp.where(flip[:, None, None, None, None], frames[:, :, :, ::-1], frames)
     seen = jax.random.randint(key, batch["num_frames"].shape, 1, batch["num_frames"] + 1)
     mask = jnp.arange(f)[None, :] < seen[:, None]
     logits = perceiver.apply(params, config, frames, mask)
@@ -327,10 +334,12 @@ def run_config(model: PerceiverConfig, data: IntentionDataConfig, content_hash: 
     (envs.agents.predictors.frame_spec_from_config reads the view, sensor and camera height;
     `transition_counts`, [A, B, count] of the train split's episodes, its P(B | A))."""
     extra = {} if transition_counts is None else {"transition_counts": transition_counts}
+    # `mirror` only where set: runs written before it existed resume with the same config.
+    data_fields = {k: v for k, v in dataclasses.asdict(data).items() if k != "mirror" or v}
     return {
         "kind": KIND,
         "model": dataclasses.asdict(model),
-        "data": {**dataclasses.asdict(data), "content_hash": content_hash, "frame_spacing_steps": spacing,
+        "data": {**data_fields, "content_hash": content_hash, "frame_spacing_steps": spacing,
                  "camera_height_m": camera_height_m, **extra},
     }
 
@@ -374,7 +383,7 @@ def train_intention(
     counts = perceiver.count_transitions(train_env.split.episodes["activity_a"], train_env.split.episodes["activity_b"])
     config = run_config(model, data, content_hash, spacing, float(train_env.task.camera_height_m), counts)
     params = perceiver.init(jax.random.PRNGKey(cfg.seed), model)
-    loss = lambda p, b, k: intention_loss(p, model, b, k)
+    loss = lambda p, b, k: intention_loss(p, model, b, k, mirror=data.mirror)
     samples = {k: train_d[k] for k in ("frames", "num_frames", "activity", "object", "activity_a")}
     return train(
         run_dir, loss, params, samples, cfg, config,
