@@ -182,12 +182,13 @@ def test_a_kernel_equal_to_its_stride_runs_as_one_product_per_patch(kernel, hw):
     k1, k2, k3 = jax.random.split(KEY, 3)
     params = {**nn.conv.init(k1, 5, 7, kernel), "b": jax.random.normal(k2, (7,))}
     stride = kernel
-    for x in (jax.random.normal(k3, (2, 3, *hw, 5)), jax.random.normal(k3, (2, 3, hw[0] + 1, hw[1], 5))):
-        exact = jax.vmap(lambda im: nn.conv._conv(im, params["w"], nn.conv._pair(stride), "SAME"))(x) + params["b"]
-        y = nn.conv.apply(params, x, stride=stride)
-        np.testing.assert_allclose(y, exact, rtol=1e-5, atol=1e-5)
-        convs = _conv_operand_dtypes(jax.make_jaxpr(lambda x: nn.conv.apply(params, x, stride=stride))(x))
-        assert len(convs) == (0 if x.shape[-3] == hw[0] else 1)
+    for padding in ("SAME", "VALID"):
+        for x in (jax.random.normal(k3, (2, 3, *hw, 5)), jax.random.normal(k3, (2, 3, hw[0] + 1, hw[1], 5))):
+            exact = jax.vmap(lambda im: nn.conv._conv(im, params["w"], nn.conv._pair(stride), padding))(x) + params["b"]
+            y = nn.conv.apply(params, x, stride=stride, padding=padding)
+            np.testing.assert_allclose(y, exact, rtol=1e-5, atol=1e-5)
+            convs = _conv_operand_dtypes(jax.make_jaxpr(lambda x: nn.conv.apply(params, x, stride=stride, padding=padding))(x))
+            assert len(convs) == (0 if x.shape[-3] == hw[0] else 1)
 
 
 def test_conv2d_in_bfloat16_runs_its_gradient_in_bfloat16_and_returns_float32_gradients(layers):

@@ -96,9 +96,9 @@ def _conv_space_to_depth(x: jax.Array, w: jax.Array) -> jax.Array:
                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
-def _tiles(kernel: tuple[int, int], stride: tuple[int, int], padding: Padding, image: tuple[int, ...]) -> bool:
+def _tiles(kernel: tuple[int, int], stride: tuple[int, int], image: tuple[int, ...]) -> bool:
     """Whether a convolution is a patch embedding: kernel == stride, and the image's sides are
-    multiples of it (no padding under SAME or VALID, no pixel left over)."""
+    multiples of it (then SAME and VALID both pad nothing and leave no pixel over)."""
     return kernel == stride and image[0] % stride[0] == 0 and image[1] % stride[1] == 0
 
 
@@ -141,7 +141,7 @@ def apply(
             raise ValueError("space_to_depth needs a stride-2 SAME convolution of an image with even height and "
                              f"width; got stride {stride}, {padding}, image {image[0]}x{image[1]}")
         y = _conv_space_to_depth(x, w)
-    elif _tiles(w.shape[:2], _pair(stride), padding, image):
+    elif _tiles(w.shape[:2], _pair(stride), image):
         y = _conv_patches(x, w)
     else:
         y = _conv(x, w, _pair(stride), padding)
