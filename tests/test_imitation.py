@@ -188,6 +188,38 @@ def test_records_cut_into_windows_batch_by_batch_are_the_windows_of_all_of_them(
         assert a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
+@pytest.mark.parametrize("beta, chunk", [(1.0, None), (0.0, 2 * SEQ)])
+def test_chunked_recording_keeps_the_windows_of_the_whole_rollout_and_stops_when_every_episode_ends(
+        hall, params0, beta, chunk):
+    # The recorder runs make_rollout_fn's steps a chunk at a time (its burn-in reaching back into
+    # the chunk before) and keeps only the windows: the same windows and metrics, in the same
+    # order, as cutting the whole rollout's records; the expert's episodes end at the goal, so
+    # its recording stops early, the policy's run to the human's end.
+    key, eps = jax.random.PRNGKey(3), np.arange(3)
+    m_whole, whole = im.run_batched(hall.rollout, params0, key, eps, beta, batch=2, windows=(SEQ, BURN_IN))
+    rec = im.make_recorder(hall.env, PCFG, seq_len=SEQ, burn_in=BURN_IN, chunk_steps=chunk)
+    assert rec.chunk_steps == (chunk or SEQ) and rec.steps == hall.env.bank.max_steps
+    start, advance = jax.jit(rec.start), jax.jit(rec.advance)
+    m_cut, windows, steps_run = im.record_windows(rec, start, advance, params0, key, eps, beta, batch=2)
+    assert jax.tree.structure(windows) == jax.tree.structure(whole)
+    for a, b in zip(jax.tree.leaves((m_whole, whole)), jax.tree.leaves((m_cut, windows))):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+    if beta == 1.0:  # every episode reached its goal, and ended there
+        t_reach = np.asarray(m_whole["t_reach"])
+        assert (t_reach >= 0).all() and t_reach.max() < steps_run < rec.steps
+    else:  # the untrained policy's run to the human's end
+        assert steps_run >= int(np.asarray(m_whole["t_end"]).max())
+
+
+def test_recording_chunks_hold_whole_windows_and_their_burn_in():
+    assert im.recorder_chunk_steps(32, 16) == 32 and im.recorder_chunk_steps(16, 40) == 48
+    assert im.recorder_chunk_steps(8, 0) == 8
+    env = SimpleNamespace()  # refused before the env is read
+    for chunk in (24, 8):  # not a multiple of 16; shorter than the burn-in
+        with pytest.raises(ValueError, match="multiple of seq_len 16 and >= burn_in 12"):
+            im.make_recorder(env, PCFG, seq_len=16, burn_in=12, chunk_steps=chunk)
+
+
 def test_shared_recordings_are_linked_into_place_leaving_no_temp_files(tmp_path):
     from train.policy import _link_or_copy
 
@@ -455,20 +487,23 @@ def test_predictor_runs_default_to_the_ones_the_policy_run_names(tmp_path):
 def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_batches(tiny_data, tmp_path, monkeypatch):
     from train import policy as tp
 
-    # 1,000 steps of 32x128 records: 20.5 MB an episode (uint8 RGB + float16 depth), 32.8 MB with a goal image.
-    assert tp.recording_lanes(1000, (32, 128), budget_bytes=2**30) == 2**30 // (1000 * 4096 * 5) == 52
-    assert tp.recording_lanes(1000, (32, 128), goal_image=True, budget_bytes=2**30) == 32
-    assert tp.recording_lanes(10, (8, 32)) == tp.MAX_ROLLOUT_LANES and tp.recording_lanes(10**9, (112, 448)) == 1
-    if jax.default_backend() == "cpu":  # the host holds every recorded episode too: a smaller budget
-        assert tp.recording_lanes(1000, (32, 128)) == tp.RECORD_BUDGET_BYTES_CPU // (1000 * 4096 * 5) == 104
+    # A lane holds a 32-step chunk, 16 steps of burn-in and twice the chunk's window (48 steps):
+    # 144 steps of 112x448 records, 36.1 MB (uint8 RGB + float16 depth), 57.8 MB with a goal image.
+    assert tp.recording_lanes(32, 32, 16, (112, 448), budget_bytes=2**34) == 2**34 // (144 * 50176 * 5) == 475
+    assert tp.recording_lanes(32, 32, 16, (112, 448), goal_image=True, budget_bytes=2**34) == 297
+    assert tp.recording_lanes(32, 32, 16, (8, 32)) == tp.MAX_ROLLOUT_LANES
+    assert tp.recording_lanes(10**6, 32, 16, (112, 448)) == 1
+    if jax.default_backend() == "cpu":  # the host holds every recorded window too: a smaller budget
+        assert tp.recording_lanes(32, 32, 16, (112, 448)) == tp.RECORD_BUDGET_BYTES_CPU // (144 * 50176 * 5) == 59
     with pytest.raises(ValueError, match="rollout_batch must be >= 1"):
         ImitationConfig(rollout_batch=0)
 
     data = tmp_path / "data"  # an expert cache of its own
     shutil.copytree(tiny_data, data, ignore=shutil.ignore_patterns(tp.EXPERT_CACHE_DIR))
-    calls = []
-    real = im.run_batched
-    monkeypatch.setattr(im, "run_batched", lambda *a, **k: calls.append(a[5]) or real(*a, **k))
+    calls = []  # the lanes of every rollout call: validations, recordings
+    real_run, real_record = im.run_batched, im.record_windows
+    monkeypatch.setattr(im, "run_batched", lambda *a, **k: calls.append(a[5]) or real_run(*a, **k))
+    monkeypatch.setattr(im, "record_windows", lambda *a, **k: calls.append(a[7]) or real_record(*a, **k))
     cfg, imitation = TrainConfig(steps=2, batch=2, warmup_steps=0), ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ,
                                                                                       burn_in=BURN_IN, val_batch=5)
     train_policy(data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False)

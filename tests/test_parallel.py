@@ -1,5 +1,5 @@
 """Data parallelism (conav_jax.parallel): sharded runs over 4 (forced host) devices give the
-losses and metrics of single-device runs; the mesh helpers fail with clear messages.
+losses, metrics and recorded windows of single-device runs; the mesh helpers fail with clear messages.
 
 XLA fixes the host device count when jax starts, and this test session has started it, so the
 4-device runs happen in one child process (this file run as a script), which prints its results
@@ -115,6 +115,29 @@ def _policy_updates(mesh) -> dict:
             "params": [float(np.asarray(x).sum()) for x in jax.tree.leaves(carry[0])]}
 
 
+def _recording(mesh) -> dict:
+    """train.imitation.record_windows of the expert on the 5 hall episodes in batches of 3 (the
+    second padded), 8x32 panoramas, a tiny policy: the windows kept, summed leaf by leaf."""
+    import jax
+    from worlds import make_split
+
+    from conav_jax.models import policy
+    from conav_jax.models.policy import PolicyConfig
+    from envs import ConavEnv, EnvConfig, SensorConfig
+    from train import imitation as im
+
+    pcfg = PolicyConfig(image_hw=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
+                        intention_dim=4, hidden=8)
+    split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0)])
+    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True))
+    rec = im.make_recorder(env, pcfg, seq_len=16, burn_in=8)
+    m, windows, steps = im.record_windows(rec, jax.jit(rec.start), jax.jit(rec.advance),
+                                          policy.init(jax.random.PRNGKey(0), pcfg), jax.random.PRNGKey(2),
+                                          np.arange(5), 1.0, batch=3, mesh=mesh)
+    return {"windows": len(windows["label"]), "steps": steps, "t_reach": np.asarray(m["t_reach"]).tolist(),
+            "sums": [float(np.asarray(x, np.float64).sum()) for x in jax.tree.leaves(windows)]}
+
+
 def _child(tmp: str) -> dict:
     import jax
 
@@ -123,7 +146,7 @@ def _child(tmp: str) -> dict:
     mesh = make_mesh(DEVICES)
     out = {"devices": jax.device_count(), "mesh": mesh.size}
     for name, fn in (("loop", lambda m: _loop_losses(Path(tmp), m)), ("evaluate", _evaluate_metrics),
-                     ("policy", _policy_updates)):
+                     ("policy", _policy_updates), ("recording", _recording)):
         out[name] = {"single": fn(None), "sharded": fn(mesh)}
     return out
 
@@ -170,6 +193,12 @@ def test_sharded_policy_update_gives_the_single_device_loss(runs):
     np.testing.assert_allclose(sharded["grad_norm_sum"], single["grad_norm_sum"], rtol=1e-5)
     assert single["losses"][0] > 0 and single["losses"][1] > 0
     np.testing.assert_allclose(sharded["params"], single["params"], rtol=1e-4, atol=1e-5)
+
+
+def test_sharded_recording_keeps_the_single_device_windows(runs):
+    single, sharded = runs["recording"]["single"], runs["recording"]["sharded"]
+    assert single["windows"] > 5 and max(single["t_reach"]) >= 0  # the expert reached a goal: some episodes end early
+    assert sharded == single
 
 
 def test_asking_for_more_devices_than_visible_is_refused():

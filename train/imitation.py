@@ -6,7 +6,9 @@ the expert labels every visited state. The expert is the CoNav expert by default
 teacher Agent (the goal-navigation baselines imitate geodesic planners, train/goalnav.py), and
 a goal sensor may add observations the policy reads (a goal image). Records -> `sequences`
 (fixed-length windows with a burn-in, compact uint8/float16 panoramas) -> `bc_loss` (paper's
-L2 on (v_lin, v_ang)), trained by train.loop. train/policy.py drives the rounds; envs.agents.policy steps the policy and
+L2 on (v_lin, v_ang)), trained by train.loop. Recordings run the same rollout a chunk of steps
+at a time (`make_recorder`, `record_windows`): each chunk is cut into windows on the device, and
+a call ends once its episodes have. train/policy.py drives the rounds; envs.agents.policy steps the policy and
 builds the evaluated agent from a run.
 """
 
@@ -23,7 +25,7 @@ from jax.sharding import Mesh
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nav.expert import ExpertConfig, initial_carry
-from conav_jax.parallel import replicate
+from conav_jax.parallel import replicate, round_up, shard_batch, to_host
 from envs.agents.base import Agent
 from envs.agents.expert import make_expert_step
 from envs.agents.goalnav import GOAL_IMAGE
@@ -82,6 +84,60 @@ def expand_obs(compact: dict) -> dict:
     return out
 
 
+class _Rollout(NamedTuple):
+    """The pieces `make_rollout_fn` and `make_recorder` build their rollouts from."""
+
+    start: Callable  # (key, episode) -> (the scan's initial carry, the episode's run key), one lane
+    body: Callable  # (params, beta) -> the scan body `(carry, step key) -> (carry, StepRecord | None)`
+    steps: int  # control steps a rollout runs: the bank's longest episode unless given
+
+
+def _rollout_parts(env, policy_cfg, expert_cfg, *, record, num_steps=None, intention=None, trajectory=None,
+                   record_predicted=False, teacher=None, goal_obs=None) -> _Rollout:
+    pol = make_policy_step(policy_cfg, intention, trajectory)  # ValueError for a predictor missing beside another
+    check_policy_env(env, policy_cfg, "the policy", pol.source)
+    if record and not env.config.intention_obs:
+        raise ValueError("recording imitation data needs the ground-truth intentions: EnvConfig(intention_obs=True)")
+    if record_predicted and pol.source != PREDICTED:
+        raise ValueError("record_predicted needs the predictor of every intention input the policy reads")
+    if teacher is None:
+        expert = make_expert_step(env, expert_cfg)
+        teacher_init, teacher_act = lambda key, episode: initial_carry(), lambda state, carry, key: expert(state, carry)
+    else:
+        teacher_init, teacher_act = teacher.init, teacher.act
+
+    def start(key, episode):
+        k_reset, k_run = jax.random.split(key)
+        return (env.reset_to_episode(k_reset, episode), teacher_init(k_reset, episode), pol.init()), k_run
+
+    def body_fn(params, beta):
+        def body(c, k):
+            state, ecarry, pcarry = c
+            obs = state.obs if goal_obs is None else {**state.obs, **goal_obs(state)}
+            label, ecarry = teacher_act(state, ecarry, jax.random.fold_in(k, 1))
+            if record_predicted:  # the predictors follow every step, whoever acts
+                inputs, pcarry = pol.predict(obs, pcarry)
+
+            def mixed(pcarry):
+                if record_predicted:
+                    action, pcarry = pol.act(params, inputs, pcarry)
+                else:
+                    action, pcarry = pol.step(params, obs, pcarry)
+                return jnp.where(jax.random.uniform(k) < beta, label, action), pcarry
+
+            # beta is the same for the whole batch, so under vmap this stays a real branch.
+            action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
+            rec = None
+            if record:
+                kept = {**obs, **pcarry.predicted} if record_predicted else obs
+                rec = StepRecord(compact_obs(kept), label, action, state.done < 0.5, state.pipeline_state.qpos)
+            return (env.step(state, action), ecarry, pcarry), rec
+
+        return body
+
+    return _Rollout(start, body_fn, num_steps or env.bank.max_steps)
+
+
 def make_rollout_fn(
     env: ConavEnv,
     policy_cfg: PolicyConfig,
@@ -113,50 +169,13 @@ def make_rollout_fn(
 
     With `record_predicted` the records hold the predictors' outputs in place of the ground-truth
     intention inputs they replace (the predictors run at every step, also while the expert acts),
-    so a policy trains on what it will read at evaluation."""
-    pol = make_policy_step(policy_cfg, intention, trajectory)  # ValueError for a predictor missing beside another
-    check_policy_env(env, policy_cfg, "the policy", pol.source)
-    if record and not env.config.intention_obs:
-        raise ValueError("recording imitation data needs the ground-truth intentions: EnvConfig(intention_obs=True)")
-    if record_predicted and pol.source != PREDICTED:
-        raise ValueError("record_predicted needs the predictor of every intention input the policy reads")
-    if teacher is None:
-        expert = make_expert_step(env, expert_cfg)
-        teacher_init, teacher_act = lambda key, episode: initial_carry(), lambda state, carry, key: expert(state, carry)
-    else:
-        teacher_init, teacher_act = teacher.init, teacher.act
-    steps = num_steps or env.bank.max_steps
-
-    def start(key, episode):
-        """(the scan's initial carry, the episode's step key)."""
-        k_reset, k_run = jax.random.split(key)
-        return (env.reset_to_episode(k_reset, episode), teacher_init(k_reset, episode), pol.init()), k_run
+    so a policy trains on what it will read at evaluation. `make_recorder` runs the same steps
+    in chunks, keeping only training windows."""
+    parts = _rollout_parts(env, policy_cfg, expert_cfg, record=record, num_steps=num_steps, intention=intention,
+                           trajectory=trajectory, record_predicted=record_predicted, teacher=teacher, goal_obs=goal_obs)
 
     def one(params, init, k_run, beta):
-
-        def body(c, k):
-            state, ecarry, pcarry = c
-            obs = state.obs if goal_obs is None else {**state.obs, **goal_obs(state)}
-            label, ecarry = teacher_act(state, ecarry, jax.random.fold_in(k, 1))
-            if record_predicted:  # the predictors follow every step, whoever acts
-                inputs, pcarry = pol.predict(obs, pcarry)
-
-            def mixed(pcarry):
-                if record_predicted:
-                    action, pcarry = pol.act(params, inputs, pcarry)
-                else:
-                    action, pcarry = pol.step(params, obs, pcarry)
-                return jnp.where(jax.random.uniform(k) < beta, label, action), pcarry
-
-            # beta is the same for the whole batch, so under vmap this stays a real branch.
-            action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
-            rec = None
-            if record:
-                kept = {**obs, **pcarry.predicted} if record_predicted else obs
-                rec = StepRecord(compact_obs(kept), label, action, state.done < 0.5, state.pipeline_state.qpos)
-            return (env.step(state, action), ecarry, pcarry), rec
-
-        (state, _, _), recs = jax.lax.scan(body, init, jax.random.split(k_run, steps))
+        (state, _, _), recs = jax.lax.scan(parts.body(params, beta), init, jax.random.split(k_run, parts.steps))
         return state.metrics, recs
 
     def run(params, key, episodes, beta):
@@ -164,10 +183,149 @@ def make_rollout_fn(
         # The start is vmapped on its own so that every carry leaf enters the scan batched (vmap
         # stacks even the constant ones): for a partly unbatched carry, vmap batches the scan's
         # body, the whole env step, again until the batched leaves settle.
-        init, k_runs = jax.vmap(start)(keys, episodes)
+        init, k_runs = jax.vmap(parts.start)(keys, episodes)
         return jax.vmap(one, in_axes=(None, 0, 0, None))(params, init, k_runs, jnp.asarray(beta, jnp.float32))
 
     return run
+
+
+class Recorder(NamedTuple):
+    """`make_recorder`'s two pure functions (jit each, e.g. envs.rollout.jit_with_bank) and its
+    step counts; `record_windows` drives them."""
+
+    # (params, key, episodes (B,)) -> (carry, step keys (B, padded steps, 2), the burn-in's zero records)
+    start: Callable
+    # (params, carry, tail, step keys (B, chunk, 2), beta, first ()) -> (carry, tail, windows, keep):
+    # the chunk's windows (B, chunk // seq_len, burn_in + seq_len, ...) and which hold a step in the loss
+    advance: Callable
+    steps: int  # the rollout's control steps (make_rollout_fn's)
+    chunk_steps: int  # steps per `advance`, a multiple of seq_len and >= burn_in
+    seq_len: int
+    burn_in: int
+
+
+def recorder_chunk_steps(seq_len: int, burn_in: int) -> int:
+    """The fewest steps per recording chunk: a multiple of `seq_len` (a window's loss steps
+    never straddle two chunks) and at least `burn_in` (its burn-in reaches one chunk back)."""
+    return seq_len * max(1, -(-burn_in // seq_len))
+
+
+def make_recorder(
+    env: ConavEnv,
+    policy_cfg: PolicyConfig,
+    expert_cfg: ExpertConfig = ExpertConfig(),
+    *,
+    seq_len: int,
+    burn_in: int,
+    chunk_steps: int | None = None,
+    **rollout,
+) -> Recorder:
+    """`make_rollout_fn(record=True)`'s rollout (`rollout`: its other keyword arguments; the
+    same steps and keys) run `chunk_steps` at a time (default: `recorder_chunk_steps`), each chunk cut into `sequences`'
+    windows on the device: a recording call holds one chunk of records instead of every step of
+    its longest episode, so it runs many more lanes, and it stops once every lane's episode has
+    ended (`record_windows`)."""
+    if seq_len < 1 or burn_in < 0:
+        raise ValueError(f"need seq_len >= 1 and burn_in >= 0, got {seq_len}, {burn_in}")
+    chunk = chunk_steps or recorder_chunk_steps(seq_len, burn_in)
+    if chunk % seq_len or chunk < burn_in:
+        raise ValueError(f"chunk_steps must be a multiple of seq_len {seq_len} and >= burn_in {burn_in}, got {chunk}")
+    parts = _rollout_parts(env, policy_cfg, expert_cfg, record=True, **rollout)
+    padded = -(-parts.steps // chunk) * chunk
+
+    def start(params, key, episodes):
+        init, k_runs = jax.vmap(parts.start)(jax.random.split(key, episodes.shape[0]), episodes)
+        # make_rollout_fn's step keys; steps past the last run on the last key (every episode
+        # has ended by then, frozen, its records not valid).
+        keys = jax.vmap(lambda k: jax.random.split(k, parts.steps))(k_runs)
+        keys = jnp.concatenate([keys, jnp.repeat(keys[:, -1:], padded - parts.steps, axis=1)], axis=1)
+        # The burn-in before step 0: zero records, as `sequences` pads (shapes of one step's).
+        lane = jax.tree.map(lambda x: x[0], init)
+        _, rec = jax.eval_shape(parts.body(params, jnp.float32(1.0)), lane, keys[0, 0])
+        rec = {"obs": rec.obs, "label": rec.label, "valid": rec.valid}
+        tail = jax.tree.map(lambda x: jnp.zeros((episodes.shape[0], burn_in) + x.shape, x.dtype), rec)
+        return init, keys, tail
+
+    cols = np.arange(chunk // seq_len)[:, None] * seq_len + np.arange(burn_in + seq_len)[None]  # (C, W)
+    in_loss = np.arange(burn_in + seq_len) >= burn_in
+
+    def advance(params, carry, tail, keys, beta, first):
+        scan = lambda c, k: jax.lax.scan(parts.body(params, beta), c, k)  # noqa: E731
+        carry, recs = jax.vmap(scan)(carry, keys)
+        recs = {"obs": recs.obs, "label": recs.label, "valid": recs.valid}
+        ext = jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), tail, recs)  # the burn-in's steps first
+        mask = ext["valid"][:, cols] & in_loss  # (B, C, W)
+        # An episode starts at step 0: the first chunk's first step, after its zero-padded burn-in.
+        reset = jnp.zeros(ext["valid"].shape[1], bool).at[burn_in].set(first)[cols]
+        windows = {
+            "obs": jax.tree.map(lambda x: x[:, cols], ext["obs"]),
+            "label": ext["label"][:, cols].astype(jnp.float32),
+            "mask": mask.astype(jnp.float32),
+            "reset": jnp.broadcast_to(reset, mask.shape),
+        }
+        tail = jax.tree.map(lambda x: x[:, x.shape[1] - burn_in:], ext)
+        return carry, tail, windows, mask.any(-1)
+
+    return Recorder(start, advance, parts.steps, chunk, seq_len, burn_in)
+
+
+def record_windows(
+    recorder: Recorder,
+    start: Callable,
+    advance: Callable,
+    params,
+    key: jax.Array,
+    episodes: np.ndarray,
+    beta: float,
+    batch: int,
+    mesh: Mesh | None = None,
+) -> tuple[dict[str, np.ndarray], dict, int]:
+    """A recording over many episodes in batches of `batch` lanes, `start` and `advance` being
+    `recorder`'s jitted -> host (metrics (E,), windows, control steps run).
+
+    Batches, their keys and padding are `run_batched`'s (envs.rollout.map_episodes), so the
+    metrics and windows are those of `run_batched(make_rollout_fn(...), ..., windows=(seq_len,
+    burn_in))`, in the same order; a batch stops after the first chunk at whose end every
+    episode has ended (none has a valid step left). Only the windows kept (a step in the loss)
+    leave the device."""
+    episodes = np.asarray(episodes, np.int32)
+    if episodes.ndim != 1 or len(episodes) == 0:
+        raise ValueError("episodes must be a non-empty 1-D array of episode indices")
+    if mesh is not None:
+        params = replicate(params, mesh)
+    batch = min(batch, len(episodes))
+    size = round_up(batch, mesh)
+    per_chunk = recorder.chunk_steps // recorder.seq_len  # windows per lane and chunk
+    beta = jnp.float32(beta)
+    metrics, parts, rows, cols, steps_run = [], [], [], [], 0
+    for s0 in range(0, len(episodes), batch):
+        idx = episodes[s0 : s0 + batch]
+        n = len(idx)
+        idx = np.concatenate([idx, np.full(size - n, idx[-1])]).astype(np.int32)
+        k = jax.random.fold_in(key, s0)
+        if mesh is not None:
+            k, idx = replicate(k, mesh), shard_batch(idx, mesh)
+        carry, keys, tail = start(params, k, jnp.asarray(idx))
+        for t0 in range(0, keys.shape[1], recorder.chunk_steps):
+            chunk_keys = keys[:, t0 : t0 + recorder.chunk_steps]
+            carry, tail, windows, keep = advance(params, carry, tail, chunk_keys, beta, jnp.bool_(t0 == 0))
+            kept = np.flatnonzero(to_host(keep)[:n])  # (lane, window) of the batch's real lanes, row-major
+            if kept.size:
+                take = jnp.asarray(kept)
+                parts.append(to_host(jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:])[take], windows)))
+                rows.append(s0 + kept // per_chunk)
+                cols.append(t0 // recorder.seq_len + kept % per_chunk)
+            steps_run = max(steps_run, t0 + recorder.chunk_steps)
+            if np.all(to_host(carry[0].done)[:n] > 0.5):
+                break
+        metrics.append(jax.tree.map(lambda x: x[:n], to_host(carry[0].metrics)))
+    metrics = jax.tree.map(lambda *xs: np.concatenate(xs), *metrics)
+    metrics["episode"] = episodes
+    if not parts:
+        raise ValueError("the recording kept no window: no episode had a valid step")
+    order = np.lexsort((np.concatenate(cols), np.concatenate(rows)))  # episode, then window: `sequences`' order
+    windows = jax.tree.map(lambda *xs: np.concatenate(xs)[order], *parts)
+    return metrics, windows, min(steps_run, recorder.steps)
 
 
 def run_batched(

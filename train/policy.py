@@ -121,17 +121,25 @@ def round_actor(r: int, imitation: ImitationConfig, teacher_name: str) -> tuple[
     return ("policy" if beta == 0.0 else f"policy, {teacher_name} at beta {beta:g}"), beta
 
 
-def recording_lanes(max_steps: int, image_hw: tuple[int, int], goal_image: bool = False,
+def recording_lanes(chunk_steps: int, seq_len: int, burn_in: int, image_hw: tuple[int, int], goal_image: bool = False,
                     budget_bytes: int | None = None) -> int:
-    """Episodes one recording call runs: its records (every lane runs the bank's longest episode,
-    `max_steps` control steps, keeping the compact panorama, and a goal image where the policy
-    reads one) within `budget_bytes` (default: RECORD_BUDGET_BYTES, on the CPU
-    RECORD_BUDGET_BYTES_CPU), at least 1, at most MAX_ROLLOUT_LANES."""
+    """Episodes one recording call runs (train.imitation.record_windows): what a lane holds on
+    the device at once, a chunk of `chunk_steps` records, the burn-in kept for the next chunk,
+    the chunk's windows and the copy of those kept (each step the compact panorama, and a goal
+    image where the policy reads one), within `budget_bytes` (default: RECORD_BUDGET_BYTES, on
+    the CPU RECORD_BUDGET_BYTES_CPU), at least 1, at most MAX_ROLLOUT_LANES."""
+    h, w = image_hw
+    step_bytes = h * w * (im.PANORAMA_BYTES_PER_PIXEL + (im.GOAL_IMAGE_BYTES_PER_PIXEL if goal_image else 0))
+    window_steps = chunk_steps // seq_len * (burn_in + seq_len)
+    return lanes_within((chunk_steps + burn_in + 2 * window_steps) * step_bytes, budget_bytes)
+
+
+def lanes_within(lane_bytes: int, budget_bytes: int | None = None) -> int:
+    """Lanes of `lane_bytes` each that `budget_bytes` (default: RECORD_BUDGET_BYTES, on the CPU
+    RECORD_BUDGET_BYTES_CPU) holds, at least 1, at most MAX_ROLLOUT_LANES."""
     if budget_bytes is None:
         budget_bytes = RECORD_BUDGET_BYTES_CPU if jax.default_backend() == "cpu" else RECORD_BUDGET_BYTES
-    h, w = image_hw
-    episode_bytes = max_steps * h * w * (im.PANORAMA_BYTES_PER_PIXEL + (im.GOAL_IMAGE_BYTES_PER_PIXEL if goal_image else 0))
-    return int(np.clip(budget_bytes // episode_bytes, 1, MAX_ROLLOUT_LANES))
+    return int(np.clip(budget_bytes // lane_bytes, 1, MAX_ROLLOUT_LANES))
 
 
 class ImitationTask(NamedTuple):
@@ -190,7 +198,7 @@ def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episod
     rollout = jit_with_bank(env, im.make_rollout_fn(
         env, model, expert, record=True, record_predicted=predicted,
         **({"intention": intention, "trajectory": trajectory} if predicted else {})))
-    batch = batch or recording_lanes(env.bank.max_steps, (h, w))
+    batch = batch or lanes_within(env.bank.max_steps * h * w * im.PANORAMA_BYTES_PER_PIXEL)  # whole episodes' records
     ids = np.arange(env.num_episodes, dtype=np.int32)
     out = {"data_is_the_runs": content_hash == config.get("data_hash"), "episodes": int(env.num_episodes)}
     for who, beta in (("expert", 1.0), ("policy", 0.0)):
@@ -398,8 +406,10 @@ def train_policy(
 
     train_task = task_kwargs(train_env)
     teacher_name = "expert" if task is None else train_task["teacher"].name
-    record = jit(train_env, im.make_rollout_fn(train_env, model, expert, record=True, record_predicted=predicted, **train_task,
-                                    **({"intention": intention, "trajectory": trajectory} if predicted else {})))
+    recorder = im.make_recorder(train_env, model, expert, seq_len=imitation.seq_len, burn_in=imitation.burn_in,
+                                record_predicted=predicted, **train_task,
+                                **({"intention": intention, "trajectory": trajectory} if predicted else {}))
+    record_start, record_advance = jit(train_env, recorder.start), jit(train_env, recorder.advance)
     validate = jit(val_env, im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory,
                                       **task_kwargs(val_env)))
     # Where validation's intention inputs come from, logged with each validation (ground truth
@@ -407,7 +417,8 @@ def train_policy(
     val_source = intention_source(model, intention, trajectory)
     train_eps, val_eps = np.arange(train_env.num_episodes), np.arange(val_env.num_episodes)
     record_batch = imitation.rollout_batch or recording_lanes(
-        train_env.bank.max_steps, (h, w), goal_image=task is not None and task.goal_obs is not None)
+        recorder.chunk_steps, imitation.seq_len, imitation.burn_in, (h, w),
+        goal_image=task is not None and task.goal_obs is not None)
     val_key = jax.random.PRNGKey(cfg.seed + 1)
     cache = Path(data_dir) / EXPERT_CACHE_DIR if share_expert and task is None else None
     if cache is not None:
@@ -456,8 +467,8 @@ def train_policy(
                 how = f"shared: {round0_entry}"
             else:
                 key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
-                m, windows = im.run_batched(record, params, key, train_eps, beta, record_batch, mesh=mesh,
-                                            windows=(imitation.seq_len, imitation.burn_in))
+                m, windows, steps_run = im.record_windows(recorder, record_start, record_advance, params, key,
+                                                          train_eps, beta, record_batch, mesh=mesh)
                 parts.append(windows)
                 im.save_sequences(path, parts[-1])
                 entry = {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent, "beta": beta,
@@ -466,7 +477,7 @@ def train_policy(
                     cache.mkdir(exist_ok=True)
                     save_json(round0_entry.with_suffix(".json"), entry)
                     _link_or_copy(path, round0_entry)
-                how = "recorded"
+                how = f"recorded, {steps_run} of {recorder.steps} steps in calls of {record_batch} lanes"
             append_log(log_path, entry)
             log(f"round {r}: {entry['episodes']} train episodes, {agent} acting ({rates_line(entry)}): "
                 f"{entry['windows']} windows  [{time.perf_counter() - t0:.0f} s, {how}]")
