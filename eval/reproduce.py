@@ -24,6 +24,10 @@ from envs.metrics import METRIC_NAMES
 STAGES = ("generate", "predictors", "baselines", "bc", "dagger", "eval", "tables", "pack")
 ABLATIONS = ("none", "activity", "object", "activity_object", "all")  # the paper's Table 3 rows 1-5
 PACK_LIMIT_BYTES = 60 * 2**20
+# Panoramas of at least this many pixels train the CoNav policy with `--remat`: at 112x448 it ran
+# 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
+# smaller panoramas keep the plain update (their runs' commands as made).
+REMAT_FROM_PIXELS = 112 * 448
 
 # The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
 PAPER_TABLE2 = {
@@ -232,7 +236,8 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
               "--train-intentions", "predicted", "--resolution", res, "--steps", str(b.policy_steps),
               "--batch", str(b.policy_batch), *(("--episodes", str(b.policy_episodes)) if b.policy_episodes else ()),
               *(("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()),
-              *(("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()), *validated)
+              *(("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()),
+              *(("--remat",) if cfg.resolution[0] * cfg.resolution[1] >= REMAT_FROM_PIXELS else ()), *validated)
     bc = [("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(runs / f"bc_{a}_s{s}"))
           for s in range(cfg.seeds) for a in ABLATIONS]
     stages.append(Stage("bc", tuple(bc), tuple(runs / f"bc_{a}_s{s}" / "log.jsonl" for s in range(cfg.seeds) for a in ABLATIONS)))

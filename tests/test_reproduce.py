@@ -43,6 +43,11 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
         assert argv[argv.index("--conv-dtype") + 1] == "bfloat16"
     small = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1))
     assert not any("--conv-dtype" in argv for st in small for argv in st.commands)
+    # At 112x448 every policy run rematerialises its CNN (the faster update there); at 32x128
+    # the commands stay as the published runs were made.
+    assert all("--remat" in argv for argv in (*bc, *dagger[1::2]))
+    low = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="paper", resolution=(32, 128)))
+    assert not any("--remat" in argv for st in low for argv in st.commands)
     # The paper preset's baselines record a subset of its 20,293 train episodes, and its imitation
     # runs validate on the 1,000 minival episodes less often; the small preset's commands as run.
     for argv in {s.name: s for s in stages}["baselines"].commands:
