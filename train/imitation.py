@@ -89,6 +89,7 @@ class _Rollout(NamedTuple):
 
     start: Callable  # (key, episode) -> (the scan's initial carry, the episode's run key), one lane
     body: Callable  # (params, beta) -> the scan body `(carry, step key) -> (carry, StepRecord | None)`
+    recorded_obs: Callable  # (env state, policy carry) -> the compact observations a StepRecord keeps
     steps: int  # control steps a rollout runs: the bank's longest episode unless given
 
 
@@ -110,10 +111,16 @@ def _rollout_parts(env, policy_cfg, expert_cfg, *, record, num_steps=None, inten
         k_reset, k_run = jax.random.split(key)
         return (env.reset_to_episode(k_reset, episode), teacher_init(k_reset, episode), pol.init()), k_run
 
+    def observe(state):
+        return state.obs if goal_obs is None else {**state.obs, **goal_obs(state)}
+
+    def recorded_obs(obs, pcarry):
+        return compact_obs({**obs, **pcarry.predicted} if record_predicted else obs)
+
     def body_fn(params, beta):
         def body(c, k):
             state, ecarry, pcarry = c
-            obs = state.obs if goal_obs is None else {**state.obs, **goal_obs(state)}
+            obs = observe(state)
             label, ecarry = teacher_act(state, ecarry, jax.random.fold_in(k, 1))
             if record_predicted:  # the predictors follow every step, whoever acts
                 inputs, pcarry = pol.predict(obs, pcarry)
@@ -129,13 +136,13 @@ def _rollout_parts(env, policy_cfg, expert_cfg, *, record, num_steps=None, inten
             action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
             rec = None
             if record:
-                kept = {**obs, **pcarry.predicted} if record_predicted else obs
-                rec = StepRecord(compact_obs(kept), label, action, state.done < 0.5, state.pipeline_state.qpos)
+                rec = StepRecord(recorded_obs(obs, pcarry), label, action, state.done < 0.5, state.pipeline_state.qpos)
             return (env.step(state, action), ecarry, pcarry), rec
 
         return body
 
-    return _Rollout(start, body_fn, num_steps or env.bank.max_steps)
+    return _Rollout(start, body_fn, lambda state, pcarry: recorded_obs(observe(state), pcarry),
+                    num_steps or env.bank.max_steps)
 
 
 def make_rollout_fn(
@@ -193,7 +200,7 @@ class Recorder(NamedTuple):
     """`make_recorder`'s two pure functions (jit each, e.g. envs.rollout.jit_with_bank) and its
     step counts; `record_windows` drives them."""
 
-    # (params, key, episodes (B,)) -> (carry, step keys (B, padded steps, 2), the burn-in's zero records)
+    # (key, episodes (B,)) -> (carry, step keys (B, padded steps, 2), the burn-in's zero records)
     start: Callable
     # (params, carry, tail, step keys (B, chunk, 2), beta, first ()) -> (carry, tail, windows, keep):
     # the chunk's windows (B, chunk // seq_len, burn_in + seq_len, ...) and which hold a step in the loss
@@ -233,16 +240,17 @@ def make_recorder(
     parts = _rollout_parts(env, policy_cfg, expert_cfg, record=True, **rollout)
     padded = -(-parts.steps // chunk) * chunk
 
-    def start(params, key, episodes):
+    def start(key, episodes):
         init, k_runs = jax.vmap(parts.start)(jax.random.split(key, episodes.shape[0]), episodes)
         # make_rollout_fn's step keys; steps past the last run on the last key (every episode
         # has ended by then, frozen, its records not valid).
         keys = jax.vmap(lambda k: jax.random.split(k, parts.steps))(k_runs)
         keys = jnp.concatenate([keys, jnp.repeat(keys[:, -1:], padded - parts.steps, axis=1)], axis=1)
-        # The burn-in before step 0: zero records, as `sequences` pads (shapes of one step's).
-        lane = jax.tree.map(lambda x: x[0], init)
-        _, rec = jax.eval_shape(parts.body(params, jnp.float32(1.0)), lane, keys[0, 0])
-        rec = {"obs": rec.obs, "label": rec.label, "valid": rec.valid}
+        # The burn-in before step 0: zero records, as `sequences` pads (one step's shapes; the
+        # observations' alone are traced, not a whole step's).
+        state, _, pcarry = jax.tree.map(lambda x: x[0], init)
+        rec = {"obs": jax.eval_shape(parts.recorded_obs, state, pcarry),
+               "label": jax.ShapeDtypeStruct((env.action_size,), jnp.float32), "valid": jax.ShapeDtypeStruct((), bool)}
         tail = jax.tree.map(lambda x: jnp.zeros((episodes.shape[0], burn_in) + x.shape, x.dtype), rec)
         return init, keys, tail
 
@@ -305,7 +313,7 @@ def record_windows(
         k = jax.random.fold_in(key, s0)
         if mesh is not None:
             k, idx = replicate(k, mesh), shard_batch(idx, mesh)
-        carry, keys, tail = start(params, k, jnp.asarray(idx))
+        carry, keys, tail = start(k, jnp.asarray(idx))
         for t0 in range(0, keys.shape[1], recorder.chunk_steps):
             chunk_keys = keys[:, t0 : t0 + recorder.chunk_steps]
             carry, tail, windows, keep = advance(params, carry, tail, chunk_keys, beta, jnp.bool_(t0 == 0))

@@ -477,7 +477,7 @@ def train_policy(
                     cache.mkdir(exist_ok=True)
                     save_json(round0_entry.with_suffix(".json"), entry)
                     _link_or_copy(path, round0_entry)
-                how = f"recorded, {steps_run} of {recorder.steps} steps in calls of {record_batch} lanes"
+                how = f"recorded, {steps_run} of {recorder.steps} steps, {min(record_batch, len(train_eps))} lanes a call"
             append_log(log_path, entry)
             log(f"round {r}: {entry['episodes']} train episodes, {agent} acting ({rates_line(entry)}): "
                 f"{entry['windows']} windows  [{time.perf_counter() - t0:.0f} s, {how}]")
