@@ -853,6 +853,11 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     if args.unpack:
         print(f"unpacked {len(rp.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
     progress = rp.read_progress(cfg.out)
+    try:
+        rp.check_out(progress, cfg)
+    except ValueError as e:
+        print(f"conav reproduce: {e}", file=sys.stderr)
+        return 2
     plan = rp.plan_stages(cfg)
     # Data are regenerated from their seed on a fresh machine (tables and pack read none: their
     # record of the data's making stays).

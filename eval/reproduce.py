@@ -174,6 +174,22 @@ def read_progress(out: Path) -> dict:
     return json.loads(path.read_text()) if path.is_file() else {"commands": {}, "stages": {}}
 
 
+# What one OUT directory holds one of: its runs and evaluations are of these (progress.json
+# keeps them from the first run on; directories made before it kept them are not checked).
+OUT_FIELDS = ("preset", "resolution", "encoder")
+
+
+def check_out(progress: dict, cfg: ReproduceConfig) -> None:
+    """Record `cfg`'s OUT_FIELDS in `progress`, or ValueError naming each that differs from what
+    the directory was made with (a run of another resolution or encoder would fail later, at
+    its first resumed run, or mix two configurations in one table)."""
+    mine = {k: _res(cfg) if k == "resolution" else getattr(cfg, k) for k in OUT_FIELDS}
+    made = progress.setdefault("config", mine)
+    differ = [f"--{k} {made[k]} (given {mine[k]})" for k in OUT_FIELDS if k in made and made[k] != mine[k]]
+    if differ:
+        raise ValueError(f"{cfg.out} was made with {', '.join(differ)}: give those, or another --out")
+
+
 def write_progress(out: Path, progress: dict) -> None:
     from conav_jax.data.arrayio import save_json
 

@@ -1,6 +1,7 @@
 """`conav reproduce` (eval/reproduce.py and its command line): the stages and their commands, the
 runner skipping what is done and resuming after a failure, tables rendered from results."""
 
+import dataclasses
 import json
 import os
 import signal
@@ -431,3 +432,19 @@ def test_a_relative_out_directory_names_commands_by_out(fake_conav, tmp_path, mo
     assert _reproduce(".") == 0 and calls == []  # done: nothing runs again
     with pytest.raises(ValueError, match="absolute"):
         rp.command_key(("generate",), Path("."))
+
+
+def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
+    cfg = rp.ReproduceConfig(out=tmp_path, preset="tiny")
+    progress = rp.read_progress(tmp_path)  # a new directory (or one made before it kept them)
+    rp.check_out(progress, cfg)
+    assert progress["config"] == {"preset": "tiny", "resolution": "112x448", "encoder": "conv"}
+    rp.check_out(progress, dataclasses.replace(cfg, seeds=5, dagger_beta=0.5))  # more seeds, other rows: the same OUT
+    rp.write_progress(tmp_path, progress)
+    with pytest.raises(ValueError, match=r"made with --resolution 112x448 \(given 32x128\), --encoder conv \(given patch\)"):
+        rp.check_out(progress, dataclasses.replace(cfg, resolution=(32, 128), encoder="patch"))
+    # The command line refuses before it plans or runs anything.
+    args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--out", str(tmp_path), "--encoder", "patch",
+                                          "--dry-run"])
+    assert args.func(args) == 2
+    assert "was made with --encoder conv (given patch): give those, or another --out" in capsys.readouterr().err
