@@ -228,10 +228,10 @@ def make_recorder(
     **rollout,
 ) -> Recorder:
     """`make_rollout_fn(record=True)`'s rollout (`rollout`: its other keyword arguments; the
-    same steps and keys) run `chunk_steps` at a time (default: `recorder_chunk_steps`), each chunk cut into `sequences`'
-    windows on the device: a recording call holds one chunk of records instead of every step of
-    its longest episode, so it runs many more lanes, and it stops once every lane's episode has
-    ended (`record_windows`)."""
+    same steps and keys) run `chunk_steps` at a time (default: `recorder_chunk_steps`), each
+    chunk cut into `sequences`' windows on the device: a recording call holds one chunk of
+    records instead of every step of its longest episode, so it runs many more lanes, and it
+    stops once every lane's episode has ended (`record_windows`)."""
     if seq_len < 1 or burn_in < 0:
         raise ValueError(f"need seq_len >= 1 and burn_in >= 0, got {seq_len}, {burn_in}")
     chunk = chunk_steps or recorder_chunk_steps(seq_len, burn_in)
