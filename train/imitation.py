@@ -197,14 +197,18 @@ def make_rollout_fn(
 
 
 class Recorder(NamedTuple):
-    """`make_recorder`'s two pure functions (jit each, e.g. envs.rollout.jit_with_bank) and its
-    step counts; `record_windows` drives them."""
+    """`make_recorder`'s pure functions (jit `start` and `advance`, e.g. with
+    envs.rollout.jit_with_bank) and its step counts; `record_windows` drives them."""
 
-    # (key, episodes (B,)) -> (carry, step keys (B, padded steps, 2), the burn-in's zero records)
-    start: Callable
-    # (params, carry, tail, step keys (B, chunk, 2), beta, first ()) -> (carry, tail, windows, keep):
-    # the chunk's windows (B, chunk // seq_len, burn_in + seq_len, ...) and which hold a step in the loss
+    start: Callable  # (key, episodes (B,)) -> step keys (B, padded steps, 2)
+    # (params, carry, tail, step keys (B, chunk, 2), beta, first (), key, episodes) -> (carry, tail,
+    # windows, keep): the chunk's windows (B, chunk // seq_len, burn_in + seq_len, ...) and which
+    # hold a step in the loss. The first chunk starts the episodes (the carry it is given only
+    # has the shapes) and reads the burn-in's zero records as its tail.
     advance: Callable
+    # (key, episodes) -> the shapes of the carry and of the tail `advance` takes (eval_shape:
+    # nothing compiled or run)
+    shapes: Callable
     steps: int  # the rollout's control steps (make_rollout_fn's)
     chunk_steps: int  # steps per `advance`, a multiple of seq_len and >= burn_in
     seq_len: int
@@ -240,24 +244,35 @@ def make_recorder(
     parts = _rollout_parts(env, policy_cfg, expert_cfg, record=True, **rollout)
     padded = -(-parts.steps // chunk) * chunk
 
+    def fresh(key, episodes):
+        """The episodes' start: (the scans' carry, each episode's run key)."""
+        return jax.vmap(parts.start)(jax.random.split(key, episodes.shape[0]), episodes)
+
     def start(key, episodes):
-        init, k_runs = jax.vmap(parts.start)(jax.random.split(key, episodes.shape[0]), episodes)
-        # make_rollout_fn's step keys; steps past the last run on the last key (every episode
-        # has ended by then, frozen, its records not valid).
+        # make_rollout_fn's step keys (the resets themselves run in the first `advance`); steps
+        # past the last run on the last key (every episode has ended by then, frozen, its
+        # records not valid).
+        _, k_runs = jax.vmap(jax.random.split)(jax.random.split(key, episodes.shape[0])).swapaxes(0, 1)
         keys = jax.vmap(lambda k: jax.random.split(k, parts.steps))(k_runs)
-        keys = jnp.concatenate([keys, jnp.repeat(keys[:, -1:], padded - parts.steps, axis=1)], axis=1)
+        return jnp.concatenate([keys, jnp.repeat(keys[:, -1:], padded - parts.steps, axis=1)], axis=1)
+
+    def shapes(key, episodes):
+        init = jax.eval_shape(fresh, key, episodes)[0]
         # The burn-in before step 0: zero records, as `sequences` pads (one step's shapes; the
         # observations' alone are traced, not a whole step's).
-        state, _, pcarry = jax.tree.map(lambda x: x[0], init)
+        state, _, pcarry = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), init)
         rec = {"obs": jax.eval_shape(parts.recorded_obs, state, pcarry),
                "label": jax.ShapeDtypeStruct((env.action_size,), jnp.float32), "valid": jax.ShapeDtypeStruct((), bool)}
-        tail = jax.tree.map(lambda x: jnp.zeros((episodes.shape[0], burn_in) + x.shape, x.dtype), rec)
-        return init, keys, tail
+        tail = jax.tree.map(lambda x: jax.ShapeDtypeStruct((episodes.shape[0], burn_in) + x.shape, x.dtype), rec)
+        return init, tail
 
     cols = np.arange(chunk // seq_len)[:, None] * seq_len + np.arange(burn_in + seq_len)[None]  # (C, W)
     in_loss = np.arange(burn_in + seq_len) >= burn_in
 
-    def advance(params, carry, tail, keys, beta, first):
+    def advance(params, carry, tail, keys, beta, first, key, episodes):
+        # The first chunk starts the episodes: in this program rather than one of its own (a
+        # second compile of the reset's env and sensor code).
+        carry = jax.lax.cond(first, lambda c: fresh(key, episodes)[0], lambda c: c, carry)
         scan = lambda c, k: jax.lax.scan(parts.body(params, beta), c, k)  # noqa: E731
         carry, recs = jax.vmap(scan)(carry, keys)
         recs = {"obs": recs.obs, "label": recs.label, "valid": recs.valid}
@@ -274,7 +289,7 @@ def make_recorder(
         tail = jax.tree.map(lambda x: x[:, x.shape[1] - burn_in:], ext)
         return carry, tail, windows, mask.any(-1)
 
-    return Recorder(start, advance, parts.steps, chunk, seq_len, burn_in)
+    return Recorder(start, advance, shapes, parts.steps, chunk, seq_len, burn_in)
 
 
 def record_windows(
@@ -313,10 +328,13 @@ def record_windows(
         k = jax.random.fold_in(key, s0)
         if mesh is not None:
             k, idx = replicate(k, mesh), shard_batch(idx, mesh)
-        carry, keys, tail = start(k, jnp.asarray(idx))
+        idx = jnp.asarray(idx)
+        keys = start(k, idx)
+        place = jnp.asarray if mesh is None else (lambda x: shard_batch(x, mesh))
+        carry, tail = jax.tree.map(lambda s: place(np.zeros(s.shape, s.dtype)), recorder.shapes(k, idx))
         for t0 in range(0, keys.shape[1], recorder.chunk_steps):
             chunk_keys = keys[:, t0 : t0 + recorder.chunk_steps]
-            carry, tail, windows, keep = advance(params, carry, tail, chunk_keys, beta, jnp.bool_(t0 == 0))
+            carry, tail, windows, keep = advance(params, carry, tail, chunk_keys, beta, jnp.bool_(t0 == 0), k, idx)
             kept = np.flatnonzero(to_host(keep)[:n])  # (lane, window) of the batch's real lanes, row-major
             if kept.size:
                 take = jnp.asarray(kept)
