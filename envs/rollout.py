@@ -143,12 +143,30 @@ def map_episodes(
     with a `mesh` its indices are split over the devices and the key replicated. Keys of a
     batch do not depend on the padding (jax's partitionable threefry), so results do not
     depend on the device count."""
+    chunks = []
+    for _, n, k, idx in episode_batches(episodes, batch, key, mesh, progress, per_batch_keys):
+        out = jax.tree.map(lambda x: x[:n], to_host(fn(k, idx)))
+        chunks.append(out if host_fn is None else host_fn(out))
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *chunks)
+
+
+def episode_batches(
+    episodes: np.ndarray,
+    batch: int,
+    key: jax.Array,
+    mesh: Mesh | None = None,
+    progress: Callable | None = None,
+    per_batch_keys: bool = True,
+):
+    """`map_episodes`' batches, one at a time: `(s0, n, key, indices)` with the batch's first
+    position in `episodes`, its count of real episodes, its key and its `(size,)` int32 indices
+    on the device (padded, split over the mesh's devices, the key replicated), as `map_episodes`
+    describes. ValueError for anything but a non-empty 1-D array of episodes."""
     episodes = np.asarray(episodes)
     if episodes.ndim != 1 or len(episodes) == 0:
         raise ValueError("episodes must be a non-empty 1-D array of episode indices")
     batch = min(batch, len(episodes))
     size = round_up(batch, mesh)
-    chunks = []
     starts = range(0, len(episodes), batch)
     for s0 in progress(starts) if progress else starts:
         idx = episodes[s0 : s0 + batch]
@@ -156,12 +174,9 @@ def map_episodes(
         idx = np.concatenate([idx, np.full(size - n, idx[-1])]).astype(np.int32)
         k = jax.random.fold_in(key, s0) if per_batch_keys else key
         if mesh is None:
-            out = fn(k, jnp.asarray(idx))
+            yield s0, n, k, jnp.asarray(idx)
         else:
-            out = fn(replicate(k, mesh), shard_batch(idx, mesh))
-        out = jax.tree.map(lambda x: x[:n], to_host(out))
-        chunks.append(out if host_fn is None else host_fn(out))
-    return jax.tree.map(lambda *xs: np.concatenate(xs), *chunks)
+            yield s0, n, replicate(k, mesh), shard_batch(idx, mesh)
 
 
 def select_lanes(mask: jax.Array, new, old):

@@ -188,13 +188,14 @@ def test_records_cut_into_windows_batch_by_batch_are_the_windows_of_all_of_them(
         assert a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
-@pytest.mark.parametrize("beta, chunk", [(1.0, None), (0.0, 2 * SEQ)])
+@pytest.mark.parametrize("beta, chunk", [(1.0, None), (0.0, 2 * SEQ), (0.5, None)])
 def test_chunked_recording_keeps_the_windows_of_the_whole_rollout_and_stops_when_every_episode_ends(
         hall, params0, beta, chunk):
     # The recorder runs make_rollout_fn's steps a chunk at a time (its burn-in reaching back into
     # the chunk before) and keeps only the windows: the same windows and metrics, in the same
     # order, as cutting the whole rollout's records; the expert's episodes end at the goal, so
-    # its recording stops early, the policy's run to the human's end.
+    # its recording stops early, the policy's run to the human's end; mixed, each step's draw
+    # comes from that step's key.
     key, eps = jax.random.PRNGKey(3), np.arange(3)
     m_whole, whole = im.run_batched(hall.rollout, params0, key, eps, beta, batch=2, windows=(SEQ, BURN_IN))
     rec = im.make_recorder(hall.env, PCFG, seq_len=SEQ, burn_in=BURN_IN, chunk_steps=chunk)
@@ -207,7 +208,7 @@ def test_chunked_recording_keeps_the_windows_of_the_whole_rollout_and_stops_when
     if beta == 1.0:  # every episode reached its goal, and ended there
         t_reach = np.asarray(m_whole["t_reach"])
         assert (t_reach >= 0).all() and t_reach.max() < steps_run < rec.steps
-    else:  # the untrained policy's run to the human's end
+    elif beta == 0.0:  # the untrained policy's run to the human's end
         assert steps_run >= int(np.asarray(m_whole["t_end"]).max())
 
 

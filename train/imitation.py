@@ -25,7 +25,7 @@ from jax.sharding import Mesh
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nav.expert import ExpertConfig, initial_carry
-from conav_jax.parallel import replicate, round_up, shard_batch, to_host
+from conav_jax.parallel import replicate, shard_batch, to_host
 from envs.agents.base import Agent
 from envs.agents.expert import make_expert_step
 from envs.agents.goalnav import GOAL_IMAGE
@@ -36,7 +36,7 @@ from envs.agents.policy import (
     make_policy_step,
 )
 from envs.conav_env import ConavEnv
-from envs.rollout import map_episodes
+from envs.rollout import episode_batches, map_episodes
 
 # What a rollout records per step (besides the panorama, kept as "rgb" uint8 and "depth" f16,
 # and a goal sensor's "goal_image", kept as uint8 where there is one).
@@ -93,6 +93,12 @@ class _Rollout(NamedTuple):
     steps: int  # control steps a rollout runs: the bank's longest episode unless given
 
 
+def _episode_keys(key: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """An episode's key -> (its reset's key, its run's key: split into one key per step)."""
+    k_reset, k_run = jax.random.split(key)
+    return k_reset, k_run
+
+
 def _rollout_parts(env, policy_cfg, expert_cfg, *, record, num_steps=None, intention=None, trajectory=None,
                    record_predicted=False, teacher=None, goal_obs=None) -> _Rollout:
     pol = make_policy_step(policy_cfg, intention, trajectory)  # ValueError for a predictor missing beside another
@@ -108,7 +114,7 @@ def _rollout_parts(env, policy_cfg, expert_cfg, *, record, num_steps=None, inten
         teacher_init, teacher_act = teacher.init, teacher.act
 
     def start(key, episode):
-        k_reset, k_run = jax.random.split(key)
+        k_reset, k_run = _episode_keys(key)
         return (env.reset_to_episode(k_reset, episode), teacher_init(k_reset, episode), pol.init()), k_run
 
     def observe(state):
@@ -201,10 +207,10 @@ class Recorder(NamedTuple):
     envs.rollout.jit_with_bank) and its step counts; `record_windows` drives them."""
 
     start: Callable  # (key, episodes (B,)) -> step keys (B, padded steps, 2)
-    # (params, carry, tail, step keys (B, chunk, 2), beta, first (), key, episodes) -> (carry, tail,
-    # windows, keep): the chunk's windows (B, chunk // seq_len, burn_in + seq_len, ...) and which
-    # hold a step in the loss. The first chunk starts the episodes (the carry it is given only
-    # has the shapes) and reads the burn-in's zero records as its tail.
+    # (params, carry, tail, step keys, t0 (), beta, key, episodes) -> (carry, tail, windows, keep):
+    # steps [t0, t0 + chunk_steps), the chunk's windows (B, chunk // seq_len, burn_in + seq_len,
+    # ...) and which hold a step in the loss. The first chunk (t0 = 0) starts the episodes (the
+    # carry it is given only has the shapes) and reads the burn-in's zero records as its tail.
     advance: Callable
     # (key, episodes) -> the shapes of the carry and of the tail `advance` takes (eval_shape:
     # nothing compiled or run)
@@ -252,7 +258,7 @@ def make_recorder(
         # make_rollout_fn's step keys (the resets themselves run in the first `advance`); steps
         # past the last run on the last key (every episode has ended by then, frozen, its
         # records not valid).
-        _, k_runs = jax.vmap(jax.random.split)(jax.random.split(key, episodes.shape[0])).swapaxes(0, 1)
+        _, k_runs = jax.vmap(_episode_keys)(jax.random.split(key, episodes.shape[0]))
         keys = jax.vmap(lambda k: jax.random.split(k, parts.steps))(k_runs)
         return jnp.concatenate([keys, jnp.repeat(keys[:, -1:], padded - parts.steps, axis=1)], axis=1)
 
@@ -269,12 +275,13 @@ def make_recorder(
     cols = np.arange(chunk // seq_len)[:, None] * seq_len + np.arange(burn_in + seq_len)[None]  # (C, W)
     in_loss = np.arange(burn_in + seq_len) >= burn_in
 
-    def advance(params, carry, tail, keys, beta, first, key, episodes):
+    def advance(params, carry, tail, keys, t0, beta, key, episodes):
         # The first chunk starts the episodes: in this program rather than one of its own (a
         # second compile of the reset's env and sensor code).
+        first = t0 == 0
         carry = jax.lax.cond(first, lambda c: fresh(key, episodes)[0], lambda c: c, carry)
         scan = lambda c, k: jax.lax.scan(parts.body(params, beta), c, k)  # noqa: E731
-        carry, recs = jax.vmap(scan)(carry, keys)
+        carry, recs = jax.vmap(scan)(carry, jax.lax.dynamic_slice_in_dim(keys, t0, chunk, axis=1))
         recs = {"obs": recs.obs, "label": recs.label, "valid": recs.valid}
         ext = jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), tail, recs)  # the burn-in's steps first
         mask = ext["valid"][:, cols] & in_loss  # (B, C, W)
@@ -312,37 +319,27 @@ def record_windows(
     episode has ended (none has a valid step left). Only the windows kept (a step in the loss)
     leave the device."""
     episodes = np.asarray(episodes, np.int32)
-    if episodes.ndim != 1 or len(episodes) == 0:
-        raise ValueError("episodes must be a non-empty 1-D array of episode indices")
     if mesh is not None:
         params = replicate(params, mesh)
-    batch = min(batch, len(episodes))
-    size = round_up(batch, mesh)
+    place = jnp.asarray if mesh is None else (lambda x: shard_batch(x, mesh))
     per_chunk = recorder.chunk_steps // recorder.seq_len  # windows per lane and chunk
     beta = jnp.float32(beta)
     metrics, parts, rows, cols, steps_run = [], [], [], [], 0
-    for s0 in range(0, len(episodes), batch):
-        idx = episodes[s0 : s0 + batch]
-        n = len(idx)
-        idx = np.concatenate([idx, np.full(size - n, idx[-1])]).astype(np.int32)
-        k = jax.random.fold_in(key, s0)
-        if mesh is not None:
-            k, idx = replicate(k, mesh), shard_batch(idx, mesh)
-        idx = jnp.asarray(idx)
+    for s0, n, k, idx in episode_batches(episodes, batch, key, mesh):
         keys = start(k, idx)
-        place = jnp.asarray if mesh is None else (lambda x: shard_batch(x, mesh))
+        # The first chunk starts the episodes: the carry it is given need only have the shapes.
         carry, tail = jax.tree.map(lambda s: place(np.zeros(s.shape, s.dtype)), recorder.shapes(k, idx))
         for t0 in range(0, keys.shape[1], recorder.chunk_steps):
-            chunk_keys = keys[:, t0 : t0 + recorder.chunk_steps]
-            carry, tail, windows, keep = advance(params, carry, tail, chunk_keys, beta, jnp.bool_(t0 == 0), k, idx)
-            kept = np.flatnonzero(to_host(keep)[:n])  # (lane, window) of the batch's real lanes, row-major
+            carry, tail, windows, keep = advance(params, carry, tail, keys, jnp.int32(t0), beta, k, idx)
+            keep, done = to_host((keep, carry[0].done))  # the one sync per chunk
+            kept = np.flatnonzero(keep[:n])  # (lane, window) of the batch's real lanes, row-major
             if kept.size:
                 take = jnp.asarray(kept)
                 parts.append(to_host(jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:])[take], windows)))
                 rows.append(s0 + kept // per_chunk)
                 cols.append(t0 // recorder.seq_len + kept % per_chunk)
             steps_run = max(steps_run, t0 + recorder.chunk_steps)
-            if np.all(to_host(carry[0].done)[:n] > 0.5):
+            if np.all(done[:n] > 0.5):
                 break
         metrics.append(jax.tree.map(lambda x: x[:n], to_host(carry[0].metrics)))
     metrics = jax.tree.map(lambda *xs: np.concatenate(xs), *metrics)
