@@ -821,6 +821,10 @@ def _add_reproduce(sub) -> None:
                    help="the CoNav policy's panorama encoder in every BC and DAgger run (`conav train policy "
                         f"--encoder`; default {d['encoder']}, the published runs'; patch trains about 2x faster at "
                         "112x448); one OUT directory holds one encoder")
+    p.add_argument("--seed", type=int, default=None, metavar="S",
+                   help="run only training seed S's commands of the bc, dagger and eval stages (its runs, then their "
+                        "evaluations as soon as their runs are trained): a machine with the time for one seed leaves "
+                        "it finished, and its pack small; the stages are done once every seed's are")
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
@@ -874,8 +878,15 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
         cwd=Path(__file__).resolve().parents[1]).stdout.strip() or "unknown"
+    if args.seed is not None and not 0 <= args.seed < cfg.seeds:
+        print(f"conav reproduce: --seed {args.seed} is not one of the run's seeds 0..{cfg.seeds - 1}", file=sys.stderr)
+        return 2
     for st in stages:
         todo = [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]]
+        if args.seed is not None and not args.dry_run and any(rp.command_seed(argv) is not None for argv in st.commands):
+            todo, waiting = rp.seed_commands(plan, st, args.seed, set(progress["commands"]), cfg.out)
+            for argv in waiting:
+                print(f"[{st.name}] waits for the runs it reads: conav {shlex.join(argv)}")
         if args.dry_run:
             print(f"[{st.name}] {'done' if st.name in progress['stages'] and not todo else 'to run'}")
             for argv in st.commands:
@@ -906,6 +917,9 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             if rc:
                 print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: conav {shlex.join(argv)}")
                 return rc
+        if any(rp.command_key(argv, cfg.out) not in progress["commands"] for argv in st.commands):
+            print(f"[{st.name}] seed {args.seed}'s commands done; the stage waits for the other seeds'", flush=True)
+            continue
         if st.name == "tables":
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
                      "encoder": cfg.encoder,

@@ -292,6 +292,49 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     return stages
 
 
+_SEEDED_RUN = re.compile(r".+_s([0-9]+)")
+
+
+def command_seed(argv: tuple[str, ...]) -> int | None:
+    """The training seed a command belongs to (a seeded run or its evaluation, named `..._s{seed}`),
+    None for a command of every seed (data, predictors, baselines, scripted agents)."""
+    target = argv[2] if argv[0] == "@copy" else argv[argv.index("--out") + 1] if "--out" in argv else None
+    m = None if target is None else _SEEDED_RUN.fullmatch(Path(target).name)
+    return None if m is None else int(m.group(1))
+
+
+def runs_read(argv: tuple[str, ...]) -> list[Path]:
+    """The run directories a command reads (checkpoints, predictors, the run a copy starts from)."""
+    found = []
+    for flag in ("--checkpoint", "--intention", "--trajectory", "--init-from"):
+        if flag in argv:
+            found.append(Path(argv[argv.index(flag) + 1]))
+    if argv[0] == "@copy":
+        found.append(Path(argv[1]))
+    if "--ablation-checkpoints" in argv:
+        found += [Path(item.split("=", 1)[1]) for item in argv[argv.index("--ablation-checkpoints") + 1].split(",")]
+    return found
+
+
+def seed_commands(plan: list[Stage], stage: Stage, seed: int, done: set[str], out: Path) -> tuple[list, list]:
+    """`stage`'s commands of training seed `seed` not in `done` (command keys), split into those
+    ready to run and those waiting: a command waits while a run it reads is the output of another
+    stage's command not done yet (seed 0's evaluation runs once its BC runs are trained, before
+    any DAgger run: a machine with the time for one seed leaves that seed finished)."""
+    made_by = {}
+    for st in plan:
+        for argv in st.commands:
+            if st is not stage and "--out" in argv:
+                made_by[Path(argv[argv.index("--out") + 1])] = command_key(argv, out)
+    ready, waiting = [], []
+    for argv in stage.commands:
+        if command_seed(argv) != seed or command_key(argv, out) in done:
+            continue
+        blocked = [r for r in runs_read(argv) if r in made_by and made_by[r] not in done]
+        (waiting if blocked else ready).append(argv)
+    return ready, waiting
+
+
 # -- results and tables ------------------------------------------------------------------------
 
 
@@ -492,13 +535,9 @@ def pack_members(cfg: ReproduceConfig, progress: dict) -> list[Path]:
     pending = [argv for st in plan_stages(cfg) for argv in st.commands if command_key(argv, out) not in progress["commands"]]
     runs = set()
     for argv in pending:
-        for flag in ("--checkpoint", "--intention", "--trajectory", "--out", "--init-from"):
-            if flag in argv:
-                runs.add(Path(argv[argv.index(flag) + 1]))
-        if argv[0] == "@copy":
-            runs.add(Path(argv[1]))
-        if "--ablation-checkpoints" in argv:
-            runs.update(Path(item.split("=", 1)[1]) for item in argv[argv.index("--ablation-checkpoints") + 1].split(","))
+        runs.update(runs_read(argv))
+        if "--out" in argv:
+            runs.add(Path(argv[argv.index("--out") + 1]))
     from conav_jax.checkpoints import latest_checkpoint
 
     for run in sorted(runs):

@@ -533,3 +533,36 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     assert base[0] == fewer[0] and base[1] != fewer[1]
     other_batches = entries(dataclasses.replace(imitation, val_batch=7), record_batch=32)
     assert base[0] != other_batches[0] and base[1] != other_batches[1]
+
+
+def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_data, tmp_path, monkeypatch):
+    from train import policy as tp
+
+    data = tmp_path / "data"  # an expert cache of its own
+    shutil.copytree(tiny_data, data, ignore=shutil.ignore_patterns(tp.EXPERT_CACHE_DIR))
+    fakes = (_fake_intention(9, 11), FAKE_TRAJECTORY)
+    monkeypatch.setattr(tp, "load_predictors", lambda i, t: fakes if (i, t) == ("I", "T") else (None, None))
+    monkeypatch.setattr(tp, "predictor_digest", lambda run: run)
+    recorded = []
+    real_record = im.record_windows
+    monkeypatch.setattr(im, "record_windows", lambda *a, **k: recorded.append(a[0]) or real_record(*a, **k))
+    cfg = TrainConfig(steps=2, batch=2, warmup_steps=0)
+    imitation = ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ, burn_in=BURN_IN, train_intentions="predicted")
+    for name in ("none", "object"):  # the first reads no intention input, the second the object's alone
+        train_policy(data, tmp_path / name, cfg, policy.ablation_config(PCFG, name), imitation, intention_run="I",
+                     trajectory_run="T", scan_updates=False)
+    assert len(recorded) == 1  # the second row reads the first's recording
+    none, obj = (im.load_sequences(tmp_path / n / "data" / "round_0.npz") for n in ("none", "object"))
+    for a, b in zip(jax.tree.leaves(none), jax.tree.leaves(obj)):
+        assert a.tobytes() == b.tobytes()
+    # It holds every prediction, the trajectory's too (no row above reads it: all of Table 3 shares it).
+    steps = obj["mask"] > 0
+    assert (obj["obs"]["object_probs"].argmax(-1)[steps] == 11).all()
+    np.testing.assert_array_equal(obj["obs"]["future_traj"][steps], 7.0)
+    # Unshared, or without predictors, a run records what it reads and the truth for the rest.
+    none_cfg = policy.ablation_config(PCFG, "none")
+    assert tp.round0_model(none_cfg, imitation, *fakes, shared=False) == none_cfg
+    assert tp.round0_model(none_cfg, imitation, shared=True) == none_cfg
+    assert tp.round0_model(none_cfg, imitation, fakes[0], None, shared=True) == policy.ablation_config(
+        PCFG, "activity_object")
+    assert tp.round0_model(none_cfg, ImitationConfig(), shared=True) == policy.ablation_config(PCFG, "all")

@@ -448,3 +448,35 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
                                           "--dry-run"])
     assert args.func(args) == 2
     assert "was made with --encoder conv (given patch): give those, or another --out" in capsys.readouterr().err
+
+
+def test_one_seed_at_a_time_trains_then_evaluates_it_and_packs_only_what_others_need(fake_conav, tmp_path, capsys):
+    from conav_jax.checkpoints import checkpoint_path, save_checkpoint
+
+    calls, _ = fake_conav
+    out = tmp_path / "r"
+    assert _reproduce(out, "--seed", "2") == 2 and "not one of the run's seeds 0..1" in capsys.readouterr().err
+    assert _reproduce(out, "--stage", "predictors") == 0  # the data first, then the predictors
+    calls.clear()
+    assert _reproduce(out, "--stage", "bc", "--seed", "0") == 0
+    assert [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls] == [f"bc_{a}_s0" for a in rp.ABLATIONS]
+    assert "bc" not in rp.read_progress(out)["stages"]  # seed 1's runs are still to come
+    calls.clear()
+    assert _reproduce(out, "--stage", "eval", "--seed", "0") == 0
+    assert [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls] == [rp.BC_EVAL.format(0)]
+    assert "waits for the runs it reads: conav eval" in capsys.readouterr().out  # its DAgger run's evaluation
+    for run in ("intention", "trajectory", *(f"bc_{a}_s0" for a in rp.ABLATIONS)):
+        save_checkpoint(checkpoint_path(out / "runs" / run, 5), params={"w": [1.0]}, opt_state=None,
+                        config={"kind": "policy"}, step=5)
+    assert _reproduce(out, "--stage", "pack") == 0
+    import tarfile
+
+    packed = {n for n in tarfile.open(out / "pack.tar").getnames() if n.endswith(".npz")}
+    # Seed 0's rows are evaluated: of its runs only the one DAgger continues travels on.
+    assert packed == {f"runs/{r}/ckpt_00000005.npz" for r in ("intention", "trajectory", "bc_all_s0")}
+    calls.clear()
+    assert _reproduce(out) == 0  # the rest: seed 1, the baselines, DAgger, every other evaluation
+    assert not any(argv[0] == "train" and "_s0" in argv[argv.index("--out") + 1] and "bc_" in argv[argv.index("--out") + 1]
+                   for argv in calls)
+    results = json.loads((out / "results.json").read_text())
+    assert results["missing"] == [] and set(results["conav"]["all"]["seeds"]) == {"0", "1"}

@@ -69,7 +69,7 @@ TRAIN_INTENTIONS = ("ground_truth", "predicted")
 # The dataset's subdirectory where runs share the expert's ceiling and round-0 recordings, and
 # the layout of its entries (a change to what a recording holds bumps it: older entries unread).
 EXPERT_CACHE_DIR = "expert_cache"
-EXPERT_CACHE_VERSION = 1
+EXPERT_CACHE_VERSION = 2  # 2: a shared round 0 records every input the predictors make (`round0_model`)
 # Each round draws its own minibatches: round r trains with TrainConfig.seed + ROUND_SEED_STRIDE * r.
 ROUND_SEED_STRIDE = 7919
 
@@ -165,6 +165,21 @@ def records_predictions(imitation: ImitationConfig, model, intention=None, traje
     either way and needs no predictor)."""
     return (imitation.train_intentions == "predicted" and (intention is not None or trajectory is not None)
             and intention_source(model, intention, trajectory) != NO_INTENTIONS)
+
+
+def round0_model(model, imitation: ImitationConfig, intention=None, trajectory=None, shared: bool = False):
+    """The policy config round 0's recorder runs: `model`, or, for a recording shared between
+    runs, `model` reading every intention input (with `--train-intentions predicted`, every one
+    the given predictors make). The expert alone acts in round 0, so the config only decides
+    which inputs the records hold as predicted (the others hold the ground truth, as always);
+    each run reads its own inputs from them and never the others, so Table 3's five rows share
+    one recording (at 112x448 some 25 GB on disk, and 100 s of an H100's time, each)."""
+    if not shared:
+        return model
+    predicted = imitation.train_intentions == "predicted"
+    reads_intention = intention is not None or not predicted
+    return dataclasses.replace(model, use_activity=reads_intention, use_object=reads_intention,
+                               use_trajectory=trajectory is not None or not predicted)
 
 
 def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episodes: int = 96,
@@ -397,7 +412,6 @@ def train_policy(
     intention, trajectory = load_predictors(intention_run, trajectory_run)
     # The rollouts take each split's episode bank as an argument: no episode data in the programs.
     jit = lambda env, f: jit_with_bank(env, f, compiler_options=compiler_options)  # noqa: E731
-    predicted = records_predictions(imitation, model, intention, trajectory)
 
     def task_kwargs(env) -> dict:  # a task's teacher and goal sensor in `env`
         if task is None:
@@ -406,10 +420,22 @@ def train_policy(
 
     train_task = task_kwargs(train_env)
     teacher_name = "expert" if task is None else train_task["teacher"].name
-    recorder = im.make_recorder(train_env, model, expert, seq_len=imitation.seq_len, burn_in=imitation.burn_in,
-                                record_predicted=predicted, **train_task,
-                                **({"intention": intention, "trajectory": trajectory} if predicted else {}))
-    record_start, record_advance = jit(train_env, recorder.start), jit(train_env, recorder.advance)
+    share = share_expert and task is None
+    recorder_models = (round0_model(model, imitation, intention, trajectory, share), model)
+    recorders = {}
+
+    def round_recorder(r: int):
+        """(recorder, its jitted start, its jitted advance) of round `r`, built on first use."""
+        m = recorder_models[min(r, 1)]
+        if m not in recorders:
+            rec_predicted = records_predictions(imitation, m, intention, trajectory)
+            rec = im.make_recorder(train_env, m, expert, seq_len=imitation.seq_len, burn_in=imitation.burn_in,
+                                   record_predicted=rec_predicted, **train_task,
+                                   **({"intention": intention, "trajectory": trajectory} if rec_predicted else {}))
+            recorders[m] = rec, jit(train_env, rec.start), jit(train_env, rec.advance)
+        return recorders[m]
+
+    recorder = round_recorder(0)[0]
     validate = jit(val_env, im.make_rollout_fn(val_env, model, expert, record=False, intention=intention, trajectory=trajectory,
                                       **task_kwargs(val_env)))
     # Where validation's intention inputs come from, logged with each validation (ground truth
@@ -420,11 +446,13 @@ def train_policy(
         recorder.chunk_steps, imitation.seq_len, imitation.burn_in, (h, w),
         goal_image=task is not None and task.goal_obs is not None)
     val_key = jax.random.PRNGKey(cfg.seed + 1)
-    cache = Path(data_dir) / EXPERT_CACHE_DIR if share_expert and task is None else None
+    cache = Path(data_dir) / EXPERT_CACHE_DIR if share else None
     if cache is not None:
-        ceiling_entry, round0_entry = expert_cache_entries(cache, content_hash, model, imitation, expert, predicted,
-                                                           intention_run, trajectory_run, record_batch,
-                                                           1 if mesh is None else mesh.size)
+        shared_model = recorder_models[0]
+        ceiling_entry, round0_entry = expert_cache_entries(
+            cache, content_hash, shared_model, imitation, expert,
+            records_predictions(imitation, shared_model, intention, trajectory), intention_run, trajectory_run,
+            record_batch, 1 if mesh is None else mesh.size)
 
     def val_metrics(p, beta: float) -> dict:
         m, _ = im.run_batched(validate, p, val_key, val_eps, beta, imitation.val_batch, mesh=mesh)
@@ -467,8 +495,12 @@ def train_policy(
                 how = f"shared: {round0_entry}"
             else:
                 key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
-                m, windows, steps_run = im.record_windows(recorder, record_start, record_advance, params, key,
-                                                          train_eps, beta, record_batch, mesh=mesh)
+                # A shared round 0's recorder may read more inputs than this policy: the expert
+                # acts alone there, yet its program takes parameters of its own config's shapes.
+                rec_params = params if recorder_models[min(r, 1)] == model else policy.init(
+                    jax.random.PRNGKey(cfg.seed), recorder_models[0])
+                m, windows, steps_run = im.record_windows(*round_recorder(r), rec_params, key, train_eps, beta,
+                                                          record_batch, mesh=mesh)
                 parts.append(windows)
                 im.save_sequences(path, parts[-1])
                 entry = {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent, "beta": beta,
@@ -477,7 +509,7 @@ def train_policy(
                     cache.mkdir(exist_ok=True)
                     save_json(round0_entry.with_suffix(".json"), entry)
                     _link_or_copy(path, round0_entry)
-                how = f"recorded, {steps_run} of {recorder.steps} steps, {min(record_batch, len(train_eps))} lanes a call"
+                how = f"recorded, {steps_run} of {round_recorder(r)[0].steps} steps, {min(record_batch, len(train_eps))} lanes a call"
             append_log(log_path, entry)
             log(f"round {r}: {entry['episodes']} train episodes, {agent} acting ({rates_line(entry)}): "
                 f"{entry['windows']} windows  [{time.perf_counter() - t0:.0f} s, {how}]")
