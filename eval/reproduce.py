@@ -254,9 +254,18 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
               *(("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()),
               *(("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()),
               *(("--remat",) if cfg.resolution[0] * cfg.resolution[1] >= REMAT_FROM_PIXELS else ()), *validated)
-    bc = [("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(runs / f"bc_{a}_s{s}"))
-          for s in range(cfg.seeds) for a in ABLATIONS]
-    stages.append(Stage("bc", tuple(bc), tuple(runs / f"bc_{a}_s{s}" / "log.jsonl" for s in range(cfg.seeds) for a in ABLATIONS)))
+    common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
+    # Each BC run, then its evaluation on val: an evaluated run needs no checkpoint to travel in a
+    # pack (at 112x448 a policy's is 15 MB, the pack's limit four of them) but the one DAgger continues.
+    bc = []
+    for s in range(cfg.seeds):
+        for a in ABLATIONS:
+            run = runs / f"bc_{a}_s{s}"
+            bc.append(("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(run)))
+            bc.append(("eval", *common, "--agent", "conav", "--checkpoint", str(run),
+                       "--out", str(evals / BC_ROW_EVAL.format(row=a, seed=s))))
+    stages.append(Stage("bc", tuple(bc), tuple(evals / BC_ROW_EVAL.format(row=a, seed=s) / "metrics.json"
+                                               for s in range(cfg.seeds) for a in ABLATIONS)))
     dagger, name = [], cfg.dagger
     mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
@@ -265,7 +274,6 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                        str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
                        "--out", str(runs / f"{name}_s{s}")))
     stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
-    common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
     evals_ = [("eval", *common, "--agent", "random,follower,pioneer,pioneer-drive,objectgoal-planner,expert",
                "--out", str(evals / "scripted")),
               ("eval", *common, "--agent", "objectgoal-oracle", "--checkpoint", str(runs / "objectnav"),
@@ -274,18 +282,12 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                "--intention", str(intention), "--out", str(evals / "objectgoal-predicted")),
               ("eval", *common, "--agent", "imagegoal", "--checkpoint", str(runs / "imagenav"),
                "--out", str(evals / "imagegoal"))]
-    # Each seed's BC runs (Table 3; the agent is the all-inputs run), then its DAgger run: the
-    # BC rows are measured before, and whether or not, DAgger has run.
-    for s in range(cfg.seeds):
-        ablations = ",".join(f"{a}={runs / f'bc_{a}_s{s}'}" for a in ABLATIONS)
-        evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"bc_all_s{s}"),
-                       "--ablation-checkpoints", ablations, "--out", str(evals / BC_EVAL.format(s))))
     dagger_eval = CONAV_EVAL.format(row=name, seed="{}")
     for s in range(cfg.seeds):
         evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"{name}_s{s}"),
                        "--out", str(evals / dagger_eval.format(s))))
     names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [
-        f.format(s) for f in (BC_EVAL, dagger_eval) for s in range(cfg.seeds)]
+        dagger_eval.format(s) for s in range(cfg.seeds)]
     stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
     stages.append(Stage("tables", (), (out / "results.json", out / "tables.md")))
     stages.append(Stage("pack", (), (out / "pack.tar",)))
@@ -344,8 +346,10 @@ def _mean_sd(values: list[float]) -> tuple[float, float]:
     return m, sd
 
 
-# A seed's evaluations under OUT/eval: its BC runs (the five ablations), a DAgger row's run.
+# A seed's evaluations under OUT/eval: each BC run (Table 3's rows), a DAgger row's run. Runs made
+# before the BC runs were evaluated one by one hold a seed's five in one evaluation, its ablations.
 CONAV_EVAL = "conav_{row}_s{seed}"
+BC_ROW_EVAL = CONAV_EVAL.format(row="bc_{row}", seed="{seed}")
 BC_EVAL, DAGGER_EVAL = (CONAV_EVAL.format(row=row, seed="{}") for row in ("bc", "dagger"))
 _SEEDED_EVAL = re.compile(r"conav_(.+)_s[0-9]+")
 
@@ -362,7 +366,8 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") 
     """results.json's content from the evaluations under `out/eval`: per agent its title,
     intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
 
-    A seed's BC rows come from `eval/conav_bc_s{s}` (its five BC runs as the ablations), a DAgger
+    A seed's BC rows come from `eval/conav_bc_{row}_s{s}` (else, as made before, from
+    `eval/conav_bc_s{s}`, its five BC runs as one evaluation's ablations), a DAgger
     row (a `dagger_row` name: "dagger", "dagger_beta{share}" with the expert mixed in, either with
     "_rounds{n}" for a round count other than the preset's) from `eval/conav_{row}_s{s}`; each row
     lists the seeds it was measured on. An evaluation of the BC rows or of the run's own DAgger
@@ -383,20 +388,31 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") 
         for key, entry in doc["agents"].items():
             agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
     conav: dict[str, dict] = {}
-    sources = [(BC_EVAL, lambda doc: {k.removeprefix("ablation_"): v for k, v in doc["ablations"].items()}, True)]
-    sources += [(CONAV_EVAL.format(row=row, seed="{}"), lambda doc, row=row: {row: doc["agents"]["conav"]},
-                 row == dagger) for row in dagger_rows(evals, dagger)]
-    for name, rows_of, planned in sources:
+
+    def add(row: str, s: int, entry: dict, episodes: int) -> None:
+        slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
+        slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": episodes}
+
+    for s in range(seeds):
+        for row in ABLATIONS:
+            path, combined = evals / BC_ROW_EVAL.format(row=row, seed=s) / "metrics.json", evals / BC_EVAL.format(s) / "metrics.json"
+            if path.is_file():
+                doc = json.loads(path.read_text())
+                add(row, s, doc["agents"]["conav"], doc["episodes"])
+            elif combined.is_file():
+                doc = json.loads(combined.read_text())
+                add(row, s, doc["ablations"][f"ablation_{row}"], doc["episodes"])
+            else:
+                missing.append(f"eval/{path.parent.name}")
+    for row in dagger_rows(evals, dagger):
         for s in range(seeds):
-            path = evals / name.format(s) / "metrics.json"
+            path = evals / CONAV_EVAL.format(row=row, seed=s) / "metrics.json"
             if not path.is_file():
-                if planned:
-                    missing.append(f"eval/{name.format(s)}")
+                if row == dagger:
+                    missing.append(f"eval/{path.parent.name}")
                 continue
             doc = json.loads(path.read_text())
-            for row, entry in rows_of(doc).items():
-                slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
-                slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": doc["episodes"]}
+            add(row, s, doc["agents"]["conav"], doc["episodes"])
     return {**extra, "agents": agents, "conav": conav, "missing": missing}
 
 

@@ -33,9 +33,15 @@ def _eval_doc(agents: dict, ablations: dict | None = None, episodes: int = 100) 
 def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episodes(tmp_path):
     stages = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=2))
     assert [s.name for s in stages] == list(rp.STAGES)
-    bc = {s.name: s for s in stages}["bc"].commands
-    assert len(bc) == 2 * len(rp.ABLATIONS)
+    bc_stage = {s.name: s for s in stages}["bc"].commands
+    bc = bc_stage[::2]
+    assert len(bc) == 2 * len(rp.ABLATIONS) and all(argv[:2] == ("train", "policy") for argv in bc)
     assert all("--episodes" in argv and "--train-intentions" in argv for argv in bc)
+    # Each run is evaluated on val right after it trains (its checkpoint need not travel on).
+    for train, evaluate in zip(bc, bc_stage[1::2]):
+        out = train[train.index("--out") + 1]
+        assert evaluate[0] == "eval" and evaluate[evaluate.index("--checkpoint") + 1] == out
+        assert evaluate[evaluate.index("--out") + 1].endswith("eval/conav_" + out.rsplit("/", 1)[1])
     dagger = {s.name: s for s in stages}["dagger"].commands
     assert dagger[0] == ("@copy", str(tmp_path / "runs" / "bc_all_s0"), str(tmp_path / "runs" / "dagger_s0"))
     # The paper preset trains the policy with its CNN in bfloat16; the small preset's commands
@@ -138,9 +144,10 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     _write_eval(evals / rp.BC_EVAL.format(0), _eval_doc({"conav": (10, 20, 5, 6, 30, 100)},
                                                          {a: (10, 20, 5, 6, 30, 100) for a in rp.ABLATIONS}))
     _write_eval(evals / rp.DAGGER_EVAL.format(0), _eval_doc({"conav": (40, 50, 5, 6, 30, 100)}))
-    # Seed 1 has BC runs only: its BC evaluation's agent (the all-inputs run) is no DAgger row.
-    _write_eval(evals / rp.BC_EVAL.format(1), _eval_doc({"conav": (20, 30, 7, 8, 10, 200)},
-                                                         {a: (20, 30, 7, 8, 10, 200) for a in rp.ABLATIONS}))
+    # Seed 1 has BC runs only, each evaluated on its own (seed 0's five in one evaluation, as
+    # runs made before that did): its all-inputs run is no DAgger row.
+    for a in rp.ABLATIONS:
+        _write_eval(evals / rp.BC_ROW_EVAL.format(row=a, seed=1), _eval_doc({"conav": (20, 30, 7, 8, 10, 200)}))
     results = rp.collect_results(tmp_path, 2, {"seeds": 2})
     assert set(results["conav"]["dagger"]["seeds"]) == {"0"}
     assert all(set(results["conav"][a]["seeds"]) == {"0", "1"} for a in rp.ABLATIONS)
@@ -151,15 +158,18 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours | 15.0 ± 7.1 [") for line in lines)
     assert results["missing"] == ["eval/conav_dagger_s1"] and "## Not run yet" in rp.render_tables(results)
     # Evaluations not made yet are listed, their rows marked; the learned rows name their seeds.
-    (evals / rp.BC_EVAL.format(1) / "metrics.json").unlink()
+    (evals / rp.BC_ROW_EVAL.format(row="none", seed=1) / "metrics.json").unlink()
     (evals / "imagegoal" / "metrics.json").unlink()
     results = rp.collect_results(tmp_path, 2, {"seeds": 2})
-    assert results["missing"] == ["eval/imagegoal", "eval/conav_bc_s1", "eval/conav_dagger_s1"]
+    assert results["missing"] == ["eval/imagegoal", "eval/conav_bc_none_s1", "eval/conav_dagger_s1"]
+    assert set(results["conav"]["activity"]["seeds"]) == {"0", "1"}
     lines = rp.render_tables(results).splitlines()
     assert "| imagegoal | | not run yet | - | - | - | - | - | - | - |" in lines and "- `eval/imagegoal`" in lines
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours (seed 0 of 2) | 10.0 [") for line in lines)
     (evals / rp.DAGGER_EVAL.format(0) / "metrics.json").unlink()
     (evals / rp.BC_EVAL.format(0) / "metrics.json").unlink()
+    for a in rp.ABLATIONS[1:]:
+        (evals / rp.BC_ROW_EVAL.format(row=a, seed=1) / "metrics.json").unlink()
     lines = rp.render_tables(rp.collect_results(tmp_path, 2, {"seeds": 2})).splitlines()
     assert "| CoNav Agent (BC + DAgger) | | not run yet | - | - | - | - | - | - | - |" in lines
     assert "| 5 | ✓ | ✓ | ✓ | not run yet | - | - | - | - | - | - | - |" in lines
@@ -329,7 +339,7 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
     calls, state = fake_conav
     state["fail_on"] = "dagger_s0"
     out = tmp_path / "r"
-    assert _reproduce(out) == 1  # cut in the dagger stage: the BC runs and the predictors are still needed
+    assert _reproduce(out) == 1  # cut in the dagger stage: the runs it continues and the predictors are still needed
     for run in ("intention", "trajectory", "bc_all_s1", "bc_none_s0"):
         save_checkpoint(checkpoint_path(out / "runs" / run, 5), params={"w": [1.0]}, opt_state=None,
                         config={"kind": "policy"}, step=5)
@@ -338,7 +348,9 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
 
     names = set(tarfile.open(out / "pack.tar").getnames())
     assert "progress.json" in names and "runs/bc_all_s1/ckpt_00000005.npz" in names
-    assert "runs/intention/ckpt_00000005.npz" in names and "runs/bc_none_s0/ckpt_00000005.npz" in names
+    assert "runs/intention/ckpt_00000005.npz" in names
+    assert "runs/bc_none_s0/ckpt_00000005.npz" not in names  # evaluated: no stage reads it again
+    assert "eval/conav_bc_none_s0/metrics.json" in names
     fresh = tmp_path / "fresh"
     assert _reproduce(fresh, "--unpack", str(out / "pack.tar"), "--dry-run") == 0
     assert (fresh / "runs" / "bc_all_s1" / "ckpt_00000005.npz").is_file()
@@ -450,33 +462,37 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
     assert "was made with --encoder conv (given patch): give those, or another --out" in capsys.readouterr().err
 
 
-def test_one_seed_at_a_time_trains_then_evaluates_it_and_packs_only_what_others_need(fake_conav, tmp_path, capsys):
+def test_one_seed_at_a_time_trains_and_evaluates_it_and_packs_only_what_others_need(fake_conav, tmp_path, capsys):
     from conav_jax.checkpoints import checkpoint_path, save_checkpoint
 
-    calls, _ = fake_conav
+    calls, state = fake_conav
     out = tmp_path / "r"
     assert _reproduce(out, "--seed", "2") == 2 and "not one of the run's seeds 0..1" in capsys.readouterr().err
     assert _reproduce(out, "--stage", "predictors") == 0  # the data first, then the predictors
     calls.clear()
-    assert _reproduce(out, "--stage", "bc", "--seed", "0") == 0
-    assert [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls] == [f"bc_{a}_s0" for a in rp.ABLATIONS]
-    assert "bc" not in rp.read_progress(out)["stages"]  # seed 1's runs are still to come
-    calls.clear()
-    assert _reproduce(out, "--stage", "eval", "--seed", "0") == 0
-    assert [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls] == [rp.BC_EVAL.format(0)]
-    assert "waits for the runs it reads: conav eval" in capsys.readouterr().out  # its DAgger run's evaluation
-    for run in ("intention", "trajectory", *(f"bc_{a}_s0" for a in rp.ABLATIONS)):
+    state["fail_on"] = "bc_object_s0"  # the machine is lost after seed 0's first two runs and their evaluations
+    assert _reproduce(out, "--stage", "bc", "--seed", "0") == 1
+    names = [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls]
+    assert names == ["bc_none_s0", "conav_bc_none_s0", "bc_activity_s0", "conav_bc_activity_s0", "bc_object_s0"]
+    for run in ("intention", "trajectory", "bc_none_s0", "bc_activity_s0"):
         save_checkpoint(checkpoint_path(out / "runs" / run, 5), params={"w": [1.0]}, opt_state=None,
                         config={"kind": "policy"}, step=5)
     assert _reproduce(out, "--stage", "pack") == 0
     import tarfile
 
     packed = {n for n in tarfile.open(out / "pack.tar").getnames() if n.endswith(".npz")}
-    # Seed 0's rows are evaluated: of its runs only the one DAgger continues travels on.
-    assert packed == {f"runs/{r}/ckpt_00000005.npz" for r in ("intention", "trajectory", "bc_all_s0")}
+    # Evaluated runs do not travel on: the next machine needs the predictors alone.
+    assert packed == {"runs/intention/ckpt_00000005.npz", "runs/trajectory/ckpt_00000005.npz"}
+    calls.clear()
+    assert _reproduce(out, "--stage", "bc", "--seed", "0") == 0
+    names = [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls]
+    assert names == [n for a in rp.ABLATIONS[2:] for n in (f"bc_{a}_s0", f"conav_bc_{a}_s0")]
+    assert "bc" not in rp.read_progress(out)["stages"]  # seed 1's runs are still to come
+    calls.clear()
+    assert _reproduce(out, "--stage", "eval", "--seed", "0") == 0 and calls == []
+    assert "waits for the runs it reads: conav eval" in capsys.readouterr().out  # its DAgger run's evaluation
     calls.clear()
     assert _reproduce(out) == 0  # the rest: seed 1, the baselines, DAgger, every other evaluation
-    assert not any(argv[0] == "train" and "_s0" in argv[argv.index("--out") + 1] and "bc_" in argv[argv.index("--out") + 1]
-                   for argv in calls)
+    assert not any("bc_" in argv[argv.index("--out") + 1] and "_s0" in argv[argv.index("--out") + 1] for argv in calls)
     results = json.loads((out / "results.json").read_text())
     assert results["missing"] == [] and set(results["conav"]["all"]["seeds"]) == {"0", "1"}
