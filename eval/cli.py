@@ -525,6 +525,11 @@ def _add_imitation_args(p, teacher: str) -> None:
     p.add_argument("--dagger-beta", type=float, default=d.dagger_beta, metavar="P",
                    help=f"DAgger round r records with the {teacher} acting at a step with probability P**r, else the "
                         "policy (default 0: the policy alone); a resumed run may change it for the rounds to come")
+    p.add_argument("--dagger-episodes", type=int, default=None, metavar="N",
+                   help="train episodes each DAgger round records, a different random subset of --episodes each round "
+                        "(default: all of them); a round's windows stay on the GPU while the run trains, and the "
+                        "policy's own episodes run about three times the expert's; a resumed run may change it for "
+                        "the rounds to come")
     _resolution_arg(p, "rendered and read by the policy")
     p.add_argument("--episodes", type=int, default=None, help="train episodes recorded (default: all)")
     p.add_argument("--val-episodes", type=int, default=None, help="val episodes validated on (default: all)")
@@ -546,6 +551,7 @@ def _imitation_config(args: argparse.Namespace, **extra):
     return ImitationConfig(
         episodes=args.episodes, val_episodes=args.val_episodes, val_split=args.val_split,
         dagger_rounds=args.dagger_rounds, dagger_steps=args.dagger_steps, dagger_beta=args.dagger_beta,
+        dagger_episodes=args.dagger_episodes,
         seq_len=args.seq_len, burn_in=args.burn_in,
         rollout_batch=args.rollout_batch, val_batch=args.val_batch, **extra,
     )

@@ -28,6 +28,12 @@ PACK_LIMIT_BYTES = 60 * 2**20
 # 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
 # smaller panoramas keep the plain update (their runs' commands as made).
 REMAT_FROM_PIXELS = 112 * 448
+# At such panoramas each DAgger round records this many of the train episodes (`--dagger-episodes`),
+# a subset of its own: the policy's episodes run about 480 steps (its AS on val) where the
+# expert's run 152, some 17 windows of 12 MB each, so 64 hold about 13 GB a round beside BC's
+# 24 GB on the GPU (the host holds them twice while they are joined); all 400 would be about
+# 70 GB a round (estimates from the window size, not measured).
+LARGE_PANORAMA_DAGGER_EPISODES = 64
 
 # The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
 PAPER_TABLE2 = {
@@ -268,10 +274,12 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                                                for s in range(cfg.seeds) for a in ABLATIONS)))
     dagger, name = [], cfg.dagger
     mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
+    subset = (("--dagger-episodes", str(LARGE_PANORAMA_DAGGER_EPISODES))
+              if cfg.resolution[0] * cfg.resolution[1] >= REMAT_FROM_PIXELS else ())
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
         dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"{name}_s{s}")))
         dagger.append(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
-                       str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
+                       str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed, *subset,
                        "--out", str(runs / f"{name}_s{s}")))
     stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
     evals_ = [("eval", *common, "--agent", "random,follower,pioneer,pioneer-drive,objectgoal-planner,expert",

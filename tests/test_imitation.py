@@ -546,6 +546,11 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
     recorded = []
     real_record = im.record_windows
     monkeypatch.setattr(im, "record_windows", lambda *a, **k: recorded.append(a[0]) or real_record(*a, **k))
+    # What is recorded is under test, not the updates: a round "trains" by handing its weights back.
+    from train import loop
+
+    monkeypatch.setattr(tp.loop, "train", lambda run_dir, loss, params, data, cfg, *a, **k: loop.TrainResult(
+        params, None, cfg.steps, {k: 0.0 for k in ("FASR", "RASR", "CR", "AS")}, run_dir))
     cfg = TrainConfig(steps=2, batch=2, warmup_steps=0)
     imitation = ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ, burn_in=BURN_IN, train_intentions="predicted")
     for name in ("none", "object"):  # the first reads no intention input, the second the object's alone
@@ -560,9 +565,33 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
     assert (obj["obs"]["object_probs"].argmax(-1)[steps] == 11).all()
     np.testing.assert_array_equal(obj["obs"]["future_traj"][steps], 7.0)
     # Unshared, or without predictors, a run records what it reads and the truth for the rest.
-    none_cfg = policy.ablation_config(PCFG, "none")
-    assert tp.round0_model(none_cfg, imitation, *fakes, shared=False) == none_cfg
-    assert tp.round0_model(none_cfg, imitation, shared=True) == none_cfg
-    assert tp.round0_model(none_cfg, imitation, fakes[0], None, shared=True) == policy.ablation_config(
+    none_cfg, all_cfg = policy.ablation_config(PCFG, "none"), policy.ablation_config(PCFG, "all")
+    assert tp.round0_configs(none_cfg, imitation, *fakes, shared=False) == (none_cfg, none_cfg)
+    assert tp.round0_configs(none_cfg, imitation, shared=True) == (none_cfg, none_cfg)
+    assert tp.round0_configs(none_cfg, imitation, fakes[0], None, shared=True)[0] == policy.ablation_config(
         PCFG, "activity_object")
-    assert tp.round0_model(none_cfg, ImitationConfig(), shared=True) == policy.ablation_config(PCFG, "all")
+    # On ground truth every row records the same (the truth of every input): one entry's name.
+    truth = ImitationConfig()
+    assert tp.round0_configs(none_cfg, truth, shared=True) == (none_cfg, all_cfg)
+    assert tp.round0_configs(policy.ablation_config(PCFG, "object"), truth, shared=True)[1] == all_cfg
+
+
+def test_dagger_rounds_record_a_subset_of_their_own_and_older_runs_keep_their_config():
+    from train import policy as tp
+
+    eps = np.arange(10, 30)
+    subset = ImitationConfig(dagger_episodes=5)
+    assert (tp.round_episodes(eps, 0, subset, seed=0) == eps).all()  # behaviour cloning records them all
+    first, second = (tp.round_episodes(eps, r, subset, seed=0) for r in (1, 2))
+    assert len(first) == 5 and len(set(first)) == 5 and set(first) <= set(eps) and (np.diff(first) > 0).all()
+    assert not (first == second).all()  # each round its own
+    assert (tp.round_episodes(eps, 1, subset, seed=0) == first).all()  # a resumed run records the same
+    assert not (tp.round_episodes(eps, 1, subset, seed=1) == first).all()
+    assert (tp.round_episodes(eps, 1, ImitationConfig(), seed=0) == eps).all()
+    assert (tp.round_episodes(eps, 1, ImitationConfig(dagger_episodes=50), seed=0) == eps).all()
+    with pytest.raises(ValueError, match="dagger_episodes must be >= 1"):
+        ImitationConfig(dagger_episodes=0)
+    # Unset, a run's config holds no such key (runs made before it resume); set, it is recorded.
+    assert "dagger_episodes" not in tp.imitation_record(ImitationConfig())
+    assert tp.imitation_record(subset)["dagger_episodes"] == 5
+    assert "imitation.dagger_episodes" in tp.RESUME_CHANGEABLE  # a BC run goes on with DAgger on a subset

@@ -55,6 +55,12 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
     assert all("--remat" in argv for argv in (*bc, *dagger[1::2]))
     low = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="paper", resolution=(32, 128)))
     assert not any("--remat" in argv for st in low for argv in st.commands)
+    # There DAgger rounds record a subset of the train episodes each (their windows stay on the GPU).
+    for argv in dagger[1::2]:
+        assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
+        imitation = cli._imitation_config(cli.build_parser().parse_args(list(argv)))
+        assert imitation.dagger_episodes == rp.LARGE_PANORAMA_DAGGER_EPISODES
+    assert not any("--dagger-episodes" in argv for st in low for argv in st.commands)
     # The paper preset's baselines record a subset of its 20,293 train episodes, and its imitation
     # runs validate on the 1,000 minival episodes less often; the small preset's commands as run.
     for argv in {s.name: s for s in stages}["baselines"].commands:

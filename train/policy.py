@@ -64,12 +64,14 @@ MAX_ROLLOUT_LANES = 1024
 # Recorded in the run's config, yet a resumed run may change them: the length of DAgger rounds
 # to come (a round already begun takes it as its new length; its schedule stretches) and the
 # expert's share in the rounds not yet recorded (a BC run continues with DAgger of either kind).
-RESUME_CHANGEABLE = ("imitation.dagger_steps", "imitation.dagger_beta")
+RESUME_CHANGEABLE = ("imitation.dagger_steps", "imitation.dagger_beta", "imitation.dagger_episodes")
+# ImitationConfig fields added after runs were written: a run's config stores them only where set.
+LATER_IMITATION_FIELDS = ("dagger_episodes",)
 TRAIN_INTENTIONS = ("ground_truth", "predicted")
 # The dataset's subdirectory where runs share the expert's ceiling and round-0 recordings, and
 # the layout of its entries (a change to what a recording holds bumps it: older entries unread).
 EXPERT_CACHE_DIR = "expert_cache"
-EXPERT_CACHE_VERSION = 2  # 2: a shared round 0 records every input the predictors make (`round0_model`)
+EXPERT_CACHE_VERSION = 2  # 2: one round-0 entry for every ablation (`round0_configs`)
 # Each round draws its own minibatches: round r trains with TrainConfig.seed + ROUND_SEED_STRIDE * r.
 ROUND_SEED_STRIDE = 7919
 
@@ -88,6 +90,10 @@ class ImitationConfig:
     # dagger_beta ** r, else the policy (Ross et al. 2011's beta_i = p ** (i - 1), round 0 being
     # the expert's); 0: the policy alone.
     dagger_beta: float = 0.0
+    # Train episodes each DAgger round records: a different random subset of `episodes` each
+    # round (None: all of them). The policy's own episodes run about three times the expert's,
+    # and every recorded window stays on the GPU while the run trains (12 MB each at 112x448).
+    dagger_episodes: int | None = None
     seq_len: int = 32  # steps per training window in the loss (truncated BPTT)
     burn_in: int = 16  # steps before each window that only warm up the LSTM
     # Episodes per recording call (None: as many as RECORD_BUDGET_BYTES of records hold, see
@@ -106,9 +112,26 @@ class ImitationConfig:
             raise ValueError("need dagger_rounds >= 0, seq_len >= 1, burn_in >= 0, val_batch >= 1")
         if not 0.0 <= self.dagger_beta <= 1.0:
             raise ValueError(f"ImitationConfig.dagger_beta is a probability in [0, 1], got {self.dagger_beta}")
-        for name in ("episodes", "val_episodes", "dagger_steps", "rollout_batch"):
+        for name in ("episodes", "val_episodes", "dagger_steps", "dagger_episodes", "rollout_batch"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"ImitationConfig.{name} must be >= 1 (or None), got {getattr(self, name)}")
+
+
+def round_episodes(train_episodes: np.ndarray, r: int, imitation: ImitationConfig, seed: int) -> np.ndarray:
+    """The train episodes round `r` records, in order: every one in round 0 and, without
+    `imitation.dagger_episodes`, in every round; else a DAgger round's own random subset of that
+    many, drawn from (seed, round) alone (a resumed run records the same)."""
+    n = imitation.dagger_episodes
+    if r == 0 or n is None or n >= len(train_episodes):
+        return train_episodes
+    return np.sort(np.random.default_rng([seed, r]).choice(train_episodes, n, replace=False))
+
+
+def imitation_record(imitation: ImitationConfig) -> dict:
+    """What a run's config stores of `imitation`: what its training depends on (not RESUME_FREE's
+    fields), LATER_IMITATION_FIELDS only where set, so runs written before them still resume."""
+    return {k: v for k, v in dataclasses.asdict(imitation).items()
+            if k not in RESUME_FREE and not (k in LATER_IMITATION_FIELDS and v is None)}
 
 
 def round_actor(r: int, imitation: ImitationConfig, teacher_name: str) -> tuple[str, float]:
@@ -167,19 +190,21 @@ def records_predictions(imitation: ImitationConfig, model, intention=None, traje
             and intention_source(model, intention, trajectory) != NO_INTENTIONS)
 
 
-def round0_model(model, imitation: ImitationConfig, intention=None, trajectory=None, shared: bool = False):
-    """The policy config round 0's recorder runs: `model`, or, for a recording shared between
-    runs, `model` reading every intention input (with `--train-intentions predicted`, every one
-    the given predictors make). The expert alone acts in round 0, so the config only decides
-    which inputs the records hold as predicted (the others hold the ground truth, as always);
-    each run reads its own inputs from them and never the others, so Table 3's five rows share
-    one recording (at 112x448 some 25 GB on disk, and 100 s of an H100's time, each)."""
+def round0_configs(model, imitation: ImitationConfig, intention=None, trajectory=None, shared: bool = False):
+    """(the policy config round 0's recorder runs, the config naming its shared recording). The
+    expert alone acts in round 0, so the policy's config only decides which inputs the records
+    hold as predicted; every other input holds the ground truth, whatever the policy reads. A
+    shared recording of predictions holds every one the given predictors make; each run reads
+    its own inputs from it and never the others, so Table 3's five rows share one recording (at
+    112x448 some 25 GB on disk, and 100 s of an H100's time, each). Unshared: `model` twice."""
     if not shared:
-        return model
-    predicted = imitation.train_intentions == "predicted"
-    reads_intention = intention is not None or not predicted
-    return dataclasses.replace(model, use_activity=reads_intention, use_object=reads_intention,
-                               use_trajectory=trajectory is not None or not predicted)
+        return model, model
+    if imitation.train_intentions == "predicted":
+        recorder = dataclasses.replace(model, use_activity=intention is not None, use_object=intention is not None,
+                                       use_trajectory=trajectory is not None)
+        return recorder, recorder
+    # Ground truth: the records hold every input whichever the policy reads (compact_obs).
+    return model, dataclasses.replace(model, use_activity=True, use_object=True, use_trajectory=True)
 
 
 def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episodes: int = 96,
@@ -230,7 +255,7 @@ def run_config(model, imitation: ImitationConfig, expert, content_hash: str, int
     return {
         "kind": KIND,
         "model": config_dict(model),
-        "imitation": {k: v for k, v in dataclasses.asdict(imitation).items() if k not in RESUME_FREE},
+        "imitation": imitation_record(imitation),
         "expert": dataclasses.asdict(expert),
         "data_hash": content_hash,
         "intention_run": None if intention_run is None else str(intention_run),
@@ -244,7 +269,7 @@ def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, cont
     return {
         "kind": task.kind,
         "model": config_dict(model),
-        "imitation": {k: v for k, v in dataclasses.asdict(imitation).items() if k not in RESUME_FREE},
+        "imitation": imitation_record(imitation),
         "teacher": task.config,
         "data_hash": content_hash,
     }
@@ -421,7 +446,8 @@ def train_policy(
     train_task = task_kwargs(train_env)
     teacher_name = "expert" if task is None else train_task["teacher"].name
     share = share_expert and task is None
-    recorder_models = (round0_model(model, imitation, intention, trajectory, share), model)
+    round0_model, round0_key_model = round0_configs(model, imitation, intention, trajectory, share)
+    recorder_models = (round0_model, model)
     recorders = {}
 
     def round_recorder(r: int):
@@ -448,10 +474,9 @@ def train_policy(
     val_key = jax.random.PRNGKey(cfg.seed + 1)
     cache = Path(data_dir) / EXPERT_CACHE_DIR if share else None
     if cache is not None:
-        shared_model = recorder_models[0]
         ceiling_entry, round0_entry = expert_cache_entries(
-            cache, content_hash, shared_model, imitation, expert,
-            records_predictions(imitation, shared_model, intention, trajectory), intention_run, trajectory_run,
+            cache, content_hash, round0_key_model, imitation, expert,
+            records_predictions(imitation, round0_key_model, intention, trajectory), intention_run, trajectory_run,
             record_batch, 1 if mesh is None else mesh.size)
 
     def val_metrics(p, beta: float) -> dict:
@@ -499,17 +524,18 @@ def train_policy(
                 # acts alone there, yet its program takes parameters of its own config's shapes.
                 rec_params = params if recorder_models[min(r, 1)] == model else policy.init(
                     jax.random.PRNGKey(cfg.seed), recorder_models[0])
-                m, windows, steps_run = im.record_windows(*round_recorder(r), rec_params, key, train_eps, beta,
+                episodes = round_episodes(train_eps, r, imitation, cfg.seed)
+                m, windows, steps_run = im.record_windows(*round_recorder(r), rec_params, key, episodes, beta,
                                                           record_batch, mesh=mesh)
                 parts.append(windows)
                 im.save_sequences(path, parts[-1])
                 entry = {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent, "beta": beta,
-                         "episodes": len(train_eps), "windows": len(parts[-1]["label"]), **summarize(m)}
+                         "episodes": len(episodes), "windows": len(parts[-1]["label"]), **summarize(m)}
                 if shared:
                     cache.mkdir(exist_ok=True)
                     save_json(round0_entry.with_suffix(".json"), entry)
                     _link_or_copy(path, round0_entry)
-                how = f"recorded, {steps_run} of {round_recorder(r)[0].steps} steps, {min(record_batch, len(train_eps))} lanes a call"
+                how = f"recorded, {steps_run} of {round_recorder(r)[0].steps} steps, {min(record_batch, len(episodes))} lanes a call"
             append_log(log_path, entry)
             log(f"round {r}: {entry['episodes']} train episodes, {agent} acting ({rates_line(entry)}): "
                 f"{entry['windows']} windows  [{time.perf_counter() - t0:.0f} s, {how}]")
