@@ -828,9 +828,10 @@ def _add_reproduce(sub) -> None:
                         f"--encoder`; default {d['encoder']}, the published runs'; patch trains about 2x faster at "
                         "112x448); one OUT directory holds one encoder")
     p.add_argument("--seed", type=int, default=None, metavar="S",
-                   help="run only training seed S's commands of the bc, dagger and eval stages (its runs, then their "
-                        "evaluations as soon as their runs are trained): a machine with the time for one seed leaves "
-                        "it finished, and its pack small; the stages are done once every seed's are")
+                   help="run only training seed S's commands of the bc, dagger and eval stages (each BC run is "
+                        "evaluated as soon as it has trained; an evaluation of a run not trained yet waits): a machine "
+                        "with the time for one seed leaves it finished, and its pack small; a stage is done once "
+                        "every seed's commands are")
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
@@ -923,8 +924,11 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             if rc:
                 print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: conav {shlex.join(argv)}")
                 return rc
-        if any(rp.command_key(argv, cfg.out) not in progress["commands"] for argv in st.commands):
-            print(f"[{st.name}] seed {args.seed}'s commands done; the stage waits for the other seeds'", flush=True)
+        left = [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]]
+        if left:  # only with --seed: the other seeds' commands, or this seed's waiting ones
+            mine = sum(rp.command_seed(argv) == args.seed for argv in left)
+            print(f"[{st.name}] seed {args.seed}: " + (f"{mine} command(s) wait for their runs" if mine else
+                  "its commands done") + f"; {len(left)} of the stage's {len(st.commands)} to run", flush=True)
             continue
         if st.name == "tables":
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),

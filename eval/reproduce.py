@@ -329,8 +329,8 @@ def runs_read(argv: tuple[str, ...]) -> list[Path]:
 def seed_commands(plan: list[Stage], stage: Stage, seed: int, done: set[str], out: Path) -> tuple[list, list]:
     """`stage`'s commands of training seed `seed` not in `done` (command keys), split into those
     ready to run and those waiting: a command waits while a run it reads is the output of another
-    stage's command not done yet (seed 0's evaluation runs once its BC runs are trained, before
-    any DAgger run: a machine with the time for one seed leaves that seed finished)."""
+    stage's command not done yet (a DAgger run's evaluation, before the DAgger run; a stage's own
+    commands run in order, each BC run before its evaluation)."""
     made_by = {}
     for st in plan:
         for argv in st.commands:

@@ -11,8 +11,8 @@ RUN/log.jsonl holds the expert's validation metrics (the ceiling) and the record
 RUN/ckpt_<step>.npz the policy at the end of each round (read by envs.agents.policy and
 train.ppo's --init-from). The expert's ceiling and round-0 recording depend on neither the seed
 nor the weights: runs that agree on what they do depend on share them through the dataset's
-`expert_cache/` (`expert_cache_entries`; Table 3's seeds and a DAgger run continuing its BC run
-record once). With a device mesh (conav_jax.parallel) every update's windows and
+`expert_cache/` (`expert_cache_entries`; Table 3's rows and seeds and a DAgger run continuing its
+BC run record once: `round0_configs`). With a device mesh (conav_jax.parallel) every update's windows and
 every simulator batch are split over the devices, parameters replicated. The same rounds train
 the goal-navigation baselines (train/goalnav.py): an `ImitationTask` names their teacher, their
 goal sensor and their run's kind in place of the CoNav expert.
