@@ -6,8 +6,6 @@ read ground truth unless asked), feeds the policy its predictors' outputs and ru
 
 import dataclasses
 import functools
-import json
-import shutil
 from types import SimpleNamespace
 
 import jax
@@ -219,40 +217,6 @@ def test_recording_chunks_hold_whole_windows_and_their_burn_in():
     for chunk in (24, 8):  # not a multiple of 16; shorter than the burn-in
         with pytest.raises(ValueError, match="multiple of seq_len 16 and >= burn_in 12"):
             im.make_recorder(env, PCFG, seq_len=16, burn_in=12, chunk_steps=chunk)
-
-
-def test_shared_recordings_are_linked_into_place_leaving_no_temp_files(tmp_path):
-    from train.policy import _link_or_copy
-
-    (tmp_path / "entry.npz").write_bytes(b"windows")
-    (tmp_path / "run").mkdir()
-    for _ in range(2):  # again onto the same file: nothing changes
-        _link_or_copy(tmp_path / "entry.npz", tmp_path / "run" / "round_0.npz")
-    (tmp_path / "other.npz").write_bytes(b"other")
-    _link_or_copy(tmp_path / "other.npz", tmp_path / "run" / "round_0.npz")  # replaces
-    assert [p.name for p in (tmp_path / "run").iterdir()] == ["round_0.npz"]
-    assert (tmp_path / "run" / "round_0.npz").read_bytes() == b"other"
-    assert (tmp_path / "entry.npz").read_bytes() == b"windows"
-
-
-def test_a_broken_expert_cache_entry_is_named_with_the_way_out(tiny_data, tmp_path):
-    from conav_jax.data.episodes import read_manifest
-    from train import policy as tp
-
-    data = tmp_path / "data"
-    shutil.copytree(tiny_data, data, ignore=shutil.ignore_patterns(tp.EXPERT_CACHE_DIR))
-    imitation = ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ, burn_in=BURN_IN)
-    ceiling, round0 = tp.expert_cache_entries(data / tp.EXPERT_CACHE_DIR, read_manifest(data)["content_hash"], PCFG,
-                                              imitation, ExpertConfig(), False, None, None, record_batch=1, devices=1)
-    ceiling.parent.mkdir()
-    ceiling.write_text('{"FASR": 1')  # cut short
-    with pytest.raises(ValueError, match=r"expert cache entry .*ceiling_.*unreadable.*--no-share-expert"):
-        train_policy(data, tmp_path / "run", TrainConfig(steps=2, batch=2, warmup_steps=0), PCFG, imitation,
-                     scan_updates=False)
-    (round0.with_suffix(".json")).write_text("{}")
-    round0.write_bytes(b"not a zip")
-    with pytest.raises(ValueError, match=r"expert cache entry .*round0_.*\.npz is unreadable"):
-        tp.read_shared(round0)
 
 
 def test_sequences_are_windows_with_burn_in_masked_after_the_end():
@@ -483,115 +447,3 @@ def test_predictor_runs_default_to_the_ones_the_policy_run_names(tmp_path):
         predictor_runs(PCFG, "run", {"intention_run": str(tmp_path / "gone"), "trajectory_run": str(trajectory)})
     with pytest.raises(ValueError, match=r"\(given\) not found"):
         predictor_runs(PCFG, "run", named, str(tmp_path / "gone"))
-
-
-def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_batches(tiny_data, tmp_path, monkeypatch):
-    from train import policy as tp
-
-    # A lane holds a 32-step chunk, 16 steps of burn-in and twice the chunk's window (48 steps):
-    # 144 steps of 112x448 records, 36.1 MB (uint8 RGB + float16 depth), 57.8 MB with a goal image.
-    assert tp.recording_lanes(32, 32, 16, (112, 448), budget_bytes=2**34) == 2**34 // (144 * 50176 * 5) == 475
-    assert tp.recording_lanes(32, 32, 16, (112, 448), goal_image=True, budget_bytes=2**34) == 297
-    assert tp.recording_lanes(32, 32, 16, (8, 32)) == tp.MAX_ROLLOUT_LANES
-    assert tp.recording_lanes(10**6, 32, 16, (112, 448)) == 1
-    if jax.default_backend() == "cpu":  # the host holds every recorded window too: a smaller budget
-        assert tp.recording_lanes(32, 32, 16, (112, 448)) == tp.RECORD_BUDGET_BYTES_CPU // (144 * 50176 * 5) == 59
-    with pytest.raises(ValueError, match="rollout_batch must be >= 1"):
-        ImitationConfig(rollout_batch=0)
-
-    data = tmp_path / "data"  # an expert cache of its own
-    shutil.copytree(tiny_data, data, ignore=shutil.ignore_patterns(tp.EXPERT_CACHE_DIR))
-    calls = []  # the lanes of every rollout call: validations, recordings
-    real_run, real_record = im.run_batched, im.record_windows
-    monkeypatch.setattr(im, "run_batched", lambda *a, **k: calls.append(a[5]) or real_run(*a, **k))
-    monkeypatch.setattr(im, "record_windows", lambda *a, **k: calls.append(a[7]) or real_record(*a, **k))
-    cfg, imitation = TrainConfig(steps=2, batch=2, warmup_steps=0), ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ,
-                                                                                      burn_in=BURN_IN, val_batch=5)
-    train_policy(data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False)
-    # The expert's ceiling, round 0's recording (every lane at once), the final validation.
-    assert calls == [5, tp.MAX_ROLLOUT_LANES, 5]
-    assert len(list((data / tp.EXPERT_CACHE_DIR).iterdir())) == 3  # the ceiling, round 0's windows and log line
-    # A finished run resumed records nothing again and keeps its validation.
-    (tmp_path / "run" / "data" / "round_0.npz").unlink()
-    calls.clear()
-    assert train_policy(data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False).val and calls == []
-    # Another seed shares the expert's ceiling and round 0 (the expert ignores the seed:
-    # test_expert_round_data_...): it validates its own policy only, on the same windows and log lines.
-    train_policy(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, imitation, scan_updates=False)
-    assert calls == [5]
-    [entry] = (data / tp.EXPERT_CACHE_DIR).glob("round0_*.npz")  # the first run's recording (its own file is gone)
-    recorded, shared = im.load_sequences(entry), im.load_sequences(tmp_path / "s1" / "data" / "round_0.npz")
-    for a, b in zip(jax.tree.leaves(recorded), jax.tree.leaves(shared)):
-        assert a.tobytes() == b.tobytes()
-    log_lines = [[json.loads(x) for x in (tmp_path / r / "log.jsonl").read_text().splitlines()[:2]] for r in ("run", "s1")]
-    assert log_lines[0] == log_lines[1] and log_lines[0][1]["round"] == 0
-    # Other train episodes: a recording of their own (the same ceiling); another batching: both.
-    entries = functools.partial(tp.expert_cache_entries, data, "h", PCFG, expert=ExpertConfig(), predicted=False,
-                                intention_run=None, trajectory_run=None, devices=1)
-    base = entries(imitation, record_batch=64)
-    fewer = entries(dataclasses.replace(imitation, episodes=2), record_batch=64)
-    assert base[0] == fewer[0] and base[1] != fewer[1]
-    other_batches = entries(dataclasses.replace(imitation, val_batch=7), record_batch=32)
-    assert base[0] != other_batches[0] and base[1] != other_batches[1]
-
-
-def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_data, tmp_path, monkeypatch):
-    from train import policy as tp
-
-    data = tmp_path / "data"  # an expert cache of its own
-    shutil.copytree(tiny_data, data, ignore=shutil.ignore_patterns(tp.EXPERT_CACHE_DIR))
-    fakes = (_fake_intention(9, 11), FAKE_TRAJECTORY)
-    monkeypatch.setattr(tp, "load_predictors", lambda i, t: fakes if (i, t) == ("I", "T") else (None, None))
-    monkeypatch.setattr(tp, "predictor_digest", lambda run: run)
-    recorded = []
-    real_record = im.record_windows
-    monkeypatch.setattr(im, "record_windows", lambda *a, **k: recorded.append(a[0]) or real_record(*a, **k))
-    # What is recorded is under test, not the updates: a round "trains" by handing its weights back.
-    from train import loop
-
-    monkeypatch.setattr(tp.loop, "train", lambda run_dir, loss, params, data, cfg, *a, **k: loop.TrainResult(
-        params, None, cfg.steps, {k: 0.0 for k in ("FASR", "RASR", "CR", "AS")}, run_dir))
-    cfg = TrainConfig(steps=2, batch=2, warmup_steps=0)
-    imitation = ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ, burn_in=BURN_IN, train_intentions="predicted")
-    for name in ("none", "object"):  # the first reads no intention input, the second the object's alone
-        train_policy(data, tmp_path / name, cfg, policy.ablation_config(PCFG, name), imitation, intention_run="I",
-                     trajectory_run="T", scan_updates=False)
-    assert len(recorded) == 1  # the second row reads the first's recording
-    none, obj = (im.load_sequences(tmp_path / n / "data" / "round_0.npz") for n in ("none", "object"))
-    for a, b in zip(jax.tree.leaves(none), jax.tree.leaves(obj)):
-        assert a.tobytes() == b.tobytes()
-    # It holds every prediction, the trajectory's too (no row above reads it: all of Table 3 shares it).
-    steps = obj["mask"] > 0
-    assert (obj["obs"]["object_probs"].argmax(-1)[steps] == 11).all()
-    np.testing.assert_array_equal(obj["obs"]["future_traj"][steps], 7.0)
-    # Unshared, or without predictors, a run records what it reads and the truth for the rest.
-    none_cfg, all_cfg = policy.ablation_config(PCFG, "none"), policy.ablation_config(PCFG, "all")
-    assert tp.round0_configs(none_cfg, imitation, *fakes, shared=False) == (none_cfg, none_cfg)
-    assert tp.round0_configs(none_cfg, imitation, shared=True) == (none_cfg, none_cfg)
-    assert tp.round0_configs(none_cfg, imitation, fakes[0], None, shared=True)[0] == policy.ablation_config(
-        PCFG, "activity_object")
-    # On ground truth every row records the same (the truth of every input): one entry's name.
-    truth = ImitationConfig()
-    assert tp.round0_configs(none_cfg, truth, shared=True) == (none_cfg, all_cfg)
-    assert tp.round0_configs(policy.ablation_config(PCFG, "object"), truth, shared=True)[1] == all_cfg
-
-
-def test_dagger_rounds_record_a_subset_of_their_own_and_older_runs_keep_their_config():
-    from train import policy as tp
-
-    eps = np.arange(10, 30)
-    subset = ImitationConfig(dagger_episodes=5)
-    assert (tp.round_episodes(eps, 0, subset, seed=0) == eps).all()  # behaviour cloning records them all
-    first, second = (tp.round_episodes(eps, r, subset, seed=0) for r in (1, 2))
-    assert len(first) == 5 and len(set(first)) == 5 and set(first) <= set(eps) and (np.diff(first) > 0).all()
-    assert not (first == second).all()  # each round its own
-    assert (tp.round_episodes(eps, 1, subset, seed=0) == first).all()  # a resumed run records the same
-    assert not (tp.round_episodes(eps, 1, subset, seed=1) == first).all()
-    assert (tp.round_episodes(eps, 1, ImitationConfig(), seed=0) == eps).all()
-    assert (tp.round_episodes(eps, 1, ImitationConfig(dagger_episodes=50), seed=0) == eps).all()
-    with pytest.raises(ValueError, match="dagger_episodes must be >= 1"):
-        ImitationConfig(dagger_episodes=0)
-    # Unset, a run's config holds no such key (runs made before it resume); set, it is recorded.
-    assert "dagger_episodes" not in tp.imitation_record(ImitationConfig())
-    assert tp.imitation_record(subset)["dagger_episodes"] == 5
-    assert "imitation.dagger_episodes" in tp.RESUME_CHANGEABLE  # a BC run goes on with DAgger on a subset
