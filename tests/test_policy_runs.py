@@ -82,7 +82,14 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     calls = []  # the lanes of every rollout call: validations, recordings
     real_run, real_record = im.run_batched, im.record_windows
     monkeypatch.setattr(im, "run_batched", lambda *a, **k: calls.append(a[5]) or real_run(*a, **k))
-    monkeypatch.setattr(im, "record_windows", lambda *a, **k: calls.append(a[7]) or real_record(*a, **k))
+    recordings = []  # what each real recording returned
+
+    def record(*a, **k):
+        calls.append(a[7])
+        recordings.append(real_record(*a, **k))
+        return recordings[-1]
+
+    monkeypatch.setattr(im, "record_windows", record)
     cfg, imitation = TrainConfig(steps=2, batch=2, warmup_steps=0), ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ,
                                                                                       burn_in=BURN_IN, val_batch=5)
     train_policy(data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False)
@@ -105,6 +112,15 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
         assert a.tobytes() == b.tobytes()
     log_lines = [[json.loads(x) for x in (tmp_path / r / "log.jsonl").read_text().splitlines()[:2]] for r in ("run", "s1")]
     assert log_lines[0] == log_lines[1] and log_lines[0][1]["round"] == 0
+    # Continued with a DAgger round on 2 of the 3 train episodes, the round records its own subset
+    # (its rollout stands in: round 0's windows again).
+    seen = []
+    monkeypatch.setattr(im, "record_windows", lambda *a, **k: seen.append(np.asarray(a[5])) or recordings[0])
+    dagger = dataclasses.replace(imitation, dagger_rounds=1, dagger_episodes=2)
+    train_policy(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, dagger, scan_updates=False)
+    [episodes] = seen
+    assert len(episodes) == 2 and (episodes == tp.round_episodes(np.arange(3), 1, dagger, seed=1)).all()
+    assert json.loads((tmp_path / "s1" / "log.jsonl").read_text().splitlines()[-1])["episodes"] == 2
     # Other train episodes: a recording of their own (the same ceiling); another batching: both.
     entries = functools.partial(tp.expert_cache_entries, data, "h", PCFG, expert=ExpertConfig(), predicted=False,
                                 intention_run=None, trajectory_run=None, devices=1)
