@@ -860,6 +860,9 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
                              dagger_rounds=args.dagger_rounds, encoder=args.encoder)
+    if args.seed is not None and not 0 <= args.seed < cfg.seeds:
+        print(f"conav reproduce: --seed {args.seed} is not one of the run's seeds 0..{cfg.seeds - 1}", file=sys.stderr)
+        return 2
     cfg.out.mkdir(parents=True, exist_ok=True)
     if args.unpack:
         print(f"unpacked {len(rp.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
@@ -885,9 +888,6 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
         cwd=Path(__file__).resolve().parents[1]).stdout.strip() or "unknown"
-    if args.seed is not None and not 0 <= args.seed < cfg.seeds:
-        print(f"conav reproduce: --seed {args.seed} is not one of the run's seeds 0..{cfg.seeds - 1}", file=sys.stderr)
-        return 2
     for st in stages:
         todo = [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]]
         if args.seed is not None and not args.dry_run and any(rp.command_seed(argv) is not None for argv in st.commands):

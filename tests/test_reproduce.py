@@ -474,6 +474,7 @@ def test_one_seed_at_a_time_trains_and_evaluates_it_and_packs_only_what_others_n
     calls, state = fake_conav
     out = tmp_path / "r"
     assert _reproduce(out, "--seed", "2") == 2 and "not one of the run's seeds 0..1" in capsys.readouterr().err
+    assert not out.exists()  # refused before anything is written
     assert _reproduce(out, "--stage", "predictors") == 0  # the data first, then the predictors
     calls.clear()
     state["fail_on"] = "bc_object_s0"  # the machine is lost after seed 0's first two runs and their evaluations
