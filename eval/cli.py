@@ -292,7 +292,7 @@ def _run_generate(args: argparse.Namespace) -> int:
 
 def _add_train(sub) -> None:
     from conav_jax.models.perceiver import PerceiverConfig
-    from conav_jax.models.policy import ABLATIONS, CONV_DTYPES, DEFAULT_ENCODER, ENCODERS, PolicyConfig
+    from conav_jax.models.policy import ABLATIONS, PolicyConfig
     from conav_jax.models.trajectory import TrajectoryConfig
     from train.intention import IntentionDataConfig
     from train.loop import TrainConfig
@@ -355,14 +355,7 @@ def _add_train(sub) -> None:
                    help="recompute the CNN per window step in the backward pass: less memory (float32 112x448 windows "
                    "at batch >= 256 need it on an H100); slower at 32x128, about 2x faster at 112x448 with "
                    "--conv-dtype bfloat16 (BENCHMARKS.md)")
-    p.add_argument("--conv-dtype", choices=sorted(CONV_DTYPES), default=PolicyConfig.conv_dtype,
-                   help="dtype of the policy's convolutions and of the activations between them: bfloat16 halves the "
-                   "CNN's memory traffic and runs it on tensor cores, accumulating in float32 (default float32; part "
-                   "of the run's model: a run resumes only with the value it began with)")
-    p.add_argument("--encoder", choices=sorted(ENCODERS), default=DEFAULT_ENCODER,
-                   help="the policy's panorama CNN: conv, stride-2 convolutions (every published run and the shipped "
-                   "policy), or patch, whose first layer embeds 4x4 pixel blocks (1.9x the 112x448 update on a GPU; "
-                   "part of the run's model, BENCHMARKS.md)")
+    _add_network_args(p)
     p.add_argument("--train-intentions", choices=TRAIN_INTENTIONS, default=d.train_intentions,
                    help="intention inputs in the training data: ground truth (the paper) or the predictor runs' outputs")
     p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
@@ -403,6 +396,27 @@ def _add_train(sub) -> None:
     _add_train_goalnav(models)
 
 
+def _add_network_args(p) -> None:
+    """The panorama CNN's flags `conav train policy|objectnav|imagenav` share (read by `_network_base`)."""
+    from conav_jax.models.policy import CONV_DTYPES, DEFAULT_ENCODER, ENCODERS, PolicyConfig
+
+    p.add_argument("--conv-dtype", choices=sorted(CONV_DTYPES), default=PolicyConfig.conv_dtype,
+                   help="dtype of the policy's convolutions and of the activations between them: bfloat16 halves the "
+                   "CNN's memory traffic and runs it on tensor cores, accumulating in float32 (default float32; part "
+                   "of the run's model: a run resumes only with the value it began with)")
+    p.add_argument("--encoder", choices=sorted(ENCODERS), default=DEFAULT_ENCODER,
+                   help="the policy's panorama CNN: conv, stride-2 convolutions (every published run and the shipped "
+                   "policy), or patch, whose first layer embeds 4x4 pixel blocks (1.9x the 112x448 update on a GPU; "
+                   "part of the run's model, BENCHMARKS.md)")
+
+
+def _network_base(args: argparse.Namespace, image_hw: tuple[int, int]):
+    """The PolicyConfig of `--encoder` and `--conv-dtype` at panoramas of `image_hw`."""
+    from conav_jax.models.policy import PolicyConfig, encoder_config
+
+    return encoder_config(PolicyConfig(image_hw=tuple(image_hw), conv_dtype=args.conv_dtype), args.encoder)
+
+
 def _add_train_goalnav(models) -> None:
     """`conav train objectnav` and `conav train imagenav`: the learned goal-navigation baselines."""
     from conav_jax.models.policy import PolicyConfig
@@ -420,6 +434,7 @@ def _add_train_goalnav(models) -> None:
         _train_args(p, TrainConfig(steps=2000, batch=16, lr=3e-4, warmup_steps=100, val_every=1000, ckpt_every=500))
         _add_imitation_args(p, "planner")
         p.add_argument("--remat", action="store_true", help="recompute the CNN per window step in the backward pass")
+        _add_network_args(p)
         if name == "objectnav":
             p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
                            help="also read the goal category as a saliency map over the panorama (the pixels of "
@@ -485,12 +500,12 @@ def _run_train_trajectory(args: argparse.Namespace) -> int:
 
 def _policy_model(args: argparse.Namespace):
     """The PolicyConfig a `conav train policy` command asks for."""
-    from conav_jax.models.policy import PolicyConfig, ablation_config, encoder_config
+    from conav_jax.models.policy import ablation_config
     from envs.agents.registry import run_resolution
 
-    h, w = run_resolution([], args.resolution)
-    base = PolicyConfig(image_hw=(h, w), object_saliency=args.object_saliency, conv_dtype=args.conv_dtype)
-    return ablation_config(encoder_config(base, args.encoder), args.ablation)
+    base = dataclasses.replace(_network_base(args, run_resolution([], args.resolution)),
+                               object_saliency=args.object_saliency)
+    return ablation_config(base, args.ablation)
 
 
 def _run_train_policy(args: argparse.Namespace) -> int:
@@ -601,10 +616,11 @@ def _run_train_goalnav(args: argparse.Namespace) -> int:
 
     imitation = _imitation_config(args)
     hw = run_resolution([], args.resolution)
+    base = _network_base(args, hw)
     if args.model == "objectnav":
-        model, train = goalnav.objectnav_model(hw, args.object_saliency), goalnav.train_objectnav
+        model, train = goalnav.objectnav_model(hw, args.object_saliency, base), goalnav.train_objectnav
     else:
-        model, train = goalnav.imagenav_model(hw), goalnav.train_imagenav
+        model, train = goalnav.imagenav_model(hw, base), goalnav.train_imagenav
     try:
         result = train(args.data, args.out, _train_config(args), model, imitation, progress=not args.no_progress,
                        mesh=_mesh(args), remat=args.remat)
@@ -810,7 +826,8 @@ def _add_reproduce(sub) -> None:
     p.add_argument("--out", required=True, help="output directory (data, runs, eval, results.json, tables.md)")
     p.add_argument("--seeds", type=int, default=d["seeds"],
                    help=f"training seeds of every learned CoNav row (default {d['seeds']})")
-    p.add_argument("--stage", choices=STAGES, default=None, help="run only this stage (default: every stage not done)")
+    p.add_argument("--stage", choices=STAGES, default=None, help="run only this stage (default: every stage not done); a command whose runs are not "
+                   "trained yet waits, and the stage stays to run")
     p.add_argument("--resolution", type=parse_resolution, default=d["resolution"], metavar="HxW",
                    help=f"panorama HxW of every agent (default the paper's {h}x{w})")
     p.add_argument("--workers", type=int, default=min(d["workers"], os.cpu_count() or 1),
@@ -890,8 +907,12 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         cwd=Path(__file__).resolve().parents[1]).stdout.strip() or "unknown"
     for st in stages:
         todo = [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]]
-        if args.seed is not None and not args.dry_run and any(rp.command_seed(argv) is not None for argv in st.commands):
-            todo, waiting = rp.seed_commands(plan, st, args.seed, set(progress["commands"]), cfg.out)
+        if not args.dry_run:
+            # A stage asked for alone runs what it can: a command whose runs are not trained yet waits
+            # (the learned baselines' evaluations before their training, say) instead of failing.
+            seeded = args.seed is not None and any(rp.command_seed(argv) is not None for argv in st.commands)
+            todo, waiting = rp.ready_commands(plan, st, args.seed if seeded else None, set(progress["commands"]),
+                                             cfg.out)
             for argv in waiting:
                 print(f"[{st.name}] waits for the runs it reads: conav {shlex.join(argv)}")
         if args.dry_run:
@@ -925,7 +946,11 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                 print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: conav {shlex.join(argv)}")
                 return rc
         left = [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]]
-        if left:  # only with --seed: the other seeds' commands, or this seed's waiting ones
+        if left:  # commands waiting for their runs, or with --seed the other seeds' commands
+            if args.seed is None:
+                print(f"[{st.name}] {len(left)} of the stage's {len(st.commands)} commands wait for their runs: "
+                      "the stage is not done", flush=True)
+                continue
             mine = sum(rp.command_seed(argv) == args.seed for argv in left)
             print(f"[{st.name}] seed {args.seed}: " + (f"{mine} command(s) wait for their runs" if mine else
                   "its commands done") + f"; {len(left)} of the stage's {len(st.commands)} to run", flush=True)

@@ -34,6 +34,9 @@ REMAT_FROM_PIXELS = 112 * 448
 # 24 GB on the GPU (the host holds them twice while they are joined); all 400 would be about
 # 70 GB a round (estimates from the window size, not measured).
 LARGE_PANORAMA_DAGGER_EPISODES = 64
+# There the learned baselines record as many train episodes as the CoNav policy (the preset's
+# 1,000 would be some 50 GB of BC windows on the GPU), their DAgger rounds the same subset as
+# its rounds, and their CNN is the policy's (encoder, dtype, remat): estimates, not measured.
 
 # The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
 PAPER_TABLE2 = {
@@ -237,7 +240,15 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     quiet = ("--no-progress",)
     validated = quiet + (("--val-every", str(b.val_every)) if b.val_every else ())  # the imitation runs
     intention, trajectory = runs / "intention", runs / "trajectory"
-    baseline_episodes = ("--episodes", str(b.baseline_episodes)) if b.baseline_episodes else ()
+    large = cfg.resolution[0] * cfg.resolution[1] >= REMAT_FROM_PIXELS
+    encoder = ("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()
+    conv_dtype = ("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()
+    network = (*conv_dtype, *encoder, *(("--remat",) if large else ()))  # the CoNav policy's CNN
+    subset = ("--dagger-episodes", str(LARGE_PANORAMA_DAGGER_EPISODES)) if large else ()
+    # The baselines' panorama CNN is the policy's; smaller panoramas keep their commands as run
+    # (dtype and remat unset there).
+    episodes = b.policy_episodes if large and b.policy_episodes else b.baseline_episodes
+    baseline = (*(("--episodes", str(episodes)) if episodes else ()), *((*network, *subset) if large else encoder))
     stages = [
         Stage("generate", (("generate", "--preset", cfg.preset, "--out", str(data), "--seed", str(cfg.data_seed),
                             "--workers", str(cfg.workers)),), (data / "manifest.json",)),
@@ -249,17 +260,15 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
             trajectory / "ckpt_{:08d}.npz".format(b.trajectory_steps))),
         Stage("baselines", (
             ("train", "objectnav", "--data", str(data), "--out", str(runs / "objectnav"), "--resolution", res,
-             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline_episodes, *validated),
+             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline, *validated),
             ("train", "imagenav", "--data", str(data), "--out", str(runs / "imagenav"), "--resolution", res,
-             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline_episodes, *validated),
+             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline, *validated),
         ), (runs / "objectnav" / "log.jsonl", runs / "imagenav" / "log.jsonl")),
     ]
     policy = ("--data", str(data), "--intention", str(intention), "--trajectory", str(trajectory),
               "--train-intentions", "predicted", "--resolution", res, "--steps", str(b.policy_steps),
               "--batch", str(b.policy_batch), *(("--episodes", str(b.policy_episodes)) if b.policy_episodes else ()),
-              *(("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()),
-              *(("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()),
-              *(("--remat",) if cfg.resolution[0] * cfg.resolution[1] >= REMAT_FROM_PIXELS else ()), *validated)
+              *network, *validated)
     common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
     # Each BC run, then its evaluation on val: an evaluated run needs no checkpoint to travel in a
     # pack (at 112x448 a policy's is 15 MB, the pack's limit four of them) but the one DAgger continues.
@@ -274,8 +283,6 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                                                for s in range(cfg.seeds) for a in ABLATIONS)))
     dagger, name = [], cfg.dagger
     mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
-    subset = (("--dagger-episodes", str(LARGE_PANORAMA_DAGGER_EPISODES))
-              if cfg.resolution[0] * cfg.resolution[1] >= REMAT_FROM_PIXELS else ())
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
         dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"{name}_s{s}")))
         dagger.append(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
@@ -326,11 +333,12 @@ def runs_read(argv: tuple[str, ...]) -> list[Path]:
     return found
 
 
-def seed_commands(plan: list[Stage], stage: Stage, seed: int, done: set[str], out: Path) -> tuple[list, list]:
-    """`stage`'s commands of training seed `seed` not in `done` (command keys), split into those
-    ready to run and those waiting: a command waits while a run it reads is the output of another
-    stage's command not done yet (a DAgger run's evaluation, before the DAgger run; a stage's own
-    commands run in order, each BC run before its evaluation)."""
+def ready_commands(plan: list[Stage], stage: Stage, seed: int | None, done: set[str], out: Path) -> tuple[list, list]:
+    """`stage`'s commands of training seed `seed` (every command for None) not in `done` (command
+    keys), split into those ready to run and those waiting: a command waits while a run it reads
+    is the output of another stage's command not done yet (a DAgger run's evaluation before the
+    DAgger run, a baseline's before its training; a stage's own commands run in order, each BC
+    run before its evaluation)."""
     made_by = {}
     for st in plan:
         for argv in st.commands:
@@ -338,7 +346,7 @@ def seed_commands(plan: list[Stage], stage: Stage, seed: int, done: set[str], ou
                 made_by[Path(argv[argv.index("--out") + 1])] = command_key(argv, out)
     ready, waiting = [], []
     for argv in stage.commands:
-        if command_seed(argv) != seed or command_key(argv, out) in done:
+        if (seed is not None and command_seed(argv) != seed) or command_key(argv, out) in done:
             continue
         blocked = [r for r in runs_read(argv) if r in made_by and made_by[r] not in done]
         (waiting if blocked else ready).append(argv)

@@ -288,7 +288,9 @@ def test_goal_runs_load_through_the_registry_and_eval_takes_a_run_per_agent(hall
         plan_eval(tiny_data, "val", ("random", "imagegoal"), tmp_path / "eval", checkpoint=parse_checkpoints(text))
 
 
-@pytest.mark.parametrize("model, flags", [("objectnav", []), ("objectnav", ["--no-object-saliency"]), ("imagenav", [])])
+@pytest.mark.parametrize("model, flags", [("objectnav", []), ("objectnav", ["--no-object-saliency"]), ("imagenav", []),
+                                          ("objectnav", ["--encoder", "patch", "--conv-dtype", "bfloat16"]),
+                                          ("imagenav", ["--encoder", "patch", "--conv-dtype", "bfloat16"])])
 def test_train_commands_build_the_baselines_networks(model, flags, monkeypatch, tmp_path):
     from eval.cli import build_parser
     from train import goalnav
@@ -308,5 +310,9 @@ def test_train_commands_build_the_baselines_networks(model, flags, monkeypatch, 
     net = seen["net"]
     assert net.image_hw == (16, 64) and not net.use_human_pos and not net.use_activity and not net.use_trajectory
     assert (net.use_object, net.goal_image) == ((True, False) if model == "objectnav" else (False, True))
-    assert net.uses_saliency is (model == "objectnav" and not flags)
+    assert net.uses_saliency is (model == "objectnav" and "--no-object-saliency" not in flags)
+    # The CoNav policy's panorama CNN flags reach the baselines' networks.
+    from conav_jax.models.policy import encoder_name
+
+    assert (encoder_name(net), net.conv_dtype) == (("patch", "bfloat16") if "--encoder" in flags else ("conv", "float32"))
     assert seen["cfg"].steps == 700 and (seen["imitation"].dagger_rounds, seen["imitation"].dagger_beta) == (2, 0.5)

@@ -61,14 +61,23 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
         imitation = cli._imitation_config(cli.build_parser().parse_args(list(argv)))
         assert imitation.dagger_episodes == rp.LARGE_PANORAMA_DAGGER_EPISODES
     assert not any("--dagger-episodes" in argv for st in low for argv in st.commands)
-    # The paper preset's baselines record a subset of its 20,293 train episodes, and its imitation
-    # runs validate on the 1,000 minival episodes less often; the small preset's commands as run.
+    # The paper preset's baselines record a subset of its 20,293 train episodes (at 112x448 as
+    # many as the policy, with its CNN and DAgger subsets), and its imitation runs validate on the
+    # 1,000 minival episodes less often; the small preset's commands as run.
+    policy_cnn = [bc[0][i:i + 2] for i, a in enumerate(bc[0]) if a in ("--conv-dtype", "--encoder")] + [("--remat",)]
     for argv in {s.name: s for s in stages}["baselines"].commands:
+        assert argv[argv.index("--episodes") + 1] == bc[0][bc[0].index("--episodes") + 1] == "400"
+        assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
+        assert all(any(argv[i:i + len(f)] == f for i in range(len(argv))) for f in policy_cnn)
+        cli._train_config(cli.build_parser().parse_args(list(argv)))
+    for argv in {s.name: s for s in low}["baselines"].commands:
         assert argv[argv.index("--episodes") + 1] == "1000"
+        assert not {"--conv-dtype", "--remat", "--dagger-episodes"} & set(argv)
     for argv in (*{s.name: s for s in stages}["baselines"].commands, *bc, *dagger[1::2]):
         assert argv[argv.index("--val-every") + 1] == "1000"
+    small_as_run = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1, resolution=(32, 128)))
     assert not any("--val-every" in argv or argv[1] != "policy" and "--episodes" in argv
-                   for st in small for argv in st.commands if argv[0] == "train")
+                   for st in small_as_run for argv in st.commands if argv[0] == "train")
     # The intention predictor crops from the panorama the agents render.
     for res in ((112, 448), (32, 128)):
         (intention,) = [argv for argv in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, resolution=res))[1].commands
@@ -82,12 +91,15 @@ def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_p
     plain = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1))}
     patch = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1,
                                                                   encoder="patch"))}
-    policy_runs = [argv for name in ("bc", "dagger") for argv in patch[name].commands if argv[0] == "train"]
-    assert len(policy_runs) == len(rp.ABLATIONS) + 1
+    policy_runs = [argv for name in ("baselines", "bc", "dagger") for argv in patch[name].commands
+                   if argv[0] == "train"]
+    assert len(policy_runs) == 2 + len(rp.ABLATIONS) + 1  # the learned baselines' CNN is the policy's
     parser = cli.build_parser()
     for argv in policy_runs:
         assert argv[argv.index("--encoder") + 1] == "patch"
-        assert cli._policy_model(parser.parse_args(list(argv))).conv_strides == (4, 2, 2)
+        args = parser.parse_args(list(argv))
+        net = cli._policy_model(args) if argv[1] == "policy" else cli._network_base(args, (8, 32))
+        assert net.conv_strides == (4, 2, 2)
     # Nothing else changes: the default's commands are those of the published runs.
     assert not any("--encoder" in argv for st in plain.values() for argv in st.commands)
     for name in plain:
@@ -503,3 +515,20 @@ def test_one_seed_at_a_time_trains_and_evaluates_it_and_packs_only_what_others_n
     assert not any("bc_" in argv[argv.index("--out") + 1] and "_s0" in argv[argv.index("--out") + 1] for argv in calls)
     results = json.loads((out / "results.json").read_text())
     assert results["missing"] == [] and set(results["conav"]["all"]["seeds"]) == {"0", "1"}
+
+
+def test_a_stage_asked_for_alone_runs_what_it_can_and_waits_for_runs_not_trained(fake_conav, tmp_path, capsys):
+    calls, _ = fake_conav
+    out = tmp_path / "r"
+    assert _reproduce(out, "--stage", "predictors") == 0
+    calls.clear()
+    # The evaluations before any agent is trained: the scripted agents' runs, the learned ones wait.
+    assert _reproduce(out, "--stage", "eval") == 0
+    assert [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls] == ["scripted"]
+    printed = capsys.readouterr().out
+    assert "waits for the runs it reads: conav eval" in printed and "objectgoal-oracle" in printed
+    assert "eval" not in rp.read_progress(out)["stages"]
+    calls.clear()
+    assert _reproduce(out) == 0  # the rest; the scripted agents are not evaluated again
+    assert sum(argv[argv.index("--out") + 1].endswith("/scripted") for argv in calls) == 0
+    assert json.loads((out / "results.json").read_text())["missing"] == []
