@@ -826,8 +826,9 @@ def _add_reproduce(sub) -> None:
     p.add_argument("--out", required=True, help="output directory (data, runs, eval, results.json, tables.md)")
     p.add_argument("--seeds", type=int, default=d["seeds"],
                    help=f"training seeds of every learned CoNav row (default {d['seeds']})")
-    p.add_argument("--stage", choices=STAGES, default=None, help="run only this stage (default: every stage not done); a command whose runs are not "
-                   "trained yet waits, and the stage stays to run")
+    p.add_argument("--stage", choices=STAGES, default=None,
+                   help="run only this stage (default: every stage not done); a command whose runs are not trained "
+                   "yet waits, and the stage stays to run")
     p.add_argument("--resolution", type=parse_resolution, default=d["resolution"], metavar="HxW",
                    help=f"panorama HxW of every agent (default the paper's {h}x{w})")
     p.add_argument("--workers", type=int, default=min(d["workers"], os.cpu_count() or 1),
