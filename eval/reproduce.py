@@ -482,6 +482,36 @@ def _learned_source(row: dict, seeds: int | None) -> str:
     return f"ours (seed{'s' if len(have) > 1 else ''} {', '.join(have)} of {seeds})"
 
 
+def _paired_lines(results: dict, metrics: tuple[str, ...] = ("FASR", "RASR")) -> list[str]:
+    """Seed by seed: each learned row's values per seed and its difference from its reference on
+    the seeds both hold (Table 3's rows against no inputs, DAgger rows against BC with all
+    inputs), with the mean ± sd of those differences: whether a row's gain exceeds the spread of
+    training seeds, which pooled intervals (counting episodes, not seeds) do not show."""
+    conav = results["conav"]
+    pairs = [(name, "none") for name in ABLATIONS[1:]] + [(name, "all") for name in conav if name.startswith("dagger")]
+    pairs = [(a, b) for a, b in pairs if a in conav and b in conav]
+    if not pairs:
+        return []
+    lines = ["", "## Seed by seed", "",
+             "Each row's value per training seed and its difference from the reference row on the seeds both hold "
+             "(mean ± sd of the differences over those seeds): a difference within the seeds' spread is not shown "
+             "to be one.", "",
+             "| row | reference | " + " | ".join(f"{m} by seed | {m} − reference by seed | mean ± sd" for m in metrics) + " |",
+             "|---|---" + "|---|---|---:" * len(metrics) + "|"]
+    for name, ref in pairs:
+        row, base = conav[name]["seeds"], conav[ref]["seeds"]
+        shared = sorted(set(row) & set(base), key=int)
+        cells = []
+        for m in metrics:
+            values = " / ".join(f"s{s} {row[s]['metrics'][m]['value']:.1f}" for s in sorted(row, key=int))
+            diffs = [row[s]["metrics"][m]["value"] - base[s]["metrics"][m]["value"] for s in shared]
+            mean, sd = _mean_sd(diffs) if diffs else (float("nan"), 0.0)
+            cells += [values, " / ".join(f"{d:+.1f}" for d in diffs) or "-",
+                      (f"{mean:+.1f} ± {sd:.1f}" if len(diffs) > 1 else f"{mean:+.1f}") if diffs else "-"]
+        lines.append(f"| {name} | {ref} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def render_tables(results: dict) -> str:
     """tables.md: Table 2 (ours beside the paper's) and Table 3 from results.json's content."""
     cols = TABLE_COLUMNS
@@ -545,6 +575,7 @@ def render_tables(results: dict) -> str:
         else:
             lines.append(f"| {k} | {marks} | not run yet | {not_run} |")
         lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
+    lines += _paired_lines(results)
     if results.get("missing"):
         lines += ["", "## Not run yet", "",
                   "These evaluations are not made yet; the rows above that need them are marked so, and the learned "

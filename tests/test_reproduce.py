@@ -126,6 +126,27 @@ def test_learned_cells_are_the_mean_and_sd_over_seeds_with_the_pooled_interval()
     assert rp._learned_cell(row, "AS") == "150.0 ± 70.7 [149.0, 151.0]"
 
 
+def test_tables_compare_rows_seed_by_seed_with_their_reference():
+    def row(*fasr_rasr):
+        return {"title": "CoNav", "privileged": [], "seeds": {
+            str(s): {"metrics": _metrics((f, r, 0, 0, 0, 0)), "episodes": 100} for s, (f, r) in enumerate(fasr_rasr)}}
+
+    results = {"seeds": 3, "agents": {}, "conav": {
+        "none": row((10, 20), (14, 22), (12, 30)), "object": row((13, 20), (15, 25), (18, 30)),
+        "all": row((20, 30), (10, 20)), "dagger": row((26, 31), (13, 20), (30, 30))}}
+    lines = rp.render_tables(results).splitlines()
+    # object - none: +3, +1, +6 (mean 3.33, sd 2.52); RASR 0, +3, 0.
+    assert ("| object | none | s0 13.0 / s1 15.0 / s2 18.0 | +3.0 / +1.0 / +6.0 | +3.3 ± 2.5 | "
+            "s0 20.0 / s1 25.0 / s2 30.0 | +0.0 / +3.0 / +0.0 | +1.0 ± 1.7 |") in lines
+    # all holds two seeds: compared on those only.
+    assert any(line.startswith("| all | none | s0 20.0 / s1 10.0 | +10.0 / -4.0 | +3.0 ± 9.9 |") for line in lines)
+    # DAgger rows against BC with all inputs, on the seeds both hold.
+    assert any(line.startswith("| dagger | all | s0 26.0 / s1 13.0 / s2 30.0 | +6.0 / +3.0 | +4.5 ± 2.1 |")
+               for line in lines)
+    assert not any(line.startswith("| activity |") for line in lines)  # not run: no row
+    assert "Seed by seed" not in rp.render_tables({**results, "conav": {"none": results["conav"]["none"]}})
+
+
 def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
     results = {
         "preset": "small", "seeds": 1, "resolution": "32x128", "episodes": 100, "commit": "abc1234",
