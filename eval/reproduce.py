@@ -34,9 +34,6 @@ REMAT_FROM_PIXELS = 112 * 448
 # 24 GB on the GPU (the host holds them twice while they are joined); all 400 would be about
 # 70 GB a round (estimates from the window size, not measured).
 LARGE_PANORAMA_DAGGER_EPISODES = 64
-# There the learned baselines record as many train episodes as the CoNav policy (the preset's
-# 1,000 would be some 50 GB of BC windows on the GPU), their DAgger rounds the same subset as
-# its rounds, and their CNN is the policy's (encoder, dtype, remat): estimates, not measured.
 
 # The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
 PAPER_TABLE2 = {
@@ -245,8 +242,10 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     conv_dtype = ("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()
     network = (*conv_dtype, *encoder, *(("--remat",) if large else ()))  # the CoNav policy's CNN
     subset = ("--dagger-episodes", str(LARGE_PANORAMA_DAGGER_EPISODES)) if large else ()
-    # The baselines' panorama CNN is the policy's; smaller panoramas keep their commands as run
-    # (dtype and remat unset there).
+    # The learned baselines share the policy's encoder. At large panoramas they also record as
+    # many train episodes as the policy (the preset's 1,000 would be some 50 GB of BC windows on
+    # the GPU, an estimate), with its dtype, remat and DAgger subsets; smaller panoramas keep the
+    # commands their runs were made with.
     episodes = b.policy_episodes if large and b.policy_episodes else b.baseline_episodes
     baseline = (*(("--episodes", str(episodes)) if episodes else ()), *((*network, *subset) if large else encoder))
     stages = [
@@ -505,9 +504,11 @@ def _paired_lines(results: dict, metrics: tuple[str, ...] = ("FASR", "RASR")) ->
         for m in metrics:
             values = " / ".join(f"s{s} {row[s]['metrics'][m]['value']:.1f}" for s in sorted(row, key=int))
             diffs = [row[s]["metrics"][m]["value"] - base[s]["metrics"][m]["value"] for s in shared]
-            mean, sd = _mean_sd(diffs) if diffs else (float("nan"), 0.0)
-            cells += [values, " / ".join(f"{d:+.1f}" for d in diffs) or "-",
-                      (f"{mean:+.1f} ± {sd:.1f}" if len(diffs) > 1 else f"{mean:+.1f}") if diffs else "-"]
+            summary = "-"
+            if diffs:
+                mean, sd = _mean_sd(diffs)
+                summary = f"{mean:+.1f} ± {sd:.1f}" if len(diffs) > 1 else f"{mean:+.1f}"
+            cells += [values, " / ".join(f"{d:+.1f}" for d in diffs) or "-", summary]
         lines.append(f"| {name} | {ref} | " + " | ".join(cells) + " |")
     return lines
 
