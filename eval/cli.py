@@ -811,7 +811,7 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 def _add_reproduce(sub) -> None:
     from conav_jax.models.policy import ENCODERS
-    from eval.reproduce import BUDGETS, STAGES, ReproduceConfig
+    from eval.reproduce import BUDGETS, LARGE_PANORAMA_DAGGER_EPISODES, STAGES, ReproduceConfig
 
     d = {f.name: f.default for f in dataclasses.fields(ReproduceConfig)}
 
@@ -841,6 +841,10 @@ def _add_reproduce(sub) -> None:
                    help="DAgger rounds after BC (default: the preset's, " +
                         ", ".join(f"{k} {b.dagger_rounds}" for k, b in BUDGETS.items()) +
                         "); another count trains and evaluates runs of its own (runs/dagger[_betaP]_roundsN_s*)")
+    p.add_argument("--dagger-episodes", type=int, default=d["dagger_episodes"], metavar="N",
+                   help="train episodes each DAgger round records (`conav train policy --dagger-episodes`; default: "
+                        f"{LARGE_PANORAMA_DAGGER_EPISODES} at panoramas of 112x448 and more, else all the policy's); "
+                        "another count trains and evaluates runs of its own (runs/dagger[...]_episodesN_s*)")
     p.add_argument("--encoder", choices=sorted(ENCODERS), default=d["encoder"],
                    help="the CoNav policy's panorama encoder in every BC and DAgger run (`conav train policy "
                         f"--encoder`; default {d['encoder']}, the published runs'; patch trains about 2x faster at "
@@ -877,7 +881,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
 
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
-                             dagger_rounds=args.dagger_rounds, encoder=args.encoder)
+                             dagger_rounds=args.dagger_rounds, dagger_episodes=args.dagger_episodes,
+                             encoder=args.encoder)
     if args.seed is not None and not 0 <= args.seed < cfg.seeds:
         print(f"conav reproduce: --seed {args.seed} is not one of the run's seeds 0..{cfg.seeds - 1}", file=sys.stderr)
         return 2

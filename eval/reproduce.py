@@ -32,7 +32,9 @@ REMAT_FROM_PIXELS = 112 * 448
 # a subset of its own: the policy's episodes run about 480 steps (its AS on val) where the
 # expert's run 152, some 17 windows of 12 MB each, so 64 hold about 13 GB a round beside BC's
 # 24 GB on the GPU (the host holds them twice while they are joined); all 400 would be about
-# 70 GB a round (estimates from the window size, not measured).
+# 70 GB a round (estimates from the window size). With the expert mixed in (`--dagger-beta 0.5`)
+# a round of 64 recorded 307 and 370 windows (H100, 112x448), about 4 GB: `--dagger-episodes`
+# asks for more.
 LARGE_PANORAMA_DAGGER_EPISODES = 64
 
 # The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
@@ -108,6 +110,10 @@ class ReproduceConfig:
     # DAgger rounds after BC (`conav train policy --dagger-rounds`); None: the preset's budget. Other
     # counts, like other shares, train and evaluate runs of their own name.
     dagger_rounds: int | None = None
+    # Train episodes each DAgger round records (`conav train policy --dagger-episodes`); None: the
+    # resolution's default (LARGE_PANORAMA_DAGGER_EPISODES at >= 112x448, else all the policy's).
+    # Another count, like other shares and rounds, trains and evaluates runs of its own name.
+    dagger_episodes: int | None = None
     # The CoNav policy's panorama encoder (`conav train policy --encoder`, PolicyConfig's
     # ENCODERS) in every BC and DAgger run; one OUT directory holds one encoder, as it holds one
     # resolution. The default's commands are those of the runs in results/.
@@ -122,6 +128,8 @@ class ReproduceConfig:
             raise ValueError(f"--dagger-beta is a probability in [0, 1], got {self.dagger_beta}")
         if self.dagger_rounds is not None and self.dagger_rounds < 1:
             raise ValueError(f"--dagger-rounds must be at least 1, got {self.dagger_rounds}")
+        if self.dagger_episodes is not None and self.dagger_episodes < 1:
+            raise ValueError(f"--dagger-episodes must be at least 1, got {self.dagger_episodes}")
         if self.encoder not in ENCODERS:
             raise ValueError(f"unknown --encoder {self.encoder!r}; choose from {', '.join(sorted(ENCODERS))}")
 
@@ -135,29 +143,49 @@ class ReproduceConfig:
         return self.budget.dagger_rounds if self.dagger_rounds is None else self.dagger_rounds
 
     @property
+    def large(self) -> bool:
+        """Panoramas that train the policy with remat and record DAgger rounds on a subset."""
+        return self.resolution[0] * self.resolution[1] >= REMAT_FROM_PIXELS
+
+    @property
+    def default_dagger_episodes(self) -> int | None:
+        """The train episodes a DAgger round records unless `dagger_episodes` says (None: all)."""
+        return LARGE_PANORAMA_DAGGER_EPISODES if self.large else None
+
+    @property
+    def round_episodes(self) -> int | None:
+        """The train episodes each of this run's DAgger rounds records (None: all the policy's)."""
+        return self.default_dagger_episodes if self.dagger_episodes is None else self.dagger_episodes
+
+    @property
     def dagger(self) -> str:
-        """This run's DAgger row (`dagger_row`): the budget's round count names no rounds."""
-        return dagger_row(self.dagger_beta, None if self.rounds == self.budget.dagger_rounds else self.rounds)
+        """This run's DAgger row (`dagger_row`): the budget's round count and the resolution's
+        episode count name neither."""
+        return dagger_row(self.dagger_beta, None if self.rounds == self.budget.dagger_rounds else self.rounds,
+                          None if self.round_episodes == self.default_dagger_episodes else self.round_episodes)
 
 
-def dagger_row(beta: float, rounds: int | None = None) -> str:
-    """The DAgger row's name for the expert's share `beta` ("dagger" for the policy alone) and a
-    round count other than the preset's (`rounds`; None: the preset's): its runs are
+def dagger_row(beta: float, rounds: int | None = None, episodes: int | None = None) -> str:
+    """The DAgger row's name for the expert's share `beta` ("dagger" for the policy alone), a
+    round count other than the preset's (`rounds`; None: the preset's) and train episodes a round
+    other than the resolution's default (`episodes`; None: the default): its runs are
     runs/NAME_s{seed}, their evaluations eval/conav_NAME_s{seed}."""
-    return ("dagger" if beta == 0.0 else f"dagger_beta{beta:g}") + ("" if rounds is None else f"_rounds{rounds}")
+    return (("dagger" if beta == 0.0 else f"dagger_beta{beta:g}") + ("" if rounds is None else f"_rounds{rounds}")
+            + ("" if episodes is None else f"_episodes{episodes}"))
 
 
-def dagger_variant(row: str) -> tuple[float, int | None] | None:
-    """(the expert's share, the round count or None) of a DAgger row named by `dagger_row`;
-    None for any other name."""
+def dagger_variant(row: str) -> tuple[float, int | None, int | None] | None:
+    """(the expert's share, the round count or None, the episodes a round or None) of a DAgger
+    row named by `dagger_row`; None for any other name."""
     m = _DAGGER_ROW.fullmatch(row)
     try:
-        return None if m is None else (float(m.group(1) or 0.0), None if m.group(2) is None else int(m.group(2)))
+        return None if m is None else (float(m.group(1) or 0.0), *(None if g is None else int(g) for g in m.groups()[1:]))
     except ValueError:  # not a number after "_beta"
         return None
 
 
-_DAGGER_ROW = re.compile(r"dagger(?:_beta([0-9.e+-]+))?(?:_rounds([0-9]+))?")  # the shares `:g` writes
+# The shares `:g` writes, then the round and episode counts.
+_DAGGER_ROW = re.compile(r"dagger(?:_beta([0-9.e+-]+))?(?:_rounds([0-9]+))?(?:_episodes([0-9]+))?")
 
 
 @dataclass(frozen=True)
@@ -237,11 +265,13 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     quiet = ("--no-progress",)
     validated = quiet + (("--val-every", str(b.val_every)) if b.val_every else ())  # the imitation runs
     intention, trajectory = runs / "intention", runs / "trajectory"
-    large = cfg.resolution[0] * cfg.resolution[1] >= REMAT_FROM_PIXELS
+    large = cfg.large
     encoder = ("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()
     conv_dtype = ("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()
     network = (*conv_dtype, *encoder, *(("--remat",) if large else ()))  # the CoNav policy's CNN
-    subset = ("--dagger-episodes", str(LARGE_PANORAMA_DAGGER_EPISODES)) if large else ()
+    # The learned baselines' DAgger rounds record the resolution's default subset (`--dagger-episodes`
+    # of reproduce names the CoNav DAgger rows' alone).
+    subset = ("--dagger-episodes", str(cfg.default_dagger_episodes)) if large else ()
     # The learned baselines share the policy's encoder. At large panoramas they also record as
     # many train episodes as the policy (the preset's 1,000 would be some 50 GB of BC windows on
     # the GPU, an estimate), with its dtype, remat and DAgger subsets; smaller panoramas keep the
@@ -285,7 +315,8 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
         dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"{name}_s{s}")))
         dagger.append(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
-                       str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed, *subset,
+                       str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
+                       *(("--dagger-episodes", str(cfg.round_episodes)) if cfg.round_episodes else ()),
                        "--out", str(runs / f"{name}_s{s}")))
     stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
     evals_ = [("eval", *common, "--agent", "random,follower,pioneer,pioneer-drive,objectgoal-planner,expert",
@@ -374,7 +405,7 @@ def dagger_rows(evals: Path, planned: str = "dagger") -> list[str]:
     one evaluated under `evals`, by the expert's share, then round count (the preset's first)."""
     found = {m.group(1) for m in map(_SEEDED_EVAL.fullmatch, (d.name for d in Path(evals).glob("conav_dagger*"))) if m}
     variants = {v: row for row in found | {planned} if (v := dagger_variant(row)) is not None}
-    return [variants[v] for v in sorted(variants, key=lambda v: (v[0], v[1] or 0))]
+    return [variants[v] for v in sorted(variants, key=lambda v: (v[0], v[1] or 0, v[2] or 0))]
 
 
 def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") -> dict:
@@ -546,9 +577,10 @@ def render_tables(results: dict) -> str:
                 lines.append(f"| CoNav Agent (BC) | | not run yet | {not_run} |")
             daggers = [k for k in results["conav"] if k.startswith("dagger")]
             for name in daggers:
-                row, (share, rounds) = results["conav"][name], dagger_variant(name)
+                row, (share, rounds, episodes) = results["conav"][name], dagger_variant(name)
                 how = ("BC + DAgger" + ("" if share == 0.0 else f", the expert acting at {share:g}^r of round r's steps")
-                       + ("" if rounds is None else f", {rounds} round{'s' * (rounds > 1)}"))
+                       + ("" if rounds is None else f", {rounds} round{'s' * (rounds > 1)}")
+                       + ("" if episodes is None else f", {episodes} train episodes a round"))
                 lines.append(f"| {row['title']} ({how}) | {', '.join(row['privileged']) or 'none'} | "
                              f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
             if not daggers:

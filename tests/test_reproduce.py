@@ -259,9 +259,9 @@ def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(
     # The preset's own count names no rounds: the runs made before the option keep their names.
     same = rp.ReproduceConfig(out=tmp_path, preset="paper", dagger_rounds=rp.BUDGETS["paper"].dagger_rounds)
     assert same.dagger == "dagger" and rp.dagger_row(0.0, 3) == "dagger_rounds3"
-    assert rp.dagger_variant("dagger_beta0.5_rounds1") == (0.5, 1) and rp.dagger_variant("daggerish") is None
+    assert rp.dagger_variant("dagger_beta0.5_rounds1") == (0.5, 1, None) and rp.dagger_variant("daggerish") is None
     # Every share a row can be named by reads back, however `:g` writes it.
-    assert all(rp.dagger_variant(rp.dagger_row(b, 2)) == (b, 2) for b in (1.0, 0.25, 1e-05))
+    assert all(rp.dagger_variant(rp.dagger_row(b, 2)) == (b, 2, None) for b in (1.0, 0.25, 1e-05))
     assert rp.dagger_variant("dagger_beta1e-05.") is None
     with pytest.raises(ValueError, match="--dagger-rounds must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, dagger_rounds=0)
@@ -280,6 +280,36 @@ def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(
     (evals / "conav_dagger_beta0.5_rounds1_s0" / "metrics.json").unlink()
     assert rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)["missing"][-1] == \
         "eval/conav_dagger_beta0.5_rounds1_s0"
+
+
+def test_another_dagger_episode_count_runs_under_its_own_name_and_the_baselines_keep_the_default(tmp_path):
+    runs, evals = tmp_path / "runs", tmp_path / "eval"
+    cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=1, dagger_beta=0.5, dagger_rounds=1, dagger_episodes=200)
+    assert cfg.dagger == "dagger_beta0.5_rounds1_episodes200"
+    plan = {s.name: s for s in rp.plan_stages(cfg)}
+    train = plan["dagger"].commands[1]
+    assert train[train.index("--dagger-episodes") + 1] == "200" and train[-1] == str(runs / f"{cfg.dagger}_s0")
+    for argv in plan["baselines"].commands:  # the CoNav DAgger rows' option alone
+        assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
+    # The resolution's own count names none: the runs made before the option keep their names.
+    assert rp.ReproduceConfig(out=tmp_path, dagger_episodes=rp.LARGE_PANORAMA_DAGGER_EPISODES).dagger == "dagger"
+    small = rp.ReproduceConfig(out=tmp_path, preset="paper", resolution=(32, 128), dagger_episodes=100)
+    assert small.dagger == "dagger_episodes100"
+    assert "--dagger-episodes" not in {s.name: s for s in rp.plan_stages(
+        dataclasses.replace(small, dagger_episodes=None))}["dagger"].commands[1]
+    assert rp.dagger_variant(cfg.dagger) == (0.5, 1, 200) and rp.dagger_variant("dagger_episodes") is None
+    with pytest.raises(ValueError, match="--dagger-episodes must be at least 1"):
+        rp.ReproduceConfig(out=tmp_path, dagger_episodes=0)
+
+    _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
+    for row, fasr in (("dagger_beta0.5_rounds1_episodes200", 25), ("dagger_beta0.5_rounds1", 20)):
+        _write_eval(evals / f"conav_{row}_s0", _eval_doc({"conav": (fasr, 40, 5, 6, 20, 100)}))
+    results = rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
+    assert [k for k in results["conav"] if k.startswith("dagger")] == [
+        "dagger_beta0.5_rounds1", "dagger_beta0.5_rounds1_episodes200"]
+    assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps, 1 round, 200 "
+                               "train episodes a round) | oracle map | ours | 25.0 [")
+               for line in rp.render_tables(results).splitlines())
 
 
 @pytest.fixture
