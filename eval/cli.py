@@ -973,8 +973,11 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
             (cfg.out / "tables.md").write_text(rp.render_tables(results))
         if st.name == "pack":
-            path, size = rp.write_pack(cfg, progress)
+            path, size, left_out = rp.write_pack(cfg, progress)
             print(f"wrote {path} ({size / 2**20:.1f} MiB)")
+            for ckpt in left_out:
+                print(f"left out of the pack for want of room: {ckpt.relative_to(cfg.out)} (continued from this "
+                      "pack, that run starts its first round again)")
         progress["stages"][st.name] = round(time.perf_counter() - t_stage, 1)
         rp.write_progress(cfg.out, progress)
         print(f"[{st.name}] done in {progress['stages'][st.name]:.0f} s", flush=True)

@@ -620,32 +620,54 @@ def render_tables(results: dict) -> str:
 # -- pack ------------------------------------------------------------------------------------------
 
 
+def _pending_runs(cfg: ReproduceConfig, progress: dict) -> tuple[set[Path], set[Path]]:
+    """(the runs that commands still to run read, the runs they write)."""
+    out = Path(cfg.out)
+    read, written = set(), set()
+    for argv in (a for st in plan_stages(cfg) for a in st.commands if command_key(a, out) not in progress["commands"]):
+        read.update(runs_read(argv))
+        if "--out" in argv:
+            written.add(Path(argv[argv.index("--out") + 1]))
+    return read, written
+
+
 def pack_members(cfg: ReproduceConfig, progress: dict) -> list[Path]:
     """What a fresh machine needs to continue: the progress record, every evaluation's outputs,
     results and tables, and the latest checkpoint of every run a stage still to run reads (the
     data are regenerated from their seed; a training round cut short restarts from the run's
-    last finished round)."""
+    last finished round, or from `first_round_checkpoints`' when the pack carries them)."""
+    from conav_jax.checkpoints import latest_checkpoint
+
     out = Path(cfg.out)
     members = [out / PROGRESS_FILE] + sorted((out / "eval").rglob("*.json")) + sorted((out / "eval").rglob("*.md"))
     members += [p for p in (out / "results.json", out / "tables.md") if p.exists()]
-    pending = [argv for st in plan_stages(cfg) for argv in st.commands if command_key(argv, out) not in progress["commands"]]
-    runs = set()
-    for argv in pending:
-        runs.update(runs_read(argv))
-        if "--out" in argv:
-            runs.add(Path(argv[argv.index("--out") + 1]))
-    from conav_jax.checkpoints import latest_checkpoint
-
-    for run in sorted(runs):
+    for run in sorted(set.union(*_pending_runs(cfg, progress))):
         found = latest_checkpoint(run)
         if found is not None:
             members += [found] + [p for p in (run / "log.jsonl",) if p.exists()]
     return [p for p in members if p.exists()]
 
 
-def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int]:
-    """OUT/pack.tar (atomically): `pack_members`, paths relative to OUT. ValueError when it
-    would exceed PACK_LIMIT_BYTES, naming the largest members."""
+def first_round_checkpoints(cfg: ReproduceConfig, progress: dict) -> list[tuple[Path, ...]]:
+    """(the latest checkpoint within round 0, the run's and the round's logs) of every run still
+    to train that has finished no round (a BC run cut short): on a fresh machine the run records
+    round 0 again (the teacher's rollouts: same data, same records) and goes on from that update.
+    A later round's checkpoints never travel: its data came from a policy that no longer exists."""
+    from conav_jax.checkpoints import latest_checkpoint
+
+    found = []
+    for run in sorted(_pending_runs(cfg, progress)[1]):
+        ckpt = latest_checkpoint(run / "round_0")
+        if ckpt is not None and latest_checkpoint(run) is None:
+            found.append((ckpt, *(p for p in (run / "log.jsonl", ckpt.parent / "log.jsonl") if p.exists())))
+    return found
+
+
+def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[Path]]:
+    """OUT/pack.tar (atomically): `pack_members`, paths relative to OUT, and the runs cut in their
+    first round (`first_round_checkpoints`) while the pack stays within PACK_LIMIT_BYTES; returns
+    (the pack, its bytes, the first-round checkpoints left out for want of room). ValueError when
+    `pack_members` alone would exceed the limit, naming the largest members."""
     import os
     import tarfile
     import tempfile
@@ -657,13 +679,21 @@ def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int]:
         big = sorted(members, key=lambda p: -p.stat().st_size)[:5]
         raise ValueError(f"the pack would hold {total / 2**20:.1f} MiB (limit {PACK_LIMIT_BYTES / 2**20:.0f} MiB); "
                          "largest: " + ", ".join(f"{p.relative_to(out)} {p.stat().st_size / 2**20:.1f} MiB" for p in big))
+    left_out = []
+    for files in first_round_checkpoints(cfg, progress):
+        size = sum(p.stat().st_size for p in files)
+        if total + size <= PACK_LIMIT_BYTES:
+            members += files
+            total += size
+        else:
+            left_out.append(files[0])
     fd, tmp = tempfile.mkstemp(prefix=".pack.", suffix=".tmp", dir=out)
     os.close(fd)
     with tarfile.open(tmp, "w") as tar:
         for p in members:
             tar.add(p, arcname=str(p.relative_to(out)))
     os.replace(tmp, out / "pack.tar")
-    return out / "pack.tar", total
+    return out / "pack.tar", total, left_out
 
 
 def unpack(pack: Path, out: Path) -> list[str]:

@@ -442,6 +442,42 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
     assert not any(c[0] == "train" and "bc_" in c[c.index("--out") + 1] for c in calls if "--out" in c)
 
 
+def test_the_pack_carries_a_run_cut_in_its_first_round_while_it_fits(fake_conav, tmp_path, monkeypatch, capsys):
+    import tarfile
+
+    from conav_jax.checkpoints import checkpoint_path, save_checkpoint
+
+    calls, state = fake_conav
+    state["fail_on"] = "bc_none_s0"
+    out = tmp_path / "r"
+    assert _reproduce(out) == 1  # the first BC run cut in its only round
+    runs = out / "runs"
+    save_checkpoint(checkpoint_path(runs / "bc_none_s0" / "round_0", 3), params={"w": [1.0] * 1000}, opt_state=None,
+                    config={"kind": "policy"}, step=3)
+    for log in (runs / "bc_none_s0" / "log.jsonl", runs / "bc_none_s0" / "round_0" / "log.jsonl"):
+        log.write_text('{"step": 3}\n')
+    # A run with a finished round cut in a later one: that round's data came from its policy, so
+    # its checkpoint stays behind (the run resumes after its last finished round).
+    for path in (checkpoint_path(runs / "bc_object_s0", 5), checkpoint_path(runs / "bc_object_s0" / "round_0", 5),
+                 checkpoint_path(runs / "bc_object_s0" / "round_1", 7)):
+        save_checkpoint(path, params={"w": [1.0]}, opt_state=None, config={"kind": "policy"}, step=5)
+    save_checkpoint(checkpoint_path(runs / "bc_all_s0" / "round_1", 7), params={"w": [1.0]}, opt_state=None,
+                    config={"kind": "policy"}, step=7)
+    assert _reproduce(out, "--stage", "pack") == 0
+    names = set(tarfile.open(out / "pack.tar").getnames())
+    assert {"runs/bc_none_s0/round_0/ckpt_00000003.npz", "runs/bc_none_s0/log.jsonl", "runs/bc_none_s0/round_0/log.jsonl",
+            "runs/bc_object_s0/ckpt_00000005.npz"} <= names
+    assert not any("round_1" in n or "bc_object_s0/round_0" in n for n in names)
+    # Without room for it the pack is still written, without it, and the command says so.
+    required = sum(p.stat().st_size for p in rp.pack_members(rp.ReproduceConfig(out=out, preset="tiny", seeds=2),
+                                                             rp.read_progress(out)))
+    monkeypatch.setattr(rp, "PACK_LIMIT_BYTES", required + 10)
+    capsys.readouterr()
+    assert _reproduce(out, "--stage", "pack") == 0
+    assert not any("bc_none_s0" in n for n in tarfile.open(out / "pack.tar").getnames())
+    assert "left out of the pack for want of room: runs/bc_none_s0/round_0/ckpt_00000003.npz" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("preset", sorted(rp.BUDGETS))
 def test_every_planned_command_parses_into_a_valid_training_config(preset, tmp_path):
     """Each stage's command line is one the real `conav` accepts, and its budget is a valid
