@@ -269,12 +269,11 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     encoder = ("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()
     conv_dtype = ("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()
     network = (*conv_dtype, *encoder, *(("--remat",) if large else ()))  # the CoNav policy's CNN
-    # The learned baselines' DAgger rounds record the resolution's default subset (`--dagger-episodes`
-    # of reproduce names the CoNav DAgger rows' alone).
     subset = ("--dagger-episodes", str(cfg.default_dagger_episodes)) if large else ()
     # The learned baselines share the policy's encoder. At large panoramas they also record as
     # many train episodes as the policy (the preset's 1,000 would be some 50 GB of BC windows on
-    # the GPU, an estimate), with its dtype, remat and DAgger subsets; smaller panoramas keep the
+    # the GPU, an estimate), with its dtype, remat and the default DAgger subsets (reproduce's
+    # `--dagger-episodes` changes the CoNav DAgger rows' alone); smaller panoramas keep the
     # commands their runs were made with.
     episodes = b.policy_episodes if large and b.policy_episodes else b.baseline_episodes
     baseline = (*(("--episodes", str(episodes)) if episodes else ()), *((*network, *subset) if large else encoder))
@@ -402,7 +401,8 @@ _SEEDED_EVAL = re.compile(r"conav_(.+)_s[0-9]+")
 
 def dagger_rows(evals: Path, planned: str = "dagger") -> list[str]:
     """The DAgger rows to tabulate: the run's own (`planned`, a `dagger_row` name) and every other
-    one evaluated under `evals`, by the expert's share, then round count (the preset's first)."""
+    one evaluated under `evals`, by the expert's share, then round count, then episodes a round
+    (the defaults first)."""
     found = {m.group(1) for m in map(_SEEDED_EVAL.fullmatch, (d.name for d in Path(evals).glob("conav_dagger*"))) if m}
     variants = {v: row for row in found | {planned} if (v := dagger_variant(row)) is not None}
     return [variants[v] for v in sorted(variants, key=lambda v: (v[0], v[1] or 0, v[2] or 0))]
