@@ -854,6 +854,11 @@ def _add_reproduce(sub) -> None:
                         "evaluated as soon as it has trained; an evaluation of a run not trained yet waits): a machine "
                         "with the time for one seed leaves it finished, and its pack small; a stage is done once "
                         "every seed's commands are")
+    p.add_argument("--gpus", type=int, default=1, metavar="N",
+                   help="run up to N commands at once, each in a process of its own on one GPU (the first N of "
+                        "CUDA_VISIBLE_DEVICES, else 0..N-1), a command starting as soon as the runs it reads are made; "
+                        "each logs to OUT/logs/ (default 1: one command at a time, in this process, on every visible "
+                        "device)")
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
@@ -911,6 +916,10 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
         cwd=Path(__file__).resolve().parents[1]).stdout.strip() or "unknown"
+    if args.gpus > 1 and not args.dry_run:
+        stages = _reproduce_parallel(args, cfg, plan, stages, progress)
+        if isinstance(stages, int):
+            return stages
     for st in stages:
         todo = [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]]
         if not args.dry_run:
@@ -984,6 +993,46 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     if (cfg.out / "tables.md").exists() and not args.dry_run:
         print((cfg.out / "tables.md").read_text())
     return 0
+
+
+def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list, progress: dict) -> list | int:
+    """`--gpus N`: every command of `stages` not done (training seed `--seed`'s alone in the seeded
+    stages) runs through `reproduce.run_parallel`; stages whose commands are all done are marked so,
+    with their commands' summed time. Returns the stages left to run here (tables, pack), or an
+    exit code."""
+    from eval import reproduce as rp
+
+    work = [st for st in stages if st.name not in ("tables", "pack")]
+    if not work:
+        return stages
+    try:
+        gpus = rp.gpu_slots(args.gpus)
+    except ValueError as e:
+        print(f"conav reproduce: {e}", file=sys.stderr)
+        return 2
+    import jax
+
+    jax.config.update("jax_platforms", "cpu")  # this process runs no program: its GPUs are the commands'
+    todo = []
+    for st in work:
+        seeded = args.seed is not None and any(rp.command_seed(argv) is not None for argv in st.commands)
+        todo += [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]
+                 and (not seeded or rp.command_seed(argv) == args.seed)]
+    print(f"{len(todo)} command(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
+    t0 = time.perf_counter()
+    rc, waiting = rp.run_parallel(plan, todo, cfg.out, progress, gpus, args.compile_cache)
+    for argv in waiting:
+        print(f"waits for the runs it reads: conav {shlex.join(argv)}")
+    for st in work:
+        keys = [rp.command_key(argv, cfg.out) for argv in st.commands]
+        if all(k in progress["commands"] for k in keys):
+            progress["stages"][st.name] = round(sum(progress["commands"][k] for k in keys), 1)
+    rp.write_progress(cfg.out, progress)
+    print(f"{len(todo) - len(waiting)} command(s) ended in {time.perf_counter() - t0:.0f} s", flush=True)
+    if rc:
+        print(f"conav reproduce: a command failed (exit {rc}); its log is named above", file=sys.stderr)
+        return rc
+    return [st for st in stages if st.name in ("tables", "pack")]
 
 
 # -- conav bench -----------------------------------------------------------------------------------

@@ -14,7 +14,12 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
+import shutil
+import subprocess
+import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -615,6 +620,171 @@ def render_tables(results: dict) -> str:
                   "rows name the seeds they hold. Running `conav reproduce` again with the same arguments continues.", ""]
         lines += [f"- `{m}`" for m in results["missing"]]
     return "\n".join(lines) + "\n"
+
+
+# -- several commands at once (`--gpus`) -----------------------------------------------------------
+
+
+def writes(argv: tuple[str, ...]) -> Path | None:
+    """The directory a command makes: a copy's target, else its --out (None: neither)."""
+    if argv[0] == "@copy":
+        return Path(argv[2])
+    return Path(argv[argv.index("--out") + 1]) if "--out" in argv else None
+
+
+def prerequisites(plan: list[Stage], out: Path) -> dict[str, set[str]]:
+    """Each planned command's (by key) prerequisites: the commands before it in the plan that
+    write its data, a run it reads, or the directory it writes itself (a DAgger run trains in the
+    copy of its BC run; a run cut short and its copy never run at once)."""
+    found, made = {}, []  # made: (directory, key) of the commands so far, in plan order
+    for st in plan:
+        for argv in st.commands:
+            needs = set(runs_read(argv)) | {writes(argv)}
+            if "--data" in argv:
+                needs.add(Path(argv[argv.index("--data") + 1]))
+            key = command_key(argv, out)
+            found[key] = {k for d, k in made if d in needs}
+            made.append((writes(argv), key))
+    return found
+
+
+def by_dependents(todo: list[tuple[str, ...]], needs: dict[str, set[str]], out: Path) -> list[tuple[str, ...]]:
+    """`todo` in the order `run_parallel` starts what is ready: the most commands of `todo` waiting
+    on it (directly or not) first, then plan order. A BC run that a DAgger run and two
+    evaluations wait for starts before a run only its evaluation waits for."""
+    keys = {command_key(argv, out) for argv in todo}
+    below = {k: set() for k in keys}  # the commands of todo waiting on k
+    for k in keys:
+        stack = [n for n in needs[k] if n in keys]
+        while stack:
+            n = stack.pop()
+            if k not in below[n]:
+                below[n].add(k)
+                stack += [m for m in needs[n] if m in keys]
+    index = {command_key(argv, out): i for i, argv in enumerate(todo)}
+    return sorted(todo, key=lambda argv: (-len(below[command_key(argv, out)]), index[command_key(argv, out)]))
+
+
+def gpu_slots(count: int) -> list[str]:
+    """The GPUs `count` commands at once run on, one each: the first `count` of
+    CUDA_VISIBLE_DEVICES, else 0..count-1. ValueError when fewer are visible (a process given a
+    GPU that does not exist would run on the CPU)."""
+    if count < 1:
+        raise ValueError(f"--gpus must be at least 1, got {count}")
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    ids = [d.strip() for d in visible.split(",") if d.strip()] if visible is not None else None
+    if ids is None and shutil.which("nvidia-smi"):
+        listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
+        ids = [str(i) for i, line in enumerate(line for line in listed.splitlines() if line.startswith("GPU "))]
+    if ids is not None and len(ids) < count:
+        raise ValueError(f"--gpus {count}: {len(ids)} GPU(s) visible ({', '.join(ids) or 'none'})")
+    return ids[:count] if ids is not None else [str(i) for i in range(count)]
+
+
+def child_command(argv: tuple[str, ...], compile_cache: str | None) -> list[str]:
+    """The process that runs one `conav` command (`run_parallel`)."""
+    return [sys.executable, "-m", "eval.cli", *(("--compile-cache", compile_cache) if compile_cache else ()), *argv]
+
+
+def _log_name(argv: tuple[str, ...]) -> str:
+    words = [w for w in argv[:2] if not w.startswith("-")]
+    target = writes(argv)
+    return "_".join(words + ([target.name] if target is not None else [])) + ".log"
+
+
+def _describe(argv: tuple[str, ...], out: Path) -> str:
+    target = writes(argv)
+    where = target.relative_to(out) if target is not None and target.is_relative_to(out) else target
+    return " ".join(w for w in argv[:2] if not w.startswith("-")) + f" -> {where}"
+
+
+def _tail(path: Path, lines: int = 15) -> str:
+    text = path.read_text(errors="replace").splitlines() if path.exists() else []
+    return "\n".join("    " + line for line in text[-lines:])
+
+
+def run_parallel(plan: list[Stage], todo: list[tuple[str, ...]], out: Path, progress: dict, gpus: list[str],
+                 compile_cache: str | None = None, say=None, poll_seconds: float = 0.1) -> tuple[int, list]:
+    """Run `todo` (commands of `plan`) up to len(gpus) at once, each in a `conav` process of its
+    own that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a command starting (in plan
+    order) once its `prerequisites` are done; copies run here. Each command's wall time goes into
+    `progress` (saved) as it ends, a failed or stopped one's under "cut". After a failure no new
+    command starts and those running finish. An interrupt (SIGTERM raised as KeyboardInterrupt)
+    stops every process, records their time as cut and is raised again. Returns (0 or the first
+    failure's exit code, the commands left waiting for prerequisites not run here)."""
+    say = say or (lambda message: print(message, flush=True))
+    needs = prerequisites(plan, out)
+    done = set(progress["commands"])
+    pending, running, free, failed = by_dependents(todo, needs, out), {}, list(gpus), 0
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+
+    def record(argv, seconds: float, ok: bool) -> None:
+        key = command_key(argv, out)
+        if ok:
+            progress["commands"][key] = round(seconds, 1)
+            done.add(key)
+        else:
+            cut = progress.setdefault("cut", {})
+            cut[key] = round(cut.get(key, 0.0) + seconds, 1)
+        write_progress(out, progress)
+
+    try:
+        while pending or running:
+            started = True
+            while started and not failed:  # a copy done may let others start
+                started = False
+                for argv in list(pending):
+                    if not needs[command_key(argv, out)] <= done or (argv[0] != "@copy" and not free):
+                        continue
+                    pending.remove(argv)
+                    started = True
+                    if argv[0] == "@copy":
+                        t0 = time.perf_counter()
+                        if not Path(argv[2]).exists():
+                            shutil.copytree(argv[1], argv[2])
+                        record(argv, time.perf_counter() - t0, True)
+                        say(f"copied {argv[1]} -> {argv[2]}")
+                        continue
+                    gpu, log = free.pop(0), out / "logs" / _log_name(argv)
+                    with open(log, "a") as f:
+                        f.write(f"$ conav {' '.join(argv)}\n")
+                        f.flush()
+                        proc = subprocess.Popen(child_command(argv, compile_cache), stdout=f, stderr=subprocess.STDOUT,
+                                                env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu, "PYTHONUNBUFFERED": "1"})
+                    running[proc] = (argv, gpu, log, time.perf_counter())
+                    say(f"[gpu {gpu}] {_describe(argv, out)} started (log {log})")
+            if not running:
+                break  # what is left waits for commands not run here
+            ended = [proc for proc in running if proc.poll() is not None]
+            if not ended:
+                time.sleep(poll_seconds)
+                continue
+            for proc in ended:
+                argv, gpu, log, t0 = running.pop(proc)
+                seconds = time.perf_counter() - t0
+                record(argv, seconds, proc.returncode == 0)
+                free = sorted(free + [gpu], key=gpus.index)
+                if proc.returncode == 0:
+                    say(f"[gpu {gpu}] {_describe(argv, out)} done in {seconds:.0f} s "
+                        f"({len(done & set(needs))} done, {len(running)} running, {len(pending)} to run)")
+                else:
+                    failed = failed or proc.returncode
+                    say(f"[gpu {gpu}] {_describe(argv, out)} failed (exit {proc.returncode}) after {seconds:.0f} s; "
+                        f"no new command starts. The end of {log}:\n{_tail(log)}")
+    except BaseException:
+        for proc in running:
+            proc.terminate()
+        deadline = time.perf_counter() + 30.0
+        for proc, (argv, gpu, log, t0) in running.items():
+            try:
+                proc.wait(timeout=max(0.1, deadline - time.perf_counter()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            record(argv, time.perf_counter() - t0, False)
+            say(f"[gpu {gpu}] {_describe(argv, out)} stopped")
+        raise
+    return failed, pending
 
 
 # -- pack ------------------------------------------------------------------------------------------

@@ -7,6 +7,7 @@ import dataclasses
 import functools
 import json
 import shutil
+import time
 
 import jax
 import numpy as np
@@ -131,6 +132,32 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     assert base[0] != other_batches[0] and base[1] != other_batches[1]
 
 
+def _another_run_recording(cache, aside):
+    """As if another run had begun recording the round-0 entry in `cache`: the entry moved to
+    `aside` and its lock held; the entry is back 1 s later and the lock let go. The thread."""
+    import threading
+
+    from train import policy as tp
+
+    (entry,) = cache.glob("round0_*.npz")
+    aside.mkdir()
+    for p in (entry, entry.with_suffix(".json")):
+        p.rename(aside / p.name)
+    locked = threading.Event()
+
+    def other_run():
+        with tp.entry_lock(entry):
+            locked.set()
+            time.sleep(1.0)
+            for p in (entry, entry.with_suffix(".json")):
+                (aside / p.name).rename(p)
+
+    thread = threading.Thread(target=other_run)
+    thread.start()
+    locked.wait()
+    return thread
+
+
 def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_data, tmp_path, monkeypatch):
     from train import policy as tp
 
@@ -145,10 +172,16 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
     _hand_weights_back(monkeypatch)  # what is recorded is under test, not the updates
     cfg = TrainConfig(steps=2, batch=2, warmup_steps=0)
     imitation = ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ, burn_in=BURN_IN, train_intentions="predicted")
+    logs = []
     for name in ("none", "object"):  # the first reads no intention input, the second the object's alone
+        if name == "object":
+            entry_aside = _another_run_recording(data / tp.EXPERT_CACHE_DIR, tmp_path / "aside")
         train_policy(data, tmp_path / name, cfg, policy.ablation_config(PCFG, name), imitation, intention_run="I",
-                     trajectory_run="T", scan_updates=False)
+                     trajectory_run="T", scan_updates=False, log=logs.append)
+    entry_aside.join()
     assert len(recorded) == 1  # the second row reads the first's recording
+    # It started while another run was recording that entry (`conav reproduce --gpus`): it waited.
+    assert any(line.startswith("waiting for another run recording") for line in logs)
     none, obj = (im.load_sequences(tmp_path / n / "data" / "round_0.npz") for n in ("none", "object"))
     for a, b in zip(jax.tree.leaves(none), jax.tree.leaves(obj)):
         assert a.tobytes() == b.tobytes()

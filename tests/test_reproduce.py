@@ -5,6 +5,7 @@ import dataclasses
 import json
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -619,3 +620,141 @@ def test_a_stage_asked_for_alone_runs_what_it_can_and_waits_for_runs_not_trained
     assert _reproduce(out) == 0  # the rest; the scripted agents are not evaluated again
     assert sum(argv[argv.index("--out") + 1].endswith("/scripted") for argv in calls) == 0
     assert json.loads((out / "results.json").read_text())["missing"] == []
+
+
+# A `conav` command run as a process of its own (`--gpus`): writes what fake_conav's commands
+# write, and a line of when it ran and on which GPU; FAKE_FAIL_ON names a command that fails.
+FAKE_CHILD = r'''
+import json, os, sys, time
+from pathlib import Path
+argv = sys.argv[1:]
+t0 = time.time()
+out = Path(argv[argv.index("--out") + 1])
+def note(**extra):
+    with open(os.environ["FAKE_RECORD"], "a") as f:
+        f.write(json.dumps({"out": str(out), "gpu": os.environ["CUDA_VISIBLE_DEVICES"], "start": t0, "end": time.time(),
+                            **extra}) + "\n")
+if os.environ.get("FAKE_FAIL_ON") and any(os.environ["FAKE_FAIL_ON"] in a for a in argv):
+    print("a failure the log shows")
+    note(failed=True)
+    sys.exit(3)
+time.sleep(float(os.environ.get("FAKE_SECONDS", "0.2")))
+out.mkdir(parents=True, exist_ok=True)
+if argv[0] == "eval":
+    agents = argv[argv.index("--agent") + 1].split(",")
+    entry = lambda a: {"agent": a, "title": f"T {a}", "intention_source": "none", "privileged": ["oracle map"],
+                       "metrics": {m: {"value": v, "lo": v - 1, "hi": v + 1}
+                                   for m, v in zip(("FASR", "RASR", "FASPL", "RASPL", "CR", "AS"), (1, 2, 3, 4, 5, 6))}}
+    (out / "metrics.json").write_text(json.dumps({"episodes": 100, "agents": {a: entry(a) for a in agents}, "ablations": {}}))
+else:
+    (out / ("manifest.json" if argv[0] == "generate" else "log.jsonl")).write_text("{}\n")
+note()
+'''
+
+
+@pytest.fixture
+def fake_children(monkeypatch, tmp_path):
+    """Commands run by `--gpus` as processes of FAKE_CHILD, on the GPUs CUDA_VISIBLE_DEVICES lists;
+    returns the file of their records."""
+    script, record = tmp_path / "fake_child.py", tmp_path / "record.jsonl"
+    script.write_text(FAKE_CHILD)
+    monkeypatch.setattr(rp, "child_command", lambda argv, cache: [sys.executable, str(script), *argv])
+    monkeypatch.setenv("FAKE_RECORD", str(record))
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5,7")
+    return record
+
+
+def _runs(record: Path) -> list[dict]:
+    return [json.loads(line) for line in record.read_text().splitlines()] if record.exists() else []
+
+
+def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_same_results(
+        fake_conav, fake_children, tmp_path, capsys):
+    calls, _ = fake_conav
+    assert _reproduce(tmp_path / "one") == 0
+    assert _reproduce(tmp_path / "two", "--gpus", "2") == 0
+    assert not [c for c in calls if str(tmp_path / "two") in " ".join(c)]  # none ran in this process
+    runs = _runs(fake_children)
+    out = tmp_path / "two"
+    plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
+    made = [argv for st in plan for argv in st.commands if argv[0] != "@copy"]
+    assert sorted(r["out"] for r in runs) == sorted(str(rp.writes(a)) for a in made)  # each once, in a process
+    # Each started after every command it waits for had ended: the data, the runs it reads.
+    needs = rp.prerequisites(plan, out)
+    ended = {r["out"]: r["end"] for r in runs}
+    for argv in made:
+        mine = next(r for r in runs if r["out"] == str(rp.writes(argv)))
+        for key in needs[rp.command_key(argv, out)]:
+            other = next(a for a in (x for st in plan for x in st.commands) if rp.command_key(a, out) == key)
+            if other[0] != "@copy":
+                assert ended[str(rp.writes(other))] <= mine["start"]
+    # What most commands wait on first: the BC runs that DAgger continues before the baselines
+    # and the other BC runs, which only their evaluations wait for.
+    order = [Path(r["out"]).name for r in sorted(runs, key=lambda r: r["start"])]
+    assert order[:3] == ["data", "intention", "trajectory"] and sorted(order[3:5]) == ["bc_all_s0", "bc_all_s1"]
+    # Two at a time, never two on one GPU at once, on the GPUs CUDA_VISIBLE_DEVICES names.
+    assert {r["gpu"] for r in runs} == {"5", "7"}
+    overlaps = [(a, b) for i, a in enumerate(runs) for b in runs[i + 1:] if a["start"] < b["end"] and b["start"] < a["end"]]
+    assert overlaps and all(a["gpu"] != b["gpu"] for a, b in overlaps)
+    assert (out / "logs" / "train_policy_bc_all_s1.log").read_text().startswith("$ conav train policy")
+    one, two = (json.loads((tmp_path / d / "results.json").read_text()) for d in ("one", "two"))
+    for doc in (one, two):
+        for key in ("command", "stage_seconds", "command_seconds", "cut_seconds"):
+            doc.pop(key)
+    assert json.dumps(two, sort_keys=True).replace("/two/", "/one/") == json.dumps(one, sort_keys=True)
+    progress = rp.read_progress(out)
+    assert set(progress["stages"]) >= {"generate", "predictors", "baselines", "bc", "dagger", "eval"}
+    assert progress["stages"]["bc"] == round(sum(v for k, v in progress["commands"].items() if "bc_" in k
+                                                 and "dagger" not in k), 1)
+
+
+def test_several_gpus_stop_starting_commands_after_a_failure_and_resume(fake_conav, fake_children, tmp_path,
+                                                                       monkeypatch, capsys):
+    out = tmp_path / "r"
+    monkeypatch.setenv("FAKE_FAIL_ON", "bc_none_s0")
+    assert _reproduce(out, "--gpus", "2") == 3
+    printed = capsys.readouterr()
+    assert "bc_none_s0 failed (exit 3)" in printed.out and "a failure the log shows" in printed.out
+    after = printed.out.split("bc_none_s0 failed (exit 3)")[1]
+    assert " started " not in after and " done in " in after  # none starts after it; those running end
+    first = _runs(fake_children)
+    (failure,) = [r for r in first if r.get("failed")]
+    failed_at = max(r["end"] for r in first)
+    progress = rp.read_progress(out)
+    assert any("bc_none_s0" in k for k in progress["cut"]) and not any("bc_none_s0" in k for k in progress["commands"])
+    assert "bc" not in progress["stages"] and "predictors" in progress["stages"]
+    monkeypatch.delenv("FAKE_FAIL_ON")
+    assert _reproduce(out, "--gpus", "2") == 0
+    again = _runs(fake_children)[len(first):]
+    assert not {r["out"] for r in first if not r.get("failed")} & {r["out"] for r in again}  # nothing done runs again
+    assert failure["out"] in {r["out"] for r in again}
+    assert all(r["start"] >= failed_at for r in again)
+    assert json.loads((out / "results.json").read_text())["missing"] == []
+
+
+def test_several_gpus_stopped_stop_every_command_and_count_their_time_as_cut(fake_conav, fake_children, tmp_path,
+                                                                             monkeypatch):
+    import threading
+
+    out = tmp_path / "r"
+    monkeypatch.setenv("FAKE_SECONDS", "30")  # commands that would outlast the stop
+    timer = threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGTERM))  # as `timeout` stops a run
+    timer.start()
+    t0 = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        _reproduce(out, "--gpus", "2", "--stage", "generate")
+    timer.join()
+    assert time.perf_counter() - t0 < 20  # the command was stopped, not waited for
+    assert _runs(fake_children) == []
+    progress = rp.read_progress(out)
+    assert progress["commands"] == {} and [k.split()[0] for k in progress["cut"]] == ["generate"]
+    assert progress["cut"][next(iter(progress["cut"]))] >= 1.0
+
+
+def test_more_gpus_than_visible_is_an_error(fake_children, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3")
+    assert _reproduce(tmp_path / "r", "--gpus", "2") == 2
+    assert "--gpus 2: 1 GPU(s) visible (3)" in capsys.readouterr().err
+    assert rp.gpu_slots(1) == ["3"]
+    with pytest.raises(ValueError, match="at least 1"):
+        rp.gpu_slots(0)

@@ -20,7 +20,9 @@ goal sensor and their run's kind in place of the CoNav expert.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import hashlib
 import json
 import os
@@ -336,6 +338,27 @@ def _link_or_copy(src: Path, dst: Path) -> None:
     tmp.unlink(missing_ok=True)  # renaming one link of a file onto another leaves both
 
 
+@contextlib.contextmanager
+def entry_lock(entry: Path | None, log: Callable[[str], None] = print):
+    """Hold `entry`'s lock file (ENTRY.lock) while the entry is read or recorded: runs started
+    together on one dataset (`conav reproduce --gpus`) record a shared entry once, the others
+    waiting for it and then reading it. None: no lock (the run shares nothing)."""
+    if entry is None:
+        yield
+        return
+    entry.parent.mkdir(parents=True, exist_ok=True)
+    with open(entry.with_name(entry.name + ".lock"), "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log(f"waiting for another run recording {entry}")
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
 def check_recordable(r: int, begun: bool, path: Path, run_dir: Path) -> None:
     """Round `r`'s data file `path` is missing: fine before the round has begun, and for round 0
     at any time (the expert acts alone there, so its data depend on neither the weights nor the
@@ -488,13 +511,13 @@ def train_policy(
 
     if not expert_val:
         t0, shared = time.perf_counter(), ""
-        if cache is not None and ceiling_entry.is_file():
-            expert_val, shared = read_shared(ceiling_entry), f", shared: {ceiling_entry}"
-        else:
-            expert_val = {k: v for k, v in val_metrics(params, 1.0).items() if k != "intention_source"}
-            if cache is not None:
-                cache.mkdir(exist_ok=True)
-                save_json(ceiling_entry, expert_val)
+        with entry_lock(ceiling_entry if cache is not None else None, log):
+            if cache is not None and ceiling_entry.is_file():
+                expert_val, shared = read_shared(ceiling_entry), f", shared: {ceiling_entry}"
+            else:
+                expert_val = {k: v for k, v in val_metrics(params, 1.0).items() if k != "intention_source"}
+                if cache is not None:
+                    save_json(ceiling_entry, expert_val)
         append_log(log_path, {"split": imitation.val_split, "agent": teacher_name, "episodes": len(val_eps), **expert_val})
         log(f"{teacher_name} (the ceiling) on {imitation.val_split}, {len(val_eps)} episodes: {rates_line(expert_val)}  "
             f"[{time.perf_counter() - t0:.0f} s{shared}]")
@@ -513,29 +536,30 @@ def train_policy(
             if r <= done:
                 log(f"round {r}: {path} is missing; recording it again (the {teacher_name}'s rollouts: same seed, same data)")
             t0, shared = time.perf_counter(), r == 0 and cache is not None
-            if shared and round0_entry.is_file():  # its log line beside it, written first
-                entry = read_shared(round0_entry.with_suffix(".json"))
-                parts.append(read_shared(round0_entry))
-                _link_or_copy(round0_entry, path)
-                how = f"shared: {round0_entry}"
-            else:
-                key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
-                # A shared round 0's recorder may read more inputs than this policy: the expert
-                # acts alone there, yet its program takes parameters of its own config's shapes.
-                rec_params = params if recorder_models[min(r, 1)] == model else policy.init(
-                    jax.random.PRNGKey(cfg.seed), recorder_models[0])
-                episodes = round_episodes(train_eps, r, imitation, cfg.seed)
-                m, windows, steps_run = im.record_windows(*round_recorder(r), rec_params, key, episodes, beta,
-                                                          record_batch, mesh=mesh)
-                parts.append(windows)
-                im.save_sequences(path, parts[-1])
-                entry = {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent, "beta": beta,
-                         "episodes": len(episodes), "windows": len(parts[-1]["label"]), **summarize(m)}
-                if shared:
-                    cache.mkdir(exist_ok=True)
-                    save_json(round0_entry.with_suffix(".json"), entry)
-                    _link_or_copy(path, round0_entry)
-                how = f"recorded, {steps_run} of {round_recorder(r)[0].steps} steps, {min(record_batch, len(episodes))} lanes a call"
+            with entry_lock(round0_entry if shared else None, log):
+                if shared and round0_entry.is_file():  # its log line beside it, written first
+                    entry = read_shared(round0_entry.with_suffix(".json"))
+                    parts.append(read_shared(round0_entry))
+                    _link_or_copy(round0_entry, path)
+                    how = f"shared: {round0_entry}"
+                else:
+                    key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), r)
+                    # A shared round 0's recorder may read more inputs than this policy: the expert
+                    # acts alone there, yet its program takes parameters of its own config's shapes.
+                    rec_params = params if recorder_models[min(r, 1)] == model else policy.init(
+                        jax.random.PRNGKey(cfg.seed), recorder_models[0])
+                    episodes = round_episodes(train_eps, r, imitation, cfg.seed)
+                    m, windows, steps_run = im.record_windows(*round_recorder(r), rec_params, key, episodes, beta,
+                                                              record_batch, mesh=mesh)
+                    parts.append(windows)
+                    im.save_sequences(path, parts[-1])
+                    entry = {"step": int(round_end[r] - steps), "round": r, "split": "train", "agent": agent, "beta": beta,
+                             "episodes": len(episodes), "windows": len(parts[-1]["label"]), **summarize(m)}
+                    if shared:
+                        cache.mkdir(exist_ok=True)
+                        save_json(round0_entry.with_suffix(".json"), entry)
+                        _link_or_copy(path, round0_entry)
+                    how = f"recorded, {steps_run} of {round_recorder(r)[0].steps} steps, {min(record_batch, len(episodes))} lanes a call"
             append_log(log_path, entry)
             log(f"round {r}: {entry['episodes']} train episodes, {agent} acting ({rates_line(entry)}): "
                 f"{entry['windows']} windows  [{time.perf_counter() - t0:.0f} s, {how}]")
