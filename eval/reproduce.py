@@ -229,10 +229,29 @@ def check_out(progress: dict, cfg: ReproduceConfig) -> None:
         raise ValueError(f"{cfg.out} was made with {', '.join(differ)}: give those, or another --out")
 
 
+# What write_progress merges: each process's own records laid over the file's.
+PROGRESS_RECORDS = ("commands", "cut", "stages")
+
+
 def write_progress(out: Path, progress: dict) -> None:
+    """Save `progress` as OUT/progress.json, merged with what the file holds now: several
+    `conav reproduce` processes on one OUT (another DAgger variant beside a run, say) each keep
+    the others' records. `progress` takes the merged records (the file is read and written under
+    a lock; an entry this process recorded wins)."""
+    import fcntl
+
     from conav_jax.data.arrayio import save_json
 
-    save_json(Path(out) / PROGRESS_FILE, progress)
+    out = Path(out)
+    with open(out / ".progress.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            now = read_progress(out)
+            for field in PROGRESS_RECORDS:
+                progress[field] = {**now.get(field, {}), **progress.get(field, {})}
+            save_json(out / PROGRESS_FILE, progress)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def command_key(argv: tuple[str, ...], out: Path) -> str:

@@ -758,3 +758,20 @@ def test_more_gpus_than_visible_is_an_error(fake_children, tmp_path, monkeypatch
     assert rp.gpu_slots(1) == ["3"]
     with pytest.raises(ValueError, match="at least 1"):
         rp.gpu_slots(0)
+
+
+def test_two_processes_on_one_out_keep_each_others_records(fake_conav, tmp_path):
+    out = tmp_path / "r"
+    assert _reproduce(out, "--stage", "predictors") == 0
+    mine, theirs = rp.read_progress(out), rp.read_progress(out)  # two processes read the file
+    theirs["commands"]["train policy ... OUT/runs/other_s0"] = 12.0
+    theirs["cut"] = {"eval ... OUT/eval/other_s0": 3.0}
+    rp.write_progress(out, theirs)
+    mine["commands"]["train policy ... OUT/runs/mine_s0"] = 7.0
+    mine["stages"]["mine"] = 7.0
+    rp.write_progress(out, mine)
+    on_disk = rp.read_progress(out)
+    assert on_disk["commands"]["train policy ... OUT/runs/other_s0"] == 12.0
+    assert on_disk["commands"]["train policy ... OUT/runs/mine_s0"] == 7.0
+    assert on_disk["cut"] == {"eval ... OUT/eval/other_s0": 3.0} and on_disk["stages"]["mine"] == 7.0
+    assert mine == on_disk  # the writer sees the others' records too
