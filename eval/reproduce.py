@@ -247,8 +247,8 @@ def write_progress(out: Path, progress: dict) -> None:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             now = read_progress(out)
-            for field in PROGRESS_RECORDS:
-                progress[field] = {**now.get(field, {}), **progress.get(field, {})}
+            for record in PROGRESS_RECORDS:
+                progress[record] = {**now.get(record, {}), **progress.get(record, {})}
             save_json(out / PROGRESS_FILE, progress)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
