@@ -916,6 +916,10 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
         cwd=Path(__file__).resolve().parents[1]).stdout.strip() or "unknown"
+    gpus = rp.visible_gpus() if args.gpus == 1 and not args.dry_run else None
+    if gpus is not None and len(gpus) > 1:
+        print(f"{len(gpus)} GPUs visible: each command runs on all of them as one device mesh; --gpus {len(gpus)} "
+              "runs that many commands at once instead, one GPU each", flush=True)
     if args.gpus > 1 and not args.dry_run:
         stages = _reproduce_parallel(args, cfg, plan, stages, progress)
         if isinstance(stages, int):

@@ -684,17 +684,25 @@ def by_dependents(todo: list[tuple[str, ...]], needs: dict[str, set[str]], out: 
     return sorted(todo, key=lambda argv: (-len(below[command_key(argv, out)]), index[command_key(argv, out)]))
 
 
+def visible_gpus() -> list[str] | None:
+    """The GPU ids a process started here may use: CUDA_VISIBLE_DEVICES's, else those `nvidia-smi -L`
+    lists; None where neither says (no NVIDIA driver: a CPU machine)."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [d.strip() for d in visible.split(",") if d.strip()]
+    if shutil.which("nvidia-smi") is None:
+        return None
+    listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
+    return [str(i) for i, _ in enumerate(line for line in listed.splitlines() if line.startswith("GPU "))]
+
+
 def gpu_slots(count: int) -> list[str]:
-    """The GPUs `count` commands at once run on, one each: the first `count` of
-    CUDA_VISIBLE_DEVICES, else 0..count-1. ValueError when fewer are visible (a process given a
-    GPU that does not exist would run on the CPU)."""
+    """The GPUs `count` commands at once run on, one each: the first `count` of `visible_gpus`
+    (0..count-1 on a machine without a driver, where the commands run on the CPU). ValueError
+    when fewer are visible (a process given a GPU that does not exist would run on the CPU)."""
     if count < 1:
         raise ValueError(f"--gpus must be at least 1, got {count}")
-    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
-    ids = [d.strip() for d in visible.split(",") if d.strip()] if visible is not None else None
-    if ids is None and shutil.which("nvidia-smi"):
-        listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
-        ids = [str(i) for i, line in enumerate(line for line in listed.splitlines() if line.startswith("GPU "))]
+    ids = visible_gpus()
     if ids is not None and len(ids) < count:
         raise ValueError(f"--gpus {count}: {len(ids)} GPU(s) visible ({', '.join(ids) or 'none'})")
     return ids[:count] if ids is not None else [str(i) for i in range(count)]

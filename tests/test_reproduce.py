@@ -5,6 +5,7 @@ import dataclasses
 import json
 import os
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -638,7 +639,7 @@ if os.environ.get("FAKE_FAIL_ON") and any(os.environ["FAKE_FAIL_ON"] in a for a 
     print("a failure the log shows")
     note(failed=True)
     sys.exit(3)
-time.sleep(float(os.environ.get("FAKE_SECONDS", "0.2")))
+time.sleep(float(os.environ.get("FAKE_SECONDS", "0.05")))
 out.mkdir(parents=True, exist_ok=True)
 if argv[0] == "eval":
     agents = argv[argv.index("--agent") + 1].split(",")
@@ -715,6 +716,7 @@ def test_several_gpus_stop_starting_commands_after_a_failure_and_resume(fake_con
                                                                        monkeypatch, capsys):
     out = tmp_path / "r"
     monkeypatch.setenv("FAKE_FAIL_ON", "bc_none_s0")
+    monkeypatch.setenv("FAKE_SECONDS", "0.3")  # the other GPU's command still runs when it fails
     assert _reproduce(out, "--gpus", "2") == 3
     printed = capsys.readouterr()
     assert "bc_none_s0 failed (exit 3)" in printed.out and "a failure the log shows" in printed.out
@@ -727,6 +729,7 @@ def test_several_gpus_stop_starting_commands_after_a_failure_and_resume(fake_con
     assert any("bc_none_s0" in k for k in progress["cut"]) and not any("bc_none_s0" in k for k in progress["commands"])
     assert "bc" not in progress["stages"] and "predictors" in progress["stages"]
     monkeypatch.delenv("FAKE_FAIL_ON")
+    monkeypatch.delenv("FAKE_SECONDS")
     assert _reproduce(out, "--gpus", "2") == 0
     again = _runs(fake_children)[len(first):]
     assert not {r["out"] for r in first if not r.get("failed")} & {r["out"] for r in again}  # nothing done runs again
@@ -752,6 +755,24 @@ def test_several_gpus_stopped_stop_every_command_and_count_their_time_as_cut(fak
     progress = rp.read_progress(out)
     assert progress["commands"] == {} and [k.split()[0] for k in progress["cut"]] == ["generate"]
     assert progress["cut"][next(iter(progress["cut"]))] >= 1.0
+
+
+def test_the_gpus_are_those_the_driver_lists_and_several_named_without_gpus_get_a_hint(fake_conav, tmp_path,
+                                                                                     monkeypatch, capsys):
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    monkeypatch.setattr(rp.shutil, "which", lambda name: None)
+    assert rp.visible_gpus() is None and rp.gpu_slots(2) == ["0", "1"]  # a CPU machine
+    listed = "GPU 0: NVIDIA H100 80GB HBM3 (UUID: a)\nGPU 1: NVIDIA H100 80GB HBM3 (UUID: b)\n"
+    monkeypatch.setattr(rp.shutil, "which", lambda name: "/usr/bin/" + name)
+    monkeypatch.setattr(rp.subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, listed, ""))
+    assert rp.visible_gpus() == ["0", "1"] and rp.gpu_slots(2) == ["0", "1"]
+    with pytest.raises(ValueError, match="--gpus 3: 2 GPU"):
+        rp.gpu_slots(3)
+    assert _reproduce(tmp_path / "r", "--stage", "generate") == 0
+    assert "2 GPUs visible: each command runs on all of them as one device mesh; --gpus 2" in capsys.readouterr().out
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1")
+    assert _reproduce(tmp_path / "r", "--stage", "generate") == 0
+    assert "GPUs visible" not in capsys.readouterr().out
 
 
 def test_more_gpus_than_visible_is_an_error(fake_children, tmp_path, monkeypatch, capsys):
