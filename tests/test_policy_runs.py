@@ -96,7 +96,9 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     train_policy(data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False)
     # The expert's ceiling, round 0's recording (every lane at once), the final validation.
     assert calls == [5, tp.MAX_ROLLOUT_LANES, 5]
-    assert len(list((data / tp.EXPERT_CACHE_DIR).iterdir())) == 3  # the ceiling, round 0's windows and log line
+    # The ceiling, round 0's windows and log line, and the lock files of the two entries.
+    cached = sorted(p.suffix for p in (data / tp.EXPERT_CACHE_DIR).iterdir())
+    assert cached == [".json", ".json", ".lock", ".lock", ".npz"]
     # A finished run resumed records nothing again and keeps its validation.
     (tmp_path / "run" / "data" / "round_0.npz").unlink()
     calls.clear()
