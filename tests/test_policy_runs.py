@@ -184,6 +184,24 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
     assert len(recorded) == 1  # the second row reads the first's recording
     # It started while another run was recording that entry (`conav reproduce --gpus`): it waited.
     assert any(line.startswith("waiting for another run recording") for line in logs)
+    # Continued where the same predictors lie elsewhere (a pack unpacked in another directory):
+    # it resumes, its predictors checked by content; other predictors are refused.
+    monkeypatch.setattr(tp, "load_predictors", lambda i, t: fakes)
+    monkeypatch.setattr(tp, "predictor_digest", lambda run: {"there/I": "I", "there/T": "T"}.get(run, run))
+    logs.clear()
+    train_policy(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,
+                 intention_run="there/I", trajectory_run="there/T", scan_updates=False, log=logs.append)
+    assert any(line.startswith(f"resuming {tmp_path / 'object'}") for line in logs)
+    with pytest.raises(ValueError, match=r"cannot resume .*predictor_digests\.intention: saved 'I' vs expected 'X'"):
+        train_policy(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,
+                     intention_run="X", trajectory_run="there/T", scan_updates=False)
+    # A run saved before runs recorded their predictors' digests is still checked by their paths.
+    from conav_jax.checkpoints import save_checkpoint
+
+    older = tmp_path / "older.npz"
+    save_checkpoint(older, params={"w": np.zeros(1)}, opt_state=None, config={"intention_run": "I"}, step=0, extra={})
+    assert tp.predictor_resume_ignore(older) == ("predictor_digests",)
+    assert tp.predictor_resume_ignore(tmp_path / "object" / "ckpt_00000002.npz") == tp.PREDICTOR_PATHS
     none, obj = (im.load_sequences(tmp_path / n / "data" / "round_0.npz") for n in ("none", "object"))
     for a, b in zip(jax.tree.leaves(none), jax.tree.leaves(obj)):
         assert a.tobytes() == b.tobytes()

@@ -36,7 +36,8 @@ import jax
 import numpy as np
 
 from conav_jax import runs
-from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from conav_jax.checkpoints import (checkpoint_path, latest_checkpoint, load_checkpoint, read_checkpoint_meta,
+                                  save_checkpoint)
 from conav_jax.data.arrayio import save_json, sha256_file
 from conav_jax.data.episodes import read_manifest
 from conav_jax.models import policy
@@ -67,6 +68,10 @@ MAX_ROLLOUT_LANES = 1024
 # to come (a round already begun takes it as its new length; its schedule stretches) and the
 # expert's share in the rounds not yet recorded (a BC run continues with DAgger of either kind).
 RESUME_CHANGEABLE = ("imitation.dagger_steps", "imitation.dagger_beta", "imitation.dagger_episodes")
+# Where a run's predictor runs lay (its config names them: the CoNav agent and train.ppo find them
+# there). A run resumed in another directory (a pack unpacked elsewhere) finds them elsewhere:
+# their content must match ("predictor_digests"), not their paths.
+PREDICTOR_PATHS = ("intention_run", "trajectory_run")
 # ImitationConfig fields added after runs were written: a run's config stores them only where set.
 LATER_IMITATION_FIELDS = ("dagger_episodes",)
 TRAIN_INTENTIONS = ("ground_truth", "predicted")
@@ -262,7 +267,18 @@ def run_config(model, imitation: ImitationConfig, expert, content_hash: str, int
         "data_hash": content_hash,
         "intention_run": None if intention_run is None else str(intention_run),
         "trajectory_run": None if trajectory_run is None else str(trajectory_run),
+        "predictor_digests": {"intention": predictor_digest(intention_run),
+                              "trajectory": predictor_digest(trajectory_run)},
     }
+
+
+def predictor_resume_ignore(found: Path | None) -> tuple[str, ...]:
+    """The config keys a resumed checkpoint `found` may differ in as to its predictors: their
+    paths where it records their digests (checked instead); a checkpoint saved before runs
+    recorded them is checked by the paths, as it was made."""
+    if found is None:
+        return ()
+    return PREDICTOR_PATHS if "predictor_digests" in read_checkpoint_meta(found)["config"] else ("predictor_digests",)
 
 
 def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, content_hash: str) -> dict:
@@ -443,7 +459,8 @@ def train_policy(
     found = latest_checkpoint(run_dir)
     if found is not None:
         try:
-            ckpt = load_checkpoint(found, config=config, params_like=params, ignore=RESUME_CHANGEABLE)
+            ckpt = load_checkpoint(found, config=config, params_like=params,
+                                   ignore=RESUME_CHANGEABLE + predictor_resume_ignore(found))
         except ValueError as e:
             raise ValueError(f"cannot resume {run_dir}: {e}") from None
         params, done = ckpt.params, int(ckpt.extra["round"])
@@ -572,7 +589,8 @@ def train_policy(
             {**config, "round": r}, val_fn=policy_val, progress=progress, compiler_options=compiler_options,
             mesh=mesh, scan_updates=scan_updates, log_extra={"round": r, "intention_source": val_source},
             # A round's length may change while it runs: its schedule stretches.
-            resume_ignore=RESUME_CHANGEABLE + (("train.steps",) if r > 0 else ()), desc=f"round {r}",
+            resume_ignore=RESUME_CHANGEABLE + (("train.steps",) if r > 0 else ())
+            + predictor_resume_ignore(latest_checkpoint(round_dir)), desc=f"round {r}",
         )
         params, val = jax.device_get(result.params), result.val
         save_checkpoint(checkpoint_path(run_dir, int(round_end[r])), params=params, opt_state=None, config=config,
