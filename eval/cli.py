@@ -1026,7 +1026,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     t0 = time.perf_counter()
     rc, waiting = rp.run_parallel(plan, todo, cfg.out, progress, gpus, args.compile_cache)
     for argv in waiting:
-        print(f"waits for the runs it reads: conav {shlex.join(argv)}")
+        print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: conav {shlex.join(argv)}")
     for st in work:
         keys = [rp.command_key(argv, cfg.out) for argv in st.commands]
         if all(k in progress["commands"] for k in keys):

@@ -7,7 +7,6 @@ import dataclasses
 import functools
 import json
 import shutil
-import time
 
 import jax
 import numpy as np
@@ -136,7 +135,8 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
 
 def _another_run_recording(cache, aside):
     """As if another run had begun recording the round-0 entry in `cache`: the entry moved to
-    `aside` and its lock held; the entry is back 1 s later and the lock let go. The thread."""
+    `aside` and its lock held until the returned event is set (a run waiting for it says so);
+    then the entry is back and the lock let go. Returns (the thread, the event)."""
     import threading
 
     from train import policy as tp
@@ -145,19 +145,19 @@ def _another_run_recording(cache, aside):
     aside.mkdir()
     for p in (entry, entry.with_suffix(".json")):
         p.rename(aside / p.name)
-    locked = threading.Event()
+    locked, waited_on = threading.Event(), threading.Event()
 
     def other_run():
         with tp.entry_lock(entry):
             locked.set()
-            time.sleep(1.0)
+            waited_on.wait(timeout=120)
             for p in (entry, entry.with_suffix(".json")):
                 (aside / p.name).rename(p)
 
     thread = threading.Thread(target=other_run)
     thread.start()
     locked.wait()
-    return thread
+    return thread, waited_on
 
 
 def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_data, tmp_path, monkeypatch):
@@ -174,13 +174,19 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
     _hand_weights_back(monkeypatch)  # what is recorded is under test, not the updates
     cfg = TrainConfig(steps=2, batch=2, warmup_steps=0)
     imitation = ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ, burn_in=BURN_IN, train_intentions="predicted")
-    logs = []
+    logs, other = [], None
+
+    def log(line):
+        logs.append(line)
+        if line.startswith("waiting for another run recording") and other is not None:
+            other[1].set()  # the other run finishes its recording
+
     for name in ("none", "object"):  # the first reads no intention input, the second the object's alone
         if name == "object":
-            entry_aside = _another_run_recording(data / tp.EXPERT_CACHE_DIR, tmp_path / "aside")
+            other = _another_run_recording(data / tp.EXPERT_CACHE_DIR, tmp_path / "aside")
         train_policy(data, tmp_path / name, cfg, policy.ablation_config(PCFG, name), imitation, intention_run="I",
-                     trajectory_run="T", scan_updates=False, log=logs.append)
-    entry_aside.join()
+                     trajectory_run="T", scan_updates=False, log=log)
+    other[0].join()
     assert len(recorded) == 1  # the second row reads the first's recording
     # It started while another run was recording that entry (`conav reproduce --gpus`): it waited.
     assert any(line.startswith("waiting for another run recording") for line in logs)
@@ -190,7 +196,7 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
     monkeypatch.setattr(tp, "predictor_digest", lambda run: {"there/I": "I", "there/T": "T"}.get(run, run))
     logs.clear()
     train_policy(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,
-                 intention_run="there/I", trajectory_run="there/T", scan_updates=False, log=logs.append)
+                 intention_run="there/I", trajectory_run="there/T", scan_updates=False, log=log)
     assert any(line.startswith(f"resuming {tmp_path / 'object'}") for line in logs)
     with pytest.raises(ValueError, match=r"cannot resume .*predictor_digests\.intention: saved 'I' vs expected 'X'"):
         train_policy(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,

@@ -721,7 +721,8 @@ def test_several_gpus_stop_starting_commands_after_a_failure_and_resume(fake_con
     printed = capsys.readouterr()
     assert "bc_none_s0 failed (exit 3)" in printed.out and "a failure the log shows" in printed.out
     after = printed.out.split("bc_none_s0 failed (exit 3)")[1]
-    assert " started " not in after and " done in " in after  # none starts after it; those running end
+    assert " started (log " not in after and " done in " in after  # none starts after it; those running end
+    assert "not started after the failure: conav" in after and "waits for the runs it reads" not in after
     first = _runs(fake_children)
     (failure,) = [r for r in first if r.get("failed")]
     failed_at = max(r["end"] for r in first)
