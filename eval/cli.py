@@ -888,6 +888,9 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
                              dagger_rounds=args.dagger_rounds, dagger_episodes=args.dagger_episodes,
                              encoder=args.encoder)
+    if args.gpus < 1:
+        print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
+        return 2
     if args.seed is not None and not 0 <= args.seed < cfg.seeds:
         print(f"conav reproduce: --seed {args.seed} is not one of the run's seeds 0..{cfg.seeds - 1}", file=sys.stderr)
         return 2
@@ -929,8 +932,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         if not args.dry_run:
             # A stage asked for alone runs what it can: a command whose runs are not trained yet waits
             # (the learned baselines' evaluations before their training, say) instead of failing.
-            seeded = args.seed is not None and any(rp.command_seed(argv) is not None for argv in st.commands)
-            todo, waiting = rp.ready_commands(plan, st, args.seed if seeded else None, set(progress["commands"]),
+            todo, waiting = rp.ready_commands(plan, st, rp.stage_seed(st, args.seed), set(progress["commands"]),
                                              cfg.out)
             for argv in waiting:
                 print(f"[{st.name}] waits for the runs it reads: conav {shlex.join(argv)}")
@@ -1019,9 +1021,9 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     jax.config.update("jax_platforms", "cpu")  # this process runs no program: its GPUs are the commands'
     todo = []
     for st in work:
-        seeded = args.seed is not None and any(rp.command_seed(argv) is not None for argv in st.commands)
+        seed = rp.stage_seed(st, args.seed)
         todo += [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]
-                 and (not seeded or rp.command_seed(argv) == args.seed)]
+                 and seed in (None, rp.command_seed(argv))]
     print(f"{len(todo)} command(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
     t0 = time.perf_counter()
     rc, waiting = rp.run_parallel(plan, todo, cfg.out, progress, gpus, args.compile_cache)

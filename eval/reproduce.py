@@ -368,8 +368,8 @@ _SEEDED_RUN = re.compile(r".+_s([0-9]+)")
 def command_seed(argv: tuple[str, ...]) -> int | None:
     """The training seed a command belongs to (a seeded run or its evaluation, named `..._s{seed}`),
     None for a command of every seed (data, predictors, baselines, scripted agents)."""
-    target = argv[2] if argv[0] == "@copy" else argv[argv.index("--out") + 1] if "--out" in argv else None
-    m = None if target is None else _SEEDED_RUN.fullmatch(Path(target).name)
+    target = writes(argv)
+    m = None if target is None else _SEEDED_RUN.fullmatch(target.name)
     return None if m is None else int(m.group(1))
 
 
@@ -386,17 +386,19 @@ def runs_read(argv: tuple[str, ...]) -> list[Path]:
     return found
 
 
+def stage_seed(stage: Stage, seed: int | None) -> int | None:
+    """The training seed whose commands `--seed` selects in `stage`: None (every command) in a
+    stage without seeded commands (data, predictors, baselines)."""
+    return seed if seed is not None and any(command_seed(argv) is not None for argv in stage.commands) else None
+
+
 def ready_commands(plan: list[Stage], stage: Stage, seed: int | None, done: set[str], out: Path) -> tuple[list, list]:
     """`stage`'s commands of training seed `seed` (every command for None) not in `done` (command
     keys), split into those ready to run and those waiting: a command waits while a run it reads
     is the output of another stage's command not done yet (a DAgger run's evaluation before the
     DAgger run, a baseline's before its training; a stage's own commands run in order, each BC
     run before its evaluation)."""
-    made_by = {}
-    for st in plan:
-        for argv in st.commands:
-            if st is not stage and "--out" in argv:
-                made_by[Path(argv[argv.index("--out") + 1])] = command_key(argv, out)
+    made_by = {writes(argv): command_key(argv, out) for st in plan if st is not stage for argv in st.commands}
     ready, waiting = [], []
     for argv in stage.commands:
         if (seed is not None and command_seed(argv) != seed) or command_key(argv, out) in done:
@@ -733,8 +735,8 @@ def _tail(path: Path, lines: int = 15) -> str:
 def run_parallel(plan: list[Stage], todo: list[tuple[str, ...]], out: Path, progress: dict, gpus: list[str],
                  compile_cache: str | None = None, say=None, poll_seconds: float = 0.1) -> tuple[int, list]:
     """Run `todo` (commands of `plan`) up to len(gpus) at once, each in a `conav` process of its
-    own that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a command starting (in plan
-    order) once its `prerequisites` are done; copies run here. Each command's wall time goes into
+    own that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a command starting once its
+    `prerequisites` are done (in `by_dependents` order); copies run here. Each command's wall time goes into
     `progress` (saved) as it ends, a failed or stopped one's under "cut". After a failure no new
     command starts and those running finish. An interrupt (SIGTERM raised as KeyboardInterrupt)
     stops every process, records their time as cut and is raised again. Returns (0 or the first
@@ -823,8 +825,8 @@ def _pending_runs(cfg: ReproduceConfig, progress: dict) -> tuple[set[Path], set[
     read, written = set(), set()
     for argv in (a for st in plan_stages(cfg) for a in st.commands if command_key(a, out) not in progress["commands"]):
         read.update(runs_read(argv))
-        if "--out" in argv:
-            written.add(Path(argv[argv.index("--out") + 1]))
+        written.add(writes(argv))
+    written.discard(None)
     return read, written
 
 

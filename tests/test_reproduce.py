@@ -776,13 +776,17 @@ def test_the_gpus_are_those_the_driver_lists_and_several_named_without_gpus_get_
     assert "GPUs visible" not in capsys.readouterr().out
 
 
-def test_more_gpus_than_visible_is_an_error(fake_children, tmp_path, monkeypatch, capsys):
+def test_more_gpus_than_visible_is_an_error(fake_conav, fake_children, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3")
     assert _reproduce(tmp_path / "r", "--gpus", "2") == 2
     assert "--gpus 2: 1 GPU(s) visible (3)" in capsys.readouterr().err
     assert rp.gpu_slots(1) == ["3"]
     with pytest.raises(ValueError, match="at least 1"):
         rp.gpu_slots(0)
+    for bad in ("0", "-2"):  # not a silent run of one command at a time
+        assert _reproduce(tmp_path / "r", "--gpus", bad) == 2
+        assert f"--gpus must be at least 1, got {bad}" in capsys.readouterr().err
+    assert not (tmp_path / "r" / "progress.json").exists()
 
 
 def test_two_processes_on_one_out_keep_each_others_records(fake_conav, tmp_path):
