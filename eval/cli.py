@@ -319,6 +319,10 @@ def _add_train(sub) -> None:
     p.add_argument("--mirror", action="store_true",
                    help="mirror each training sample left-right with probability 1/2 at every update (validation "
                    "frames never)")
+    p.add_argument("--seen-objects", action="store_true",
+                   help="predict only activities of object categories the robot's panoramas have shown (read from "
+                   "their exact category colours: oracle segmentation, recorded as privileged for the agents using "
+                   "the run); inference only, the training is the same")
     p.add_argument("--viewpoints", type=int, default=dd.viewpoints,
                    help="robot poses each train episode is rendered from: its start pose, then poses drawn around "
                    f"the human (default {dd.viewpoints}; 16 frames of 64x64 take 0.26 GB of device memory per 1,000 "
@@ -452,7 +456,8 @@ def _run_train_intention(args: argparse.Namespace) -> int:
                                mirror=args.mirror)
     image = args.image or default_crop_hw(args.sensor)
     model = PerceiverConfig(image_hw=image, dim=args.dim, num_latents=args.latents, num_blocks=args.blocks,
-                            activity_a_head=args.activity_a_head, graph_mix=args.graph_mix)
+                            activity_a_head=args.activity_a_head, graph_mix=args.graph_mix,
+                            seen_objects=args.seen_objects)
     try:
         result = train_intention(args.data, args.out, _train_config(args), model, data, progress=not args.no_progress,
                                  mesh=_mesh(args), val_split=args.val_split)
@@ -849,6 +854,11 @@ def _add_reproduce(sub) -> None:
                    help="the CoNav policy's panorama encoder in every BC and DAgger run (`conav train policy "
                         f"--encoder`; default {d['encoder']}, the published runs'; patch trains about 2x faster at "
                         "112x448); one OUT directory holds one encoder")
+    p.add_argument("--mirror", action="store_true",
+                   help="train the intention predictor on frames mirrored half the time (`conav train intention --mirror`)")
+    p.add_argument("--seen-objects", action="store_true",
+                   help="the intention predictor names only activities of objects the robot's panoramas have shown "
+                   "(`conav train intention --seen-objects`: oracle segmentation, listed as privileged)")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="run only training seed S's commands of the bc, dagger and eval stages (each BC run is "
                         "evaluated as soon as it has trained; an evaluation of a run not trained yet waits): a machine "
@@ -887,7 +897,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
                              dagger_rounds=args.dagger_rounds, dagger_episodes=args.dagger_episodes,
-                             encoder=args.encoder)
+                             encoder=args.encoder, mirror=args.mirror, seen_objects=args.seen_objects)
     if args.gpus < 1:
         print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
         return 2
@@ -1077,7 +1087,8 @@ def _add_bench(sub) -> None:
     p.set_defaults(func=_run_bench_sim)
 
     p = what.add_parser("intention", help="an intention run's top-1/top-5 on a split, by route, with P(B | A) "
-                        "counted on the train split and with the activity graph's links alone")
+                        "counted on the train split, with the activity graph's links alone, and counted with "
+                        "activities restricted to the object categories the robot's panoramas showed")
     p.add_argument("--run", required=True, metavar="RUN", help="a `conav train intention` run")
     p.add_argument("--data", required=True, metavar="DIR", help="the dataset it was trained on")
     p.add_argument("--split", default="val", help="the split to score (default val)")
@@ -1212,7 +1223,8 @@ def _run_bench_intention(args: argparse.Namespace) -> int:
           f"top-5 {v.get('activity_a_top5', float('nan')):.3f}, top-1 using the true A's object "
           f"{v.get('activity_a_object_top1', float('nan')):.3f}")
     for head, name in (("activity", "activity B"), ("object", "object B")):
-        for route, label in (("counted", "P(B | A) counted on train"), ("graph", "the graph's links, uniform")):
+        for route, label in (("counted", "P(B | A) counted on train"), ("graph", "the graph's links, uniform"),
+                             ("counted_seen_objects", "P(B | A) counted on train, seen objects only")):
             r = res[route]
             print(f"  {name}, graph route through {label}: predictor output top-1 {r[f'{head}_top1']:.3f} / "
                   f"top-5 {r[f'{head}_top5']:.3f}; graph route alone {r.get(f'{head}_top1_generator_graph_prior', float('nan')):.3f}")

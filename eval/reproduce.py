@@ -123,6 +123,10 @@ class ReproduceConfig:
     # ENCODERS) in every BC and DAgger run; one OUT directory holds one encoder, as it holds one
     # resolution. The default's commands are those of the runs in results/.
     encoder: str = DEFAULT_ENCODER
+    # The intention predictor's training and inference options (`conav train intention --mirror`,
+    # `--seen-objects`); off: the commands of the runs in results/.
+    mirror: bool = False
+    seen_objects: bool = False
 
     def __post_init__(self):
         if self.preset not in BUDGETS:
@@ -215,7 +219,9 @@ def read_progress(out: Path) -> dict:
 
 # What one OUT directory holds one of: its runs and evaluations are of these (progress.json
 # keeps them from the first run on; directories made before it kept them are not checked).
-OUT_FIELDS = ("preset", "resolution", "encoder")
+OUT_FIELDS = ("preset", "resolution", "encoder", "mirror", "seen_objects")
+# Fields a directory's record may lack, made before they existed: they were off then.
+_OUT_FIELDS_ADDED = {"mirror": False, "seen_objects": False}
 
 
 def check_out(progress: dict, cfg: ReproduceConfig) -> None:
@@ -224,7 +230,12 @@ def check_out(progress: dict, cfg: ReproduceConfig) -> None:
     its first resumed run, or mix two configurations in one table)."""
     mine = {k: _res(cfg) if k == "resolution" else getattr(cfg, k) for k in OUT_FIELDS}
     made = progress.setdefault("config", mine)
-    differ = [f"--{k} {made[k]} (given {mine[k]})" for k in OUT_FIELDS if k in made and made[k] != mine[k]]
+    for k, before in _OUT_FIELDS_ADDED.items():
+        if k not in made and len(made) > 0:
+            made[k] = before
+    shown = lambda v: {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v  # noqa: E731
+    differ = [f"--{k.replace('_', '-')} {shown(made[k])} (given {shown(mine[k])})"
+              for k in OUT_FIELDS if k in made and made[k] != mine[k]]
     if differ:
         raise ValueError(f"{cfg.out} was made with {', '.join(differ)}: give those, or another --out")
 
@@ -306,7 +317,8 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                             "--workers", str(cfg.workers)),), (data / "manifest.json",)),
         Stage("predictors", (
             ("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
-             "--sensor", res, *quiet),  # crops of the panorama the agents render (envs.human_crop)
+             "--sensor", res, *(("--mirror",) if cfg.mirror else ()), *(("--seen-objects",) if cfg.seen_objects else ()),
+             *quiet),  # crops of the panorama the agents render (envs.human_crop)
             ("train", "trajectory", "--data", str(data), "--out", str(trajectory), "--steps", str(b.trajectory_steps), *quiet),
         ), (intention / "ckpt_{:08d}.npz".format(b.intention_steps),
             trajectory / "ckpt_{:08d}.npz".format(b.trajectory_steps))),

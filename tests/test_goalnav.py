@@ -108,12 +108,13 @@ def trained(hall):
     return SimpleNamespace(params=params, losses=losses)
 
 
-def _category_predictor(first: int, then: int, switch_at: int = 2):
+def _category_predictor(first: int, then: int, switch_at: int = 2, privileged: tuple = ()):
     """A stand-in intention predictor naming object `first` for its first `switch_at` steps, then `then`."""
     return SimpleNamespace(
         init=lambda: jnp.int32(0),
         step=lambda carry, obs: (jax.nn.one_hot(0, 107), 0.9 * jax.nn.one_hot(jnp.where(carry < switch_at, first, then), 51)
                                  + 0.1 / 51, carry + 1),
+        privileged=privileged,
     )
 
 
@@ -199,6 +200,12 @@ def test_every_goal_agent_names_what_it_is_given(agents):
     no_saliency = dataclasses.replace(OBJ, object_saliency=False)
     blind = objectgoal_agent_from_params(policy.init(jax.random.PRNGKey(0), no_saliency), no_saliency, SimpleNamespace(bank=None, bank_view=None))
     assert blind.privileged == ("oracle goal category",)
+    # A predictor that reads the segmentation (PerceiverConfig.seen_objects) makes even the
+    # agent without the saliency channel list it.
+    seg = ("oracle segmentation",)
+    predicted = objectgoal_agent_from_params(policy.init(jax.random.PRNGKey(0), no_saliency), no_saliency, None,
+                                             _category_predictor(TABLE, TABLE, privileged=seg))
+    assert predicted.privileged == seg
 
 
 def _fake_state(episode: int, t: int, category: int = FRIDGE):

@@ -323,11 +323,12 @@ def test_dagger_aggregates_expert_labels_of_the_policys_states(hall, bc, trained
     np.testing.assert_array_equal(data["label"][n_old:], new["label"])
 
 
-def _fake_intention(activity: int, obj: int):
+def _fake_intention(activity: int, obj: int, privileged: tuple = ()):
     """A stand-in intention predictor that always names `activity` and `obj` (and counts its calls)."""
     return SimpleNamespace(
         init=lambda: jnp.int32(0),
         step=lambda carry, front: (jax.nn.one_hot(activity, 107), jax.nn.one_hot(obj, 51), carry + 1),
+        privileged=privileged,
     )
 
 
@@ -360,6 +361,20 @@ def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0,
     assert records_predictions(predicted, PCFG, fake, FAKE_TRAJECTORY)
     assert not records_predictions(predicted, policy.ablation_config(PCFG, "none"), fake, FAKE_TRAJECTORY)
     assert not records_predictions(ImitationConfig(), PCFG, fake, FAKE_TRAJECTORY)
+
+
+def test_a_predictor_reading_the_segmentation_adds_it_to_the_agents_privileged_inputs():
+    from envs.agents.policy import privileged_inputs
+
+    seg = ("oracle segmentation",)
+    reads_seg = _fake_intention(9, 11, privileged=seg)
+    activity_only = policy.ablation_config(PCFG, "activity")
+    assert not activity_only.uses_saliency
+    assert privileged_inputs(activity_only, "predicted", _fake_intention(9, 11)) == ()
+    assert privileged_inputs(activity_only, "predicted", reads_seg) == seg
+    assert privileged_inputs(PCFG, "predicted", reads_seg) == seg  # listed once
+    # A policy that reads no intention input never runs the predictor.
+    assert privileged_inputs(policy.ablation_config(PCFG, "none"), "none", reads_seg) == ()
 
 
 def test_policy_agent_runs_in_evaluate_with_ground_truth_only_when_asked(hall, trained):

@@ -12,9 +12,12 @@ import pytest
 from conav_jax.checkpoints import latest_checkpoint, load_checkpoint, save_checkpoint
 from conav_jax.geometry import to_frame
 from conav_jax.models import perceiver
+from conav_jax.data.categories import CATEGORIES
 from conav_jax.models.perceiver import PerceiverConfig
+from conav_jax.models.policy import categories_in_view
 from conav_jax.nav.navigation import line_of_sight
 from conav_jax.runs import read_log
+from envs.agents.base import ORACLE_SEGMENTATION
 from envs.agents.predictors import FrameSpec, intention_frame, load_intention_predictor, make_intention_predictor
 from envs.humanoid import capsule_colours
 from envs.panorama import front_view
@@ -146,6 +149,28 @@ def test_a_short_run_checkpoints_and_validates_on_minival(intention_run):
     assert result.val["val_frames_with_human"] == 1.0
 
 
+def test_a_run_weighing_seen_objects_records_its_weights_and_validates_with_them(rendered, tiny_data, tmp_path,
+                                                                                   monkeypatch):
+    from train import intention
+
+    _, d = rendered
+    asked = []
+    real = intention.make_val_fn
+    monkeypatch.setattr(intention, "make_val_fn", lambda *a, **k: asked.append(k) or real(*a, **k))
+    model = dataclasses.replace(MODEL, seen_objects=True)
+    cfg = TrainConfig(steps=2, batch=4, warmup_steps=0, log_every=1, val_every=2, ckpt_every=2)
+    train_intention(tiny_data, tmp_path / "run", cfg, model, DATA, progress=False, compiler_options=FAST)
+    config = load_checkpoint(latest_checkpoint(tmp_path / "run")).config
+    weights = intention.start_pose_weights(model, d, DATA.viewpoints)
+    assert config["data"]["seen_object_weights"] == weights and config["model"]["seen_objects"] is True
+    assert 0.0 < weights["activity_b"] < 1.0
+    assert asked[0]["seen_objects"] is True and asked[0]["unseen_weights"] == weights
+    assert load_intention_predictor(tmp_path / "run").privileged == (ORACLE_SEGMENTATION,)
+    # Runs without it keep the config they had: no seen_objects key, no weights.
+    plain = run_config(MODEL, DATA, None, 1.0, 1.25)
+    assert "seen_objects" not in plain["model"] and "seen_object_weights" not in plain["data"]
+
+
 def test_validation_reports_each_route_over_every_episode(rendered):
     # Recomputed here, all frames seen: the predictor's top-5 and the direct heads' top-1.
     d = rendered[1]
@@ -242,15 +267,21 @@ def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered,
     assert int(carry.num_frames) == expected == int(carry.num_predictions) and int(carry.t) == 5
 
 
-def test_under_vmap_each_lane_gets_what_it_gets_alone():
+@pytest.mark.parametrize("seen_objects", [False, True])
+def test_under_vmap_each_lane_gets_what_it_gets_alone(seen_objects):
     """A batch of envs at different steps, whose recording lanes the batched predictor gathers
     in chunks (two passes when most lanes record at once): every lane's outputs and carry are
-    those of the same predictor stepped alone."""
-    model = PerceiverConfig(image_hw=(16, 16), dim=16, num_latents=4, num_heads=2, num_blocks=1)
+    those of the same predictor stepped alone (with the objects each lane's panoramas show)."""
+    model = PerceiverConfig(image_hw=(16, 16), dim=16, num_latents=4, num_heads=2, num_blocks=1,
+                            seen_objects=seen_objects)
     predictor = make_intention_predictor(perceiver.init(jax.random.key(0), model), model, 4,
                                          FrameSpec("front", (16, 64)), frame_stride=3, history=4, top_k=2)
     lanes, steps = 9, 7
     rgbd = jax.random.uniform(jax.random.key(1), (lanes, steps, 16, 64, 4), maxval=4.0)
+    # A few object colours in each panorama, different in each lane and step.
+    colours = jnp.asarray([c.rgb for c in CATEGORIES], jnp.float32) / 255.0
+    drawn = colours[jax.random.randint(jax.random.key(2), (lanes, steps, 16, 1), 0, len(CATEGORIES))]
+    rgbd = rgbd.at[..., :3].set(jnp.broadcast_to(drawn, (lanes, steps, 16, 64, 3)))
     obs = {"rgbd": rgbd, "human_pos": jnp.ones((lanes, steps, 2))}
     # Seven lanes record on the first step (two passes of chunks of six), the others later.
     starts = jnp.array([0] * 7 + [1, 2], jnp.int32)
@@ -269,6 +300,51 @@ def test_under_vmap_each_lane_gets_what_it_gets_alone():
     carry, (act, _) = batched
     assert np.asarray(carry.num_predictions).tolist() == [3] * 7 + [2, 2]
     assert len({tuple(np.round(a, 4)) for a in np.asarray(act[:, -1])}) == lanes  # lanes saw different frames
+    assert np.asarray(carry.objects_seen).any() == seen_objects  # kept only where it is on
+
+
+def test_with_seen_objects_the_predictor_names_only_activities_of_objects_its_panoramas_showed(intention_run, rendered,
+                                                                                              tmp_path):
+    run_dir, result = intention_run
+    env, d = rendered
+    obs = _panoramas(env, d, 0)
+    # What the whole panoramas show, as the training samples record it.
+    in_view = np.asarray(jax.vmap(categories_in_view)(obs["rgbd"][..., :3]))
+    np.testing.assert_array_equal(d["objects_seen"][0], in_view)
+    assert in_view.any(axis=1).all()  # every frame shows some object
+    config = dataclasses.replace(MODEL, seen_objects=True)
+    predictor = make_intention_predictor(result.params, config, DATA.frames, FrameSpec("human", (32, 128), 1.25))
+    assert predictor.privileged == (ORACLE_SEGMENTATION,)
+    assert load_intention_predictor(run_dir).privileged == ()
+    # A run weighing seen objects records its weights (train_intention does); without them it
+    # does not load.
+    seen_run = tmp_path / "seen"
+    ckpt = load_checkpoint(latest_checkpoint(run_dir))
+    config = {**ckpt.config, "model": {**ckpt.config["model"], "seen_objects": True}}
+    save_checkpoint(seen_run / "ckpt_00000001.npz", params=result.params, opt_state=None, config=config, step=1)
+    with pytest.raises(ValueError, match="records no seen_object_weights"):
+        load_intention_predictor(seen_run)
+    config["data"] = {**config["data"], "seen_object_weights": {"activity_a": 0.1, "activity_b": 0.3}}
+    save_checkpoint(seen_run / "ckpt_00000002.npz", params=result.params, opt_state=None, config=config, step=2)
+    assert load_intention_predictor(seen_run).privileged == (ORACLE_SEGMENTATION,)
+    carry, (act, obj) = _run_predictor(predictor, obs)
+    np.testing.assert_array_equal(carry.objects_seen, in_view.any(axis=0))
+    # The first output: the Perceiver on one frame, restricted to what that frame showed.
+    logits = perceiver.apply(result.params, MODEL, d["frames"][:1, :1], jnp.ones((1, 1), bool))
+    want = perceiver.intention_probs(MODEL, logits, objects_seen=jnp.asarray(in_view[:1]))
+    np.testing.assert_allclose(act[0], want[0][0], atol=1e-5)
+    np.testing.assert_allclose(obj[0], want[1][0], atol=1e-5)
+    assert np.asarray(obj)[:, ~in_view.any(axis=0)].max() == 0.0
+    # Validation scores the restricted routes when asked, over what each sample's frames showed.
+    params = perceiver.init(jax.random.PRNGKey(1), MODEL)
+    val = make_val_fn(MODEL, d, {}, batch=5, compiler_options=FAST, seen_objects=True)(params)
+    mask = np.arange(4)[None, :] < np.asarray(d["num_frames"])[:, None]
+    seen = jnp.asarray((np.asarray(d["objects_seen"]) & mask[..., None]).any(axis=1))
+    routes = perceiver.intention_routes(MODEL, perceiver.apply(params, MODEL, d["frames"], jnp.asarray(mask)),
+                                        objects_seen=seen)
+    for head, probs in (("activity", routes.mixed[0]), ("object", routes.mixed[1])):
+        hits = np.mean([y in np.argsort(-p)[:5] for p, y in zip(np.asarray(probs), np.asarray(d[head]))])
+        assert val[f"{head}_top5"] == pytest.approx(hits), head
 
 
 def test_the_predictor_refuses_bad_observations(intention_run, rendered):
@@ -317,16 +393,24 @@ def test_bench_intention_scores_a_run_by_route_as_its_own_validation(intention_r
     from train import intention
 
     run_dir, result = intention_run
-    tables = []  # the P(B | A) each route is scored with (tiny minival's scores coincide)
+    tables, seen = [], []  # the P(B | A) each route is scored with (tiny minival's scores coincide)
     real = intention.make_val_fn
-    monkeypatch.setattr(intention, "make_val_fn", lambda *a, transition=None, **k: tables.append(transition)
-                        or real(*a, transition=transition, **k))
+    monkeypatch.setattr(intention, "make_val_fn", lambda *a, transition=None, seen_objects=False, **k:
+                        tables.append(transition) or seen.append(seen_objects)
+                        or real(*a, transition=transition, seen_objects=seen_objects, **k))
     assert cli.main(["bench", "intention", "--run", str(run_dir), "--data", str(tiny_data), "--split", "minival",
                      "--json"]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     counts = runs.run_config(run_dir, runs.INTENTION)["data"]["transition_counts"]
     np.testing.assert_array_equal(tables[0], perceiver.transition_from_counts(MODEL, counts))
-    assert tables[1] is None and set(res) == {"run", "split", "counted", "graph"}
+    assert tables[1] is None and set(res) == {"run", "split", "counted", "graph", "counted_seen_objects"}
+    # The third route: the counted P(B | A), restricted to the objects the panoramas showed.
+    np.testing.assert_array_equal(tables[2], tables[0])
+    assert seen == [False, False, True]
+    # The run records no weights (trained without --seen-objects): those of the train split's
+    # start poses, rendered for the score.
+    assert 0.0 < res["counted_seen_objects"]["unseen_weight_activity_b"] < 1.0
+    assert "unseen_weight_activity_b" not in res["counted"]
     # The counted route is what the run validated with.
     for key in ("activity_top5", "object_top5", "activity_a_top1", "activity_top1_direct"):
         assert res["counted"][key] == pytest.approx(result.val[key]), key

@@ -160,6 +160,75 @@ def test_graph_route_maps_a_certain_activity_a_to_its_graph_successors():
         PerceiverConfig(graph_mix=1.5)
 
 
+def test_seen_objects_keep_only_the_activities_of_objects_the_robot_has_seen():
+    transition, objects = perceiver.graph_tables(CONFIG)
+    object_of = np.argmax(objects, axis=1)
+    n, m = CONFIG.num_activities, CONFIG.num_objects
+    # Certain of an A with successors of several objects; the robot has seen A's object and one
+    # successor's object, besides one more category.
+    a = next(i for i in range(n) if len(set(object_of[np.flatnonzero(transition[i])])) >= 3)
+    successor_objects = sorted(set(object_of[np.flatnonzero(transition[a])]))
+    seen = np.zeros(m, bool)
+    seen[[object_of[a], successor_objects[0], 7]] = True
+    rng = np.random.default_rng(0)
+    logits = perceiver.IntentionLogits(jnp.asarray(rng.normal(size=n), jnp.float32),
+                                       jnp.asarray(rng.normal(size=m), jnp.float32),
+                                       jnp.full(n, -1e9).at[a].set(0.0))
+    routes = perceiver.intention_routes(CONFIG, logits, objects_seen=jnp.asarray(seen))
+    plain = perceiver.intention_routes(CONFIG, logits)
+    seen_activity = seen[object_of]
+    for name in ("direct", "graph_prior", "mixed"):
+        act, obj = (np.asarray(x) for x in getattr(routes, name))
+        assert act[~seen_activity].max() == 0.0 and obj[~seen].max() == 0.0, name
+        assert act.sum() == pytest.approx(1.0, abs=1e-5) and obj.sum() == pytest.approx(1.0, abs=1e-5), name
+    # The graph route: A's row of P(B | A) over the seen Bs, renormalised; the direct heads:
+    # their softmax over the seen classes, renormalised.
+    row = np.where(seen_activity, transition[a], 0.0)
+    np.testing.assert_allclose(routes.graph_prior[0], row / row.sum(), atol=1e-6)
+    direct = np.where(seen_activity, np.asarray(plain.direct[0]), 0.0)
+    np.testing.assert_allclose(routes.direct[0], direct / direct.sum(), atol=1e-6)
+    # An A the robot has not seen the object of gives way to a less likely one it has.
+    a2, b2 = next((i, j) for i in range(n) for j in np.flatnonzero(transition[i])
+                  if object_of[a] not in (object_of[i], object_of[j]))
+    seen2 = np.zeros(m, bool)
+    seen2[[object_of[a2], object_of[b2]]] = True
+    unseen_a = logits._replace(activity_a=jnp.full(n, -1e9).at[a].set(0.0).at[a2].set(-1.0))
+    got = perceiver.intention_routes(CONFIG, unseen_a, objects_seen=jnp.asarray(seen2))
+    row = np.where(seen2[object_of], transition[a2], 0.0)
+    np.testing.assert_allclose(got.graph_prior[0], row / row.sum(), atol=1e-6)
+    # Everything seen, or nothing yet: as without the restriction. A batch restricts each row
+    # by its own set.
+    for everything_or_nothing in (np.ones(m, bool), np.zeros(m, bool)):
+        same = perceiver.intention_routes(CONFIG, logits, objects_seen=jnp.asarray(everything_or_nothing))
+        for x, y in zip(jax.tree.leaves(same), jax.tree.leaves(plain)):
+            np.testing.assert_allclose(x, y, atol=1e-6)
+    batch = jax.tree.map(lambda x: jnp.stack([x, x]), logits)
+    both = perceiver.intention_probs(CONFIG, batch, objects_seen=jnp.asarray(np.stack([seen, np.ones(m, bool)])))
+    np.testing.assert_allclose(both[0][0], routes.mixed[0], atol=1e-6)
+    np.testing.assert_allclose(both[0][1], plain.mixed[0], atol=1e-6)
+    with pytest.raises(ValueError, match="objects_seen"):
+        perceiver.intention_routes(CONFIG, logits, objects_seen=jnp.ones(m + 1, bool))
+    # Weighed, not dropped: the unseen keep their share times the weight.
+    weights = {"activity_a": 0.5, "activity_b": 0.25}
+    soft = perceiver.intention_routes(CONFIG, logits, objects_seen=jnp.asarray(seen), unseen_weights=weights)
+    row = transition[a] * np.where(seen_activity, 1.0, 0.25)
+    np.testing.assert_allclose(soft.graph_prior[0], row / row.sum(), atol=1e-6)
+    direct = np.asarray(plain.direct[1]) * np.where(seen, 1.0, 0.25)
+    np.testing.assert_allclose(soft.direct[1], direct / direct.sum(), atol=1e-6)
+
+
+def test_seen_object_weights_are_the_odds_ratio_of_not_seeing_the_true_object():
+    # Three samples, four categories. Object B 2 is seen in 2 of 3 samples (odds of not seeing
+    # it (1 + 1) / (2 + 1)); the other categories in 3 of 9 (odds (6 + 1) / (3 + 1)).
+    seen = np.array([[1, 0, 1, 0], [0, 1, 1, 0], [1, 0, 0, 0]], bool)
+    w = perceiver.seen_object_weights(seen, object_a=np.array([0, 1, 0]), object_b=np.array([2, 2, 2]))
+    assert w["activity_b"] == pytest.approx((2 / 3) / (7 / 4))
+    # Object A (0, 1, 0) is seen in all three: odds (0 + 1) / (3 + 1); others: 2 of 9 seen.
+    assert w["activity_a"] == pytest.approx((1 / 4) / (8 / 3))
+    with pytest.raises(ValueError, match="objects_seen must be"):
+        perceiver.seen_object_weights(seen[0], np.zeros(3, int), np.zeros(3, int))
+
+
 def test_counted_transition_replaces_the_uniform_graph_rows_it_has_data_for():
     a, b = np.array([3, 3, 3, 7]), np.array([5, 5, 9, 2])
     triples = perceiver.count_transitions(a, b)

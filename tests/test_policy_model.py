@@ -236,6 +236,17 @@ def test_pixel_categories_read_each_category_colour_and_nothing_else():
     np.testing.assert_array_equal(np.asarray(policy.pixel_categories(_colour(q)[None]))[0], expected)
 
 
+def test_categories_in_view_are_those_with_a_pixel_of_their_colour():
+    rgb = np.zeros((4, 6, 3), np.float32)  # black: no category
+    rgb[0, 0], rgb[3, 5], rgb[2, 2] = _colour(CATEGORIES[3].rgb), _colour(CATEGORIES[40].rgb), _colour(WALL_RGB)
+    seen = np.asarray(policy.categories_in_view(jnp.asarray(rgb)))
+    assert seen.shape == (len(CATEGORIES),) and seen.dtype == bool
+    assert np.flatnonzero(seen).tolist() == [3, 40]
+    assert not np.asarray(policy.categories_in_view(jnp.zeros((4, 6, 3)))).any()
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        policy.categories_in_view(jnp.zeros((2, 4, 6, 3)))
+
+
 def test_object_saliency_weights_pixels_by_their_category_probability():
     rgb = np.zeros((2, 3, 3), np.float32)
     rgb[0, 0], rgb[0, 1], rgb[1, 2] = _colour(CATEGORIES[4].rgb), _colour(CATEGORIES[9].rgb), _colour(WALL_RGB)

@@ -89,6 +89,20 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
         rp.ReproduceConfig(out=tmp_path, seeds=0)
 
 
+def test_the_predictors_options_reach_its_training_command_alone(tmp_path, capsys):
+    plain = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small"))
+    both = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", mirror=True, seen_objects=True))
+    (intention,) = [argv for argv in both[1].commands if argv[1] == "intention"]
+    assert "--mirror" in intention and "--seen-objects" in intention
+    args = cli.build_parser().parse_args(list(intention))
+    assert args.mirror and args.seen_objects
+    changed = [a for s0, s1 in zip(plain, both) for a, b in zip(s0.commands, s1.commands) if a != b]
+    assert changed == [tuple(a for a in intention if a not in ("--mirror", "--seen-objects"))]
+    assert cli.main(["--compile-cache", "off", "reproduce", "--preset", "tiny", "--seeds", "1", "--out",
+                     str(tmp_path / "out"), "--mirror", "--seen-objects", "--dry-run"]) == 0
+    assert capsys.readouterr().out.count("--mirror --seen-objects") == 1
+
+
 def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_path, capsys):
     plain = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1))}
     patch = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1,
@@ -557,7 +571,8 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
     cfg = rp.ReproduceConfig(out=tmp_path, preset="tiny")
     progress = rp.read_progress(tmp_path)  # a new directory (or one made before it kept them)
     rp.check_out(progress, cfg)
-    assert progress["config"] == {"preset": "tiny", "resolution": "112x448", "encoder": "conv"}
+    assert progress["config"] == {"preset": "tiny", "resolution": "112x448", "encoder": "conv", "mirror": False,
+                                  "seen_objects": False}
     rp.check_out(progress, dataclasses.replace(cfg, seeds=5, dagger_beta=0.5))  # more seeds, other rows: the same OUT
     rp.write_progress(tmp_path, progress)
     with pytest.raises(ValueError, match=r"made with --resolution 112x448 \(given 32x128\), --encoder conv \(given patch\)"):
@@ -567,6 +582,12 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
                                           "--dry-run"])
     assert args.func(args) == 2
     assert "was made with --encoder conv (given patch): give those, or another --out" in capsys.readouterr().err
+    # The predictor's options too; a directory recorded before they existed was made without them.
+    older = {"config": {"preset": "tiny", "resolution": "112x448", "encoder": "conv"}}
+    with pytest.raises(ValueError, match=r"made with --seen-objects off \(given on\)"):
+        rp.check_out(older, dataclasses.replace(cfg, seen_objects=True))
+    rp.check_out(older, cfg)
+    assert older["config"]["mirror"] is False
 
 
 def test_one_seed_at_a_time_trains_and_evaluates_it_and_packs_only_what_others_need(fake_conav, tmp_path, capsys):

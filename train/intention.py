@@ -26,6 +26,7 @@ from conav_jax.data.episodes import read_manifest
 from conav_jax.geometry import to_frame, wrap_angle_np
 from conav_jax.models import perceiver
 from conav_jax.models.perceiver import PerceiverConfig
+from conav_jax.models.policy import categories_in_view
 from conav_jax.nav.navigation import line_of_sight
 from envs import ConavEnv, EnvConfig, SensorConfig
 from envs.agents.predictors import VIEWS, FrameSpec, intention_frame, perceiver_config_from_run
@@ -139,10 +140,12 @@ def human_positions(env: ConavEnv, episodes: np.ndarray, steps: np.ndarray, pose
 def make_renderer(env: ConavEnv, model: PerceiverConfig, spec: FrameSpec, chunk: int,
                   compiler_options: dict | None = None):
     """A jitted `render(episodes (M,), steps (M,), poses (M, 3), human_pos (M, 2)) -> (frames
-    (M, h, w, 4) uint8, human_pixels (M,) int32, human_pixels_sensor (M,) int32)`: the env
-    sensor's panorama from the robot pose with the human posed at that step of the episode,
-    made into a frame by `intention_frame` (the predictor's own), and the sensor pixels showing
-    the human inside the frame's view and in the whole panorama. `chunk` frames at a time."""
+    (M, h, w, 4) uint8, human_pixels (M,) int32, human_pixels_sensor (M,) int32, objects_seen
+    (M, num_objects) bool)`: the env sensor's panorama from the robot pose with the human posed
+    at that step of the episode, made into a frame by `intention_frame` (the predictor's own),
+    the sensor pixels showing the human inside the frame's view and in the whole panorama, and
+    the object categories the whole panorama shows (`categories_in_view`, what the predictor
+    keeps with PerceiverConfig.seen_objects). `chunk` frames at a time."""
     human_start = env.layout.human_start
     h, w = model.image_hw
 
@@ -153,7 +156,8 @@ def make_renderer(env: ConavEnv, model: PerceiverConfig, spec: FrameSpec, chunk:
         # The human's pixels in the same view (a crop holds sensor pixels; the front view's
         # are counted before its resize).
         seen = front_view(human) if spec.view == "front" else human_crop(human, pos, (h, w), spec.camera_height_m)
-        return frame, jnp.sum(seen, dtype=jnp.int32), jnp.sum(human, dtype=jnp.int32)
+        return (frame, jnp.sum(seen, dtype=jnp.int32), jnp.sum(human, dtype=jnp.int32),
+                categories_in_view(rgbd[..., :3]))
 
     def render(episodes, steps, poses, pos):
         return jax.lax.map(lambda x: one(*x), (episodes, steps, poses, pos), batch_size=chunk)
@@ -177,7 +181,8 @@ def render_split(
     `num_frames (M,)` int32, `activity (M,)`, `object (M,)` int32 labels (activity B, object
     B), `activity_a (M,)`, `human_pos (M, F, 2)` m (robot frame), and `human_pixels (M, F)` /
     `human_pixels_sensor (M, F)` int32, the sensor's pixels showing the human inside the
-    frame's view / in the whole panorama."""
+    frame's view / in the whole panorama, and `objects_seen (M, F, num_objects)` bool, the
+    object categories each frame's whole panorama shows."""
     eps = env.split.episodes
     views = data.viewpoints if viewpoints is None else viewpoints
     steps, num = activity_a_steps(eps["t_walk_start"], data.frames)
@@ -188,7 +193,7 @@ def render_split(
     poses = np.repeat(poses.reshape(n * views, 1, 3), f, axis=1).reshape(-1, 3)
     pos = human_positions(env, episodes, steps, poses)
     render = make_renderer(env, model, frame_spec(env, data), chunk, compiler_options)
-    frames, human, human_sensor = render(*map(jnp.asarray, (episodes, steps, poses, pos)))
+    frames, human, human_sensor, objects_seen = render(*map(jnp.asarray, (episodes, steps, poses, pos)))
     m = n * views
     per_sample = lambda key: jnp.asarray(np.repeat(np.asarray(eps[key], np.int32), views))  # noqa: E731
     return {
@@ -201,6 +206,7 @@ def render_split(
         "human_pos": jnp.asarray(pos.reshape(m, f, 2)),
         "human_pixels": human.reshape(m, f),
         "human_pixels_sensor": human_sensor.reshape(m, f),
+        "objects_seen": objects_seen.reshape(m, f, -1),
     }
 
 
@@ -288,32 +294,41 @@ ROUTE_SUFFIXES = {"mixed": "", "direct": "_direct", "graph_prior": "_generator_g
 
 def make_val_fn(
     config: PerceiverConfig, val: dict, baselines: dict, batch: int = 256, compiler_options: dict | None = None,
-    transition: np.ndarray | None = None,
+    transition: np.ndarray | None = None, seen_objects: bool = False, unseen_weights: dict | None = None,
 ):
     """`val(params) -> dict`: top-1/top-5 of activity B and object B with every frame of activity
     A seen, by route (ROUTE_SUFFIXES): `activity_top1` etc. what the predictor outputs
     (`perceiver.intention_probs`), `activity_top1_direct` the direct heads without the graph
     prior, `activity_top1_generator_graph_prior` the A head through P(B | A) alone
-    (`transition`, see perceiver.intention_routes); top-1/top-5 of the watched activity A
+    (`transition`, see perceiver.intention_routes), with `seen_objects` every route weighed by the
+    object categories the sample's frames showed (`val["objects_seen"]`, `unseen_weights`);
+    top-1/top-5 of the watched activity A
     with the A head, and how often its top-1 A uses the true A's object (`activity_a_object_top1`);
     plus the (constant) prior, chance and data figures of `baselines`."""
     f = val["frames"].shape[1]
     routes = [r for r in ROUTE_SUFFIXES if r != "graph_prior" or config.activity_a_head]
 
-    def probs(params, frames, num):
+    def probs(params, frames, num, objects_seen):
         mask = jnp.arange(f)[None, :] < num[:, None]
         out = perceiver.apply(params, config, frames, mask)
-        by_route = perceiver.intention_routes(config, out, transition)._asdict()
+        # What the robot has seen by the last frame the sample shows.
+        seen = jnp.any(objects_seen & mask[..., None], axis=-2) if seen_objects else None
+        by_route = perceiver.intention_routes(config, out, transition, seen, unseen_weights)._asdict()
         return {r: by_route[r] for r in routes}, out.activity_a
 
     # The data are arguments: closed over, they would be baked into the compiled program.
-    def all_probs(params, frames, num):
-        return jax.lax.map(lambda x: probs(params, x[0][None], x[1][None]), (frames, num), batch_size=batch)
+    def all_probs(params, frames, num, objects_seen):
+        return jax.lax.map(lambda x: probs(params, *(v[None] for v in x)), (frames, num, objects_seen),
+                           batch_size=batch)
 
     all_probs = jax.jit(all_probs, compiler_options=compiler_options)
+    if seen_objects and "objects_seen" not in val:
+        raise ValueError("seen_objects needs the samples' objects_seen (render_split's)")
+    objects_seen = val["objects_seen"] if seen_objects else jnp.zeros(val["num_frames"].shape + (1, 1), bool)
 
     def run(params) -> dict:
-        by_route, watched = jax.tree.map(lambda x: np.asarray(x)[:, 0], all_probs(params, val["frames"], val["num_frames"]))
+        by_route, watched = jax.tree.map(lambda x: np.asarray(x)[:, 0],
+                                         all_probs(params, val["frames"], val["num_frames"], objects_seen))
         out = {}
         for route, (act, obj) in by_route.items():
             for head, scores in (("activity", act), ("object", obj)):
@@ -329,16 +344,23 @@ def make_val_fn(
 
 
 def run_config(model: PerceiverConfig, data: IntentionDataConfig, content_hash: str | None, spacing: float,
-               camera_height_m: float, transition_counts: list[list[int]] | None = None) -> dict:
+               camera_height_m: float, transition_counts: list[list[int]] | None = None,
+               seen_object_weights: dict | None = None) -> dict:
     """The checkpoint's config: what a resumed run must share, and what the predictor needs
     (envs.agents.predictors.frame_spec_from_config reads the view, sensor and camera height;
-    `transition_counts`, [A, B, count] of the train split's episodes, its P(B | A))."""
+    `transition_counts`, [A, B, count] of the train split's episodes, its P(B | A);
+    `seen_object_weights`, perceiver.seen_object_weights of the train split, with
+    PerceiverConfig.seen_objects)."""
     extra = {} if transition_counts is None else {"transition_counts": transition_counts}
-    # `mirror` only where set: runs written before it existed resume with the same config.
+    if seen_object_weights is not None:
+        extra["seen_object_weights"] = seen_object_weights
+    # `mirror` and `seen_objects` only where set: runs written before they existed resume with
+    # the same config.
     data_fields = {k: v for k, v in dataclasses.asdict(data).items() if k != "mirror" or v}
+    model_fields = {k: v for k, v in dataclasses.asdict(model).items() if k != "seen_objects" or v}
     return {
         "kind": KIND,
-        "model": dataclasses.asdict(model),
+        "model": model_fields,
         "data": {**data_fields, "content_hash": content_hash, "frame_spacing_steps": spacing,
                  "camera_height_m": camera_height_m, **extra},
     }
@@ -357,6 +379,15 @@ def data_metrics(val: dict) -> dict:
     seen, total = np.asarray(val["human_pixels"]), np.asarray(val["human_pixels_sensor"])
     return {"val_frames_with_human": float(np.mean(seen > 0)),
             "val_human_pixels_in_view": float(seen.sum() / max(total.sum(), 1))}
+
+
+def start_pose_weights(model: PerceiverConfig, samples: dict, viewpoints: int) -> dict:
+    """perceiver.seen_object_weights of `render_split`'s samples from their episodes' start
+    poses (the first of each `viewpoints`), every frame's objects together."""
+    seen = np.asarray(samples["objects_seen"])[::viewpoints].any(axis=1)
+    object_of = np.argmax(perceiver.graph_tables(model)[1], axis=1)
+    object_a = object_of[np.asarray(samples["activity_a"])[::viewpoints]]
+    return perceiver.seen_object_weights(seen, object_a, np.asarray(samples["object"])[::viewpoints])
 
 
 def train_intention(
@@ -381,14 +412,17 @@ def train_intention(
     spacing = frame_spacing(train_env.split.episodes["t_walk_start"], data.frames)
     # P(B | A) of the graph route, counted on the train split's episodes.
     counts = perceiver.count_transitions(train_env.split.episodes["activity_a"], train_env.split.episodes["activity_b"])
-    config = run_config(model, data, content_hash, spacing, float(train_env.task.camera_height_m), counts)
+    # The seen objects' odds, counted on the train split's start poses (as the robot starts).
+    weights = start_pose_weights(model, train_d, data.viewpoints) if model.seen_objects else None
+    config = run_config(model, data, content_hash, spacing, float(train_env.task.camera_height_m), counts, weights)
     params = perceiver.init(jax.random.PRNGKey(cfg.seed), model)
     loss = lambda p, b, k: intention_loss(p, model, b, k, mirror=data.mirror)
     samples = {k: train_d[k] for k in ("frames", "num_frames", "activity", "object", "activity_a")}
     return train(
         run_dir, loss, params, samples, cfg, config,
         val_fn=make_val_fn(model, val_d, baselines, compiler_options=compiler_options,
-                           transition=perceiver.transition_from_counts(model, counts)),
+                           transition=perceiver.transition_from_counts(model, counts),
+                           seen_objects=model.seen_objects, unseen_weights=weights),
         progress=progress, compiler_options=compiler_options, mesh=mesh, log_extra={"val_split": val_split},
     )
 
@@ -396,10 +430,13 @@ def train_intention(
 def evaluate_run(run_dir: str | Path, data_dir: str | Path, split: str = "val",
                  compiler_options: dict | None = None) -> dict[str, dict]:
     """An intention run's accuracy on `split` of `data_dir` (its start viewpoint, every frame of
-    activity A seen; make_val_fn's keys by route), with two graph routes: "counted", P(B | A)
-    counted on the data's train split (what a run records and its predictor uses), and
-    "graph", the generator's links, uniform. FileNotFoundError / ValueError as runs.load_run,
-    ValueError if the run was trained on other data (content hash)."""
+    activity A seen; make_val_fn's keys by route), with three graph routes: "counted", P(B | A)
+    counted on the data's train split (what a run records and its predictor uses), "graph",
+    the generator's links, uniform, and "counted_seen_objects", the counted P(B | A) with every
+    route weighed by the object categories the robot's panoramas showed (what the predictor
+    outputs with PerceiverConfig.seen_objects, whatever the run's setting; the run's recorded
+    weights, else those of the train split's start poses, rendered here). FileNotFoundError /
+    ValueError as runs.load_run, ValueError if the run was trained on other data (content hash)."""
     ckpt = runs.load_run(run_dir, runs.INTENTION)
     model = perceiver_config_from_run(ckpt.config["model"])
     names = {f.name for f in dataclasses.fields(IntentionDataConfig)}
@@ -416,5 +453,13 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, split: str = "val",
     baselines = {**baseline_metrics(train_labels, labels, model), **data_metrics(labels)}
     counted = perceiver.transition_from_counts(model, perceiver.count_transitions(train_eps["activity_a"],
                                                                                   train_eps["activity_b"]))
-    return {route: make_val_fn(model, labels, baselines, compiler_options=compiler_options, transition=t)(ckpt.params)
-            for route, t in (("counted", counted), ("graph", None))}
+    weights = ckpt.config["data"].get("seen_object_weights")
+    if weights is None:
+        train_env = make_env(data_dir, "train", data)
+        weights = start_pose_weights(model, render_split(train_env, model, data, compiler_options=compiler_options,
+                                                         viewpoints=1), 1)
+    return {route: {**make_val_fn(model, labels, baselines, compiler_options=compiler_options, transition=t,
+                                  seen_objects=seen, unseen_weights=weights)(ckpt.params),
+                    **({f"unseen_weight_{k}": v for k, v in weights.items()} if seen else {})}
+            for route, t, seen in (("counted", counted, False), ("graph", None, False),
+                                   ("counted_seen_objects", counted, True))}

@@ -62,6 +62,13 @@ class PerceiverConfig:
     # Weight of the graph route (p(A | frames) through P(B | A), a structural prior: see
     # transition_from_counts) in p(B) and p(object B); the rest: the direct heads.
     graph_mix: float = 0.8
+    # Weigh activities A and B by whether the robot's panoramas have shown their object category
+    # so far (`intention_routes`' objects_seen and unseen_weights; envs.agents.predictors keeps
+    # the set from each recorded panorama's exact category colours: oracle segmentation). The
+    # generator puts B at an object of the scene, and a scene holds few of the 51 categories, so
+    # a category seen is evidence for it. Inference only: the trained weights do not depend on
+    # it. Runs written before it had none.
+    seen_objects: bool = False
 
     def __post_init__(self):
         if not 0.0 <= self.graph_mix <= 1.0:
@@ -150,30 +157,89 @@ def transition_from_counts(config: PerceiverConfig, triples) -> np.ndarray:
     return np.where(rows > 0, counts / np.maximum(rows, 1.0), graph_tables(config)[0]).astype(np.float32)
 
 
-def intention_routes(config: PerceiverConfig, logits: IntentionLogits, transition=None) -> IntentionRoutes:
+def _keep(probs: jax.Array, keep: jax.Array, unseen_weight=0.0) -> jax.Array:
+    """`probs (..., C)` with the classes `keep (..., C)` does not hold weighed by
+    `unseen_weight` (0: dropped), renormalised; rows left with no mass stay as they were
+    (nothing seen yet says nothing)."""
+    kept = probs * jnp.where(keep, 1.0, unseen_weight)
+    total = jnp.sum(kept, axis=-1, keepdims=True)
+    return jnp.where(total > 0.0, kept / jnp.where(total > 0.0, total, 1.0), probs)
+
+
+def seen_object_weights(objects_seen: np.ndarray, object_a: np.ndarray, object_b: np.ndarray) -> dict:
+    """How much less likely a category is to be activity A's (B's) object when the robot has
+    not seen it than when it has: {"activity_a": w, "activity_b": w}, each the odds ratio, over
+    samples `objects_seen (N, num_objects)` bool with their objects `object_a`, `object_b (N,)`,
+    of "not seen" for the true object against the other categories (naive Bayes: given what was
+    seen, a hypothesis' likelihood is this ratio, or 1, by its own object's indicator; the rest
+    is common to all). Counts start at 1 (add-one smoothing). ValueError for shapes that do not
+    fit."""
+    seen = np.asarray(objects_seen, bool)
+    if seen.ndim != 2 or len(object_a) != len(seen) or len(object_b) != len(seen):
+        raise ValueError(f"objects_seen must be (N, C) beside (N,) objects, got {seen.shape}, "
+                         f"{np.shape(object_a)}, {np.shape(object_b)}")
+    out = {}
+    for name, obj in (("activity_a", object_a), ("activity_b", object_b)):
+        mine = seen[np.arange(len(seen)), np.asarray(obj)]
+        others_seen = seen.sum() - mine.sum()
+        others = seen.size - len(seen)
+        odds_mine = (np.sum(~mine) + 1.0) / (np.sum(mine) + 1.0)
+        odds_others = (others - others_seen + 1.0) / (others_seen + 1.0)
+        out[name] = float(odds_mine / odds_others)
+    return out
+
+
+def intention_routes(config: PerceiverConfig, logits: IntentionLogits, transition=None,
+                     objects_seen: jax.Array | None = None, unseen_weights: dict | None = None) -> IntentionRoutes:
     """Each route's (activity B, object B) probabilities, see IntentionRoutes. `transition`:
     P(B | A) `(A, B)` for the graph route (a run's `transition_from_counts`); None: the graph's
-    links, uniform (graph_tables)."""
+    links, uniform (graph_tables). `objects_seen (..., num_objects)` bool: the object categories
+    the robot has seen (PerceiverConfig.seen_objects); with it every route weighs the activities
+    of objects not seen by `unseen_weights` ({"activity_a": w, "activity_b": w}, from
+    `seen_object_weights`; None: 0, dropped): A in the graph route, B in both, each P(B | A) row
+    renormalised (the generator draws B among the links whose objects the scene holds); None:
+    unweighted."""
     direct = jax.nn.softmax(logits.activity, axis=-1), jax.nn.softmax(logits.object, axis=-1)
+    hi = jax.lax.Precision.HIGHEST  # probabilities: keep float32 on the GPU
+    seen_activity = None
+    weights = {"activity_a": 0.0, "activity_b": 0.0, **(unseen_weights or {})}
+    w_a, w_b = weights["activity_a"], weights["activity_b"]
+    if objects_seen is not None:
+        objects = graph_tables(config)[1]
+        if objects_seen.shape[-1] != config.num_objects:
+            raise ValueError(f"objects_seen must be (..., {config.num_objects}), got {objects_seen.shape}")
+        seen = objects_seen.astype(jnp.float32)
+        seen_activity = jnp.matmul(seen, jnp.asarray(objects).T, precision=hi) > 0.5  # (..., A)
+        direct = _keep(direct[0], seen_activity, w_b), _keep(direct[1], objects_seen, w_b)
     if logits.activity_a is None:
         return IntentionRoutes(direct, None, direct)
     graph_transition, objects = graph_tables(config)
     transition = graph_transition if transition is None else transition
     if np.shape(transition) != graph_transition.shape:
         raise ValueError(f"transition must have shape {graph_transition.shape}, got {np.shape(transition)}")
-    hi = jax.lax.Precision.HIGHEST  # probabilities: keep float32 on the GPU
-    via_b = jnp.matmul(jax.nn.softmax(logits.activity_a, axis=-1), jnp.asarray(transition), precision=hi)
+    p_a = jax.nn.softmax(logits.activity_a, axis=-1)
+    if seen_activity is None:
+        via_b = jnp.matmul(p_a, jnp.asarray(transition), precision=hi)
+    else:  # a P(B | A) of each sample's own: rows over the seen Bs
+        rows = _keep(jnp.broadcast_to(jnp.asarray(transition), (*seen_activity.shape[:-1], *transition.shape)),
+                     seen_activity[..., None, :], w_b)
+        via_b = jnp.einsum("...a,...ab->...b", _keep(p_a, seen_activity, w_a), rows, precision=hi)
+        if w_b == 0.0:  # a seen A whose successors are all unseen keeps its whole row above
+            via_b = _keep(via_b, seen_activity)
     via_obj = jnp.matmul(via_b, jnp.asarray(objects), precision=hi)
     w = config.graph_mix
     mixed = (1.0 - w) * direct[0] + w * via_b, (1.0 - w) * direct[1] + w * via_obj
     return IntentionRoutes(direct, (via_b, via_obj), mixed)
 
 
-def intention_probs(config: PerceiverConfig, logits: IntentionLogits, transition=None) -> tuple[jax.Array, jax.Array]:
+def intention_probs(config: PerceiverConfig, logits: IntentionLogits, transition=None,
+                    objects_seen: jax.Array | None = None, unseen_weights: dict | None = None
+                    ) -> tuple[jax.Array, jax.Array]:
     """(activity B probabilities `(..., num_activities)`, object B probabilities
     `(..., num_objects)`): the direct heads' softmax, and with the A head their mix with the
-    graph route (weight `graph_mix`; `transition` as intention_routes); `intention_routes(...).mixed`."""
-    return intention_routes(config, logits, transition).mixed
+    graph route (weight `graph_mix`; `transition`, `objects_seen`, `unseen_weights` as
+    intention_routes); `intention_routes(...).mixed`."""
+    return intention_routes(config, logits, transition, objects_seen, unseen_weights).mixed
 
 
 def encode_frames(frames: jax.Array, max_depth_m: float) -> jax.Array:

@@ -228,6 +228,17 @@ def pixel_categories(rgb: jax.Array) -> jax.Array:
     return jnp.where(jnp.asarray(key_at)[residue] == key, jnp.asarray(category_at)[residue], -1)
 
 
+def categories_in_view(rgb: jax.Array) -> jax.Array:
+    """The object categories an image shows: `(NUM_CATEGORIES,)` bool from `rgb (H, W, 3)` in
+    [0, 1], true for each category with at least one pixel of its flat colour (pixel_categories)."""
+    if rgb.ndim != 3 or rgb.shape[-1] != 3:
+        raise ValueError(f"rgb must be (H, W, 3), got {rgb.shape}")
+    cats = pixel_categories(rgb).reshape(-1)
+    # Pixels of no category index past the end and are dropped.
+    n = NUM_CATEGORIES
+    return jnp.zeros(n, bool).at[jnp.where(cats >= 0, cats, n)].set(True, mode="drop")
+
+
 def object_saliency(rgb: jax.Array, object_probs: jax.Array) -> jax.Array:
     """Saliency `(..., H, W)` in [0, 1]: each pixel's category's probability under
     `object_probs (..., C)`, divided by the largest probability (the most likely category's

@@ -103,6 +103,7 @@ class CategoryPredictor(NamedTuple):
 
     init: Callable
     step: Callable
+    privileged: tuple[str, ...] = ()  # the underlying predictor's
 
 
 def category_predictor(intention) -> CategoryPredictor:
@@ -114,7 +115,7 @@ def category_predictor(intention) -> CategoryPredictor:
         one_hot = jax.nn.one_hot(jnp.argmax(objects), objects.shape[-1])
         return activity, jnp.where(jnp.all(jnp.isfinite(objects)), one_hot, jnp.nan), carry
 
-    return CategoryPredictor(intention.init, step)
+    return CategoryPredictor(intention.init, step, intention.privileged)
 
 
 def check_objectgoal_config(cfg: PolicyConfig, source_name: str) -> None:
@@ -134,7 +135,8 @@ def objectgoal_agent_from_params(params, cfg: PolicyConfig, env, intention=None)
         pol = make_policy_step(cfg, category_predictor(intention))
         return Agent("objectgoal-predicted", lambda key, episode: pol.init(),
                      lambda state, carry, key: pol.step(params, state.obs, carry), title=OBJECTGOAL_TITLE,
-                     intention_source=PREDICTED, privileged=segmentation).check()
+                     intention_source=PREDICTED,
+                     privileged=segmentation + tuple(p for p in intention.privileged if p not in segmentation)).check()
     b = env.bank_view
     pol = make_policy_step(cfg)  # reads obs["object_probs"]: the category, supplied below
 

@@ -155,8 +155,9 @@ def check_policy_env(env, cfg: PolicyConfig, source_name: str, intention_source_
                          "EnvConfig(intention_obs=True) or give the predictor runs")
 
 
-def privileged_inputs(cfg: PolicyConfig, source: str) -> tuple[str, ...]:
-    """The privileged inputs a policy with this config reads when its intentions come from `source`."""
+def privileged_inputs(cfg: PolicyConfig, source: str, intention=None) -> tuple[str, ...]:
+    """The privileged inputs a policy with this config reads when its intentions come from
+    `source`, with those of its intention predictor (`intention`) where it reads one."""
     out = []
     if source == GROUND_TRUTH:
         out.append(GROUND_TRUTH_INTENTIONS)
@@ -164,6 +165,8 @@ def privileged_inputs(cfg: PolicyConfig, source: str) -> tuple[str, ...]:
             out.append(FUTURE_HUMAN_POSITIONS)  # the true future trajectory is where the human will be
     if cfg.use_object and cfg.object_saliency:
         out.append(ORACLE_SEGMENTATION)  # each pixel's category from its render colour
+    if intention is not None and source == PREDICTED and (cfg.use_activity or cfg.use_object):
+        out += [p for p in intention.privileged if p not in out]
     return tuple(out)
 
 
@@ -177,7 +180,7 @@ def policy_agent_from_params(
     if pol.source == NO_INTENTIONS:
         title = f"{title}, no intention inputs"
     return Agent(name, lambda key, episode: pol.init(), lambda state, carry, key: pol.step(params, state.obs, carry),
-                 title=title, intention_source=pol.source, privileged=privileged_inputs(cfg, pol.source)).check()
+                 title=title, intention_source=pol.source, privileged=privileged_inputs(cfg, pol.source, intention)).check()
 
 
 # -- agents from runs ----------------------------------------------------------------------------

@@ -25,7 +25,9 @@ from conav_jax.config import TaskConfig
 from conav_jax.models import perceiver
 from conav_jax.models import trajectory as traj_model
 from conav_jax.models.perceiver import PerceiverConfig
+from conav_jax.models.policy import categories_in_view
 from conav_jax.models.trajectory import TrajectoryConfig
+from envs.agents.base import ORACLE_SEGMENTATION
 from envs.human_crop import human_crop
 from envs.panorama import front_view
 
@@ -81,6 +83,9 @@ class IntentionCarry(NamedTuple):
     # bool: a recorded observation's human position held NaN. Its crop is in the buffer as some
     # uint8 value, so every later output is NaN: no prediction from a made-up view.
     bad_input: jax.Array
+    # (num_objects,) bool: the object categories the recorded panoramas have shown (only with
+    # PerceiverConfig.seen_objects; else it stays all False)
+    objects_seen: jax.Array
 
 
 class IntentionPredictor(NamedTuple):
@@ -88,13 +93,15 @@ class IntentionPredictor(NamedTuple):
 
     `init() -> carry`; `step(carry, obs) -> (activity_probs (107,), object_probs (51,), carry)`
     with `obs` the env's observation of one env: it reads `obs["rgbd"]` (H, W, 4) and
-    `obs["human_pos"]` (2,) (`intention_frame`)."""
+    `obs["human_pos"]` (2,) (`intention_frame`). `privileged`: what it reads that a robot with
+    the paper's sensors would not have (envs.agents.base), for the agents using it to list."""
 
     config: PerceiverConfig
     frame_stride: int
     spec: FrameSpec
     init: Callable[[], IntentionCarry]
     step: Callable[[IntentionCarry, Mapping[str, jax.Array]], tuple[jax.Array, jax.Array, IntentionCarry]]
+    privileged: tuple[str, ...] = ()
 
 
 def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -105,36 +112,45 @@ def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Arr
     return buffer.at[jnp.minimum(count, size - 1)].set(item), jnp.minimum(count + 1, size)
 
 
-def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition, frame_stride: int):
-    """`record_frame(record, rgbd, human_pos, frames, num_frames) -> (frames, num_frames,
-    activity_probs, object_probs)` for one env: where `record`, the observation's frame
-    (`intention_frame`) pushed into the buffer and the Perceiver's output on it; where not, the
-    buffer as it was and zeros (the caller keeps its history then). An env records one step in
+def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition, frame_stride: int,
+                    unseen_weights: dict | None = None):
+    """`record_frame(record, rgbd, human_pos, frames, num_frames, objects_seen) -> (frames,
+    num_frames, objects_seen, activity_probs, object_probs)` for one env: where `record`, the
+    observation's frame (`intention_frame`) pushed into the buffer, with
+    PerceiverConfig.seen_objects the categories the panorama shows added to `objects_seen`, and
+    the Perceiver's output on them; where not, the buffer and the set as they were and zeros
+    (the caller keeps its history then). An env records one step in
     `frame_stride`, so most calls skip the crop, the push and the Perceiver: alone by `lax.cond`,
     and under vmap (where a per-lane `cond` would run both branches on every lane) by running
     them only on the recording lanes, gathered in chunks. Each lane's output is what the
     Perceiver gives it in a full batch, to float rounding."""
     shapes = (config.num_activities, config.num_objects)
 
-    def record_lanes(rgbd, human_pos, frames, num_frames):  # (N, ...) each: N lanes that record
+    def record_lanes(rgbd, human_pos, frames, num_frames, objects_seen):  # (N, ...) each: N lanes that record
         new = jax.vmap(lambda r, p: intention_frame(spec, config, r, p))(rgbd, human_pos)
         frames, num_frames = jax.vmap(_push)(frames, num_frames, new)
         mask = jnp.arange(frames.shape[1]) < num_frames[:, None]
-        probs = perceiver.intention_probs(config, perceiver.apply(params, config, frames, mask), transition)
-        return (frames, num_frames, *probs)
+        restrict = None
+        if config.seen_objects:
+            objects_seen = objects_seen | jax.vmap(categories_in_view)(rgbd[..., :3])
+            restrict = objects_seen
+        probs = perceiver.intention_probs(config, perceiver.apply(params, config, frames, mask), transition, restrict,
+                                          unseen_weights)
+        return (frames, num_frames, objects_seen, *probs)
 
     @jax.custom_batching.custom_vmap
-    def record_frame(record, rgbd, human_pos, frames, num_frames):
+    def record_frame(record, rgbd, human_pos, frames, num_frames, objects_seen):
         def recorded():
-            return tuple(x[0] for x in record_lanes(*(x[None] for x in (rgbd, human_pos, frames, num_frames))))
+            args = (rgbd, human_pos, frames, num_frames, objects_seen)
+            return tuple(x[0] for x in record_lanes(*(x[None] for x in args)))
         return jax.lax.cond(record, recorded,
-                            lambda: (frames, num_frames, *(jnp.zeros(n, jnp.float32) for n in shapes)))
+                            lambda: (frames, num_frames, objects_seen, *(jnp.zeros(n, jnp.float32) for n in shapes)))
 
     @record_frame.def_vmap
     def _batched(axis_size, in_batched, record, *args):
         record, *args = (x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
                          for x, batched in zip((record, *args), in_batched))
-        rgbd, human_pos, frames, num_frames = args
+        rgbd, human_pos, frames, num_frames, objects_seen = args
         # Lanes drift apart in step once episodes refill, so a step records on about
         # axis_size / frame_stride lanes: chunks twice that size take one pass on most steps.
         chunk = min(axis_size, 2 * -(-axis_size // frame_stride))
@@ -146,11 +162,11 @@ def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition
             i, outs = carry
             idx = jax.lax.dynamic_slice(lanes, (i * chunk,), (chunk,))
             take = jnp.minimum(idx, axis_size - 1)
-            done = record_lanes(rgbd[take], human_pos[take], frames[take], num_frames[take])
+            done = record_lanes(rgbd[take], human_pos[take], frames[take], num_frames[take], objects_seen[take])
             # Padding lanes point past the batch: their rows are dropped.
             return i + 1, tuple(out.at[idx].set(x, mode="drop") for out, x in zip(outs, done))
 
-        outs = (frames, num_frames, *(jnp.zeros((axis_size, n), jnp.float32) for n in shapes))
+        outs = (frames, num_frames, objects_seen, *(jnp.zeros((axis_size, n), jnp.float32) for n in shapes))
         _, outs = jax.lax.while_loop(lambda c: c[0] * chunk < count, body, (jnp.zeros((), jnp.int32), outs))
         return outs, (True,) * len(outs)
 
@@ -159,23 +175,25 @@ def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition
 
 def make_intention_predictor(
     params, config: PerceiverConfig, frames: int, spec: FrameSpec, frame_stride: int = 1, history: int = 16,
-    top_k: int = 5, transition: np.ndarray | None = None,
+    top_k: int = 5, transition: np.ndarray | None = None, unseen_weights: dict | None = None,
 ) -> IntentionPredictor:
     """A predictor that records a frame (`intention_frame` by `spec`) every `frame_stride`
     calls (training frames were that far apart), keeps the last `frames`, runs the Perceiver
     on them and returns the mean of the `top_k` lowest-entropy of the last `history`
     predictions (paper sec. 4.2). `transition`: the P(B | A) of its graph route
-    (perceiver.intention_routes)."""
+    (perceiver.intention_routes). With `config.seen_objects` it keeps the object categories its
+    recorded panoramas show and weighs the activities of the others by `unseen_weights`
+    (perceiver.seen_object_weights; listed as privileged: oracle segmentation)."""
     h, w = config.image_hw
     f32 = jnp.float32
-    record_frame = _frame_recorder(params, config, spec, transition, frame_stride)
+    record_frame = _frame_recorder(params, config, spec, transition, frame_stride, unseen_weights)
 
     def init() -> IntentionCarry:
         zero = jnp.zeros((), jnp.int32)
         return IntentionCarry(
             jnp.zeros((frames, h, w, config.channels), jnp.uint8), zero,
             jnp.zeros((history, config.num_activities), f32), jnp.zeros((history, config.num_objects), f32),
-            zero, zero, jnp.zeros((), bool),
+            zero, zero, jnp.zeros((), bool), jnp.zeros(config.num_objects, bool),
         )
 
     def step(carry: IntentionCarry, obs: Mapping[str, jax.Array]):
@@ -190,7 +208,8 @@ def make_intention_predictor(
             raise ValueError(f"human_pos must be finite, got {np.asarray(human_pos)}")
         record = carry.t % frame_stride == 0
         bad = carry.bad_input | (record & ~jnp.all(jnp.isfinite(human_pos)))
-        buf, n, act_p, obj_p = record_frame(record, rgbd, human_pos, carry.frames, carry.num_frames)
+        buf, n, seen, act_p, obj_p = record_frame(record, rgbd, human_pos, carry.frames, carry.num_frames,
+                                                  carry.objects_seen)
         # Only a new frame adds a prediction: repeated steps on the same buffer would
         # otherwise crowd the history with one prediction.
         act_h, m = _push(carry.activity_history, carry.num_predictions, act_p)
@@ -202,9 +221,10 @@ def make_intention_predictor(
         act = perceiver.lowest_entropy_average(act_h[None], valid, top_k)[0]
         obj = perceiver.lowest_entropy_average(obj_h[None], valid, top_k)[0]
         act, obj = jnp.where(bad, jnp.nan, act), jnp.where(bad, jnp.nan, obj)
-        return act, obj, IntentionCarry(buf, n, act_h, obj_h, m, carry.t + 1, bad)
+        return act, obj, IntentionCarry(buf, n, act_h, obj_h, m, carry.t + 1, bad, seen)
 
-    return IntentionPredictor(config, frame_stride, spec, init, step)
+    privileged = (ORACLE_SEGMENTATION,) if config.seen_objects else ()
+    return IntentionPredictor(config, frame_stride, spec, init, step, privileged)
 
 
 def frame_spec_from_config(data: dict) -> FrameSpec:
@@ -237,8 +257,11 @@ def load_intention_predictor(
     # the graph's links, uniform.
     counts = data.get("transition_counts")
     transition = None if counts is None else perceiver.transition_from_counts(model, counts)
+    weights = data.get("seen_object_weights")
+    if model.seen_objects and weights is None:
+        raise ValueError(f"intention run {run_dir} weighs seen objects but records no seen_object_weights")
     return make_intention_predictor(ckpt.params, model, data["frames"], frame_spec_from_config(data),
-                                    stride, history, top_k, transition)
+                                    stride, history, top_k, transition, weights)
 
 
 class TrajectoryPredictor(NamedTuple):
