@@ -320,9 +320,9 @@ def _add_train(sub) -> None:
                    help="mirror each training sample left-right with probability 1/2 at every update (validation "
                    "frames never)")
     p.add_argument("--seen-objects", action="store_true",
-                   help="predict only activities of object categories the robot's panoramas have shown (read from "
-                   "their exact category colours: oracle segmentation, recorded as privileged for the agents using "
-                   "the run); inference only, the training is the same")
+                   help="weigh activities by whether the robot's panoramas have shown their object category (read "
+                   "from their exact category colours: oracle segmentation, recorded as privileged for the agents "
+                   "using the run), by odds counted on the train split; inference only, the training is the same")
     p.add_argument("--viewpoints", type=int, default=dd.viewpoints,
                    help="robot poses each train episode is rendered from: its start pose, then poses drawn around "
                    f"the human (default {dd.viewpoints}; 16 frames of 64x64 take 0.26 GB of device memory per 1,000 "
@@ -857,8 +857,8 @@ def _add_reproduce(sub) -> None:
     p.add_argument("--mirror", action="store_true",
                    help="train the intention predictor on frames mirrored half the time (`conav train intention --mirror`)")
     p.add_argument("--seen-objects", action="store_true",
-                   help="the intention predictor names only activities of objects the robot's panoramas have shown "
-                   "(`conav train intention --seen-objects`: oracle segmentation, listed as privileged)")
+                   help="the intention predictor weighs activities by whether the robot's panoramas have shown their "
+                   "object (`conav train intention --seen-objects`: oracle segmentation, listed as privileged)")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="run only training seed S's commands of the bc, dagger and eval stages (each BC run is "
                         "evaluated as soon as it has trained; an evaluation of a run not trained yet waits): a machine "
