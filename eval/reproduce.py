@@ -231,8 +231,7 @@ def check_out(progress: dict, cfg: ReproduceConfig) -> None:
     mine = {k: _res(cfg) if k == "resolution" else getattr(cfg, k) for k in OUT_FIELDS}
     made = progress.setdefault("config", mine)
     for k, before in _OUT_FIELDS_ADDED.items():
-        if k not in made and len(made) > 0:
-            made[k] = before
+        made.setdefault(k, before)
     shown = lambda v: {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v  # noqa: E731
     differ = [f"--{k.replace('_', '-')} {shown(made[k])} (given {shown(mine[k])})"
               for k in OUT_FIELDS if k in made and made[k] != mine[k]]

@@ -3,6 +3,7 @@ run that checkpoints and validates on minival by route, and the per-step predict
 seeing exactly the training frames."""
 
 import dataclasses
+import re
 
 import jax
 import jax.numpy as jnp
@@ -207,7 +208,7 @@ def test_mirrored_samples_are_their_frames_flipped_left_right(rendered):
 
 
 def test_an_activity_of_the_true_activitys_object_counts_as_the_same_object():
-    object_of = np.argmax(perceiver.graph_tables(MODEL)[1], axis=1)
+    object_of = perceiver.activity_objects(MODEL)
     a, sibling = next((a, b) for a in range(len(object_of)) for b in range(a + 1, len(object_of))
                       if object_of[b] == object_of[a])
     other = next(b for b in range(len(object_of)) if object_of[b] != object_of[a])
@@ -327,6 +328,13 @@ def test_with_seen_objects_the_predictor_names_only_activities_of_objects_its_pa
     config["data"] = {**config["data"], "seen_object_weights": {"activity_a": 0.1, "activity_b": 0.3}}
     save_checkpoint(seen_run / "ckpt_00000002.npz", params=result.params, opt_state=None, config=config, step=2)
     assert load_intention_predictor(seen_run).privileged == (ORACLE_SEGMENTATION,)
+    # Malformed weights are refused by name, not read as zeros.
+    for bad, why in (({"activity_b": 0.3}, "keys"), ({"activity_a": 0.1, "activity_b": -1.0}, ">= 0"),
+                     ({"activity_a": 0.1, "activity_b": "x"}, "a number")):
+        config["data"] = {**config["data"], "seen_object_weights": bad}
+        save_checkpoint(seen_run / "ckpt_00000003.npz", params=result.params, opt_state=None, config=config, step=3)
+        with pytest.raises(ValueError, match=f"seen_object_weights: .*{re.escape(why)}"):
+            load_intention_predictor(seen_run)
     carry, (act, obj) = _run_predictor(predictor, obs)
     np.testing.assert_array_equal(carry.objects_seen, in_view.any(axis=0))
     # The first output: the Perceiver on one frame, restricted to what that frame showed.

@@ -227,6 +227,9 @@ def test_seen_object_weights_are_the_odds_ratio_of_not_seeing_the_true_object():
     assert w["activity_a"] == pytest.approx((1 / 4) / (8 / 3))
     with pytest.raises(ValueError, match="objects_seen must be"):
         perceiver.seen_object_weights(seen[0], np.zeros(3, int), np.zeros(3, int))
+    assert perceiver.check_unseen_weights(w) == w
+    with pytest.raises(ValueError, match="finite"):
+        perceiver.check_unseen_weights({"activity_a": float("nan"), "activity_b": 0.2})
 
 
 def test_counted_transition_replaces_the_uniform_graph_rows_it_has_data_for():

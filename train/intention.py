@@ -256,7 +256,7 @@ def same_object_top1(config: PerceiverConfig, scores: np.ndarray, activity: np.n
     same object category as `activity (N,)`, the true one. Each object serves about three
     activities: for the watched activity A this separates not finding the object the human uses
     from not telling its activities' motions apart."""
-    object_of = np.argmax(perceiver.graph_tables(config)[1], axis=1)
+    object_of = perceiver.activity_objects(config)
     return float(np.mean(object_of[np.argmax(scores, axis=1)] == object_of[activity]))
 
 
@@ -385,7 +385,7 @@ def start_pose_weights(model: PerceiverConfig, samples: dict, viewpoints: int) -
     """perceiver.seen_object_weights of `render_split`'s samples from their episodes' start
     poses (the first of each `viewpoints`), every frame's objects together."""
     seen = np.asarray(samples["objects_seen"])[::viewpoints].any(axis=1)
-    object_of = np.argmax(perceiver.graph_tables(model)[1], axis=1)
+    object_of = perceiver.activity_objects(model)
     object_a = object_of[np.asarray(samples["activity_a"])[::viewpoints]]
     return perceiver.seen_object_weights(seen, object_a, np.asarray(samples["object"])[::viewpoints])
 
@@ -445,7 +445,8 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, split: str = "val",
     trained_on, here = ckpt.config["data"].get("content_hash"), read_manifest(data_dir).get("content_hash")
     if trained_on is not None and trained_on != here:
         raise ValueError(f"{run_dir} was trained on data with content hash {trained_on}; {data_dir} has {here}")
-    train_eps = make_env(data_dir, "train", data).split.episodes
+    train_env = make_env(data_dir, "train", data)
+    train_eps = train_env.split.episodes
     env = make_env(data_dir, split, data)
     labels = render_split(env, model, data, compiler_options=compiler_options, viewpoints=1)
     train_labels = {"activity_a": train_eps["activity_a"], "activity": train_eps["activity_b"],
@@ -455,7 +456,6 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, split: str = "val",
                                                                                   train_eps["activity_b"]))
     weights = ckpt.config["data"].get("seen_object_weights")
     if weights is None:
-        train_env = make_env(data_dir, "train", data)
         weights = start_pose_weights(model, render_split(train_env, model, data, compiler_options=compiler_options,
                                                          viewpoints=1), 1)
     return {route: {**make_val_fn(model, labels, baselines, compiler_options=compiler_options, transition=t,

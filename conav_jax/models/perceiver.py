@@ -157,6 +157,32 @@ def transition_from_counts(config: PerceiverConfig, triples) -> np.ndarray:
     return np.where(rows > 0, counts / np.maximum(rows, 1.0), graph_tables(config)[0]).astype(np.float32)
 
 
+def activity_objects(config: PerceiverConfig) -> np.ndarray:
+    """The object category of each activity `(num_activities,)` int, from the shipped graph."""
+    return np.argmax(graph_tables(config)[1], axis=1)
+
+
+UNSEEN_WEIGHT_KEYS = ("activity_a", "activity_b")
+
+
+def check_unseen_weights(weights) -> dict:
+    """`weights` ({"activity_a": w, "activity_b": w}, seen_object_weights') as floats, or
+    ValueError naming what is wrong: other keys, or a weight not finite and >= 0 (a run's config
+    is read back from JSON; a missing key would silently drop its activities)."""
+    if not isinstance(weights, dict) or set(weights) != set(UNSEEN_WEIGHT_KEYS):
+        raise ValueError(f"unseen weights must be a mapping with keys {UNSEEN_WEIGHT_KEYS}, got {weights!r}")
+    out = {}
+    for k in UNSEEN_WEIGHT_KEYS:
+        try:
+            w = float(weights[k])
+        except (TypeError, ValueError):
+            raise ValueError(f"unseen weight {k} must be a number, got {weights[k]!r}") from None
+        if not np.isfinite(w) or w < 0.0:
+            raise ValueError(f"unseen weight {k} must be finite and >= 0, got {w}")
+        out[k] = w
+    return out
+
+
 def _keep(probs: jax.Array, keep: jax.Array, unseen_weight=0.0) -> jax.Array:
     """`probs (..., C)` with the classes `keep (..., C)` does not hold weighed by
     `unseen_weight` (0: dropped), renormalised; rows left with no mass stay as they were
@@ -179,7 +205,7 @@ def seen_object_weights(objects_seen: np.ndarray, object_a: np.ndarray, object_b
         raise ValueError(f"objects_seen must be (N, C) beside (N,) objects, got {seen.shape}, "
                          f"{np.shape(object_a)}, {np.shape(object_b)}")
     out = {}
-    for name, obj in (("activity_a", object_a), ("activity_b", object_b)):
+    for name, obj in zip(UNSEEN_WEIGHT_KEYS, (object_a, object_b)):
         mine = seen[np.arange(len(seen)), np.asarray(obj)]
         others_seen = seen.sum() - mine.sum()
         others = seen.size - len(seen)
@@ -202,7 +228,7 @@ def intention_routes(config: PerceiverConfig, logits: IntentionLogits, transitio
     direct = jax.nn.softmax(logits.activity, axis=-1), jax.nn.softmax(logits.object, axis=-1)
     hi = jax.lax.Precision.HIGHEST  # probabilities: keep float32 on the GPU
     seen_activity = None
-    weights = {"activity_a": 0.0, "activity_b": 0.0, **(unseen_weights or {})}
+    weights = dict.fromkeys(UNSEEN_WEIGHT_KEYS, 0.0) if unseen_weights is None else check_unseen_weights(unseen_weights)
     w_a, w_b = weights["activity_a"], weights["activity_b"]
     if objects_seen is not None:
         objects = graph_tables(config)[1]

@@ -258,8 +258,13 @@ def load_intention_predictor(
     counts = data.get("transition_counts")
     transition = None if counts is None else perceiver.transition_from_counts(model, counts)
     weights = data.get("seen_object_weights")
-    if model.seen_objects and weights is None:
-        raise ValueError(f"intention run {run_dir} weighs seen objects but records no seen_object_weights")
+    if model.seen_objects:
+        if weights is None:
+            raise ValueError(f"intention run {run_dir} weighs seen objects but records no seen_object_weights")
+        try:
+            weights = perceiver.check_unseen_weights(weights)
+        except ValueError as e:
+            raise ValueError(f"intention run {run_dir}: seen_object_weights: {e}") from None
     return make_intention_predictor(ckpt.params, model, data["frames"], frame_spec_from_config(data),
                                     stride, history, top_k, transition, weights)
 
