@@ -43,7 +43,7 @@ def _sensor_run(env, batch: int, steps: int, mesh=None):
         def body(total, k):
             yaw = jax.random.uniform(k, (batch,), minval=-3.14, maxval=3.14)
             dd = d.replace(qpos=d.qpos.at[:, 2].set(yaw))
-            depth, _ = jax.vmap(lambda di, e: env.panorama(env._episode_model(e, di.qpos[:2]), di, e))(dd, episodes)
+            depth, _ = jax.vmap(lambda di, e: env.panorama(di, e))(dd, episodes)
             return total + depth.mean(), None
 
         total, _ = jax.lax.scan(body, jnp.zeros(()), jax.random.split(key, steps))
@@ -125,8 +125,7 @@ def _stage_runs(env, batch: int, steps: int) -> dict:
         def body(total, k):
             yaw = jax.random.uniform(k, (batch,), minval=-3.14, maxval=3.14)
             dd = d.replace(qpos=d.qpos.at[:, 2].set(yaw))
-            m = jax.vmap(env._episode_model)(ep, dd.qpos[:, :2])
-            obs = jax.vmap(env._observe)(m, dd, ep)
+            obs = jax.vmap(env._observe)(dd, ep)
             # Every pixel of both images is read: XLA would otherwise compute only the ones used.
             return total + obs["rgbd"].mean() + obs["front"].mean(), None
 

@@ -177,8 +177,9 @@ class ConavEnv(Env):
         episode = jax.random.randint(key, (), 0, self.bank.num_episodes)
         return self.reset_to_episode(rng, episode)
 
-    def reset_to_episode(self, rng: jax.Array, episode: jax.Array) -> State:
-        """Start episode `episode` (an index into the bank) at its first step."""
+    def reset_to_episode(self, rng: jax.Array, episode: jax.Array, observe: bool = True) -> State:
+        """Start episode `episode` (an index into the bank) at its first step. With
+        `observe=False` the State's obs is `{}` (see `step`)."""
         del rng  # the episode fixes everything; kept for the brax signature's sake
         b = self.bank
         episode = jnp.asarray(episode, jnp.int32)
@@ -189,24 +190,27 @@ class ConavEnv(Env):
         geo = self._goal_distance(episode, start[:2])
         ud = jnp.zeros(len(UD)).at[UD["t_reach"]].set(-1.0).at[UD["prev_geodesic_m"]].set(geo)
         d = self._forward(m, d.replace(userdata=ud))
-        obs = self._observe(m, d, episode)
-        return State(
-            pipeline_state=d,
-            obs=obs,
-            reward=jnp.zeros(()),
-            done=jnp.zeros(()),
-            metrics=self._metrics(d, episode),
-            info={"episode": episode},
-        )
+        state = State(pipeline_state=d, obs={}, reward=jnp.zeros(()), done=jnp.zeros(()),
+                      metrics=self._metrics(d, episode), info={"episode": episode})
+        return self.observe(state) if observe else state
 
-    def step(self, state: State, action: jax.Array) -> State:
+    def observe(self, state: State) -> State:
+        """`state` with the observation of its data (the panorama and the poses), as `step` and
+        `reset_to_episode` return it."""
+        return state.replace(obs=self._observe(state.pipeline_state, state.info["episode"]))
+
+    def step(self, state: State, action: jax.Array, observe: bool = True) -> State:
         """One control step. `action` (2,) = (v_lin, v_ang) in [-1, 1]; or (3,) = a pose (x m,
         y m, yaw rad) the robot is put at before the step's physics (an oracle pathfinder's
         move: privileged agents only; it counts in the path length, and contacts at the new
         pose count as any other); or (6,) = (kind, v_lin, v_ang, x, y, yaw), kind 0 the
         velocities, 1 the pose (one compiled rollout serving agents of both kinds,
         envs.agents.base.switch_agent). Actions with a NaN (in the part used) act as zero (stay
-        put) and are counted."""
+        put) and are counted.
+
+        `observe=False` leaves the observation out (State.obs `{}`): a rollout that calls
+        `observe` before its agent acts renders only what the agent reads (a loop-carried
+        observation is computed whether read or not), once per step."""
         action = jnp.asarray(action)
         if action.shape not in ((2,), (3,), (6,)):
             raise ValueError("action must have shape (2,) = (v_lin, v_ang), (3,) = a pose (x, y, yaw) for oracle "
@@ -283,18 +287,19 @@ class ConavEnv(Env):
             - r.wall_contact_penalty * wall_touch
             - r.time_cost
         )
-        obs = self._observe(m, d, episode)
+        # An ended episode stays as it ended (zero reward, still done). Its observation is
+        # rendered again from the data it ended with, not kept: the same image, without
+        # reading the old one back.
+        ended = ud0[UD["done"]] > 0
+        d = jax.tree.map(lambda old, nw: jnp.where(ended, old, nw), d0, d)
         new = state.replace(
             pipeline_state=d,
-            obs=obs,
-            reward=reward.astype(jnp.float32),
-            done=done.astype(jnp.float32),
+            obs={},
+            reward=jnp.where(ended, 0.0, reward).astype(jnp.float32),
+            done=jnp.where(ended, 1.0, done.astype(jnp.float32)),
             metrics=self._metrics(d, episode),
         )
-        # An ended episode stays as it ended (zero reward, still done).
-        ended = ud0[UD["done"]] > 0
-        frozen = state.replace(reward=jnp.zeros(()), done=jnp.ones(()))
-        return jax.tree.map(lambda old, nw: jnp.where(ended, old, nw), frozen, new)
+        return self.observe(new) if observe else new
 
     # -- pieces --------------------------------------------------------------------------------
     def _physics(self, m: mjx.Model, d: mjx.Data, v: jax.Array, w: jax.Array) -> mjx.Data:
@@ -392,16 +397,19 @@ class ConavEnv(Env):
             [jnp.asarray(floor)[None], b.col_rgb[s], b.vis_rgb[s], hidden, jnp.asarray(robot)[None], jnp.asarray(human)]
         )
 
-    def panorama(self, m: mjx.Model, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(depth (H, W) metres, geom ids (H, W)) from the configured sensor: mjx.ray in the
-        render model for "reference", else its caster over the episode's boxes and the humanoid's
-        capsules at the data's step, as a SceneGeometry."""
+    def panorama(self, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(depth (H, W) metres, geom ids (H, W)) of the robot's camera in data `d` from the
+        configured sensor: mjx.ray in the episode's render model for "reference", else its caster
+        over the episode's boxes and the humanoid's capsules at the data's step, as a
+        SceneGeometry."""
         cfg, b = self.config.sensor, self.bank
         cam = jnp.array([d.qpos[0], d.qpos[1], self.task.camera_height_m])
         yaw = d.qpos[2]
         if cfg.kind == "reference":
             m = self._episode_model(episode, d.qpos[:2], render=True)
-            return reference_depth_ids(cfg, m, mjx.kinematics(m, d), cam, yaw, self._robot_body)
+            with jax.default_matmul_precision("highest"):  # geometry: no TF32 on GPUs
+                d = mjx.kinematics(m, d)
+            return reference_depth_ids(cfg, m, d, cam, yaw, self._robot_body)
         s = b.scene_index[episode]
         t = d.userdata[UD["t"]].astype(jnp.int32)
         _, _, ends = capsule_poses(self.human_joints(episode, t))
@@ -427,14 +435,14 @@ class ConavEnv(Env):
         d = self._data0.replace(qpos=jnp.asarray(robot_pose, self._data0.qpos.dtype))
         d = d.replace(userdata=d.userdata.at[UD["t"]].set(t.astype(d.userdata.dtype)))
         d = self._pose_human(d, episode, t)  # mocap poses: what the mjx.ray reference sees
-        depth, ids = self.panorama(self._episode_model(episode, d.qpos[:2]), d, episode)
+        depth, ids = self.panorama(d, episode)
         return colourise(depth, ids, self._geom_rgb(episode)), ids
 
-    def _observe(self, m: mjx.Model, d: mjx.Data, episode: jax.Array) -> dict[str, jax.Array]:
+    def _observe(self, d: mjx.Data, episode: jax.Array) -> dict[str, jax.Array]:
         b, cfg = self.bank, self.config
         xy, yaw = d.qpos[:2], d.qpos[2]
         t = d.userdata[UD["t"]].astype(jnp.int32)
-        depth, ids = self.panorama(m, d, episode)
+        depth, ids = self.panorama(d, episode)
         rgbd = colourise(depth, ids, self._geom_rgb(episode))
         start = b.robot_start[episode]
         gps = to_frame(xy, start[:2], start[2])

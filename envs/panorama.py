@@ -134,31 +134,50 @@ def _split(arrays: tuple, p: int) -> tuple:
                  for a in arrays)
 
 
-def box_terms(cfg: SensorConfig, cam_xyz_m, yaw_rad, geometry: SceneGeometry):
-    """Per box of `geometry`: column terms (G, W) `col_in` (horizontal distance where the
-    column's 2-D ray enters the box's footprint, at least 0; +inf where it misses it or the box
-    is padding) and `col_out` (where it leaves), and row terms (G, H) `row_in`, `row_out`: the
-    horizontal distance interval over which the row's ray is inside the box's z range. Metres."""
-    cam, box_lo, box_hi = cam_xyz_m, geometry.box_lo_m, geometry.box_hi_m
-    az, el = ray_angles(cfg)
+def column_directions(cfg: SensorConfig, yaw_rad) -> tuple[jax.Array, jax.Array]:
+    """(1 / dx, 1 / dy) per column (W,) of the columns' horizontal ray directions (dx, dy), each
+    kept at least _EPS from zero."""
+    az, _ = ray_angles(cfg)
     a = yaw_rad + jnp.asarray(az)  # (W,)
-    dx, dy = jnp.cos(a), jnp.sin(a)
     safe = lambda v: jnp.where(jnp.abs(v) < _EPS, jnp.where(v < 0, -_EPS, _EPS), v)
-    inv_x, inv_y = 1.0 / safe(dx), 1.0 / safe(dy)
-    tx1 = (box_lo[:, None, 0] - cam[0]) * inv_x[None]
-    tx2 = (box_hi[:, None, 0] - cam[0]) * inv_x[None]
-    ty1 = (box_lo[:, None, 1] - cam[1]) * inv_y[None]
-    ty2 = (box_hi[:, None, 1] - cam[1]) * inv_y[None]
+    return 1.0 / safe(jnp.cos(a)), 1.0 / safe(jnp.sin(a))
+
+
+def footprint_terms(rel_lo_x, rel_hi_x, rel_lo_y, rel_hi_y, valid, inv_x, inv_y):
+    """(col_in, col_out) for broadcastable box footprints relative to the camera (lo/hi x and y,
+    metres), whether each box is real (`valid`), and column inverse directions (`inv_x`,
+    `inv_y`, column_directions): the horizontal distance where the column's 2-D ray enters the
+    footprint (at least 0; +inf where it misses it or the box is padding) and where it leaves.
+    The XLA and the Pallas casters both call it, so their keys agree bit for bit."""
+    tx1, tx2 = rel_lo_x * inv_x, rel_hi_x * inv_x
+    ty1, ty2 = rel_lo_y * inv_y, rel_hi_y * inv_y
     t_in = jnp.maximum(jnp.maximum(jnp.minimum(tx1, tx2), jnp.minimum(ty1, ty2)), 0.0)
     t_out = jnp.minimum(jnp.maximum(tx1, tx2), jnp.maximum(ty1, ty2))
     # A column that misses the footprint can never hit (enter >= t_in > t_out >= leave): the
     # same outcome as the per-pixel test, decided once per column.
-    col_in = jnp.where(geometry.box_valid[:, None] & (t_in <= t_out), t_in, jnp.inf)
+    return jnp.where(valid & (t_in <= t_out), t_in, jnp.inf), t_out
+
+
+def box_row_terms(cfg: SensorConfig, cam_xyz_m, geometry: SceneGeometry) -> tuple[jax.Array, jax.Array]:
+    """(row_in, row_out) per box and row (G, H): the horizontal distance interval over which the
+    row's ray is inside the box's z range, metres."""
+    _, el = ray_angles(cfg)
     tan_e = jnp.tan(jnp.asarray(el))
     tan_e = jnp.where(jnp.abs(tan_e) < _EPS, _EPS, tan_e)
-    tz1 = (box_lo[:, None, 2] - cam[2]) / tan_e[None]
-    tz2 = (box_hi[:, None, 2] - cam[2]) / tan_e[None]
-    return col_in, t_out, jnp.minimum(tz1, tz2), jnp.maximum(tz1, tz2)
+    tz1 = (geometry.box_lo_m[:, None, 2] - cam_xyz_m[2]) / tan_e[None]
+    tz2 = (geometry.box_hi_m[:, None, 2] - cam_xyz_m[2]) / tan_e[None]
+    return jnp.minimum(tz1, tz2), jnp.maximum(tz1, tz2)
+
+
+def box_terms(cfg: SensorConfig, cam_xyz_m, yaw_rad, geometry: SceneGeometry):
+    """Per box of `geometry`: column terms (G, W) `col_in`, `col_out` (footprint_terms) and row
+    terms (G, H) `row_in`, `row_out` (box_row_terms). Metres."""
+    cam, box_lo, box_hi = cam_xyz_m, geometry.box_lo_m, geometry.box_hi_m
+    inv_x, inv_y = column_directions(cfg, yaw_rad)
+    col_in, col_out = footprint_terms(box_lo[:, None, 0] - cam[0], box_hi[:, None, 0] - cam[0],
+                                      box_lo[:, None, 1] - cam[1], box_hi[:, None, 1] - cam[1],
+                                      geometry.box_valid[:, None], inv_x[None], inv_y[None])
+    return (col_in, col_out, *box_row_terms(cfg, cam, geometry))
 
 
 def box_pixel_keys(col_in, col_out, row_in, row_out, inv_cos, ids, max_depth_m: float):
@@ -311,10 +330,13 @@ def reference_depth_ids(
     cfg: SensorConfig, m: mjx.Model, d: mjx.Data, cam_xyz_m: jax.Array, yaw_rad: jax.Array, exclude_body: int
 ) -> tuple[jax.Array, jax.Array]:
     """The same panorama from `mujoco.mjx.ray`, one ray per pixel (slow; the ground truth), in the
-    MJX model `m` with data `d` after kinematics, not seeing body `exclude_body` (the robot)."""
+    MJX model `m` with data `d` after kinematics, not seeing body `exclude_body` (the robot).
+    Its matrix products run at full float32 precision (GPUs default to TF32, ~1e-3 relative:
+    millimetres at a few metres)."""
     dirs = ray_directions(cfg, yaw_rad).reshape(-1, 3)
-    dist, geom = jax.vmap(
-        lambda v: mjx.ray(m, d, cam_xyz_m, v, geomgroup=RAY_GEOMGROUP, bodyexclude=exclude_body))(dirs)
+    with jax.default_matmul_precision("highest"):
+        dist, geom = jax.vmap(
+            lambda v: mjx.ray(m, d, cam_xyz_m, v, geomgroup=RAY_GEOMGROUP, bodyexclude=exclude_body))(dirs)
     hit = (geom >= 0) & (dist >= 0) & (dist < cfg.max_depth_m)
     depth = jnp.where(hit, dist, cfg.max_depth_m).reshape(cfg.height, cfg.width)
     ids = jnp.where(hit, geom, -1).reshape(cfg.height, cfg.width)

@@ -1,9 +1,10 @@
 """The fast caster as one Pallas (Triton) GPU kernel: SensorConfig(kind="pallas").
 
 A caster like `envs.panorama.fast_depth_ids` (same arguments, a SceneGeometry, and results) with
-the same math: the per-geom column and row terms come from the same functions, computed in XLA;
-the per-pixel key functions (`box_pixel_keys`, `capsule_pixel_keys`, packing with
-`pack_depth_id`) are called inside the kernel, so keys agree with it bit for bit. The kernel
+the same math: the row terms and the capsules' column terms come from the same functions,
+computed in XLA; the boxes' column terms (`footprint_terms`, from a few scalars per box) and the
+per-pixel key functions (`box_pixel_keys`, `capsule_pixel_keys`, packing with `pack_depth_id`)
+are called inside the kernel, so keys agree with it bit for bit. The kernel
 runs over a grid (env, column block): a program holds the running min key of its
 (H_pad, block_w) pixels in registers and loops over boxes and capsules; nothing of size
 geoms x H x W ever reaches memory. A geom that no column of the block can see is skipped
@@ -32,11 +33,13 @@ from envs.panorama import (
     NO_HIT_KEY,
     SceneGeometry,
     box_pixel_keys,
-    box_terms,
+    box_row_terms,
     capsule_pixel_keys,
     capsule_terms,
+    column_directions,
     elevation_terms,
     floor_row_keys,
+    footprint_terms,
     ray_angles,
     unpack_depth_id,
 )
@@ -76,18 +79,20 @@ def capsule_column_mask(cfg: SensorConfig, cam_xyz_m, yaw_rad, geometry: SceneGe
 
 def _kernel(n_box: int, n_cap: int, max_depth_m: float,
             floor_ref, inv_cos_ref, ce_ref, se_ref,
-            col_in_ref, col_out_ref, row_in_ref, row_out_ref, box_id_ref,
+            inv_x_ref, inv_y_ref, bscal_ref, row_in_ref, row_out_ref, box_id_ref,
             u_ref, v_ref, cmask_ref, cscal_ref, cap_id_ref,
             out_ref):
     hp, bw = out_ref.shape
     keys = jnp.broadcast_to(floor_ref[...][:, None], (hp, bw))
     inv_cos = inv_cos_ref[...][:, None]
+    inv_x, inv_y = inv_x_ref[...], inv_y_ref[...]
 
     def box(g, keys):
-        ci = col_in_ref[g, :]
+        # The footprint's column terms for this block's columns, from the box's scalars.
+        ci, co = footprint_terms(*(bscal_ref[g, i] for i in range(4)), bscal_ref[g, 4] > 0.5, inv_x, inv_y)
 
         def hit(keys):
-            k = box_pixel_keys(ci[None, :], col_out_ref[g, :][None, :], row_in_ref[g, :][:, None],
+            k = box_pixel_keys(ci[None, :], co[None, :], row_in_ref[g, :][:, None],
                                row_out_ref[g, :][:, None], inv_cos, box_id_ref[g], max_depth_m)
             return jnp.minimum(keys, k)
 
@@ -125,13 +130,19 @@ def pallas_depth_ids(
     no_hit = np.uint32(NO_HIT_KEY)
 
     inv_cos, ce, se = elevation_terms(cfg)
-    col_in, col_out, row_in, row_out = box_terms(cfg, cam_xyz_m, yaw_rad, geometry)
-    # Padding rows / columns / geoms never hit (their results are cropped anyway).
+    inv_x, inv_y = column_directions(cfg, yaw_rad)
+    row_in, row_out = box_row_terms(cfg, cam_xyz_m, geometry)
+    # Per box: its footprint relative to the camera and whether it is real, (G, 8); the kernel
+    # makes the (G, W) column terms itself, so they never reach memory.
+    lo, hi = geometry.box_lo_m - cam_xyz_m, geometry.box_hi_m - cam_xyz_m
+    bscal = jnp.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1], geometry.box_valid.astype(jnp.float32)], axis=-1)
+    # Padding rows / columns / geoms never hit (their results are cropped anyway): a NaN
+    # column direction misses every footprint.
     rows = lambda x, v: _pad(x, (hp,), v)
     args = [
         _pad(floor_row_keys(cfg, cam_xyz_m, geometry.floor_id), (hp,), no_hit),
         rows(inv_cos, 1.0), rows(ce, 1.0), rows(se, 0.0),
-        _pad(col_in, (gp, wp), inf), _pad(col_out, (gp, wp), -inf),
+        _pad(inv_x, (wp,), jnp.nan), _pad(inv_y, (wp,), jnp.nan), _pad(bscal, (gp, 8), 0.0),
         _pad(row_in, (gp, hp), inf), _pad(row_out, (gp, hp), -inf),
         _pad(geometry.box_ids.astype(jnp.uint32), (gp,), no_hit),
     ]
@@ -147,9 +158,10 @@ def pallas_depth_ids(
 
     whole = lambda x: pl.BlockSpec(x.shape, lambda j: (0,) * x.ndim)
     cols = lambda x: pl.BlockSpec((x.shape[0], bw), lambda j: (0, j))
-    in_specs = [whole(a) for a in args[:4]] + [cols(args[4]), cols(args[5]), whole(args[6]), whole(args[7]),
-                                                  whole(args[8]), cols(args[9]), cols(args[10]), cols(args[11]),
-                                                  whole(args[12]), whole(args[13])]
+    block = pl.BlockSpec((bw,), lambda j: (j,))
+    in_specs = [whole(a) for a in args[:4]] + [block, block, whole(args[6]), whole(args[7]), whole(args[8]),
+                                                  whole(args[9]), cols(args[10]), cols(args[11]), cols(args[12]),
+                                                  whole(args[13]), whole(args[14])]
     # Triton needs a GPU: elsewhere (the CPU tests and benches) the kernel is interpreted.
     interpret = cfg.pallas_interpret or jax.default_backend() not in ("gpu", "cuda", "rocm")
     compiler_params = None

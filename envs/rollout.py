@@ -85,8 +85,7 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
 
         def body(c, i):
             state, carry = c
-            action, carry = agent.act(state, carry, jax.random.fold_in(k_run, i))
-            state = env.step(state, action)
+            state, action, carry = agent_step(env, agent, state, carry, jax.random.fold_in(k_run, i))
             out = None
             if record:
                 out = trace_step(state, action)
@@ -106,12 +105,23 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
     return jit_with_bank(env, run)
 
 
+def agent_step(env: ConavEnv, agent: Agent, state: State, carry: Any, key: jax.Array):
+    """One step of one env: `(state, agent carry, key) -> (state, action, carry)`, the states
+    without their observation (ConavEnv.step's `observe=False`). The observation is made here,
+    for the agent to act on, and not carried to the next step: what the agent does not read
+    (an image, for most scripted agents) is never rendered, and an ended episode's image is not
+    kept. Rollouts start from `_start`'s state, which has none either."""
+    action, carry = agent.act(env.observe(state), carry, key)
+    return env.step(state, action, observe=False), action, carry
+
+
 def _start(env: ConavEnv, agent: Agent, key: jax.Array, episode: jax.Array):
-    """(state, agent carry, step key) of `episode`'s start. Keys come from (key, episode) alone,
-    and the agent's key at step i is fold_in(step key, i): an episode's result does not depend
-    on the batch it runs in, its place there, or the device count."""
+    """(state without its observation, agent carry, step key) of `episode`'s start. Keys come
+    from (key, episode) alone, and the agent's key at step i is fold_in(step key, i): an
+    episode's result does not depend on the batch it runs in, its place there, or the device
+    count."""
     k_init, k_run = jax.random.split(jax.random.fold_in(key, episode))
-    return env.reset_to_episode(k_init, episode), agent.init(k_init, episode), k_run
+    return env.reset_to_episode(k_init, episode, observe=False), agent.init(k_init, episode), k_run
 
 
 def make_rollout(env: ConavEnv, agent: Agent, num_steps: int, record: bool = False):
@@ -250,8 +260,8 @@ def make_pool_rollout(
 
         def one_step(c, _):
             lane, trace, tracing = c
-            action, carry = jax.vmap(agent.act)(lane.state, lane.carry, jax.vmap(jax.random.fold_in)(lane.key, lane.step))
-            state = jax.vmap(env.step)(lane.state, action)
+            keys = jax.vmap(jax.random.fold_in)(lane.key, lane.step)
+            state, action, carry = jax.vmap(partial(agent_step, env, agent))(lane.state, lane.carry, keys)
             if trace_steps:  # lane 0 while it runs queue[0]; other steps write out of range (dropped)
                 at = jnp.where(tracing, lane.step[0], trace_steps)
                 now = jax.tree.map(lambda x: x[0], trace_step(state, action))

@@ -147,11 +147,14 @@ def test_metrics_of_a_robot_teleported_onto_the_goal(hall, teleport_step, fasr, 
 
 
 def test_ended_episode_stays_frozen(hall):
-    states = _run(hall, 3, [(0.0, 0.0)] * 45)
-    a, b = states[41], states[45]
-    for x, y in zip(jax.tree.leaves(a.pipeline_state), jax.tree.leaves(b.pipeline_state)):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    assert float(b.reward) == 0.0
+    states = _run(hall, 3, [(0.0, 0.0)] * 40 + [(1.0, 0.5)] * 5)  # driving after the end moves nothing
+    a, b = states[40], states[45]  # t_end = 40: the episode ends at step 40
+    assert float(a.done) == 1.0 and float(a.metrics["t"]) == 40.0
+    # The data, the metrics and the observation (rendered again from that data) stay as they were.
+    for part in ("pipeline_state", "metrics", "obs"):
+        for x, y in zip(jax.tree.leaves(getattr(a, part)), jax.tree.leaves(getattr(b, part)), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=part)
+    assert float(b.reward) == 0.0 and float(b.done) == 1.0
 
 
 def test_reward_is_geodesic_progress_plus_bonus(hall):

@@ -45,7 +45,7 @@ def images():
         states.append(env._pose_human(d, ep, jnp.int32(T)))
     out = {}
     for k, e in envs.items():
-        f = jax.jit(lambda d, e=e: e.panorama(e._episode_model(ep, d.qpos[:2]), d, ep))
+        f = jax.jit(lambda d, e=e: e.panorama(d, ep))
         out[k] = [tuple(np.asarray(a) for a in f(d)) for d in states]
     return out, env.layout.human_start
 
@@ -152,7 +152,8 @@ def geometry_images(request):
         shots = [f(jnp.array(c[:3], jnp.float32), jnp.float32(c[3])) for c in CAMERAS]
         out[name] = tuple(np.stack([np.asarray(x[i]) for x in shots]) for i in range(2))
     m = mjx.put_model(mujoco.MjModel.from_xml_string(_mjcf(with_capsules)))
-    d = mjx.kinematics(m, mjx.make_data(m))
+    with jax.default_matmul_precision("highest"):  # as the env's reference sensor (no TF32 on GPUs)
+        d = mjx.kinematics(m, mjx.make_data(m))
     cfg = SensorConfig(**GEOMETRY_RES, kind="reference")
     ref = jax.jit(lambda cam, yaw: reference_depth_ids(cfg, m, d, cam, yaw, -1))
     shots = [ref(jnp.array(c[:3], jnp.float32), jnp.float32(c[3])) for c in CAMERAS]

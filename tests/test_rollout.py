@@ -102,3 +102,16 @@ def test_compiled_rollouts_take_the_episode_bank_as_an_argument_not_as_constants
     # No constant of the program holds episode data (the largest bank arrays are tens of kB here).
     biggest = max((len(c) for c in re.findall(r'dense<"0x[0-9A-F]*">', text)), default=0)
     assert biggest < 4 * int(b.fields[0, 0].size), biggest
+
+
+def test_sweeps_render_no_image_for_an_agent_that_reads_none(env, noisy_expert):
+    """The expert reads no image: its compiled sweep holds no panorama-sized array, though the
+    step traces the render (the observation is made for the agent and not carried over)."""
+    from envs.rollout import make_pool_rollout
+
+    h, w = env.config.sensor.height, env.config.sensor.width
+    run = make_pool_rollout(env, lambda _: noisy_expert, slots=2)
+    lowered = run.lower(None, jax.random.PRNGKey(0), jnp.arange(3, dtype=jnp.int32), jnp.int32(3))
+    assert f"x{h}x{w}x4xf32>" in lowered.as_text()  # the observation is traced ...
+    compiled = lowered.compile().as_text()
+    assert f",{h},{w}]" not in compiled and f",{h},{w},4]" not in compiled  # ... and no image is computed
