@@ -57,6 +57,18 @@ def _random_states(env, n, seed):
     return out
 
 
+def test_reference_sensor_runs_its_geometry_at_full_float32_precision(envs_pair):
+    """Every matrix product of the reference panorama (kinematics and rays) asks for HIGHEST
+    precision: on GPUs the default, TF32, puts millimetres of error on depths of a few metres."""
+    import re
+
+    _, ref = envs_pair
+    d = jax.jit(ref.reset_to_episode)(jax.random.PRNGKey(0), 0).pipeline_state
+    text = jax.jit(lambda d: ref.panorama(d, jnp.int32(0))).lower(d).as_text()
+    dots = re.findall(r"stablehlo.dot_general[^\n]*", text)
+    assert dots and all("precision = [HIGHEST, HIGHEST]" in x for x in dots), len(dots)
+
+
 def test_fast_caster_matches_mjx_ray(envs_pair):
     fast, ref = envs_pair
 
