@@ -43,7 +43,7 @@ def _sensor_run(env, batch: int, steps: int, mesh=None):
         def body(total, k):
             yaw = jax.random.uniform(k, (batch,), minval=-3.14, maxval=3.14)
             dd = d.replace(qpos=d.qpos.at[:, 2].set(yaw))
-            depth, _ = jax.vmap(lambda di, e: env.panorama(di, e))(dd, episodes)
+            depth, _ = jax.vmap(env.panorama)(dd, episodes)
             return total + depth.mean(), None
 
         total, _ = jax.lax.scan(body, jnp.zeros(()), jax.random.split(key, steps))

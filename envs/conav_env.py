@@ -407,8 +407,6 @@ class ConavEnv(Env):
         yaw = d.qpos[2]
         if cfg.kind == "reference":
             m = self._episode_model(episode, d.qpos[:2], render=True)
-            with jax.default_matmul_precision("highest"):  # geometry: no TF32 on GPUs
-                d = mjx.kinematics(m, d)
             return reference_depth_ids(cfg, m, d, cam, yaw, self._robot_body)
         s = b.scene_index[episode]
         t = d.userdata[UD["t"]].astype(jnp.int32)

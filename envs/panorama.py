@@ -330,11 +330,12 @@ def reference_depth_ids(
     cfg: SensorConfig, m: mjx.Model, d: mjx.Data, cam_xyz_m: jax.Array, yaw_rad: jax.Array, exclude_body: int
 ) -> tuple[jax.Array, jax.Array]:
     """The same panorama from `mujoco.mjx.ray`, one ray per pixel (slow; the ground truth), in the
-    MJX model `m` with data `d` after kinematics, not seeing body `exclude_body` (the robot).
-    Its matrix products run at full float32 precision (GPUs default to TF32, ~1e-3 relative:
-    millimetres at a few metres)."""
+    MJX model `m` with data `d` (its positions; kinematics runs here), not seeing body
+    `exclude_body` (the robot). Kinematics and rays run their matrix products at full float32
+    precision (GPUs default to TF32, ~1e-3 relative: millimetres at a few metres)."""
     dirs = ray_directions(cfg, yaw_rad).reshape(-1, 3)
     with jax.default_matmul_precision("highest"):
+        d = mjx.kinematics(m, d)
         dist, geom = jax.vmap(
             lambda v: mjx.ray(m, d, cam_xyz_m, v, geomgroup=RAY_GEOMGROUP, bodyexclude=exclude_body))(dirs)
     hit = (geom >= 0) & (dist >= 0) & (dist < cfg.max_depth_m)

@@ -152,8 +152,7 @@ def geometry_images(request):
         shots = [f(jnp.array(c[:3], jnp.float32), jnp.float32(c[3])) for c in CAMERAS]
         out[name] = tuple(np.stack([np.asarray(x[i]) for x in shots]) for i in range(2))
     m = mjx.put_model(mujoco.MjModel.from_xml_string(_mjcf(with_capsules)))
-    with jax.default_matmul_precision("highest"):  # as the env's reference sensor (no TF32 on GPUs)
-        d = mjx.kinematics(m, mjx.make_data(m))
+    d = mjx.make_data(m)
     cfg = SensorConfig(**GEOMETRY_RES, kind="reference")
     ref = jax.jit(lambda cam, yaw: reference_depth_ids(cfg, m, d, cam, yaw, -1))
     shots = [ref(jnp.array(c[:3], jnp.float32), jnp.float32(c[3])) for c in CAMERAS]

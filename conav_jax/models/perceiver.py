@@ -231,11 +231,9 @@ def intention_routes(config: PerceiverConfig, logits: IntentionLogits, transitio
     weights = dict.fromkeys(UNSEEN_WEIGHT_KEYS, 0.0) if unseen_weights is None else check_unseen_weights(unseen_weights)
     w_a, w_b = weights["activity_a"], weights["activity_b"]
     if objects_seen is not None:
-        objects = graph_tables(config)[1]
         if objects_seen.shape[-1] != config.num_objects:
             raise ValueError(f"objects_seen must be (..., {config.num_objects}), got {objects_seen.shape}")
-        seen = objects_seen.astype(jnp.float32)
-        seen_activity = jnp.matmul(seen, jnp.asarray(objects).T, precision=hi) > 0.5  # (..., A)
+        seen_activity = jnp.take(objects_seen, jnp.asarray(activity_objects(config)), axis=-1)  # (..., A)
         direct = _keep(direct[0], seen_activity, w_b), _keep(direct[1], objects_seen, w_b)
     if logits.activity_a is None:
         return IntentionRoutes(direct, None, direct)
