@@ -15,8 +15,8 @@ with _contextlib.redirect_stdout(_io.StringIO()):
 
 from brax import envs as _brax_envs
 
-from envs.conav_env import ConavEnv
-from envs.config import EnvConfig, PhysicsConfig, RewardConfig, SensorConfig
+from conav_jax.envs.conav_env import ConavEnv
+from conav_jax.envs.config import EnvConfig, PhysicsConfig, RewardConfig, SensorConfig
 
 _brax_envs.register_environment("conav", ConavEnv)
 

@@ -22,7 +22,7 @@ from conav_jax.data.episodes import EpisodeSplit
 from conav_jax.data.scene import scene_boxes
 from conav_jax.nav.expert import clearance_map
 from conav_jax.nav.planning import fill_blocked
-from envs.metrics import shortest_path_steps
+from conav_jax.envs.metrics import shortest_path_steps
 
 PAD_Z_M = -10.0  # padding boxes live here, below the floor
 

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from conav_jax.parallel import check_divisible, constrain_batch
-from envs.rollout import select_lanes
+from conav_jax.envs.rollout import select_lanes
 
 
 def _memory_bytes() -> int | None:
@@ -260,7 +260,7 @@ def bench_render(env, batch: int, repeats: int, steps: int = 10, rays: tuple[str
     worlds (envs.mjwarp_render.compare_with_caster) from a second context with segmentation.
     MuJoCo Warp's BVH topology is built from episode `topology_episode`'s scene (None: from the
     model's padding poses; envs.mjwarp_render.seed_topology)."""
-    from envs import mjwarp_render
+    from conav_jax.envs import mjwarp_render
 
     cfg = env.config.sensor
     n = env.num_episodes

@@ -42,11 +42,11 @@ from conav_jax.data.categories import NUM_CATEGORIES
 from conav_jax.data.episodes import EpisodeSplit, load_split
 from conav_jax.geometry import to_frame, wrap_angle
 from conav_jax.nav.planning import field_value
-from envs import contact
-from envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
-from envs.config import EnvConfig, resolve_physics_impl, resolve_sensor_kind
-from envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_poses, quat_z_to
-from envs.mjcf import (
+from conav_jax.envs import contact
+from conav_jax.envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
+from conav_jax.envs.config import EnvConfig, resolve_physics_impl, resolve_sensor_kind
+from conav_jax.envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_poses, quat_z_to
+from conav_jax.envs.mjcf import (
     UD,
     GeomLayout,
     build_model,
@@ -55,7 +55,7 @@ from envs.mjcf import (
     servo_error_limits,
     warp_lost_contact_bits,
 )
-from envs.panorama import (
+from conav_jax.envs.panorama import (
     SceneGeometry,
     caster_for,
     colourise,

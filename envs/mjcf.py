@@ -26,9 +26,9 @@ import numpy as np
 from mujoco import mjx
 
 from conav_jax.config import TaskConfig
-from envs.bank import PAD_Z_M
-from envs.config import PhysicsConfig
-from envs.humanoid import CAPSULE_HALF_LENGTHS, CAPSULE_RADII, NUM_CAPSULES
+from conav_jax.envs.bank import PAD_Z_M
+from conav_jax.envs.config import PhysicsConfig
+from conav_jax.envs.humanoid import CAPSULE_HALF_LENGTHS, CAPSULE_RADII, NUM_CAPSULES
 
 USERDATA_FIELDS = (
     "t",  # control steps taken

@@ -48,13 +48,13 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from envs.config import SensorConfig
-from envs.humanoid import capsule_poses, quat_z_to
-from envs.mjcf import build_model
-from envs.panorama import SKY_RGB, ray_angles
+from conav_jax.envs.config import SensorConfig
+from conav_jax.envs.humanoid import capsule_poses, quat_z_to
+from conav_jax.envs.mjcf import build_model
+from conav_jax.envs.panorama import SKY_RGB, ray_angles
 
 if TYPE_CHECKING:
-    from envs.conav_env import ConavEnv
+    from conav_jax.envs.conav_env import ConavEnv
 
 RAY_LAYOUTS = ("panorama", "pinhole")
 NUM_CAMERAS = 4

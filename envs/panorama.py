@@ -29,8 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from envs.config import SensorConfig, resolve_sensor_kind
-from envs.mjcf import RAY_GEOMGROUP
+from conav_jax.envs.config import SensorConfig, resolve_sensor_kind
+from conav_jax.envs.mjcf import RAY_GEOMGROUP
 
 _EPS = 1e-9
 SKY_RGB = np.array([0.62, 0.72, 0.85], np.float32)
@@ -320,7 +320,7 @@ def caster_for(kind: str) -> Caster:
     if kind == "pallas":
         # Imported on first use: the kernel's module imports this one, and Pallas loads only
         # for those who cast with it.
-        from envs.panorama_pallas import pallas_depth_ids
+        from conav_jax.envs.panorama_pallas import pallas_depth_ids
 
         return pallas_depth_ids
     raise ValueError(f"no SceneGeometry caster for sensor kind {kind!r} (reference_depth_ids casts through mjx.ray)")

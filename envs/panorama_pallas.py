@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
 
-from envs.config import SensorConfig
-from envs.panorama import (
+from conav_jax.envs.config import SensorConfig
+from conav_jax.envs.panorama import (
     NO_HIT_KEY,
     SceneGeometry,
     box_pixel_keys,

@@ -27,9 +27,9 @@ from conav_jax.parallel import (
     shard_batch,
     to_host,
 )
-from envs.agents.base import Agent
-from envs.conav_env import ConavEnv
-from envs.mjcf import UD
+from conav_jax.envs.agents.base import Agent
+from conav_jax.envs.conav_env import ConavEnv
+from conav_jax.envs.mjcf import UD
 
 
 class Trace(NamedTuple):

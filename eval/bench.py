@@ -22,7 +22,7 @@ def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
     import numpy as np
 
     from conav_jax.parallel import replicate, shard_batch
-    from envs.rollout import make_rollout
+    from conav_jax.envs.rollout import make_rollout
 
     steps = env.bank.max_steps
     run = make_rollout(env, agent, steps)
@@ -62,7 +62,7 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
     import jax
     import numpy as np
 
-    from envs.rollout import make_evaluator
+    from conav_jax.envs.rollout import make_evaluator
 
     if episodes is not None and episodes > env.num_episodes:
         raise ValueError(f"--episodes {episodes}: the split has only {env.num_episodes} episodes")

@@ -43,7 +43,7 @@ def parse_resolution(text: str) -> tuple[int, int]:
 
 def parse_physics_override(text: str) -> tuple[str, object]:
     """`NAME=VALUE` for a field of envs.config.PhysicsConfig, VALUE converted to the field's type."""
-    from envs.config import PhysicsConfig
+    from conav_jax.envs.config import PhysicsConfig
 
     fields = {f.name for f in dataclasses.fields(PhysicsConfig)}
     name, sep, value = text.partition("=")
@@ -90,7 +90,7 @@ def _use_pretrained(args: argparse.Namespace, agents: tuple[str, ...]) -> None:
     if not args.pretrained:
         return
     from conav_jax.pretrained import pretrained_runs
-    from envs.agents.registry import AGENTS
+    from conav_jax.envs.agents.registry import AGENTS
 
     if "conav" not in agents:
         raise ValueError("--pretrained is the conav agent's: add conav to --agent")
@@ -128,7 +128,7 @@ def _intention_kwargs(args: argparse.Namespace) -> dict:
 
 def _train_args(p: argparse.ArgumentParser, defaults) -> None:
     """--data, --out, the TrainConfig fields (with this command's defaults), --no-progress, --devices."""
-    from train.loop import TrainConfig
+    from conav_jax.train.loop import TrainConfig
 
     p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
     p.add_argument("--out", required=True, help="run dir: log.jsonl and checkpoints (resumed if present)")
@@ -141,7 +141,7 @@ def _train_args(p: argparse.ArgumentParser, defaults) -> None:
 
 
 def _train_config(args: argparse.Namespace):
-    from train.loop import TrainConfig
+    from conav_jax.train.loop import TrainConfig
 
     return TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
 
@@ -294,10 +294,10 @@ def _add_train(sub) -> None:
     from conav_jax.models.perceiver import PerceiverConfig
     from conav_jax.models.policy import ABLATIONS, PolicyConfig
     from conav_jax.models.trajectory import TrajectoryConfig
-    from train.intention import IntentionDataConfig
-    from train.loop import TrainConfig
-    from train.policy import TRAIN_INTENTIONS, ImitationConfig
-    from train.ppo import PPOConfig
+    from conav_jax.train.intention import IntentionDataConfig
+    from conav_jax.train.loop import TrainConfig
+    from conav_jax.train.policy import TRAIN_INTENTIONS, ImitationConfig
+    from conav_jax.train.ppo import PPOConfig
 
     train = sub.add_parser("train", help="train the intention / trajectory predictors, the policy, PPO")
     models = train.add_subparsers(dest="model", metavar="MODEL", required=True)
@@ -424,7 +424,7 @@ def _network_base(args: argparse.Namespace, image_hw: tuple[int, int]):
 def _add_train_goalnav(models) -> None:
     """`conav train objectnav` and `conav train imagenav`: the learned goal-navigation baselines."""
     from conav_jax.models.policy import PolicyConfig
-    from train.loop import TrainConfig
+    from conav_jax.train.loop import TrainConfig
 
     for name, what in (("objectnav", "the object-goal agent (after ZSON): panorama, GPS+compass and a goal category, "
                         "imitating the object-goal planner (nearest instance of object B's category)"),
@@ -448,9 +448,9 @@ def _add_train_goalnav(models) -> None:
 
 def _run_train_intention(args: argparse.Namespace) -> int:
     from conav_jax.models.perceiver import PerceiverConfig
-    from envs.human_crop import default_crop_hw
-    from train.intention import IntentionDataConfig, train_intention
-    from train.loop import NonFiniteLoss
+    from conav_jax.envs.human_crop import default_crop_hw
+    from conav_jax.train.intention import IntentionDataConfig, train_intention
+    from conav_jax.train.loop import NonFiniteLoss
 
     data = IntentionDataConfig(sensor_hw=args.sensor, frames=args.frames, view=args.view, viewpoints=args.viewpoints,
                                mirror=args.mirror)
@@ -487,8 +487,8 @@ def _run_train_intention(args: argparse.Namespace) -> int:
 
 def _run_train_trajectory(args: argparse.Namespace) -> int:
     from conav_jax.models.trajectory import TrajectoryConfig
-    from train.loop import NonFiniteLoss
-    from train.trajectory import train_trajectory
+    from conav_jax.train.loop import NonFiniteLoss
+    from conav_jax.train.trajectory import train_trajectory
 
     try:
         result = train_trajectory(args.data, args.out, _train_config(args), TrajectoryConfig(hidden=args.hidden),
@@ -506,7 +506,7 @@ def _run_train_trajectory(args: argparse.Namespace) -> int:
 def _policy_model(args: argparse.Namespace):
     """The PolicyConfig a `conav train policy` command asks for."""
     from conav_jax.models.policy import ablation_config
-    from envs.agents.registry import run_resolution
+    from conav_jax.envs.agents.registry import run_resolution
 
     base = dataclasses.replace(_network_base(args, run_resolution([], args.resolution)),
                                object_saliency=args.object_saliency)
@@ -514,8 +514,8 @@ def _policy_model(args: argparse.Namespace):
 
 
 def _run_train_policy(args: argparse.Namespace) -> int:
-    from train.loop import NonFiniteLoss
-    from train.policy import train_policy
+    from conav_jax.train.loop import NonFiniteLoss
+    from conav_jax.train.policy import train_policy
 
     imitation = _imitation_config(args, train_intentions=args.train_intentions)
     for flag, run in (("--intention", args.intention), ("--trajectory", args.trajectory)):
@@ -535,7 +535,7 @@ def _run_train_policy(args: argparse.Namespace) -> int:
 
 def _add_imitation_args(p, teacher: str) -> None:
     """The imitation flags `conav train policy|objectnav|imagenav` share (read by `_imitation_config`)."""
-    from train.policy import RECORD_BUDGET_BYTES, ImitationConfig
+    from conav_jax.train.policy import RECORD_BUDGET_BYTES, ImitationConfig
 
     d = ImitationConfig()
     p.add_argument("--dagger-rounds", type=int, default=d.dagger_rounds,
@@ -566,7 +566,7 @@ def _add_imitation_args(p, teacher: str) -> None:
 
 def _imitation_config(args: argparse.Namespace, **extra):
     """train.policy.ImitationConfig from the imitation flags `conav train policy|objectnav|imagenav` share."""
-    from train.policy import ImitationConfig
+    from conav_jax.train.policy import ImitationConfig
 
     return ImitationConfig(
         episodes=args.episodes, val_episodes=args.val_episodes, val_split=args.val_split,
@@ -578,7 +578,7 @@ def _imitation_config(args: argparse.Namespace, **extra):
 
 
 def _print_imitation_result(kind: str, teacher: str, result, split: str) -> None:
-    from train.policy import rates_line
+    from conav_jax.train.policy import rates_line
 
     print(f"{kind} run: {result.run_dir}")
     ceiling = f"{teacher} (ceiling):"
@@ -588,8 +588,8 @@ def _print_imitation_result(kind: str, teacher: str, result, split: str) -> None
 
 def _run_train_rl(args: argparse.Namespace) -> int:
     from conav_jax.models.policy import PolicyConfig
-    from envs.agents.registry import run_resolution
-    from train.ppo import PPOConfig, train_ppo
+    from conav_jax.envs.agents.registry import run_resolution
+    from conav_jax.train.ppo import PPOConfig, train_ppo
 
     config = PPOConfig(
         num_envs=args.num_envs, rollout_steps=args.rollout_steps, reset_every=args.reset_every,
@@ -615,9 +615,9 @@ def _run_train_rl(args: argparse.Namespace) -> int:
 
 
 def _run_train_goalnav(args: argparse.Namespace) -> int:
-    from envs.agents.registry import run_resolution
-    from train import goalnav
-    from train.loop import NonFiniteLoss
+    from conav_jax.envs.agents.registry import run_resolution
+    from conav_jax.train import goalnav
+    from conav_jax.train.loop import NonFiniteLoss
 
     imitation = _imitation_config(args)
     hw = run_resolution([], args.resolution)
@@ -640,7 +640,7 @@ def _run_train_goalnav(args: argparse.Namespace) -> int:
 
 
 def _add_eval(sub) -> None:
-    from envs.agents.registry import AGENTS
+    from conav_jax.envs.agents.registry import AGENTS
 
     p = sub.add_parser("eval", help="evaluate agents on a split: per-episode records, metrics with CIs, Table 2/3 report")
     p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
@@ -695,7 +695,7 @@ def parse_checkpoints(text: str | None) -> str | dict[str | None, str] | None:
 
 
 def _run_eval(args: argparse.Namespace) -> int:
-    from eval import sweep
+    from conav_jax.eval import sweep
 
     agents = tuple(n.strip() for n in args.agent.split(",") if n.strip())
     _use_pretrained(args, agents)
@@ -715,7 +715,7 @@ def _run_eval(args: argparse.Namespace) -> int:
 
 
 def _add_view(sub) -> None:
-    from envs.agents.registry import AGENTS
+    from conav_jax.envs.agents.registry import AGENTS
 
     p = sub.add_parser("view", help="record one episode as a rerun .rrd (scene, human, robot, panorama, intentions)")
     p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
@@ -733,7 +733,7 @@ def _add_view(sub) -> None:
 
 
 def _run_view(args: argparse.Namespace) -> int:
-    from eval.viewer import view_episode
+    from conav_jax.eval.viewer import view_episode
 
     _use_pretrained(args, (args.agent,))
     print(view_episode(args.data, args.split, args.episode, args.agent, args.out, args.checkpoint,
@@ -752,7 +752,7 @@ def _add_curve(sub) -> None:
 
 def _run_curve(args: argparse.Namespace) -> int:
     from conav_jax.runs import read_log
-    from eval.plots import learning_curve
+    from conav_jax.eval.plots import learning_curve
 
     if args.window is not None and args.window < 1:
         raise ValueError(f"--window must be at least 1, got {args.window}")
@@ -792,7 +792,7 @@ def _run_stage(argv) -> int:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from eval.demo import demo_commands
+    from conav_jax.eval.demo import demo_commands
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -816,7 +816,7 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 def _add_reproduce(sub) -> None:
     from conav_jax.models.policy import ENCODERS
-    from eval.reproduce import BUDGETS, LARGE_PANORAMA_DAGGER_EPISODES, STAGES, ReproduceConfig
+    from conav_jax.eval.reproduce import BUDGETS, LARGE_PANORAMA_DAGGER_EPISODES, STAGES, ReproduceConfig
 
     d = {f.name: f.default for f in dataclasses.fields(ReproduceConfig)}
 
@@ -892,7 +892,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     import shutil
     import subprocess
 
-    from eval import reproduce as rp
+    from conav_jax.eval import reproduce as rp
 
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
@@ -1016,7 +1016,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     stages) runs through `reproduce.run_parallel`; stages whose commands are all done are marked so,
     with their commands' summed time. Returns the stages left to run here (tables, pack), or an
     exit code."""
-    from eval import reproduce as rp
+    from conav_jax.eval import reproduce as rp
 
     work = [st for st in stages if st.name not in ("tables", "pack")]
     if not work:
@@ -1056,9 +1056,9 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
 
 def _add_bench(sub) -> None:
     from conav_jax.models.policy import CONV_DTYPES, DEFAULT_ENCODER, ENCODERS
-    from envs.agents.registry import AGENTS
-    from envs.config import SENSOR_KINDS
-    from train.bench import DEFAULT_BATCH, SETUPS
+    from conav_jax.envs.agents.registry import AGENTS
+    from conav_jax.envs.config import SENSOR_KINDS
+    from conav_jax.train.bench import DEFAULT_BATCH, SETUPS
 
     bench = sub.add_parser("bench", help="throughput benchmarks (run them on a GPU)")
     what = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
@@ -1164,9 +1164,9 @@ def _add_bench(sub) -> None:
 
 def _run_bench_sim(args: argparse.Namespace) -> int:
     from conav_jax.parallel import make_mesh
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.bench import bench_sim
-    from envs.config import PhysicsConfig
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.bench import bench_sim
+    from conav_jax.envs.config import PhysicsConfig
 
     physics = PhysicsConfig(**dict(args.physics))
     tmp = None if args.data is not None else _tiny_dataset()
@@ -1212,7 +1212,7 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
 
 
 def _run_bench_intention(args: argparse.Namespace) -> int:
-    from train.intention import evaluate_run
+    from conav_jax.train.intention import evaluate_run
 
     res = evaluate_run(args.run, args.data, args.split)
     if args.json:
@@ -1234,7 +1234,7 @@ def _run_bench_intention(args: argparse.Namespace) -> int:
 
 
 def _run_bench_labels(args: argparse.Namespace) -> int:
-    from train.policy import expert_label_statistics
+    from conav_jax.train.policy import expert_label_statistics
 
     res = expert_label_statistics(args.data, args.run, args.episodes, args.intention, args.trajectory, args.batch,
                                   args.seed)
@@ -1254,7 +1254,7 @@ def _run_bench_labels(args: argparse.Namespace) -> int:
 
 def _run_bench_train(args: argparse.Namespace) -> int:
     from conav_jax.parallel import make_mesh
-    from train.bench import DEFAULT_BATCH, bench_train
+    from conav_jax.train.bench import DEFAULT_BATCH, bench_train
 
     mesh = make_mesh(args.devices) if args.devices != 1 else None
     for batch in args.batch or [DEFAULT_BATCH[args.model]]:
@@ -1273,9 +1273,9 @@ def _run_bench_train(args: argparse.Namespace) -> int:
 
 def _run_bench_eval(args: argparse.Namespace) -> int:
     from conav_jax.parallel import check_divisible
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.agents.registry import check_agent, make_agent, run_resolution
-    from eval.bench import bench_eval, bench_sweep
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.agents.registry import check_agent, make_agent, run_resolution
+    from conav_jax.eval.bench import bench_eval, bench_sweep
 
     spec = check_agent(args.agent, args.checkpoint)
     predictors = _intention_kwargs(args)
@@ -1315,8 +1315,8 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
 
 
 def _run_bench_render(args: argparse.Namespace) -> int:
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.bench import bench_render
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.bench import bench_render
 
     if min(args.batch) < 1 or args.repeats < 1 or args.steps < 1 or args.check_batch < 1:
         raise ValueError("--batch, --repeats, --steps and --check-batch must be at least 1")

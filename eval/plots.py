@@ -20,7 +20,7 @@ from matplotlib.patches import Circle, Rectangle  # noqa: E402
 from conav_jax.data.categories import CATEGORY_NAMES  # noqa: E402
 from conav_jax.data.scene import STRUCTURE_WALL, Scene, scene_boxes  # noqa: E402
 from conav_jax.motion.phases import PHASE_ACTIVITY_A, PHASE_ACTIVITY_B, PHASE_WALK  # noqa: E402
-from envs.metrics import episode_outcomes  # noqa: E402
+from conav_jax.envs.metrics import episode_outcomes  # noqa: E402
 
 PHASE_STYLE = {PHASE_ACTIVITY_A: ("activity A", "tab:blue"), PHASE_WALK: ("walk", "tab:orange"), PHASE_ACTIVITY_B: ("activity B", "tab:purple")}
 

@@ -12,7 +12,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from envs.metrics import episode_outcomes, reported_metrics
+from conav_jax.envs.metrics import episode_outcomes, reported_metrics
 
 Z_95 = 1.959963984540054  # standard normal quantile of 0.975
 RATES = ("FASR", "RASR", "CR", "CR_full")  # 0/1 per episode: Wilson intervals

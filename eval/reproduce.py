@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from conav_jax.models.policy import DEFAULT_ENCODER, ENCODERS
-from envs.metrics import METRIC_NAMES
+from conav_jax.envs.metrics import METRIC_NAMES
 
 STAGES = ("generate", "predictors", "baselines", "bc", "dagger", "eval", "tables", "pack")
 ABLATIONS = ("none", "activity", "object", "activity_object", "all")  # the paper's Table 3 rows 1-5
@@ -507,7 +507,7 @@ def _learned_cell(row: dict, metric: str) -> str:
     """'mean ± sd [lo, hi]' over seeds ('value [lo, hi]' for one seed): the pooled 95% interval
     treats every seed's episodes as one sample (for rates: the Wilson interval of the pooled
     counts; otherwise the seeds' mean of the per-seed bounds)."""
-    from eval.report import RATES, wilson_interval
+    from conav_jax.eval.report import RATES, wilson_interval
 
     per_seed = [s["metrics"][metric] for s in row["seeds"].values()]
     m, sd = _mean_sd([p["value"] for p in per_seed])
@@ -723,7 +723,7 @@ def gpu_slots(count: int) -> list[str]:
 
 def child_command(argv: tuple[str, ...], compile_cache: str | None) -> list[str]:
     """The process that runs one `conav` command (`run_parallel`)."""
-    return [sys.executable, "-m", "eval.cli", *(("--compile-cache", compile_cache) if compile_cache else ()), *argv]
+    return [sys.executable, "-m", "conav_jax.eval.cli", *(("--compile-cache", compile_cache) if compile_cache else ()), *argv]
 
 
 def _log_name(argv: tuple[str, ...]) -> str:

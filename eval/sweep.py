@@ -21,7 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from envs.agents.registry import AGENTS, check_agent
+from conav_jax.envs.agents.registry import AGENTS, check_agent
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")  # ablation names become file names
 _INPUT_KEYS = ("use_activity", "use_object", "use_trajectory")
@@ -75,7 +75,7 @@ def plan_eval(
     the trained runs' (every learned agent's run must agree), else SensorConfig's default; given,
     it must match every trained run's."""
     from conav_jax.data.episodes import read_manifest
-    from envs.agents.registry import run_resolution
+    from conav_jax.envs.agents.registry import run_resolution
 
     manifest = read_manifest(data)
     if split not in manifest["splits"]:
@@ -144,7 +144,7 @@ _EVALUATORS: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary(
 
 
 def load_env(plan: EvalPlan):
-    from envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 
     key = (str(plan.data.resolve()), plan.split, plan.content_hash, plan.resolution, plan.episodes)
     if key not in _ENV_CACHE:
@@ -164,9 +164,9 @@ def build_evaluators(env, runs: list[tuple[str, str | None, dict]], batch: int, 
     compile. Keys per episode (envs.rollout), so the numbers do not depend on the batch."""
     import jax.numpy as jnp
 
-    from envs.agents.base import switch_agent
-    from envs.agents.registry import make_agent
-    from envs.rollout import make_evaluator
+    from conav_jax.envs.agents.base import switch_agent
+    from conav_jax.envs.agents.registry import make_agent
+    from conav_jax.envs.rollout import make_evaluator
 
     per_env = _EVALUATORS.setdefault(env, {})
     agents = [make_agent(name, env, ckpt, **kw) for name, ckpt, kw in runs]
@@ -204,7 +204,7 @@ def episode_records(split, metrics: dict, given: dict) -> list[dict]:
     the episode's identity, human timing, robot outcome (envs.metrics rules)."""
     from conav_jax.data.activities import load_activity_graph
     from conav_jax.data.categories import CATEGORY_NAMES
-    from envs.metrics import episode_outcomes
+    from conav_jax.envs.metrics import episode_outcomes
 
     graph = load_activity_graph()
     e = split.episodes
@@ -308,9 +308,9 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
     device), with a progress bar over the agents if `progress`. Returns the metrics.json content."""
     from tqdm import tqdm
 
-    from envs.agents.base import describe
-    from eval import plots
-    from eval.report import summarize_with_ci, table2_markdown, table3_markdown
+    from conav_jax.envs.agents.base import describe
+    from conav_jax.eval import plots
+    from conav_jax.eval.report import summarize_with_ci, table2_markdown, table3_markdown
 
     if env.config.end_at_reach:
         raise ValueError("the benchmark runs episodes to t_end: build the env with EnvConfig(end_at_reach=False)")

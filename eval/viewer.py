@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from conav_jax.geometry import to_world
-from envs.agents.base import row_title
-from envs.agents.registry import check_agent
+from conav_jax.envs.agents.base import row_title
+from conav_jax.envs.agents.registry import check_agent
 
 # Carry entries a learned agent may expose (same names and shapes as the env's ground-truth
 # observations): activity probs (107,), object probs (51,), future trajectory (5, 2) robot frame.
@@ -48,7 +48,7 @@ def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, n
     import jax
     import jax.numpy as jnp
 
-    from envs.rollout import jit_with_bank
+    from conav_jax.envs.rollout import jit_with_bank
 
     steps = int(env.split.episodes["t_end"][episode])
     ep = jnp.int32(episode)
@@ -216,7 +216,7 @@ def view_episode(
     anything is built: ValueError naming the first problem. `resolution` None: the trained
     run's, else SensorConfig's default."""
     from conav_jax.data.episodes import read_manifest
-    from envs.agents.registry import run_resolution
+    from conav_jax.envs.agents.registry import run_resolution
 
     manifest = read_manifest(data)
     if split not in manifest["splits"]:
@@ -237,8 +237,8 @@ def view_episode(
 
     import rerun as rr
 
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.agents.registry import make_agent
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.agents.registry import make_agent
 
     env = ConavEnv(data, split, EnvConfig(sensor=SensorConfig(height=h, width=w)), max_episodes=episode + 1)
     built = make_agent(agent, env, checkpoint, **predictors)

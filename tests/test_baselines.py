@@ -9,10 +9,10 @@ import pytest
 from worlds import ROOM, make_split
 
 from conav_jax.data.episodes import EpisodeSplit
-from envs.agents.base import row_title
-from envs.agents.baselines import BaselineConfig
-from envs.agents.registry import check_agent, make_agent
-from envs.rollout import trace_step
+from conav_jax.envs.agents.base import row_title
+from conav_jax.envs.agents.baselines import BaselineConfig
+from conav_jax.envs.agents.registry import check_agent, make_agent
+from conav_jax.envs.rollout import trace_step
 
 BASELINES = ("random", "pioneer-drive", "follower", "objectgoal-planner")  # the velocity-commanded ones
 T_ARRIVE, T_END = 120, 160  # the human walks 7.25 m from step 60 to 120 (1.2 m/s)
@@ -50,7 +50,7 @@ def runs():
     import jax
     import jax.numpy as jnp
 
-    from envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 
     env = ConavEnv(episodes=_two_scene_split(), config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
     agents = [make_agent(name, env) for name in BASELINES]
@@ -158,7 +158,7 @@ def test_every_agent_names_what_it_is_given(runs):
 
 
 def test_the_pioneer_is_put_at_the_goal_once_the_human_walks_and_first_reaches_it(runs):
-    from envs.rollout import evaluate
+    from conav_jax.envs.rollout import evaluate
 
     env = runs[0]
     pioneer = make_agent("pioneer", env)

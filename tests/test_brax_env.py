@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from brax.envs.wrappers import training
 
-import envs  # noqa: F401  (registers 'conav')
-from envs import EnvConfig, SensorConfig
-from envs.mjcf import UD
+import conav_jax.envs  # noqa: F401  (registers 'conav')
+from conav_jax.envs import EnvConfig, SensorConfig
+from conav_jax.envs.mjcf import UD
 
 CFG = EnvConfig(sensor=SensorConfig(height=8, width=32))
 

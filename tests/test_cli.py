@@ -4,7 +4,7 @@ import json
 
 
 def test_train_policy_with_missing_data_leaves_no_run_directory(tmp_path, capsys):
-    from eval.cli import main
+    from conav_jax.eval.cli import main
 
     missing, out = tmp_path / "no_such_dataset", tmp_path / "run"
     rc = main(["train", "policy", "--data", str(missing), "--out", str(out)])
@@ -16,7 +16,7 @@ def test_train_policy_with_missing_data_leaves_no_run_directory(tmp_path, capsys
 def test_train_policy_with_an_edited_manifest_leaves_no_run_directory(tmp_path, tiny_data):
     import shutil
 
-    from eval.cli import main
+    from conav_jax.eval.cli import main
 
     data, out = tmp_path / "data", tmp_path / "run"
     shutil.copytree(tiny_data, data)
@@ -31,8 +31,8 @@ def test_the_demos_commands_parse_and_its_predictor_crops_the_policys_panorama(t
     """Every stage of `conav demo` is a valid command line, and the intention predictor is
     trained on the panoramas the policy and the evaluated agents render (else the policy stage
     refuses it)."""
-    from eval.cli import build_parser
-    from eval.demo import demo_commands
+    from conav_jax.eval.cli import build_parser
+    from conav_jax.eval.demo import demo_commands
 
     commands = demo_commands(tmp_path, seed=0, resolution="16x64")
     parsed = {tuple(argv[:2]): build_parser().parse_args(argv) for argv in commands}
@@ -44,8 +44,8 @@ def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, 
     gets other compile-cache keys than a later run of the command, which then compiles again."""
     import jax
 
-    from eval import cli
-    from eval.demo import demo_commands
+    from conav_jax.eval import cli
+    from conav_jax.eval.demo import demo_commands
 
     events = []
     monkeypatch.setattr(jax, "clear_caches", lambda: events.append("clear"))
@@ -68,7 +68,7 @@ def test_output_read_only_in_part_stops_without_a_traceback(tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     # `conav reproduce --dry-run` prints some thirty lines; `head -1` stops reading after one.
-    cmd = (f"{sys.executable} -m eval.cli --compile-cache off reproduce --preset tiny --out {tmp_path / 'r'} --dry-run"
+    cmd = (f"{sys.executable} -m conav_jax.eval.cli --compile-cache off reproduce --preset tiny --out {tmp_path / 'r'} --dry-run"
            " | head -1")
     proc = subprocess.run(["bash", "-o", "pipefail", "-c", cmd], cwd=root, capture_output=True, text=True, timeout=300,
                           check=False)

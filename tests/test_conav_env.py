@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from worlds import goal_of, make_split
 
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.config import PhysicsConfig
-from envs.metrics import summarize
-from envs.mjcf import UD
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.config import PhysicsConfig
+from conav_jax.envs.metrics import summarize
+from conav_jax.envs.mjcf import UD
 
 SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32))
 
@@ -97,7 +97,7 @@ def test_bad_physics_config_is_rejected(bad):
 def test_bench_physics_overrides_are_typed_and_checked():
     import argparse
 
-    from eval.cli import parse_physics_override
+    from conav_jax.eval.cli import parse_physics_override
 
     assert parse_physics_override("solver_iterations=2") == ("solver_iterations", 2)
     assert parse_physics_override("timestep_s=0.02") == ("timestep_s", 0.02)

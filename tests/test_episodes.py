@@ -339,7 +339,7 @@ def test_dataset_from_scene_files_rejects_shared_files_duplicate_names_and_unusa
 
 
 def test_conav_generate_from_a_scene_directory(tmp_path, capsys):
-    from eval.cli import build_parser
+    from conav_jax.eval.cli import build_parser
 
     (tmp_path / "scenes").mkdir()
     _scene_files(tmp_path / "scenes")

@@ -22,24 +22,24 @@ from conav_jax.checkpoints import checkpoint_path, save_checkpoint
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.optim import adam
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.conav_env import BankView
-from envs.agents.base import row_title, switch_agent
-from envs.agents.baselines import objectgoal_planner_agent, random_agent
-from envs.agents.goalnav import (
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.conav_env import BankView
+from conav_jax.envs.agents.base import row_title, switch_agent
+from conav_jax.envs.agents.baselines import objectgoal_planner_agent, random_agent
+from conav_jax.envs.agents.goalnav import (
     GOAL_IMAGE,
     goal_image_at,
     imagegoal_agent_from_params,
     objectgoal_agent_from_params,
 )
-from envs.agents.policy import make_policy_step
-from envs.agents.registry import make_agent
-from envs.metrics import summarize
-from envs.mjcf import UD
-from envs.rollout import make_evaluator
-from train import imitation as im
-from train.goalnav import imagenav_model, imagenav_task, objectnav_model, objectnav_task
-from train.policy import ImitationConfig, task_run_config
+from conav_jax.envs.agents.policy import make_policy_step
+from conav_jax.envs.agents.registry import make_agent
+from conav_jax.envs.metrics import summarize
+from conav_jax.envs.mjcf import UD
+from conav_jax.envs.rollout import make_evaluator
+from conav_jax.train import imitation as im
+from conav_jax.train.goalnav import imagenav_model, imagenav_task, objectnav_model, objectnav_task
+from conav_jax.train.policy import ImitationConfig, task_run_config
 
 FAST = {"xla_backend_optimization_level": 0}  # the small jits (as tests/test_imitation.py)
 SMALL = PolicyConfig(image_hw=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16,
@@ -263,8 +263,8 @@ def test_the_image_goal_agent_sees_an_image_rendered_at_the_humans_position(hall
 
 
 def test_goal_runs_load_through_the_registry_and_eval_takes_a_run_per_agent(hall, trained, tmp_path, tiny_data):
-    from eval.cli import parse_checkpoints
-    from eval.sweep import plan_eval
+    from conav_jax.eval.cli import parse_checkpoints
+    from conav_jax.eval.sweep import plan_eval
 
     run_dirs = {}
     for task, cfg, kind in ((objectnav_task(), OBJ, "objectnav"), (imagenav_task(), IMG, "imagenav")):
@@ -299,8 +299,8 @@ def test_goal_runs_load_through_the_registry_and_eval_takes_a_run_per_agent(hall
                                           ("objectnav", ["--encoder", "patch", "--conv-dtype", "bfloat16"]),
                                           ("imagenav", ["--encoder", "patch", "--conv-dtype", "bfloat16"])])
 def test_train_commands_build_the_baselines_networks(model, flags, monkeypatch, tmp_path):
-    from eval.cli import build_parser
-    from train import goalnav
+    from conav_jax.eval.cli import build_parser
+    from conav_jax.train import goalnav
 
     seen = {}
 

@@ -12,8 +12,8 @@ from worlds import make_split
 
 from conav_jax.geometry import to_frame
 from conav_jax.motion.skeleton import CAPSULE_BONES, JOINT_NAMES
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.human_crop import crop_window, default_crop_hw, human_crop
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.human_crop import crop_window, default_crop_hw, human_crop
 
 jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
 HW, CROP = (112, 448), (64, 64)

@@ -19,15 +19,15 @@ from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nav.expert import ExpertConfig, initial_carry
 from conav_jax.optim import adam
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.agents.expert import make_expert_step
-from envs.agents.policy import make_policy_step, policy_agent, predictor_runs
-from envs.metrics import summarize
-from envs.mjcf import UD
-from envs.rollout import evaluate
-from train import imitation as im
-from train.loop import TrainConfig
-from train.policy import ImitationConfig, check_recordable, records_predictions, run_config, train_policy
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.agents.expert import make_expert_step
+from conav_jax.envs.agents.policy import make_policy_step, policy_agent, predictor_runs
+from conav_jax.envs.metrics import summarize
+from conav_jax.envs.mjcf import UD
+from conav_jax.envs.rollout import evaluate
+from conav_jax.train import imitation as im
+from conav_jax.train.loop import TrainConfig
+from conav_jax.train.policy import ImitationConfig, check_recordable, records_predictions, run_config, train_policy
 
 # For the small jits. The MJX rollout keeps XLA's default: at level 0 its run time costs more
 # than compiling saves.
@@ -259,7 +259,7 @@ def test_label_statistics_of_hand_made_records():
 
 
 def test_dagger_rounds_mix_the_expert_in_at_a_geometric_share():
-    from train.policy import round_actor
+    from conav_jax.train.policy import round_actor
 
     assert round_actor(0, ImitationConfig(dagger_beta=0.5), "expert") == ("expert", 1.0)  # behaviour cloning
     assert round_actor(1, ImitationConfig(), "expert") == ("policy", 0.0)
@@ -272,7 +272,7 @@ def test_dagger_rounds_mix_the_expert_in_at_a_geometric_share():
 
 def test_expert_label_statistics_refuses_bad_input_before_any_rollout(tiny_data):
     from conav_jax import pretrained
-    from train.policy import expert_label_statistics
+    from conav_jax.train.policy import expert_label_statistics
 
     runs = pretrained.pretrained_runs()
     with pytest.raises(ValueError, match="episodes and batch must be at least 1"):
@@ -364,7 +364,7 @@ def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0,
 
 
 def test_a_predictor_reading_the_segmentation_adds_it_to_the_agents_privileged_inputs():
-    from envs.agents.policy import privileged_inputs
+    from conav_jax.envs.agents.policy import privileged_inputs
 
     seg = ("oracle segmentation",)
     reads_seg = _fake_intention(9, 11, privileged=seg)
@@ -396,7 +396,7 @@ def test_the_conav_agent_refuses_to_run_without_predictors(hall, trained):
 
 
 def test_at_evaluation_the_policy_reads_the_predictors_outputs_not_the_truth(hall, trained, tmp_path, monkeypatch):
-    from envs.agents import policy as agent_policy
+    from conav_jax.envs.agents import policy as agent_policy
 
     runs = [tmp_path / "intention", tmp_path / "trajectory"]
     for r in runs:

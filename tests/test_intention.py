@@ -18,11 +18,11 @@ from conav_jax.models.perceiver import PerceiverConfig
 from conav_jax.models.policy import categories_in_view
 from conav_jax.nav.navigation import line_of_sight
 from conav_jax.runs import read_log
-from envs.agents.base import ORACLE_SEGMENTATION
-from envs.agents.predictors import FrameSpec, intention_frame, load_intention_predictor, make_intention_predictor
-from envs.humanoid import capsule_colours
-from envs.panorama import front_view
-from train.intention import (
+from conav_jax.envs.agents.base import ORACLE_SEGMENTATION
+from conav_jax.envs.agents.predictors import FrameSpec, intention_frame, load_intention_predictor, make_intention_predictor
+from conav_jax.envs.humanoid import capsule_colours
+from conav_jax.envs.panorama import front_view
+from conav_jax.train.intention import (
     IntentionDataConfig,
     activity_a_steps,
     baseline_metrics,
@@ -39,7 +39,7 @@ from train.intention import (
     topk_accuracy,
     train_intention,
 )
-from train.loop import TrainConfig
+from conav_jax.train.loop import TrainConfig
 
 FAST = {"xla_backend_optimization_level": 0}
 # 16x16 crops of 32x128 panoramas: at this resolution a human 1.5-3 m away is 9-19 rows tall.
@@ -152,7 +152,7 @@ def test_a_short_run_checkpoints_and_validates_on_minival(intention_run):
 
 def test_a_run_weighing_seen_objects_records_its_weights_and_validates_with_them(rendered, tiny_data, tmp_path,
                                                                                    monkeypatch):
-    from train import intention
+    from conav_jax.train import intention
 
     _, d = rendered
     asked = []
@@ -238,7 +238,7 @@ def _run_predictor(predictor, obs):
 
 def test_the_predictor_sees_exactly_the_training_frames(intention_run, rendered, tiny_data):
     from conav_jax import runs
-    from envs.conav_env import ConavEnv
+    from conav_jax.envs.conav_env import ConavEnv
 
     run_dir, result = intention_run
     env, d = rendered
@@ -400,8 +400,8 @@ def test_bench_intention_scores_a_run_by_route_as_its_own_validation(intention_r
     import json
 
     from conav_jax import runs
-    from eval import cli
-    from train import intention
+    from conav_jax.eval import cli
+    from conav_jax.train import intention
 
     run_dir, result = intention_run
     tables, seen = [], []  # the P(B | A) each route is scored with (tiny minival's scores coincide)

@@ -7,7 +7,7 @@ import pytest
 
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint
 from conav_jax.runs import read_log
-from train.loop import NonFiniteLoss, TrainConfig, train
+from conav_jax.train.loop import NonFiniteLoss, TrainConfig, train
 
 FAST = {"xla_backend_optimization_level": 0}
 CONFIG = {"kind": "linear", "model": {"inputs": 3}}
@@ -122,7 +122,7 @@ def test_resume_accepts_changes_to_the_keys_it_is_told_to_ignore_and_no_others(t
     round length (train.policy.RESUME_CHANGEABLE)."""
     from conav_jax.checkpoints import save_checkpoint
     from conav_jax.runs import resume
-    from train.policy import RESUME_CHANGEABLE
+    from conav_jax.train.policy import RESUME_CHANGEABLE
 
     params = init_params()
     opt_state = {"m": jnp.zeros(3)}
@@ -146,7 +146,7 @@ def test_single_updates_on_a_mesh_compile_once(tmp_path):
     """Updates one call at a time (the CPU path) on a device mesh: the first call's guard and
     sums are placed as the update returns them, so later calls reuse its program."""
     from conav_jax.parallel import make_mesh
-    from train.loop import _jitted
+    from conav_jax.train.loop import _jitted
 
     c = cfg(log_every=2)
     train(tmp_path / "run", linear_loss, init_params(), make_data(), c, CONFIG, compiler_options=FAST,

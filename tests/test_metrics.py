@@ -4,7 +4,7 @@ the metre version, CR up to the first reach and CR_full up to t_end."""
 import numpy as np
 import pytest
 
-from envs.metrics import episode_outcomes, path_weight, shortest_path_steps, summarize
+from conav_jax.envs.metrics import episode_outcomes, path_weight, shortest_path_steps, summarize
 
 NAMES = ("t_reach", "t_arrive", "t_end", "collided_before_reach", "collided", "shortest_path_steps",
          "geodesic_start_goal_m", "path_length_m")

@@ -11,9 +11,9 @@ import pytest
 
 pytest.importorskip("warp")
 
-from envs import ConavEnv, EnvConfig, PhysicsConfig, SensorConfig  # noqa: E402
-from envs import mjwarp_render  # noqa: E402
-from envs.mjcf import build_model  # noqa: E402
+from conav_jax.envs import ConavEnv, EnvConfig, PhysicsConfig, SensorConfig  # noqa: E402
+from conav_jax.envs import mjwarp_render  # noqa: E402
+from conav_jax.envs.mjcf import build_model  # noqa: E402
 
 # Tolerances on identical rays: both cast in float32, so depths differ by rounding: below 0.3 mm
 # on boxes and the floor, up to 1.6 mm where a ray grazes a capsule's silhouette (the root of a
@@ -80,7 +80,7 @@ def test_render_cameras_leave_the_env_model_alone(env):
 
 
 def test_bench_render_reports_both_renderers(tiny_data):
-    from envs.bench import bench_render
+    from conav_jax.envs.bench import bench_render
 
     small = ConavEnv(str(tiny_data), "val", EnvConfig(sensor=SensorConfig(height=16, width=64, kind="fast")))
     res = bench_render(small, batch=4, repeats=1, steps=1, rays=("panorama",), check_batch=4)
@@ -94,7 +94,7 @@ def test_bench_render_reports_both_renderers(tiny_data):
 
 
 def test_bench_render_command_line():
-    from eval.cli import build_parser
+    from conav_jax.eval.cli import build_parser
 
     args = build_parser().parse_args(["bench", "render", "--batch", "1024", "4096", "--resolution", "112x448",
                                       "--rays", "panorama", "--json"])

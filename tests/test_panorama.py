@@ -6,9 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.mjcf import UD
-from envs.panorama import (
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.mjcf import UD
+from conav_jax.envs.panorama import (
     NO_HIT_KEY,
     front_view,
     pack_depth_id,

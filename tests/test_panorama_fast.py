@@ -11,10 +11,10 @@ import pytest
 from mujoco import mjx
 from worlds import make_split
 
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.mjcf import UD
-from envs.panorama import SceneGeometry, caster_for, fast_depth_ids, reference_depth_ids
-from envs.panorama_pallas import pallas_depth_ids
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.mjcf import UD
+from conav_jax.envs.panorama import SceneGeometry, caster_for, fast_depth_ids, reference_depth_ids
+from conav_jax.envs.panorama_pallas import pallas_depth_ids
 
 RES = dict(height=16, width=64)
 T = 15  # the human walks along y = 2 through the middle of the hall

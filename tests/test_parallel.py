@@ -31,7 +31,7 @@ def _loop_losses(tmp: Path, mesh) -> dict:
     import jax.numpy as jnp
 
     from conav_jax.runs import read_log
-    from train.loop import TrainConfig, train
+    from conav_jax.train.loop import TrainConfig, train
 
     rng = np.random.default_rng(0)
     data = {"x": rng.normal(size=(32, 3)).astype(np.float32), "y": rng.normal(size=(32, 2)).astype(np.float32)}
@@ -59,9 +59,9 @@ def _evaluate_metrics(mesh) -> dict:
     each env rollout compiles for ~25 s here."""
     from worlds import make_split
 
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.agents.registry import make_agent
-    from envs.rollout import evaluate
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.agents.registry import make_agent
+    from conav_jax.envs.rollout import evaluate
 
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0)])
     env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
@@ -77,8 +77,8 @@ def _policy_updates(mesh) -> dict:
     from conav_jax.models import policy
     from conav_jax.models.policy import PolicyConfig
     from conav_jax.parallel import replicate
-    from train.imitation import bc_loss
-    from train.loop import TrainConfig, make_optimizer, make_single, make_update
+    from conav_jax.train.imitation import bc_loss
+    from conav_jax.train.loop import TrainConfig, make_optimizer, make_single, make_update
 
     pcfg = PolicyConfig(image_hw=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                         intention_dim=4, hidden=8)
@@ -123,8 +123,8 @@ def _recording(mesh) -> dict:
 
     from conav_jax.models import policy
     from conav_jax.models.policy import PolicyConfig
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from train import imitation as im
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.train import imitation as im
 
     pcfg = PolicyConfig(image_hw=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                         intention_dim=4, hidden=8)

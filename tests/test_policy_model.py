@@ -148,8 +148,8 @@ def test_default_config_builds_for_the_112x448_panorama():
 def _trained_policy_model(flag, monkeypatch, tmp_path):
     """(PolicyConfig, ImitationConfig) that `conav train policy ... --ablation object FLAG`
     hands to train.policy.train_policy (replaced by a recorder)."""
-    from eval.cli import build_parser
-    from train import policy as train_policy_mod
+    from conav_jax.eval.cli import build_parser
+    from conav_jax.train import policy as train_policy_mod
 
     seen = {}
 
@@ -195,7 +195,7 @@ def test_the_patch_encoder_reaches_the_conv_encoders_grid_with_a_patch_product_f
 def test_runs_store_the_strides_only_for_the_patch_encoder_and_read_them_back():
     import json
 
-    from envs.agents.policy import policy_config_from_dict
+    from conav_jax.envs.agents.policy import policy_config_from_dict
 
     assert "conv_strides" not in policy.config_dict(PolicyConfig())  # runs before the field resume
     patch = encoder_config(PolicyConfig(), "patch")
@@ -217,9 +217,9 @@ def _colour(rgb):
 
 
 def test_pixel_categories_read_each_category_colour_and_nothing_else():
-    from envs.conav_env import ROBOT_RGB
-    from envs.humanoid import capsule_colours
-    from envs.panorama import SKY_RGB
+    from conav_jax.envs.conav_env import ROBOT_RGB
+    from conav_jax.envs.humanoid import capsule_colours
+    from conav_jax.envs.panorama import SKY_RGB
 
     others = [_colour(WALL_RGB), _colour(FLOOR_RGB), SKY_RGB, ROBOT_RGB, *capsule_colours()]
     rgb = np.stack([_colour(c.rgb) for c in CATEGORIES] + [np.asarray(o, np.float32) for o in others])
@@ -300,7 +300,7 @@ def test_saliency_sectors_must_divide_the_width():
 
 
 def test_checkpoint_configs_from_before_the_saliency_channel_load_without_it():
-    from envs.agents.policy import policy_config_from_dict
+    from conav_jax.envs.agents.policy import policy_config_from_dict
 
     old = {k: v for k, v in dataclasses.asdict(CONFIG).items() if k != "object_saliency"}
     assert policy_config_from_dict(old).object_saliency is False
@@ -310,7 +310,7 @@ def test_checkpoint_configs_from_before_the_saliency_channel_load_without_it():
 @pytest.mark.parametrize("flag, saliency", [([], True), (["--no-object-saliency"], False)])
 def test_train_policy_flag_switches_the_saliency_channel_in_the_runs_model(flag, saliency, monkeypatch, tmp_path):
     from conav_jax.nav.expert import ExpertConfig
-    from train.policy import run_config
+    from conav_jax.train.policy import run_config
 
     model, imitation = _trained_policy_model(flag, monkeypatch, tmp_path)
     assert model.image_hw == (16, 64) and model.object_saliency is saliency
@@ -347,7 +347,7 @@ def test_the_goal_image_is_read_and_the_human_position_can_be_switched_off(param
 def test_runs_store_the_config_as_before_the_goal_inputs_and_read_both_back():
     import json
 
-    from envs.agents.policy import policy_config_from_dict
+    from conav_jax.envs.agents.policy import policy_config_from_dict
 
     old = {k: v for k, v in dataclasses.asdict(CONFIG).items() if k not in policy.LATER_FIELDS}
     assert policy.config_dict(CONFIG) == old  # what a run stores: so runs written before resume
@@ -407,7 +407,7 @@ def test_runs_store_conv_dtype_only_where_it_is_bfloat16_and_resume_only_with_th
     import json
 
     from conav_jax.checkpoints import load_checkpoint, save_checkpoint
-    from envs.agents.policy import policy_config_from_dict
+    from conav_jax.envs.agents.policy import policy_config_from_dict
 
     # A float32 run's model is stored as before the field existed, so runs written before it
     # resume, and a stored model without it loads as float32.

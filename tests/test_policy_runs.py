@@ -15,22 +15,22 @@ from test_imitation import BURN_IN, FAKE_TRAJECTORY, PCFG, SEQ, _fake_intention
 
 from conav_jax.models import policy
 from conav_jax.nav.expert import ExpertConfig
-from train import imitation as im
-from train.loop import TrainConfig
-from train.policy import ImitationConfig, train_policy
+from conav_jax.train import imitation as im
+from conav_jax.train.loop import TrainConfig
+from conav_jax.train.policy import ImitationConfig, train_policy
 
 
 def _hand_weights_back(monkeypatch) -> None:
     """Each round of train_policy "trains" by handing its weights back, with a validation of zeros
     (no update or validation compiled, for tests of what a run records)."""
-    from train import loop
+    from conav_jax.train import loop
 
     monkeypatch.setattr(loop, "train", lambda run_dir, loss, params, data, cfg, *a, **k: loop.TrainResult(
         params, None, cfg.steps, {m: 0.0 for m in ("FASR", "RASR", "CR", "AS")}, run_dir))
 
 
 def test_shared_recordings_are_linked_into_place_leaving_no_temp_files(tmp_path):
-    from train.policy import _link_or_copy
+    from conav_jax.train.policy import _link_or_copy
 
     (tmp_path / "entry.npz").write_bytes(b"windows")
     (tmp_path / "run").mkdir()
@@ -45,7 +45,7 @@ def test_shared_recordings_are_linked_into_place_leaving_no_temp_files(tmp_path)
 
 def test_a_broken_expert_cache_entry_is_named_with_the_way_out(tiny_data, tmp_path):
     from conav_jax.data.episodes import read_manifest
-    from train import policy as tp
+    from conav_jax.train import policy as tp
 
     data = tmp_path / "data"
     shutil.copytree(tiny_data, data, ignore=shutil.ignore_patterns(tp.EXPERT_CACHE_DIR))
@@ -64,7 +64,7 @@ def test_a_broken_expert_cache_entry_is_named_with_the_way_out(tiny_data, tmp_pa
 
 
 def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_batches(tiny_data, tmp_path, monkeypatch):
-    from train import policy as tp
+    from conav_jax.train import policy as tp
 
     # A lane holds a 32-step chunk, 16 steps of burn-in and twice the chunk's window (48 steps):
     # 144 steps of 112x448 records, 36.1 MB (uint8 RGB + float16 depth), 57.8 MB with a goal image.
@@ -139,7 +139,7 @@ def _another_run_recording(cache, aside):
     then the entry is back and the lock let go. Returns (the thread, the event)."""
     import threading
 
-    from train import policy as tp
+    from conav_jax.train import policy as tp
 
     (entry,) = cache.glob("round0_*.npz")
     aside.mkdir()
@@ -161,7 +161,7 @@ def _another_run_recording(cache, aside):
 
 
 def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_data, tmp_path, monkeypatch):
-    from train import policy as tp
+    from conav_jax.train import policy as tp
 
     data = tmp_path / "data"  # an expert cache of its own
     shutil.copytree(tiny_data, data, ignore=shutil.ignore_patterns(tp.EXPERT_CACHE_DIR))
@@ -228,7 +228,7 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
 
 
 def test_dagger_rounds_record_a_subset_of_their_own_and_older_runs_keep_their_config():
-    from train import policy as tp
+    from conav_jax.train import policy as tp
 
     eps = np.arange(10, 30)
     subset = ImitationConfig(dagger_episodes=5)

@@ -26,11 +26,11 @@ from conav_jax.checkpoints import (
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.optim import adam
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.agents.ppo import ppo_agent
-from envs.metrics import METRIC_NAMES
-from train import ppo
-from train.ppo import PPOConfig
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.agents.ppo import ppo_agent
+from conav_jax.envs.metrics import METRIC_NAMES
+from conav_jax.train import ppo
+from conav_jax.train.ppo import PPOConfig
 
 # On this 2-core CPU compile time dominates: without LLVM optimisation and XLA's fusion
 # emitters the env's graph compiles ~2.5x faster (same results, slower to run, which tiny runs

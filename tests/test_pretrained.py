@@ -9,7 +9,7 @@ import pytest
 
 from conav_jax import pretrained
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
-from eval.cli import _use_pretrained, build_parser
+from conav_jax.eval.cli import _use_pretrained, build_parser
 
 
 def test_the_shipped_runs_load_fit_the_size_limit_and_say_where_they_come_from():
@@ -22,7 +22,7 @@ def test_the_shipped_runs_load_fit_the_size_limit_and_say_where_they_come_from()
     assert policy.config["intention_run"] is None and policy.config["trajectory_run"] is None
     assert load_checkpoint(files[1]).config["kind"] == "intention"
     # Every predictor the policy reads is shipped beside it.
-    from envs.agents.policy import needed_predictors, policy_config_from_dict
+    from conav_jax.envs.agents.policy import needed_predictors, policy_config_from_dict
 
     model = policy_config_from_dict(policy.config["model"])
     assert set(runs) == {"policy", *needed_predictors(model)} and "trajectory" in runs
@@ -34,8 +34,8 @@ def test_the_shipped_runs_load_fit_the_size_limit_and_say_where_they_come_from()
 
 
 def test_the_shipped_conav_agent_builds_for_its_panorama_and_refuses_another(tiny_data):
-    from envs import ConavEnv, EnvConfig, SensorConfig
-    from envs.agents.registry import make_agent
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.agents.registry import make_agent
 
     runs = pretrained.pretrained_runs()
     env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=32, width=128)))
@@ -78,7 +78,7 @@ def test_pretrained_flag_names_the_shipped_runs_and_refuses_to_mix_with_others()
 
 
 def test_the_demo_evaluates_and_records_the_shipped_policy_unless_told_not_to(tmp_path):
-    from eval.demo import demo_commands
+    from conav_jax.eval.demo import demo_commands
 
     for pretrained_on in (True, False):
         commands = {argv[0]: argv for argv in demo_commands(tmp_path, 0, "16x64", pretrained_on)}

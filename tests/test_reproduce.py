@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from eval import cli
-from eval import reproduce as rp
+from conav_jax.eval import cli
+from conav_jax.eval import reproduce as rp
 
 METRICS = ("FASR", "RASR", "FASPL", "RASPL", "CR", "AS")
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from worlds import make_split
 
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.agents.registry import make_agent
-from envs.rollout import Agent, evaluate, make_evaluator
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.agents.registry import make_agent
+from conav_jax.envs.rollout import Agent, evaluate, make_evaluator
 
 T_ARRIVE, T_END = 140, 160  # the human walks from the fridge to the table in steps 70-140
 
@@ -72,8 +72,8 @@ def test_evaluate_rejects_bad_episode_lists(env, noisy_expert):
 def test_trace_step_reads_the_contacts_of_one_env_and_of_a_batch():
     from types import SimpleNamespace
 
-    from envs.mjcf import UD
-    from envs.rollout import trace_step
+    from conav_jax.envs.mjcf import UD
+    from conav_jax.envs.rollout import trace_step
 
     ud = np.zeros((3, len(UD)), np.float32)
     ud[1, UD["human_touch"]], ud[2, UD["wall_touch"]] = 1.0, 1.0
@@ -92,7 +92,7 @@ def test_trace_step_reads_the_contacts_of_one_env_and_of_a_batch():
 def test_compiled_rollouts_take_the_episode_bank_as_an_argument_not_as_constants(env, noisy_expert):
     import re
 
-    from envs.rollout import make_param_rollout
+    from conav_jax.envs.rollout import make_param_rollout
 
     run = make_param_rollout(env, lambda _: noisy_expert, 4)
     text = run.lower(None, jax.random.PRNGKey(0), jnp.arange(2, dtype=jnp.int32)).as_text()
@@ -107,7 +107,7 @@ def test_compiled_rollouts_take_the_episode_bank_as_an_argument_not_as_constants
 def test_sweeps_render_no_image_for_an_agent_that_reads_none(env, noisy_expert):
     """The expert reads no image: its compiled sweep holds no panorama-sized array, though the
     step traces the render (the observation is made for the agent and not carried over)."""
-    from envs.rollout import make_pool_rollout
+    from conav_jax.envs.rollout import make_pool_rollout
 
     h, w = env.config.sensor.height, env.config.sensor.width
     run = make_pool_rollout(env, lambda _: noisy_expert, slots=2)

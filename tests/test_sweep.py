@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from eval import sweep
-from eval.report import (
+from conav_jax.eval import sweep
+from conav_jax.eval.report import (
     bootstrap_interval,
     summarize_with_ci,
     table2_markdown,
@@ -76,7 +76,7 @@ def test_tables_are_laid_out_like_the_paper():
 
 
 def _args(*argv):
-    from eval.cli import build_parser
+    from conav_jax.eval.cli import build_parser
 
     return build_parser().parse_args(["eval", *argv])
 
@@ -123,8 +123,8 @@ def test_sweep_writes_records_metrics_report_and_figures(two_sweeps):
 
 
 def test_scripted_agents_share_one_compiled_rollout_with_their_own_results(two_sweeps):
-    from envs.agents.registry import make_agent
-    from envs.rollout import evaluate
+    from conav_jax.envs.agents.registry import make_agent
+    from conav_jax.envs.rollout import evaluate
 
     out = two_sweeps[0]
     env = next(iter(sweep._ENV_CACHE.values()))
@@ -188,7 +188,7 @@ def test_missing_dataset_is_a_clear_error(tmp_path):
 
 
 def test_learning_curve_pools_reach_rates_over_reset_cycles(tmp_path):
-    from eval.plots import learning_curve, pooled_reach_rate
+    from conav_jax.eval.plots import learning_curve, pooled_reach_rate
 
     # Iterations of 100 env steps: 2 of 4 episodes reached, then 0 of 1, 3 of 3, 1 of 2, and a
     # cut-off cycle's quick successes (dropped).

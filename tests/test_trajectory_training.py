@@ -15,9 +15,9 @@ from conav_jax.motion.phases import (
     PHASE_WALK,
 )
 from conav_jax.runs import read_log
-from envs.agents.predictors import load_trajectory_predictor
-from train.loop import TrainConfig, train
-from train.trajectory import (
+from conav_jax.envs.agents.predictors import load_trajectory_predictor
+from conav_jax.train.loop import TrainConfig, train
+from conav_jax.train.trajectory import (
     TrajectoryDataConfig,
     make_val_fn,
     run_config,
@@ -100,7 +100,7 @@ def test_predictor_works_in_the_callers_frame(curving_run):
 
 
 def test_cli_registers_the_trajectory_command():
-    from eval.cli import build_parser
+    from conav_jax.eval.cli import build_parser
 
     args = build_parser().parse_args(["train", "trajectory", "--data", "D", "--out", "R", "--steps", "7", "--lr", "0.5"])
     assert (args.data, args.out, args.steps, args.lr) == ("D", "R", 7, 0.5)

@@ -5,11 +5,11 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from eval import viewer
+from conav_jax.eval import viewer
 
 
 def _args(*argv):
-    from eval.cli import build_parser
+    from conav_jax.eval.cli import build_parser
 
     return build_parser().parse_args(["view", *argv])
 
@@ -76,7 +76,7 @@ def test_predictions_are_read_from_an_agents_carry():
     assert set(viewer.agent_predictions({"object_probs": 1, "future_traj": 2, "h": 3})) == {"object_probs", "future_traj"}
     assert set(viewer.agent_predictions(_Carry((), np.zeros(3)))) == {"activity_probs"}
     # The CoNav policy's carry holds what its predictors produced under `predicted`.
-    from envs.agents.policy import PolicyCarry
+    from conav_jax.envs.agents.policy import PolicyCarry
 
     carry = PolicyCarry((), None, {"future_traj": np.zeros((5, 2))})
     assert set(viewer.agent_predictions(carry)) == {"future_traj"}

@@ -16,10 +16,10 @@ pytest.importorskip("warp")
 from brax.envs.wrappers import training  # noqa: E402
 from worlds import make_split  # noqa: E402
 
-from envs import ConavEnv, EnvConfig, PhysicsConfig, SensorConfig  # noqa: E402
-from envs.config import resolve_physics_impl  # noqa: E402
-from envs.mjcf import UD  # noqa: E402
-from envs.rollout import Agent, make_pool_rollout  # noqa: E402
+from conav_jax.envs import ConavEnv, EnvConfig, PhysicsConfig, SensorConfig  # noqa: E402
+from conav_jax.envs.config import resolve_physics_impl  # noqa: E402
+from conav_jax.envs.mjcf import UD  # noqa: E402
+from conav_jax.envs.rollout import Agent, make_pool_rollout  # noqa: E402
 
 SMALL = SensorConfig(height=8, width=32)
 STEPS = 60
@@ -129,7 +129,7 @@ def test_lost_contacts_are_reported(hall):
 
 
 def test_physics_impl_resolves_and_is_checked(monkeypatch):
-    from eval.cli import parse_physics_override
+    from conav_jax.eval.cli import parse_physics_override
 
     assert resolve_physics_impl("jax") == "jax" and resolve_physics_impl("warp") == "warp"
     if jax.default_backend() == "cpu":

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from conav_jax.parallel import check_divisible, replicate
-from train.loop import TrainConfig, make_chunk, make_optimizer, make_update
+from conav_jax.train.loop import TrainConfig, make_chunk, make_optimizer, make_update
 
 DEFAULT_BATCH = {"trajectory": 4096, "intention": 256, "policy": 32}
 POLICY_SEQUENCE = 32  # time steps per policy sample (truncated BPTT length)
@@ -23,7 +23,7 @@ POLICY_SEQUENCE = 32  # time steps per policy sample (truncated BPTT length)
 
 def _trajectory_setup(key, batch: int, resolution):
     from conav_jax.models import trajectory as model
-    from train.trajectory import trajectory_loss
+    from conav_jax.train.trajectory import trajectory_loss
 
     config = model.TrajectoryConfig()
     k_p, k_h, k_f = jax.random.split(key, 3)
@@ -38,7 +38,7 @@ def _trajectory_setup(key, batch: int, resolution):
 
 def _intention_setup(key, batch: int, resolution):
     from conav_jax.models import perceiver
-    from train.intention import IntentionDataConfig, intention_loss
+    from conav_jax.train.intention import IntentionDataConfig, intention_loss
 
     config = perceiver.PerceiverConfig()
     frames = IntentionDataConfig.frames
@@ -62,7 +62,7 @@ def _policy_setup(key, batch: int, resolution, remat: bool = False, conv_dtype: 
     step in the loss) and its loss, train.imitation.bc_loss, with the CNN's convolutions in
     `conv_dtype` (PolicyConfig.conv_dtype) and the panorama encoder `encoder` (ENCODERS)."""
     from conav_jax.models import policy
-    from train.imitation import bc_loss
+    from conav_jax.train.imitation import bc_loss
 
     encoder = encoder or policy.DEFAULT_ENCODER
     config = policy.encoder_config(policy.PolicyConfig(image_hw=resolution, conv_dtype=conv_dtype), encoder)

@@ -26,10 +26,10 @@ from pathlib import Path
 
 from conav_jax import runs
 from conav_jax.models.policy import PolicyConfig, ablation_config
-from envs.agents.baselines import BaselineConfig, goal_planner_agent, objectgoal_planner_agent
-from envs.agents.goalnav import check_imagegoal_config, check_objectgoal_config, goal_view_sensor
-from train.loop import TrainConfig
-from train.policy import ImitationConfig, ImitationTask, PolicyResult, train_policy
+from conav_jax.envs.agents.baselines import BaselineConfig, goal_planner_agent, objectgoal_planner_agent
+from conav_jax.envs.agents.goalnav import check_imagegoal_config, check_objectgoal_config, goal_view_sensor
+from conav_jax.train.loop import TrainConfig
+from conav_jax.train.policy import ImitationConfig, ImitationTask, PolicyResult, train_policy
 
 
 def objectnav_model(image_hw: tuple[int, int], object_saliency: bool = True, base: PolicyConfig = PolicyConfig()) -> PolicyConfig:

@@ -26,17 +26,17 @@ from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nav.expert import ExpertConfig, initial_carry
 from conav_jax.parallel import replicate, shard_batch, to_host
-from envs.agents.base import Agent
-from envs.agents.expert import make_expert_step
-from envs.agents.goalnav import GOAL_IMAGE
-from envs.agents.policy import (
+from conav_jax.envs.agents.base import Agent
+from conav_jax.envs.agents.expert import make_expert_step
+from conav_jax.envs.agents.goalnav import GOAL_IMAGE
+from conav_jax.envs.agents.policy import (
     INTENTION_KEYS,
     PREDICTED,
     check_policy_env,
     make_policy_step,
 )
-from envs.conav_env import ConavEnv
-from envs.rollout import episode_batches, map_episodes
+from conav_jax.envs.conav_env import ConavEnv
+from conav_jax.envs.rollout import episode_batches, map_episodes
 
 # What a rollout records per step (besides the panorama, kept as "rgb" uint8 and "depth" f16,
 # and a goal sensor's "goal_image", kept as uint8 where there is one).

@@ -28,12 +28,12 @@ from conav_jax.models import perceiver
 from conav_jax.models.perceiver import PerceiverConfig
 from conav_jax.models.policy import categories_in_view
 from conav_jax.nav.navigation import line_of_sight
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.agents.predictors import VIEWS, FrameSpec, intention_frame, perceiver_config_from_run
-from envs.human_crop import human_crop
-from envs.panorama import front_view
-from envs.rollout import jit_with_bank
-from train.loop import TrainConfig, TrainResult, train
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.agents.predictors import VIEWS, FrameSpec, intention_frame, perceiver_config_from_run
+from conav_jax.envs.human_crop import human_crop
+from conav_jax.envs.panorama import front_view
+from conav_jax.envs.rollout import jit_with_bank
+from conav_jax.train.loop import TrainConfig, TrainResult, train
 
 KIND = runs.INTENTION
 

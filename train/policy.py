@@ -45,14 +45,14 @@ from conav_jax.models.policy import config_dict
 from conav_jax.nav.expert import ExpertConfig
 from conav_jax.parallel import check_divisible
 from conav_jax.runs import append_log
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.agents.base import NO_INTENTIONS
-from envs.agents.policy import intention_source, load_predictors, needed_predictors
-from envs.metrics import summarize
-from envs.rollout import jit_with_bank
-from train import imitation as im
-from train import loop
-from train.loop import TrainConfig
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.agents.base import NO_INTENTIONS
+from conav_jax.envs.agents.policy import intention_source, load_predictors, needed_predictors
+from conav_jax.envs.metrics import summarize
+from conav_jax.envs.rollout import jit_with_bank
+from conav_jax.train import imitation as im
+from conav_jax.train import loop
+from conav_jax.train.loop import TrainConfig
 
 KIND = runs.POLICY
 # ImitationConfig fields a resumed run may change: more DAgger rounds continue a finished run;
@@ -224,8 +224,8 @@ def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episod
     on them, from `intention_run`/`trajectory_run` or the runs it names) ->
     {"expert": ..., "policy": ...} of imitation.label_statistics, plus whether the data are
     those the run was trained on."""
-    from envs.agents.policy import load_policy_run
-    from envs.rollout import map_episodes
+    from conav_jax.envs.agents.policy import load_policy_run
+    from conav_jax.envs.rollout import map_episodes
 
     if episodes < 1 or (batch is not None and batch < 1):
         raise ValueError(f"episodes and batch must be at least 1, got {episodes} and {batch}")

@@ -44,7 +44,7 @@ from brax.envs.wrappers import training as brax_training
 from jax.sharding import Mesh
 from tqdm import tqdm
 
-import envs  # noqa: F401, I001  (first: registers 'conav' with brax, and imports mjx quietly)
+import conav_jax.envs  # noqa: F401, I001  (first: registers 'conav' with brax, and imports mjx quietly)
 from conav_jax import runs
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
 from conav_jax.models import policy
@@ -53,15 +53,15 @@ from conav_jax.nn.lstm import LSTMState
 from conav_jax.optim import Optimizer, adam, clip_by_global_norm
 from conav_jax.parallel import batch_sharding, check_divisible, replicated
 from conav_jax.runs import append_log, finite_or_none
-from envs import ConavEnv, EnvConfig, SensorConfig
-from envs.agents.policy import (
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.agents.policy import (
     check_policy_env,
     intention_source,
     load_policy_run,
     policy_agent_from_params,
 )
-from envs.metrics import summarize
-from envs.rollout import make_evaluator
+from conav_jax.envs.metrics import summarize
+from conav_jax.envs.rollout import make_evaluator
 
 KIND = runs.PPO
 LOG_2PI = math.log(2.0 * math.pi)

@@ -20,7 +20,7 @@ from conav_jax.data.episodes import load_split, read_manifest
 from conav_jax.models import trajectory as traj_model
 from conav_jax.models.trajectory import TrajectoryConfig
 from conav_jax.motion.phases import PHASE_WALK
-from train.loop import TrainConfig, TrainResult, train
+from conav_jax.train.loop import TrainConfig, TrainResult, train
 
 KIND = runs.TRAJECTORY
 

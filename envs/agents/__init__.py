@@ -8,6 +8,6 @@ by name, as `conav eval` and `conav view` build them). Training imports the piec
 (expert, policy); evaluation builds agents through the registry.
 """
 
-from envs.agents.base import Agent, row_title
+from conav_jax.envs.agents.base import Agent, row_title
 
 __all__ = ["Agent", "row_title"]

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from conav_jax.geometry import to_world, wrap_angle
 from conav_jax.nav.planning import cell_centres, descent_chain, field_value
-from envs.agents.base import (
+from conav_jax.envs.agents.base import (
     CANDIDATE_GOAL_POINTS,
     ORACLE_GOAL_CATEGORY,
     ORACLE_GOAL_POINT,
@@ -25,7 +25,7 @@ from envs.agents.base import (
     ORACLE_MOVES,
     Agent,
 )
-from envs.mjcf import UD
+from conav_jax.envs.mjcf import UD
 
 
 @dataclass(frozen=True)

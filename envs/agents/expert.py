@@ -20,14 +20,14 @@ from conav_jax.nav.expert import (
     expert_action,
     initial_carry,
 )
-from envs.agents.base import (
+from conav_jax.envs.agents.base import (
     FUTURE_HUMAN_POSITIONS,
     HUMAN_PHASE,
     ORACLE_GOAL_POINT,
     ORACLE_MAP,
     Agent,
 )
-from envs.mjcf import UD
+from conav_jax.envs.mjcf import UD
 
 
 def make_expert_step(env, cfg: ExpertConfig = ExpertConfig()) -> Callable:

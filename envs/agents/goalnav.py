@@ -31,7 +31,7 @@ from brax.envs.base import State
 
 from conav_jax import runs
 from conav_jax.models.policy import PolicyConfig
-from envs.agents.base import (
+from conav_jax.envs.agents.base import (
     HUMAN_VIEW_GOAL_IMAGE,
     NO_INTENTIONS,
     ORACLE_GOAL_CATEGORY,
@@ -39,9 +39,9 @@ from envs.agents.base import (
     PREDICTED,
     Agent,
 )
-from envs.agents.policy import check_policy_env, load_policy_run, make_policy_step
-from envs.mjcf import UD
-from envs.panorama import front_view
+from conav_jax.envs.agents.policy import check_policy_env, load_policy_run, make_policy_step
+from conav_jax.envs.mjcf import UD
+from conav_jax.envs.panorama import front_view
 
 OBJECTGOAL_TITLE = "Object-goal agent"
 IMAGEGOAL_TITLE = "Image-goal agent"
@@ -173,7 +173,7 @@ def objectgoal_agent(env, run_dir: str | Path, oracle: bool, intention_run: str 
     check_policy_env(env, cfg, name, NO_INTENTIONS)
     intention = None
     if not oracle:
-        from envs.agents.predictors import load_intention_predictor
+        from conav_jax.envs.agents.predictors import load_intention_predictor
 
         intention = load_intention_predictor(intention_run)
     return objectgoal_agent_from_params(params, cfg, env, intention)

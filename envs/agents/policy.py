@@ -21,7 +21,7 @@ from conav_jax import runs
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nn.lstm import LSTMState
-from envs.agents.base import (
+from conav_jax.envs.agents.base import (
     FUTURE_HUMAN_POSITIONS,
     GROUND_TRUTH,
     GROUND_TRUTH_INTENTIONS,
@@ -30,7 +30,7 @@ from envs.agents.base import (
     PREDICTED,
     Agent,
 )
-from envs.agents.predictors import load_intention_predictor, load_trajectory_predictor
+from conav_jax.envs.agents.predictors import load_intention_predictor, load_trajectory_predictor
 
 INTENTION_KEYS = ("activity_probs", "object_probs", "future_traj")
 # How to ask for each intention input on the command line, for error messages.

@@ -11,8 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from conav_jax import runs
-from envs.agents.base import Agent
-from envs.agents.policy import (
+from conav_jax.envs.agents.base import Agent
+from conav_jax.envs.agents.policy import (
     check_policy_env,
     load_policy_run,
     load_predictors,

@@ -27,9 +27,9 @@ from conav_jax.models import trajectory as traj_model
 from conav_jax.models.perceiver import PerceiverConfig
 from conav_jax.models.policy import categories_in_view
 from conav_jax.models.trajectory import TrajectoryConfig
-from envs.agents.base import ORACLE_SEGMENTATION
-from envs.human_crop import human_crop
-from envs.panorama import front_view
+from conav_jax.envs.agents.base import ORACLE_SEGMENTATION
+from conav_jax.envs.human_crop import human_crop
+from conav_jax.envs.panorama import front_view
 
 # What a Perceiver frame shows: "human", the panorama cropped around the human at its own
 # resolution; "front", the panorama's front quarter resized to the frame (runs from before

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Callable, NamedTuple
 
 from conav_jax import runs
-from envs.agents.base import Agent
+from conav_jax.envs.agents.base import Agent
 
 
 class AgentSpec(NamedTuple):
@@ -29,7 +29,7 @@ class AgentSpec(NamedTuple):
 
 def _baseline(name: str) -> Callable[..., Agent]:
     def build(env, checkpoint, **kwargs):
-        from envs.agents import baselines
+        from conav_jax.envs.agents import baselines
 
         return {"random": baselines.random_agent, "pioneer": baselines.pioneer_agent,
                 "pioneer-drive": baselines.pioneer_drive_agent,
@@ -39,26 +39,26 @@ def _baseline(name: str) -> Callable[..., Agent]:
 
 
 def _expert(env, checkpoint, **kwargs):
-    from envs.agents.expert import expert_agent
+    from conav_jax.envs.agents.expert import expert_agent
 
     return expert_agent(env, **kwargs)
 
 
 def _conav(env, checkpoint, **kwargs):
-    from envs.agents.policy import policy_agent
+    from conav_jax.envs.agents.policy import policy_agent
 
     return policy_agent(env, checkpoint, **kwargs)
 
 
 def _ppo(env, checkpoint, **kwargs):
-    from envs.agents.ppo import ppo_agent
+    from conav_jax.envs.agents.ppo import ppo_agent
 
     return ppo_agent(env, checkpoint, **kwargs)
 
 
 def _objectgoal(oracle: bool) -> Callable[..., Agent]:
     def build(env, checkpoint, **kwargs):
-        from envs.agents.goalnav import objectgoal_agent
+        from conav_jax.envs.agents.goalnav import objectgoal_agent
 
         return objectgoal_agent(env, checkpoint, oracle, **kwargs)
 
@@ -66,7 +66,7 @@ def _objectgoal(oracle: bool) -> Callable[..., Agent]:
 
 
 def _imagegoal(env, checkpoint, **kwargs):
-    from envs.agents.goalnav import imagegoal_agent
+    from conav_jax.envs.agents.goalnav import imagegoal_agent
 
     return imagegoal_agent(env, checkpoint, **kwargs)
 
@@ -124,7 +124,7 @@ def run_resolution(trained: list[tuple[str, str | Path]], resolution: tuple[int,
     resolution their policies were trained at (ValueError if they differ, or differ from a
     given `resolution`), else `resolution`, else SensorConfig's default. Reads only the runs'
     configs, so it is cheap enough for input checks."""
-    from envs.config import SensorConfig
+    from conav_jax.envs.config import SensorConfig
 
     found: dict[tuple[int, int], str] = {}
     for name, run in trained:
