@@ -1,0 +1,54 @@
+"""Provenance: what a number was made with, recorded beside it.
+
+Every run's config and every evaluation's metrics.json carry `provenance(...)`: the code's
+commit and whether the tree held uncommitted changes, the JAX version and the device, and the
+settings that change what a figure means (physics implementation, caster, materials, encoder,
+resolution). A resumed run may be continued by other code (the commit changes), so the run
+format compares configs without this block (`PROVENANCE_KEY`).
+"""
+
+from __future__ import annotations
+
+import functools
+import subprocess
+from pathlib import Path
+
+PROVENANCE_KEY = "provenance"
+UNKNOWN = "unknown"
+_REPO = Path(__file__).resolve().parents[1]
+
+
+@functools.lru_cache(maxsize=1)
+def git_state(repo: str | Path = _REPO) -> tuple[str, bool | None]:
+    """(commit hash, dirty) of the checkout holding this package; (UNKNOWN, None) outside one
+    (an installed wheel) or where git is missing. Dirty: tracked files differ from the commit."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, check=True,
+                              timeout=30).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "HEAD")
+        dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    except (OSError, subprocess.SubprocessError):
+        return UNKNOWN, None
+    return commit or UNKNOWN, dirty
+
+
+def device_description() -> dict:
+    """The default JAX backend's platform, device kind and device count, and the JAX version."""
+    import jax
+
+    devices = jax.devices()
+    return {"jax": jax.__version__, "platform": devices[0].platform, "device": devices[0].device_kind,
+            "device_count": len(devices)}
+
+
+def provenance(**settings) -> dict:
+    """The provenance block of a run or an evaluation: commit, dirty, JAX version and device,
+    plus `settings` (the env's resolved physics, caster, materials and resolution, from
+    `conav_jax.envs.config.env_settings`; a policy's encoder; ...), which override nothing above."""
+    commit, dirty = git_state()
+    clash = sorted(set(settings) & {"commit", "dirty", "jax", "platform", "device", "device_count"})
+    if clash:
+        raise ValueError(f"provenance settings may not replace {clash}")
+    return {"commit": commit, "dirty": dirty, **device_description(), **settings}

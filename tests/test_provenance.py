@@ -1,0 +1,38 @@
+"""conav_jax.provenance: the commit, dirtiness, JAX version and device recorded beside every
+run and evaluation."""
+
+import subprocess
+
+import jax
+import pytest
+
+from conav_jax.provenance import UNKNOWN, git_state, provenance
+
+
+def _git(repo, *args):
+    subprocess.run(["git", "-C", str(repo), *args], check=True, capture_output=True)
+
+
+def test_git_state_names_the_commit_and_sees_uncommitted_changes(tmp_path):
+    _git(tmp_path, "init", "-q")
+    (tmp_path / "a.txt").write_text("one")
+    _git(tmp_path, "add", "a.txt")
+    _git(tmp_path, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "one")
+    head = subprocess.run(["git", "-C", str(tmp_path), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    assert git_state.__wrapped__(tmp_path) == (head, False)
+    (tmp_path / "a.txt").write_text("two")
+    assert git_state.__wrapped__(tmp_path) == (head, True)
+
+
+def test_git_state_outside_a_checkout_is_unknown(tmp_path):
+    assert git_state.__wrapped__(tmp_path) == (UNKNOWN, None)
+
+
+def test_provenance_records_jax_device_and_settings():
+    block = provenance(caster="fast", resolution=[8, 32])
+    assert block["jax"] == jax.__version__ and block["platform"] == jax.devices()[0].platform
+    assert block["device_count"] == len(jax.devices())
+    assert block["caster"] == "fast" and block["resolution"] == [8, 32]
+    assert set(block) >= {"commit", "dirty"}
+    with pytest.raises(ValueError, match="commit"):
+        provenance(commit="made up")
