@@ -2,7 +2,9 @@
 
 `reset(rng)` draws an episode from the bank, `reset_to_episode(rng, index)` starts a given one
 (evaluation visits every episode exactly once this way), `step(state, action)` applies
-`(v_lin, v_ang)` in [-1, 1] for one control step. Everything that changes within an episode
+`(v_lin, v_ang)` in [-1, 1] for one control step (an oracle mover's pose goes through the separate,
+privileged `step_to_pose`), and `observe(state, keys)` computes the observation keys asked for
+(envs.observations). Everything that changes within an episode
 lives in the MJX data (`pipeline_state`): the robot's joints, the humanoid's mocap poses, and the
 step index and metric accumulators in `userdata` (layout: envs.mjcf.USERDATA_FIELDS). That is
 what lets brax's AutoResetWrapper, which restores only `pipeline_state` and `obs`, restart an
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+from typing import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -46,6 +49,7 @@ from conav_jax.envs import contact
 from conav_jax.envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
 from conav_jax.envs.config import EnvConfig, resolve_physics_impl, resolve_sensor_kind
 from conav_jax.envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_poses, quat_z_to
+from conav_jax.envs.observations import PRIVILEGED_KEYS, SENSOR_KEYS, observation
 from conav_jax.envs.mjcf import (
     UD,
     GeomLayout,
@@ -194,55 +198,71 @@ class ConavEnv(Env):
                       metrics=self._metrics(d, episode), info={"episode": episode})
         return self.observe(state) if observe else state
 
-    def observe(self, state: State) -> State:
-        """`state` with the observation of its data (the panorama and the poses), as `step` and
-        `reset_to_episode` return it."""
-        return state.replace(obs=self._observe(state.pipeline_state, state.info["episode"]))
+    def default_observation_keys(self) -> tuple[str, ...]:
+        """The keys `reset`/`step` observe (brax's interface, training): the sensors, and the
+        ground-truth intentions with `EnvConfig.intention_obs`. An agent in a rollout observes
+        only the keys it declares (envs.rollout)."""
+        return SENSOR_KEYS + (tuple(PRIVILEGED_KEYS) if self.config.intention_obs else ())
+
+    def observe(self, state: State, keys: Sequence[str] | None = None) -> State:
+        """`state` with the observation of its data: the keys `keys` (envs.observations; default
+        `default_observation_keys()`), and only those are computed (no panorama unless `rgbd` or
+        `front` is asked for). ValueError for an unknown key."""
+        keys = self.default_observation_keys() if keys is None else tuple(keys)
+        for k in keys:
+            observation(k)
+        return state.replace(obs=self._observe(state.pipeline_state, state.info["episode"], keys))
 
     def step(self, state: State, action: jax.Array, observe: bool = True) -> State:
-        """One control step. `action` (2,) = (v_lin, v_ang) in [-1, 1]; or (3,) = a pose (x m,
-        y m, yaw rad) the robot is put at before the step's physics (an oracle pathfinder's
-        move: privileged agents only; it counts in the path length, and contacts at the new
-        pose count as any other); or (6,) = (kind, v_lin, v_ang, x, y, yaw), kind 0 the
-        velocities, 1 the pose (one compiled rollout serving agents of both kinds,
-        envs.agents.base.switch_agent). Actions with a NaN (in the part used) act as zero (stay
-        put) and are counted.
+        """One control step. `action` (2,) = (v_lin, v_ang) in [-1, 1], clipped; an action with
+        a NaN acts as zero (stay put) and is counted. ValueError for any other shape: an oracle
+        mover's pose goes through `step_to_pose`.
 
         `observe=False` leaves the observation out (State.obs `{}`): a rollout that calls
         `observe` before its agent acts renders only what the agent reads (a loop-carried
         observation is computed whether read or not), once per step."""
         action = jnp.asarray(action)
-        if action.shape not in ((2,), (3,), (6,)):
-            raise ValueError("action must have shape (2,) = (v_lin, v_ang), (3,) = a pose (x, y, yaw) for oracle "
-                             f"movers, or (6,) = (kind, v_lin, v_ang, x, y, yaw), per environment; got {action.shape}")
+        if action.shape != (2,):
+            raise ValueError(f"action must have shape (2,) = (v_lin, v_ang) per environment, got {action.shape}; "
+                             "an oracle mover sets the pose with ConavEnv.step_to_pose")
+        return self._advance(state, action, None, False, observe)
+
+    def step_to_pose(self, state: State, pose: jax.Array, observe: bool = True, *,
+                     action: jax.Array | None = None, use_pose: jax.Array | bool = True) -> State:
+        """An oracle mover's control step (privileged: "pose set by an oracle pathfinder"): the
+        robot is put at `pose` (3,) = (x m, y m, yaw rad) before the step's physics, which then
+        stands still; the move counts in the path length, and contacts at the new pose count as
+        any other. A pose with a NaN keeps the robot where it is (counted). With `action` (2,)
+        velocities and a traced bool `use_pose`, the step does either (one compiled rollout
+        serving velocity and pose agents: envs.agents.base.switch_agent)."""
+        pose = jnp.asarray(pose)
+        if pose.shape != (3,) or (action is not None and jnp.shape(action) != (2,)):
+            raise ValueError(f"step_to_pose takes a pose (3,) = (x, y, yaw) and optionally velocities (2,), got "
+                             f"{pose.shape} and {None if action is None else jnp.shape(action)}")
+        velocity = jnp.zeros(2, pose.dtype) if action is None else jnp.asarray(action)
+        return self._advance(state, velocity, pose, use_pose, observe)
+
+    def _advance(self, state: State, velocity: jax.Array, pose: jax.Array | None, use_pose, observe: bool) -> State:
+        """The control step of `step` and `step_to_pose`: velocities (2,), or, where `use_pose`,
+        the robot put at `pose` (3,) first."""
         episode = state.info["episode"]
         b, task = self.bank, self.task
         d0 = state.pipeline_state
         ud0 = d0.userdata
         t = ud0[UD["t"]].astype(jnp.int32) + 1
-
-        def posed(pose_action, is_nan):  # put at the pose, then the physics of standing still
-            pose = jnp.where(is_nan, d0.qpos, pose_action.astype(d0.qpos.dtype))
-            return pose, jnp.zeros_like(d0.qvel)
-
-        def driven(velocity_action, is_nan):
-            a = jnp.clip(jnp.where(is_nan, 0.0, velocity_action), -1.0, 1.0)
-            return a[0] * task.v_max_mps, a[1] * task.w_max_radps
-
-        if action.shape == (6,):
-            is_pose, velocity_action, pose_action = action[0] > 0.5, action[1:3], action[3:]
-            is_nan = jnp.where(is_pose, jnp.any(jnp.isnan(pose_action)), jnp.any(jnp.isnan(velocity_action)))
-            qpos, qvel = posed(pose_action, is_nan)
-            v, w = driven(velocity_action, is_nan)
-            d_start = d0.replace(qpos=jnp.where(is_pose, qpos, d0.qpos), qvel=jnp.where(is_pose, qvel, d0.qvel))
-            v, w = jnp.where(is_pose, 0.0, v), jnp.where(is_pose, 0.0, w)
-        elif action.shape == (3,):
-            is_nan = jnp.any(jnp.isnan(action))
-            qpos, qvel = posed(action, is_nan)
-            d_start, v, w = d0.replace(qpos=qpos, qvel=qvel), 0.0, 0.0
+        v_nan = jnp.any(jnp.isnan(velocity))
+        a = jnp.clip(jnp.where(v_nan, 0.0, velocity), -1.0, 1.0)
+        v, w = a[0] * task.v_max_mps, a[1] * task.w_max_radps
+        if pose is None:
+            d_start, is_nan = d0, v_nan
         else:
-            is_nan = jnp.any(jnp.isnan(action))
-            d_start, (v, w) = d0, driven(action, is_nan)
+            p_nan = jnp.any(jnp.isnan(pose))
+            is_nan = jnp.where(use_pose, p_nan, v_nan)
+            # Put at the pose, then the physics of standing still.
+            qpos = jnp.where(use_pose & ~p_nan, pose.astype(d0.qpos.dtype), d0.qpos)
+            qvel = jnp.where(use_pose, jnp.zeros_like(d0.qvel), d0.qvel)
+            d_start = d0.replace(qpos=qpos, qvel=qvel)
+            v, w = jnp.where(use_pose, 0.0, v), jnp.where(use_pose, 0.0, w)
 
         m = self._episode_model(episode, d_start.qpos[:2])
         d = self._pose_human(d_start, episode, t)
@@ -436,28 +456,39 @@ class ConavEnv(Env):
         depth, ids = self.panorama(d, episode)
         return colourise(depth, ids, self._geom_rgb(episode)), ids
 
-    def _observe(self, d: mjx.Data, episode: jax.Array) -> dict[str, jax.Array]:
+    def _observe(self, d: mjx.Data, episode: jax.Array, keys: tuple[str, ...]) -> dict[str, jax.Array]:
+        """The observation keys `keys` (envs.observations) of data `d`, computing only those."""
         b, cfg = self.bank, self.config
         xy, yaw = d.qpos[:2], d.qpos[2]
         t = d.userdata[UD["t"]].astype(jnp.int32)
-        depth, ids = self.panorama(d, episode)
-        rgbd = colourise(depth, ids, self._geom_rgb(episode))
+        now = jnp.minimum(t, b.max_steps - 1)
         start = b.robot_start[episode]
-        gps = to_frame(xy, start[:2], start[2])
-        past = jnp.clip(t - jnp.arange(cfg.human_history_steps - 1, -1, -1), 0, b.max_steps - 1)
-        obs = {
+
+        def rgbd():
+            depth, ids = self.panorama(d, episode)
+            return colourise(depth, ids, self._geom_rgb(episode))
+
+        def steps(offsets):
+            return jnp.clip(t + offsets, 0, b.max_steps - 1)
+
+        def human_at(ts):
+            return to_frame(b.root_xy[episode, ts], xy, yaw)
+
+        sensors = {
             "rgbd": rgbd,
-            "front": front_view(rgbd),
-            "gps_compass": jnp.concatenate([gps, wrap_angle(yaw - start[2])[None]]),
-            "human_pos": to_frame(b.root_xy[episode, jnp.minimum(t, b.max_steps - 1)], xy, yaw),
-            "human_history": to_frame(b.root_xy[episode, past], xy, yaw),
+            "front": lambda: front_view(obs["rgbd"] if "rgbd" in obs else rgbd()),
+            "gps_compass": lambda: jnp.concatenate([to_frame(xy, start[:2], start[2]),
+                                                    wrap_angle(yaw - start[2])[None]]),
+            "human_pos": lambda: human_at(now),
+            "human_history": lambda: human_at(steps(-jnp.arange(cfg.human_history_steps - 1, -1, -1))),
+            "activity_probs": lambda: jax.nn.one_hot(b.activity_b[episode], NUM_ACTIVITIES),
+            "object_probs": lambda: jax.nn.one_hot(b.object_b[episode], NUM_CATEGORIES),
+            "future_traj": lambda: human_at(steps(1 + jnp.arange(cfg.future_steps))),
         }
-        if cfg.intention_obs:
-            future = jnp.clip(t + 1 + jnp.arange(cfg.future_steps), 0, b.max_steps - 1)
-            obs["activity_probs"] = jax.nn.one_hot(b.activity_b[episode], NUM_ACTIVITIES)
-            obs["object_probs"] = jax.nn.one_hot(b.object_b[episode], NUM_CATEGORIES)
-            obs["future_traj"] = to_frame(b.root_xy[episode, future], xy, yaw)
-        return obs
+        obs = {}
+        for k in sorted(keys, key=lambda k: k != "rgbd"):  # the panorama first: `front` cuts it
+            obs[k] = sensors[k]()
+        return {k: obs[k] for k in keys}
 
     def _metrics(self, d: mjx.Data, episode: jax.Array) -> dict[str, jax.Array]:
         """Per-episode accumulators plus the episode constants the metrics need (all scalars)."""

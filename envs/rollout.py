@@ -1,12 +1,13 @@
 """Batched rollouts: any agent through the env, `lax.scan` over time, `vmap` over episodes.
 
-An `Agent` (envs.agents.base) acts for ONE environment (the rollout vmaps it): `init(key, episode) -> carry` and
-`act(state, carry, key) -> (action (2,), carry)`, where `state` is the env's brax State, so an
-agent reads `state.obs` and, if it is privileged (an oracle baseline, the expert), the env's
-constants through a closure and `state.pipeline_state` / `state.info`. Learned agents close over
-their parameters. This module is what evaluation sweeps, DAgger and validation during training
-all run on. With a device mesh (conav_jax.parallel), each batch of episodes is split over
-the devices.
+An agent (envs.agents.base) acts for ONE environment (the rollout vmaps it): an observation-only
+`Agent` sees the observation keys it reads and nothing else; an internal `StateAgent` (an
+oracle baseline, the expert) the env's brax State with those keys, and the env's constants
+through a closure. Each step observes exactly what the agent reads (ConavEnv.observe), so what
+no agent reads is never computed. Oracle movers step through ConavEnv.step_to_pose, every other
+agent through ConavEnv.step. Learned agents close over their parameters. This module is what
+evaluation sweeps, DAgger and validation during training all run on. With a device mesh
+(conav_jax.parallel), each batch of episodes is split over the devices.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from conav_jax.parallel import (
     shard_batch,
     to_host,
 )
-from conav_jax.envs.agents.base import Agent
+from conav_jax.envs.agents.base import MIXED_ACTION_SIZE, Agent, StateAgent, as_state_agent
 from conav_jax.envs.conav_env import ConavEnv
 from conav_jax.envs.mjcf import UD
 
@@ -71,7 +72,7 @@ def jit_with_bank(env: ConavEnv, fn: Callable, **jit_kwargs) -> Callable:
     return run
 
 
-def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_steps: int, record: bool = False):
+def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent | StateAgent], num_steps: int, record: bool = False):
     """A jitted function (params, key, episodes (B,)) -> (final metrics dict of (B,), Trace | None)
     for the agent `agent_fn(params)` builds. The agent is built inside the trace, so new params
     of the same structure reuse the compiled rollout (an Agent closing over its params would
@@ -98,33 +99,45 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent], num_step
         # The start on its own: every carry leaf then enters the scan batched (for a partly
         # unbatched carry, vmap batches the scan's body, the whole env step, again until the
         # batched leaves settle: seconds of compile time).
-        agent = agent_fn(params)
+        agent = as_state_agent(agent_fn(params))
         start = jax.vmap(lambda episode: _start(env, agent, key, episode))(episodes)
         return jax.vmap(partial(one, agent))(start)
 
     return jit_with_bank(env, run)
 
 
-def agent_step(env: ConavEnv, agent: Agent, state: State, carry: Any, key: jax.Array):
+def agent_step(env: ConavEnv, agent: StateAgent, state: State, carry: Any, key: jax.Array):
     """One step of one env: `(state, agent carry, key) -> (state, action, carry)`, the states
     without their observation (ConavEnv.step's `observe=False`). The observation is made here,
-    for the agent to act on, and not carried to the next step: what the agent does not read
-    (an image, for most scripted agents) is never rendered, and an ended episode's image is not
-    kept. Rollouts start from `_start`'s state, which has none either."""
-    action, carry = agent.act(env.observe(state), carry, key)
-    return env.step(state, action, observe=False), action, carry
+    the keys the agent reads and no other, for the agent to act on, and not carried to the next
+    step: what the agent does not read (an image, for most scripted agents) is never rendered,
+    and an ended episode's image is not kept. Rollouts start from `_start`'s state, which has
+    none either. An oracle mover's pose goes through ConavEnv.step_to_pose."""
+    action, carry = agent.act(env.observe(state, agent.reads), carry, key)
+    return apply_action(env, agent, state, action), action, carry
 
 
-def _start(env: ConavEnv, agent: Agent, key: jax.Array, episode: jax.Array):
+def apply_action(env: ConavEnv, agent: StateAgent, state: State, action: jax.Array) -> State:
+    """`state` after `agent`'s `action`, without its observation: ConavEnv.step for velocities,
+    ConavEnv.step_to_pose for an oracle mover's pose (or switch_agent's mixed form)."""
+    if agent.action_size == 3:
+        return env.step_to_pose(state, action, observe=False)
+    if agent.action_size == MIXED_ACTION_SIZE:
+        return env.step_to_pose(state, action[3:], observe=False, action=action[1:3], use_pose=action[0] > 0.5)
+    return env.step(state, action, observe=False)
+
+
+def _start(env: ConavEnv, agent: StateAgent, key: jax.Array, episode: jax.Array):
     """(state without its observation, agent carry, step key) of `episode`'s start. Keys come
     from (key, episode) alone, and the agent's key at step i is fold_in(step key, i): an
     episode's result does not depend on the batch it runs in, its place there, or the device
     count."""
     k_init, k_run = jax.random.split(jax.random.fold_in(key, episode))
-    return env.reset_to_episode(k_init, episode, observe=False), agent.init(k_init, episode), k_run
+    state = env.reset_to_episode(k_init, episode, observe=False)
+    return state, agent.init(k_init, env.observe(state, agent.reads)), k_run
 
 
-def make_rollout(env: ConavEnv, agent: Agent, num_steps: int, record: bool = False):
+def make_rollout(env: ConavEnv, agent: Agent | StateAgent, num_steps: int, record: bool = False):
     """A jitted function (key, episodes (B,)) -> (final metrics dict of (B,), Trace | None):
     `make_param_rollout` for an agent without parameters (or closing over its own)."""
     run = make_param_rollout(env, lambda _: agent, num_steps, record)
@@ -217,7 +230,7 @@ class Pool(NamedTuple):
 
 def make_pool_rollout(
     env: ConavEnv,
-    agent_fn: Callable[[Any], Agent],
+    agent_fn: Callable[[Any], Agent | StateAgent],
     slots: int,
     chunk: int = 16,
     mesh: Mesh | None = None,
@@ -242,7 +255,7 @@ def make_pool_rollout(
         raise ValueError("slots and chunk must be at least 1, trace_steps at least 0")
 
     def run(params, key, queue, n):
-        agent = agent_fn(params)
+        agent = as_state_agent(agent_fn(params))
         q = queue.shape[0]
 
         def start(episodes):
@@ -291,7 +304,7 @@ def make_pool_rollout(
 
 def evaluate(
     env: ConavEnv,
-    agent: Agent,
+    agent: Agent | StateAgent,
     episodes: np.ndarray | None = None,
     batch: int = 256,
     seed: int = 0,
@@ -306,7 +319,7 @@ def evaluate(
 
 def make_evaluator(
     env: ConavEnv,
-    agent_fn: Callable[[Any], Agent],
+    agent_fn: Callable[[Any], Agent | StateAgent],
     batch: int = 256,
     seed: int = 0,
     mesh: Mesh | None = None,

@@ -48,29 +48,41 @@ def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, n
     import jax
     import jax.numpy as jnp
 
-    from conav_jax.envs.rollout import jit_with_bank
+    from conav_jax.envs.agents.base import as_state_agent
+    from conav_jax.envs.rollout import apply_action, jit_with_bank
 
     steps = int(env.split.episodes["t_end"][episode])
     ep = jnp.int32(episode)
-    carry_shape = jax.eval_shape(agent.init, jax.random.PRNGKey(0), ep)
+    agent = as_state_agent(agent)
+    keys = tuple(dict.fromkeys(("rgbd",) + env.default_observation_keys() + agent.reads))
+
+    def seen(state):  # (the frame's observation, the agent's: the keys it reads only)
+        full = env.observe(state, keys)
+        return full, full.replace(obs={k: full.obs[k] for k in agent.reads})
+
+    def start(key):
+        state = env.reset_to_episode(key, ep, observe=False)
+        return state, agent.init(key, seen(state)[1])
+
+    carry_shape = jax.eval_shape(start, jax.random.PRNGKey(0))[1]
     predicted = set(agent_predictions(carry_shape))
-    obs_keys = set(jax.eval_shape(env.reset_to_episode, jax.random.PRNGKey(0), ep).obs)
+    obs_keys = set(keys)
     sources = {k: "predicted" if k in predicted else "ground_truth" for k in PREDICTION_KEYS if k in predicted or k in obs_keys}
 
     def run(key):
         k_init, k_run = jax.random.split(key)
-        state = env.reset_to_episode(k_init, ep)
 
         def body(c, k):
             state, carry = c
-            action, carry = agent.act(state, carry, k)
+            full, mine = seen(state)
+            action, carry = agent.act(mine, carry, k)
             preds = agent_predictions(carry)
-            frame = {"pose": state.pipeline_state.qpos, "rgbd": state.obs["rgbd"], "done": state.done, "action": action}
+            frame = {"pose": state.pipeline_state.qpos, "rgbd": full.obs["rgbd"], "done": state.done, "action": action}
             for name, src in sources.items():
-                frame[name] = preds[name] if src == "predicted" else state.obs[name]
-            return (env.step(state, action), carry), frame
+                frame[name] = preds[name] if src == "predicted" else full.obs[name]
+            return (apply_action(env, agent, state, action), carry), frame
 
-        _, frames = jax.lax.scan(body, (state, agent.init(k_init, ep)), jax.random.split(k_run, steps + 1))
+        _, frames = jax.lax.scan(body, start(k_init), jax.random.split(k_run, steps + 1))
         return frames
 
     # The episode bank as an argument, not constants in the program (envs.rollout.jit_with_bank).

@@ -9,7 +9,7 @@ import pytest
 from worlds import ROOM, make_split
 
 from conav_jax.data.episodes import EpisodeSplit
-from conav_jax.envs.agents.base import row_title
+from conav_jax.envs.agents.base import as_state_agent, row_title
 from conav_jax.envs.agents.baselines import BaselineConfig
 from conav_jax.envs.agents.registry import check_agent, make_agent
 from conav_jax.envs.rollout import trace_step
@@ -53,7 +53,7 @@ def runs():
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 
     env = ConavEnv(episodes=_two_scene_split(), config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
-    agents = [make_agent(name, env) for name in BASELINES]
+    agents = [as_state_agent(make_agent(name, env)) for name in BASELINES]
 
     def one(episode, which, key):
         state = env.reset_to_episode(key, episode)
@@ -65,7 +65,7 @@ def runs():
             nxt = env.step(state, action)
             return (nxt, tuple(o[1] for o in outs)), (nxt.pipeline_state.qpos, action, trace_step(nxt, action).wall_contact)
 
-        carries = tuple(a.init(key, episode) for a in agents)
+        carries = tuple(a.init(key, state) for a in agents)
         (state, _), (poses, actions, walls) = jax.lax.scan(body, (state, carries), jax.random.split(key, T_END))
         start = env.reset_to_episode(key, episode).pipeline_state.qpos
         return jnp.concatenate([start[None], poses]), actions, {**state.metrics, "wall_contact": walls}
@@ -135,7 +135,7 @@ def test_unknown_agent_names_the_choices():
 
 def test_learned_agents_need_an_existing_run_dir(tmp_path):
     for name in ("conav", "ppo"):
-        with pytest.raises(ValueError, match=f"agent '{name}' needs a trained run: pass --checkpoint RUN_DIR"):
+        with pytest.raises(ValueError, match=f"agent '{name}' needs a trained run: pass its checkpoint"):
             check_agent(name, None)
         with pytest.raises(ValueError, match=f"checkpoint run directory not found for agent '{name}'"):
             check_agent(name, tmp_path / "missing")

@@ -10,7 +10,8 @@ from worlds import make_split
 
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 from conav_jax.envs.agents.registry import make_agent
-from conav_jax.envs.rollout import Agent, evaluate, make_evaluator
+from conav_jax.envs.agents.base import StateAgent
+from conav_jax.envs.rollout import evaluate, make_evaluator
 
 T_ARRIVE, T_END = 140, 160  # the human walks from the fridge to the table in steps 70-140
 
@@ -33,7 +34,7 @@ def noisy_expert(env):
         action, carry = expert.act(state, carry, key)
         return jnp.clip(action + 0.3 * jax.random.normal(key, (2,)), -1.0, 1.0), carry
 
-    return Agent("noisy_expert", expert.init, act)
+    return StateAgent("noisy_expert", expert.init, act)
 
 
 def test_refilled_lanes_match_full_length_batches(env, noisy_expert):
@@ -105,13 +106,13 @@ def test_compiled_rollouts_take_the_episode_bank_as_an_argument_not_as_constants
 
 
 def test_sweeps_render_no_image_for_an_agent_that_reads_none(env, noisy_expert):
-    """The expert reads no image: its compiled sweep holds no panorama-sized array, though the
-    step traces the render (the observation is made for the agent and not carried over)."""
+    """The expert reads no observation key: its sweep neither traces nor computes a panorama
+    (each step observes only the keys the agent reads)."""
     from conav_jax.envs.rollout import make_pool_rollout
 
     h, w = env.config.sensor.height, env.config.sensor.width
     run = make_pool_rollout(env, lambda _: noisy_expert, slots=2)
     lowered = run.lower(None, jax.random.PRNGKey(0), jnp.arange(3, dtype=jnp.int32), jnp.int32(3))
-    assert f"x{h}x{w}x4xf32>" in lowered.as_text()  # the observation is traced ...
+    assert f"x{h}x{w}x4xf32>" not in lowered.as_text()  # the render is not even traced ...
     compiled = lowered.compile().as_text()
-    assert f",{h},{w}]" not in compiled and f",{h},{w},4]" not in compiled  # ... and no image is computed
+    assert f",{h},{w}]" not in compiled and f",{h},{w},4]" not in compiled  # ... so no image is computed

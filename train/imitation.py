@@ -109,13 +109,14 @@ def _rollout_parts(env, policy_cfg, expert_cfg, *, record, num_steps=None, inten
         raise ValueError("record_predicted needs the predictor of every intention input the policy reads")
     if teacher is None:
         expert = make_expert_step(env, expert_cfg)
-        teacher_init, teacher_act = lambda key, episode: initial_carry(), lambda state, carry, key: expert(state, carry)
+        teacher_init, teacher_act = lambda key, state: initial_carry(), lambda state, carry, key: expert(state, carry)
     else:
         teacher_init, teacher_act = teacher.init, teacher.act
 
     def start(key, episode):
         k_reset, k_run = _episode_keys(key)
-        return (env.reset_to_episode(k_reset, episode), teacher_init(k_reset, episode), pol.init()), k_run
+        state = env.reset_to_episode(k_reset, episode)
+        return (state, teacher_init(k_reset, state), pol.init()), k_run
 
     def observe(state):
         return state.obs if goal_obs is None else {**state.obs, **goal_obs(state)}

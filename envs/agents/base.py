@@ -1,12 +1,19 @@
-"""The Agent interface every rollout runs, and what a benchmark row must say about an agent.
+"""What acts in the env: the public, observation-only `Agent`, the internal `StateAgent` of
+the simulator's privileged agents, and what a benchmark row must say about either.
 
-An `Agent` acts for ONE environment (rollouts vmap it): `init(key, episode) -> carry` and
-`act(state, carry, key) -> (action (2,), carry)`, where `state` is the env's brax State. A
-privileged agent reads the episode bank through `env.bank_view` (looked up as it acts), so that
-a compiled rollout can take the bank as an argument (envs.rollout.jit_with_bank). Beside
-the two functions it carries what a results table reports about it: a `title`, where its
-intention inputs come from (`intention_source`) and every privileged input it reads
-(`privileged`, from the names below). A row never hides an oracle: `row_title` spells them out.
+`Agent` (the contract a user writes, jittable, for ONE environment; rollouts vmap it):
+`init(key, obs) -> carry` and `act(carry, obs, key) -> (carry, action)`, `action` = (v_lin,
+v_ang) in [-1, 1]. `obs` holds exactly the observation keys the agent `reads`
+(envs.observations); a privileged key reaches only an agent that lists its privileged input.
+
+`StateAgent` (internal: the expert, the scripted baselines, the planners): `init(key, state)`
+and `act(state, carry, key) -> (action, carry)` read the env's brax State (its obs holds the
+keys the agent reads) and the episode bank through `env.bank_view` (looked up as it acts, so a
+compiled rollout can take the bank as an argument: envs.rollout.jit_with_bank). Every such read
+is named in `privileged`; an oracle mover (`action_size` 3, a pose) lists ORACLE_MOVES, and the
+rollout moves it with ConavEnv.step_to_pose. Both carry what a results table reports: a
+`title`, where intention inputs come from (`intention_source`) and every privileged input; a
+row never hides an oracle (`row_title`).
 """
 
 from __future__ import annotations
@@ -16,7 +23,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import jax
 import jax.numpy as jnp
 
-MIXED_ACTION_SIZE = 6  # ConavEnv.step's (kind, v_lin, v_ang, x, y, yaw)
+MIXED_ACTION_SIZE = 6  # switch_agent's (kind, v_lin, v_ang, x, y, yaw): kind 1 a pose
 
 # Where an agent's intention inputs (activity B, object B, future trajectory) come from.
 PREDICTED = "predicted"  # the intention and trajectory predictors' outputs
@@ -42,69 +49,141 @@ PRIVILEGED_INPUTS = (
 
 
 class Agent(NamedTuple):
+    """An agent that sees observations only (module docstring): a title, two jittable functions
+    and its declarations. `reads`: the observation keys it gets (default: every sensor, none
+    privileged); `privileged`: the privileged inputs it declares, from PRIVILEGED_INPUTS (a
+    privileged key in `reads` needs its input listed: envs.observations). `name`: a short
+    identifier for files and logs (default: the title)."""
+
+    title: str
+    init: Callable[[jax.Array, dict], Any]  # (key, obs) -> carry
+    act: Callable[[Any, dict, jax.Array], tuple[Any, jax.Array]]  # (carry, obs, key) -> (carry, action (2,))
+    reads: tuple[str, ...] | None = None  # None: the sensor keys (envs.observations.SENSOR_KEYS)
+    privileged: tuple[str, ...] = ()
+    name: str = ""
+    intention_source: str = NO_INTENTIONS
+    action_size: int = 2  # velocities only
+
+    def check(self) -> "Agent":
+        """This agent with its defaults filled in, after checking its declarations; ValueError
+        naming what is wrong."""
+        from conav_jax.envs.observations import SENSOR_KEYS
+
+        source = self.intention_source
+        if source == NO_INTENTIONS and GROUND_TRUTH_INTENTIONS in self.privileged:
+            source = GROUND_TRUTH  # an agent declaring the ground truth reads its intentions from it
+        agent = self._replace(name=self.name or self.title, title=self.title or self.name,
+                              reads=SENSOR_KEYS if self.reads is None else tuple(self.reads),
+                              privileged=tuple(self.privileged), intention_source=source)
+        if not agent.name:
+            raise ValueError("an agent needs a title")
+        if not callable(agent.init) or not callable(agent.act):
+            raise ValueError(f"agent {agent.name!r}: init and act must be functions")
+        if ORACLE_MOVES in agent.privileged:
+            raise ValueError(f"agent {agent.name!r}: an observation-only agent acts with velocities; "
+                             f"{ORACLE_MOVES!r} is for the simulator's own oracle movers")
+        return _check_declarations(agent)
+
+
+class StateAgent(NamedTuple):
+    """An internal agent reading the simulator's State (module docstring): privileged by design."""
+
     name: str
-    init: Callable[[jax.Array, jax.Array], Any]  # (key, episode index) -> carry
+    init: Callable[[jax.Array, Any], Any]  # (key, state) -> carry
     act: Callable[[Any, Any, jax.Array], tuple[jax.Array, Any]]  # (state, carry, key) -> (action, carry)
     title: str = ""  # the row name in reports (default: the name)
     intention_source: str = NO_INTENTIONS
     privileged: tuple[str, ...] = ()
+    reads: tuple[str, ...] = ()  # the observation keys its State's obs holds
     # 2: (v_lin, v_ang) velocity commands; 3: a pose (x, y, yaw) the env puts the robot at
-    # (ConavEnv.step), which only an oracle mover may do; MIXED_ACTION_SIZE: either, the kind
-    # first (switch_agent over agents of both kinds).
+    # (ConavEnv.step_to_pose), which only an oracle mover may do; MIXED_ACTION_SIZE: either, the
+    # kind first (switch_agent over agents of both kinds).
     action_size: int = 2
 
-    def check(self) -> "Agent":
+    def check(self) -> "StateAgent":
         """This agent, after checking its description; ValueError naming what is wrong."""
-        if self.intention_source not in INTENTION_SOURCES:
-            raise ValueError(f"agent {self.name!r}: intention_source must be one of {INTENTION_SOURCES}, "
-                             f"got {self.intention_source!r}")
-        unknown = [p for p in self.privileged if p not in PRIVILEGED_INPUTS]
-        if unknown:
-            raise ValueError(f"agent {self.name!r}: unknown privileged inputs {unknown}; known: {PRIVILEGED_INPUTS}")
-        if self.action_size not in (2, 3) or (self.action_size == 3) != (ORACLE_MOVES in self.privileged):
+        if self.action_size not in (2, 3, MIXED_ACTION_SIZE) or (self.action_size == 3) != (ORACLE_MOVES in self.privileged):
             raise ValueError(f"agent {self.name!r}: action_size is 2 (velocities) or 3 (poses, listing "
                              f"{ORACLE_MOVES!r} as privileged), got {self.action_size}")
-        if (self.intention_source == GROUND_TRUTH) != (GROUND_TRUTH_INTENTIONS in self.privileged):
-            raise ValueError(f"agent {self.name!r}: ground-truth intentions must be listed as privileged exactly "
-                             "when they are the intention source")
-        return self
+        return _check_declarations(self)
+
+
+def _check_declarations(agent):
+    """`agent` after checking its intention source, privileged inputs and observation keys."""
+    from conav_jax.envs.observations import undeclared_privileged
+
+    if agent.intention_source not in INTENTION_SOURCES:
+        raise ValueError(f"agent {agent.name!r}: intention_source must be one of {INTENTION_SOURCES}, "
+                         f"got {agent.intention_source!r}")
+    unknown = [p for p in agent.privileged if p not in PRIVILEGED_INPUTS]
+    if unknown:
+        raise ValueError(f"agent {agent.name!r}: unknown privileged inputs {unknown}; known: {PRIVILEGED_INPUTS}")
+    if (agent.intention_source == GROUND_TRUTH) != (GROUND_TRUTH_INTENTIONS in agent.privileged):
+        raise ValueError(f"agent {agent.name!r}: ground-truth intentions must be listed as privileged exactly "
+                         "when they are the intention source")
+    hidden = undeclared_privileged(agent.reads, agent.privileged)
+    if hidden:
+        raise ValueError(f"agent {agent.name!r} reads privileged observations without declaring them: " +
+                         ", ".join(f"{k} (privileged={p!r})" for k, p in hidden.items()))
+    return agent
+
+
+def as_state_agent(agent: Agent | StateAgent) -> StateAgent:
+    """`agent` as the rollouts run it: an observation-only Agent acting on its State's obs (which
+    holds the keys it reads, and nothing else); a StateAgent as it is."""
+    if isinstance(agent, StateAgent):
+        return agent
+    agent = agent.check()
+
+    def act(state, carry, key):
+        carry, action = agent.act(carry, state.obs, key)
+        return jnp.asarray(action), carry
+
+    return StateAgent(agent.name, lambda key, state: agent.init(key, state.obs), act, agent.title,
+                      agent.intention_source, agent.privileged, agent.reads)
 
 
 def _as_mixed_action(action: jax.Array) -> jax.Array:
-    """A velocity (2,) or pose (3,) action as ConavEnv.step's (6,) = (kind, v_lin, v_ang, x, y,
-    yaw), the unused part zero."""
+    """A velocity (2,) or pose (3,) action as (6,) = (kind, v_lin, v_ang, x, y, yaw), the unused
+    part zero (envs.rollout's `agent_step` steps it with ConavEnv.step_to_pose)."""
     if action.shape[-1] == 2:
         return jnp.concatenate([jnp.zeros_like(action[..., :1]), action, jnp.zeros((*action.shape[:-1], 3), action.dtype)], -1)
     return jnp.concatenate([jnp.ones_like(action[..., :1]), jnp.zeros_like(action[..., :2]), action], -1)
 
 
-def switch_agent(agents: Sequence[Agent], which: jax.Array) -> Agent:
-    """One Agent acting as `agents[which]` (`which` an int32 scalar, traced or not): a rollout
-    compiled once serves all of them, the agent chosen as data. Its carry holds every agent's;
-    under vmap over environments `which` stays one scalar, so only the chosen agent computes.
-    Agents of both action kinds (velocities and poses) together act in ConavEnv.step's mixed
-    (6,) form."""
-    agents = tuple(agents)
+def switch_agent(agents: Sequence[Agent | StateAgent], which: jax.Array) -> StateAgent:
+    """One StateAgent acting as `agents[which]` (`which` an int32 scalar, traced or not): a
+    rollout compiled once serves all of them, the agent chosen as data. Its carry holds every
+    agent's; under vmap over environments `which` stays one scalar, so only the chosen agent
+    computes. It observes what any of them reads, each seeing its own keys only. Agents of both
+    action kinds (velocities and poses) together act in the mixed (6,) form."""
+    agents = tuple(as_state_agent(a) for a in agents)
     if not agents:
         raise ValueError("switch_agent needs at least one agent")
     mixed = len({a.action_size for a in agents}) > 1
+    reads = tuple(dict.fromkeys(k for a in agents for k in a.reads))
 
-    def init(key, episode):
-        return tuple(a.init(key, episode) for a in agents)
+    def own(state, agent):
+        return state.replace(obs={k: state.obs[k] for k in agent.reads})
+
+    def init(key, state):
+        return tuple(a.init(key, own(state, a)) for a in agents)
 
     def act(state, carry, key):
         def branch(i):
             def run(carry):
-                action, own = agents[i].act(state, carry[i], key)
-                return _as_mixed_action(action) if mixed else action, carry[:i] + (own,) + carry[i + 1:]
+                action, mine = agents[i].act(own(state, agents[i]), carry[i], key)
+                return _as_mixed_action(action) if mixed else action, carry[:i] + (mine,) + carry[i + 1:]
             return run
 
         return jax.lax.switch(which, [branch(i) for i in range(len(agents))], carry)
 
-    return Agent("|".join(a.name for a in agents), init, act, action_size=MIXED_ACTION_SIZE if mixed else agents[0].action_size)
+    privileged = tuple(dict.fromkeys(p for a in agents for p in a.privileged if p != ORACLE_MOVES))
+    return StateAgent("|".join(a.name for a in agents), init, act, reads=reads, privileged=privileged,
+                      action_size=MIXED_ACTION_SIZE if mixed else agents[0].action_size)
 
 
-def row_title(agent: Agent) -> str:
+def row_title(agent: Agent | StateAgent) -> str:
     """The agent's title with where its intentions come from and every privileged input, e.g.
     "CoNav Agent (ground-truth intentions + oracle segmentation)" or "Object-goal planner
     (oracle goal category + oracle map)"."""
@@ -114,7 +193,7 @@ def row_title(agent: Agent) -> str:
     return f"{title} ({' + '.join(parts)})" if parts else title
 
 
-def describe(agent: Agent) -> dict:
+def describe(agent: Agent | StateAgent) -> dict:
     """What a results file records about an agent: name, row title, intention source, privileged inputs."""
     return {
         "agent": agent.name,

@@ -1,9 +1,9 @@
 """The paper's scripted Table 2 baselines, and our oracle object-goal planner, as Agents.
 
-Each acts for one environment and is jittable: it reads the brax state (robot pose in
-`pipeline_state.qpos`, observations, the episode index in `info`) and, where it is an oracle,
-the env's episode bank through a closure; every such read is named in the Agent's
-`privileged`. Data flow: state -> target direction (world, unit) -> `steer` -> action
+Each acts for one environment and is jittable. The random agent sees nothing (an
+observation-only Agent); the others are StateAgents: they read the brax state (robot pose in
+`pipeline_state.qpos`, the observation keys they declare, the episode index in `info`) and the
+env's episode bank through a closure; every such read is named in the agent's `privileged`. Data flow: state -> target direction (world, unit) -> `steer` -> action
 (v_lin, v_ang) in [-1, 1].
 """
 
@@ -24,6 +24,7 @@ from conav_jax.envs.agents.base import (
     ORACLE_MAP,
     ORACLE_MOVES,
     Agent,
+    StateAgent,
 )
 from conav_jax.envs.mjcf import UD
 
@@ -112,10 +113,10 @@ def _field_dir(env, cfg: BaselineConfig, scene: jax.Array, k: jax.Array, xy: jax
 def random_agent(env) -> Agent:
     """Uniform actions in [-1, 1]^2 from the step key."""
 
-    def act(state, carry, key):
-        return jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0), carry
+    def act(carry, obs, key):
+        return carry, jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0)
 
-    return Agent("random", lambda key, episode: (), act, title="Random Agent")
+    return Agent("Random Agent", lambda key, obs: (), act, reads=(), name="random")
 
 
 def _pioneer_target(env, cfg: BaselineConfig, state, carry) -> jax.Array:
@@ -141,13 +142,13 @@ def _check_history(env) -> None:
         raise ValueError("the pioneer needs human_history_steps >= 2 to estimate the human's velocity")
 
 
-def pioneer_agent(env, cfg: BaselineConfig | None = None) -> Agent:
+def pioneer_agent(env, cfg: BaselineConfig | None = None) -> StateAgent:
     """The paper's pioneer: the next waypoint from the human's current orientation and speed,
     and the robot translated to it by the oracle pathfinder.
 
     The waypoint is where the human will be in `pioneer_horizon_s`; the target is the scene
     object standing point nearest it (_pioneer_target), and the robot is put at that standing
-    pose at once (a pose action: ConavEnv.step), every step the target holds: privileged, it
+    pose at once (a pose action: ConavEnv.step_to_pose), every step the target holds: privileged, it
     never drives, and contacts at the poses it is put at count as any other. While the human
     has not moved it stays where it is. Carry: the target field index (int32, -1 none)."""
     cfg = cfg or BaselineConfig()
@@ -160,11 +161,11 @@ def pioneer_agent(env, cfg: BaselineConfig | None = None) -> Agent:
         scene = b.scene_index[state.info["episode"]]
         return jnp.where(k >= 0, b.field_stand[scene, jnp.maximum(k, 0)], state.pipeline_state.qpos), k
 
-    return Agent("pioneer", lambda key, episode: jnp.int32(-1), act, title="Pioneer Agent",
-                 privileged=(CANDIDATE_GOAL_POINTS, ORACLE_MOVES), action_size=3)
+    return StateAgent("pioneer", lambda key, state: jnp.int32(-1), act, title="Pioneer Agent",
+                      privileged=(CANDIDATE_GOAL_POINTS, ORACLE_MOVES), reads=("human_history",), action_size=3)
 
 
-def pioneer_drive_agent(env, cfg: BaselineConfig | None = None) -> Agent:
+def pioneer_drive_agent(env, cfg: BaselineConfig | None = None) -> StateAgent:
     """The pioneer that drives: the same target (_pioneer_target), reached by descending its
     geodesic field at full speed (the oracle map), so it obeys walls and speed limits; it waits
     (zero action) until the human first moves. Carry: the target field index (int32, -1 none)."""
@@ -179,11 +180,11 @@ def pioneer_drive_agent(env, cfg: BaselineConfig | None = None) -> Agent:
         k = _pioneer_target(env, cfg, state, carry)
         return steer(pose, _field_dir(env, cfg, scene, k, pose[:2]), 1.0, env, cfg), k
 
-    return Agent("pioneer-drive", lambda key, episode: jnp.int32(-1), act, title="Pioneer Agent, driving",
-                 privileged=(CANDIDATE_GOAL_POINTS, ORACLE_MAP))
+    return StateAgent("pioneer-drive", lambda key, state: jnp.int32(-1), act, title="Pioneer Agent, driving",
+                      privileged=(CANDIDATE_GOAL_POINTS, ORACLE_MAP), reads=("human_history",))
 
 
-def follower_agent(env, cfg: BaselineConfig | None = None) -> Agent:
+def follower_agent(env, cfg: BaselineConfig | None = None) -> StateAgent:
     """Human follower, after Habitat 3.0's social-navigation agent: keep ~1 m behind the human.
 
     Pursues the human's own path (the episode's root positions up to now: what `human_pos`
@@ -219,7 +220,7 @@ def follower_agent(env, cfg: BaselineConfig | None = None) -> Agent:
         direction = jnp.where(close, face, _pursue(env, cfg, b.scene_index[episode], xy, points))
         return steer(pose, direction, speed, env, cfg), carry
 
-    return Agent("follower", lambda key, episode: (), act, title="Human-following Agent", privileged=(ORACLE_MAP,))
+    return StateAgent("follower", lambda key, state: (), act, title="Human-following Agent", privileged=(ORACLE_MAP,))
 
 
 def nearest_instance(env, scene: jax.Array, category: jax.Array, xy: jax.Array) -> jax.Array:
@@ -231,7 +232,7 @@ def nearest_instance(env, scene: jax.Array, category: jax.Array, xy: jax.Array) 
     return jnp.argmin(values).astype(jnp.int32)
 
 
-def objectgoal_planner_agent(env, cfg: BaselineConfig | None = None, replan: bool = False) -> Agent:
+def objectgoal_planner_agent(env, cfg: BaselineConfig | None = None, replan: bool = False) -> StateAgent:
     """An object-goal planner with the oracle goal category and the oracle map: privileged, ours,
     not the paper's learned object-goal agent (envs.agents.goalnav: it reads only its camera,
     pose and the category, and imitates this planner).
@@ -248,8 +249,9 @@ def objectgoal_planner_agent(env, cfg: BaselineConfig | None = None, replan: boo
     cfg = cfg or BaselineConfig()
     b = env.bank_view
 
-    def init(key, episode):
+    def init(key, state):
         del key
+        episode = state.info["episode"]
         return nearest_instance(env, b.scene_index[episode], b.object_b[episode], b.robot_start[episode, :2])
 
     def act(state, carry, key):
@@ -261,11 +263,11 @@ def objectgoal_planner_agent(env, cfg: BaselineConfig | None = None, replan: boo
             carry = nearest_instance(env, scene, b.object_b[episode], pose[:2])
         return steer(pose, _field_dir(env, cfg, scene, carry, pose[:2]), 1.0, env, cfg), carry
 
-    return Agent("objectgoal-planner", init, act, title="Object-goal planner",
-                 privileged=(ORACLE_GOAL_CATEGORY, ORACLE_MAP))
+    return StateAgent("objectgoal-planner", init, act, title="Object-goal planner",
+                      privileged=(ORACLE_GOAL_CATEGORY, ORACLE_MAP))
 
 
-def goal_planner_agent(env, cfg: BaselineConfig | None = None) -> Agent:
+def goal_planner_agent(env, cfg: BaselineConfig | None = None) -> StateAgent:
     """The geodesic planner to the episode's goal itself (its standing point for activity B):
     descends the goal's field at full speed, ignoring the human. The image-goal agent's
     teacher (envs.agents.goalnav): where the goal image was taken is where it leads. Carry: none."""
@@ -278,5 +280,5 @@ def goal_planner_agent(env, cfg: BaselineConfig | None = None) -> Agent:
         episode = state.info["episode"]
         return steer(pose, _field_dir(env, cfg, b.scene_index[episode], b.field_b[episode], pose[:2]), 1.0, env, cfg), carry
 
-    return Agent("goal-planner", lambda key, episode: (), act, title="Goal planner",
-                 privileged=(ORACLE_GOAL_POINT, ORACLE_MAP))
+    return StateAgent("goal-planner", lambda key, state: (), act, title="Goal planner",
+                      privileged=(ORACLE_GOAL_POINT, ORACLE_MAP))

@@ -25,7 +25,7 @@ from conav_jax.envs.agents.base import (
     HUMAN_PHASE,
     ORACLE_GOAL_POINT,
     ORACLE_MAP,
-    Agent,
+    StateAgent,
 )
 from conav_jax.envs.mjcf import UD
 
@@ -48,10 +48,10 @@ def make_expert_step(env, cfg: ExpertConfig = ExpertConfig()) -> Callable:
     return step
 
 
-def expert_agent(env, cfg: ExpertConfig = ExpertConfig()) -> Agent:
-    """The expert as an Agent named "expert": the imitation teacher, and the ceiling a learned
+def expert_agent(env, cfg: ExpertConfig = ExpertConfig()) -> StateAgent:
+    """The expert as a StateAgent named "expert": the imitation teacher, and the ceiling a learned
     policy is measured against."""
     step = make_expert_step(env, cfg)
-    return Agent("expert", lambda key, episode: initial_carry(), lambda state, carry, key: step(state, carry),
+    return StateAgent("expert", lambda key, state: initial_carry(), lambda state, carry, key: step(state, carry),
                  title="Imitation expert",
-                 privileged=(ORACLE_GOAL_POINT, ORACLE_MAP, FUTURE_HUMAN_POSITIONS, HUMAN_PHASE))
+                      privileged=(ORACLE_GOAL_POINT, ORACLE_MAP, FUTURE_HUMAN_POSITIONS, HUMAN_PHASE))

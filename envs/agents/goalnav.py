@@ -3,7 +3,8 @@ and the image-goal agent (after FGPrompt), and the goal images they read.
 
 Both are the CoNav LSTM policy (conav_jax.models.policy) without the human's position, trained
 in the train scenes by imitation of a geodesic planner (train/goalnav.py), and neither reads a
-map. Data flow per step: state -> goal input -> envs.agents.policy's policy step -> action (2,).
+map. Data flow per step: observation (and, for the privileged goal inputs, the State) -> goal
+input -> envs.agents.policy's policy step -> action (2,).
 
 - Object-goal: panorama + GPS/compass + a goal category, given as a one-hot `object_probs`
   (read as a vector and, with the saliency channel, where its pixels are: oracle
@@ -38,8 +39,9 @@ from conav_jax.envs.agents.base import (
     ORACLE_SEGMENTATION,
     PREDICTED,
     Agent,
+    StateAgent,
 )
-from conav_jax.envs.agents.policy import check_policy_env, load_policy_run, make_policy_step
+from conav_jax.envs.agents.policy import check_policy_env, load_policy_run, make_policy_step, policy_reads
 from conav_jax.envs.mjcf import UD
 from conav_jax.envs.panorama import front_view
 
@@ -125,18 +127,23 @@ def check_objectgoal_config(cfg: PolicyConfig, source_name: str) -> None:
                          "intention input, and no goal image)")
 
 
-def objectgoal_agent_from_params(params, cfg: PolicyConfig, env, intention=None) -> Agent:
+def objectgoal_agent_from_params(params, cfg: PolicyConfig, env, intention=None) -> Agent | StateAgent:
     """The object-goal agent acting with these parameters: given the episode's object-B category
-    (`objectgoal-oracle`), or with an intention predictor the argmax of its object distribution,
-    re-read every step (`objectgoal-predicted`)."""
+    (`objectgoal-oracle`, a StateAgent reading it from the episode), or with an intention
+    predictor the argmax of its object distribution, re-read every step (`objectgoal-predicted`,
+    observation-only)."""
     check_objectgoal_config(cfg, "the policy")
     segmentation = (ORACLE_SEGMENTATION,) if cfg.uses_saliency else ()
     if intention is not None:
         pol = make_policy_step(cfg, category_predictor(intention))
-        return Agent("objectgoal-predicted", lambda key, episode: pol.init(),
-                     lambda state, carry, key: pol.step(params, state.obs, carry), title=OBJECTGOAL_TITLE,
-                     intention_source=PREDICTED,
-                     privileged=segmentation + tuple(p for p in intention.privileged if p not in segmentation)).check()
+
+        def act_on_obs(carry, obs, key):
+            action, carry = pol.step(params, obs, carry)
+            return carry, action
+
+        return Agent(OBJECTGOAL_TITLE, lambda key, obs: pol.init(), act_on_obs, reads=policy_reads(cfg, PREDICTED),
+                     privileged=segmentation + tuple(p for p in intention.privileged if p not in segmentation),
+                     name="objectgoal-predicted", intention_source=PREDICTED).check()
     b = env.bank_view
     pol = make_policy_step(cfg)  # reads obs["object_probs"]: the category, supplied below
 
@@ -145,12 +152,13 @@ def objectgoal_agent_from_params(params, cfg: PolicyConfig, env, intention=None)
         category = jax.nn.one_hot(b.object_b[state.info["episode"]], cfg.num_objects)
         return pol.step(params, {**state.obs, "object_probs": category}, carry)
 
-    return Agent("objectgoal-oracle", lambda key, episode: pol.init(), act, title=OBJECTGOAL_TITLE,
-                 intention_source=NO_INTENTIONS, privileged=(ORACLE_GOAL_CATEGORY,) + segmentation).check()
+    return StateAgent("objectgoal-oracle", lambda key, state: pol.init(), act, title=OBJECTGOAL_TITLE,
+                      intention_source=NO_INTENTIONS, privileged=(ORACLE_GOAL_CATEGORY,) + segmentation,
+                      reads=policy_reads(cfg, NO_INTENTIONS)).check()
 
 
 def objectgoal_agent(env, run_dir: str | Path, oracle: bool, intention_run: str | Path | None = None,
-                     trajectory_run: str | Path | None = None, ground_truth: bool = False) -> Agent:
+                     trajectory_run: str | Path | None = None, ground_truth: bool = False) -> Agent | StateAgent:
     """The latest policy of a `conav train objectnav` run as `objectgoal-oracle` (`oracle`: the
     episode's category) or `objectgoal-predicted` (the intention predictor of `intention_run`
     names it; a trajectory run is not read). Errors before anything compiles: FileNotFoundError
@@ -162,12 +170,12 @@ def objectgoal_agent(env, run_dir: str | Path, oracle: bool, intention_run: str 
     if not oracle:
         if ground_truth:
             raise ValueError("objectgoal-predicted reads its goal category from the intention predictor; the "
-                             "episode's own category is the objectgoal-oracle agent (no --ground-truth-intentions)")
+                             "episode's own category is the objectgoal-oracle agent (no ground_truth)")
         if intention_run is None:
             raise ValueError("objectgoal-predicted reads its goal category from an intention predictor: pass "
-                             "--intention RUN (a `conav train intention` run)")
+                             "intention_run (a `conav train intention` run)")
         if not Path(intention_run).is_dir():
-            raise ValueError(f"intention predictor run {intention_run} not found (--intention RUN)")
+            raise ValueError(f"intention predictor run {intention_run} not found (intention_run)")
     params, cfg, _ = load_policy_run(run_dir, runs.OBJECTNAV)
     check_objectgoal_config(cfg, name)
     check_policy_env(env, cfg, name, NO_INTENTIONS)
@@ -188,7 +196,7 @@ def check_imagegoal_config(cfg: PolicyConfig, source_name: str) -> None:
         raise ValueError(f"{source_name} is not an image-goal policy (it must read a goal image and no intention input)")
 
 
-def imagegoal_agent_from_params(params, cfg: PolicyConfig, env) -> Agent:
+def imagegoal_agent_from_params(params, cfg: PolicyConfig, env) -> StateAgent:
     """The image-goal agent acting with these parameters, given each step the goal image taken
     at the human's position (`human_view_sensor`)."""
     check_imagegoal_config(cfg, "the policy")
@@ -199,11 +207,12 @@ def imagegoal_agent_from_params(params, cfg: PolicyConfig, env) -> Agent:
         del key
         return pol.step(params, {**state.obs, **sensor(state)}, carry)
 
-    return Agent("imagegoal", lambda key, episode: pol.init(), act, title=IMAGEGOAL_TITLE,
-                 intention_source=NO_INTENTIONS, privileged=(HUMAN_VIEW_GOAL_IMAGE,)).check()
+    return StateAgent("imagegoal", lambda key, state: pol.init(), act, title=IMAGEGOAL_TITLE,
+                      intention_source=NO_INTENTIONS, privileged=(HUMAN_VIEW_GOAL_IMAGE,),
+                      reads=policy_reads(cfg, NO_INTENTIONS)).check()
 
 
-def imagegoal_agent(env, run_dir: str | Path) -> Agent:
+def imagegoal_agent(env, run_dir: str | Path) -> StateAgent:
     """The latest policy of a `conav train imagenav` run as the agent `imagegoal`. Errors as
     `objectgoal_agent`, before anything compiles."""
     name = f"imagenav run {run_dir}"

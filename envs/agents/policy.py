@@ -33,9 +33,10 @@ from conav_jax.envs.agents.base import (
 from conav_jax.envs.agents.predictors import load_intention_predictor, load_trajectory_predictor
 
 INTENTION_KEYS = ("activity_probs", "object_probs", "future_traj")
-# How to ask for each intention input on the command line, for error messages.
-PREDICTOR_FLAGS = {"intention": "--intention RUN", "trajectory": "--trajectory RUN"}
-GROUND_TRUTH_FLAG = "--ground-truth-intentions"
+# The arguments that give each predictor run, and ask for ground truth, for error messages
+# (the command line names its own flags for them).
+PREDICTOR_ARGS = {"intention": "intention_run", "trajectory": "trajectory_run"}
+GROUND_TRUTH_ARG = "ground_truth=True"
 
 
 class PolicyCarry(NamedTuple):
@@ -69,6 +70,17 @@ def policy_inputs(cfg: PolicyConfig) -> tuple[str, ...]:
             + tuple(k for k, use in zip(INTENTION_KEYS, on) if use) + (("goal_image",) if cfg.goal_image else ()))
 
 
+def policy_reads(cfg: PolicyConfig, source: str) -> tuple[str, ...]:
+    """The observation keys the policy's stepping reads when its intentions come from `source`:
+    its inputs (the intention ones only from the env's ground truth; no goal image, which its
+    agent supplies) and what its predictors read."""
+    keys = [k for k in policy_inputs(cfg) if k != "goal_image" and (k not in INTENTION_KEYS or source == GROUND_TRUTH)]
+    if source == PREDICTED:
+        keys += (["rgbd", "human_pos"] if cfg.use_activity or cfg.use_object else []) + (
+            ["human_history"] if cfg.use_trajectory else [])
+    return tuple(dict.fromkeys(keys))
+
+
 def needed_predictors(cfg: PolicyConfig) -> tuple[str, ...]:
     """The predictors ("intention", "trajectory") the policy's intention inputs need."""
     return (("intention",) if cfg.use_activity or cfg.use_object else ()) + (("trajectory",) if cfg.use_trajectory else ())
@@ -87,9 +99,9 @@ def intention_source(cfg: PolicyConfig, intention=None, trajectory=None) -> str:
         return GROUND_TRUTH
     missing = [k for k in needed if not given[k]]
     if missing:
-        flags = " and ".join(PREDICTOR_FLAGS[k] for k in missing)
+        args = " and ".join(PREDICTOR_ARGS[k] for k in missing)
         raise ValueError(f"the policy reads {' and '.join(needed)} predictions but no {' or '.join(missing)} "
-                         f"predictor is given ({flags}); it never mixes predictions with ground truth")
+                         f"predictor is given ({args}); it never mixes predictions with ground truth")
     return PREDICTED
 
 
@@ -140,8 +152,7 @@ def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None, recurre
 
 
 def check_policy_env(env, cfg: PolicyConfig, source_name: str, intention_source_: str) -> None:
-    """ValueError unless `env` renders the policy's resolution and, when the policy reads
-    ground-truth intentions, observes them."""
+    """ValueError unless `env` renders the policy's resolution."""
     hw = (env.config.sensor.height, env.config.sensor.width)
     if hw != tuple(cfg.image_hw):
         h, w = cfg.image_hw
@@ -149,10 +160,6 @@ def check_policy_env(env, cfg: PolicyConfig, source_name: str, intention_source_
             f"{source_name} was trained on {h}x{w} panoramas but the env renders {hw[0]}x{hw[1]}; "
             f"build the env with SensorConfig(height={h}, width={w})"
         )
-    if intention_source_ == GROUND_TRUTH and not env.config.intention_obs:
-        read = [k for k in policy_inputs(cfg) if k in INTENTION_KEYS]
-        raise ValueError(f"{source_name} reads ground-truth {', '.join(read)}; build the env with "
-                         "EnvConfig(intention_obs=True) or give the predictor runs")
 
 
 def privileged_inputs(cfg: PolicyConfig, source: str, intention=None) -> tuple[str, ...]:
@@ -174,13 +181,19 @@ def policy_agent_from_params(
     params, cfg: PolicyConfig, intention=None, trajectory=None, name: str = "conav", title: str = "CoNav Agent",
     recurrent: bool = True,
 ) -> Agent:
-    """An Agent acting with these policy parameters (closed over), its intention source and
-    privileged inputs recorded."""
+    """An observation-only Agent acting with these policy parameters (closed over), the keys it
+    reads, its intention source and privileged inputs recorded."""
     pol = make_policy_step(cfg, intention, trajectory, recurrent)
     if pol.source == NO_INTENTIONS:
         title = f"{title}, no intention inputs"
-    return Agent(name, lambda key, episode: pol.init(), lambda state, carry, key: pol.step(params, state.obs, carry),
-                 title=title, intention_source=pol.source, privileged=privileged_inputs(cfg, pol.source, intention)).check()
+
+    def act(carry, obs, key):
+        action, carry = pol.step(params, obs, carry)
+        return carry, action
+
+    return Agent(title, lambda key, obs: pol.init(), act, reads=policy_reads(cfg, pol.source),
+                 privileged=privileged_inputs(cfg, pol.source, intention), name=name,
+                 intention_source=pol.source).check()
 
 
 # -- agents from runs ----------------------------------------------------------------------------
@@ -214,11 +227,11 @@ def predictor_runs(cfg: PolicyConfig, source_name: str, named: dict, intention_r
     those `named` ({"intention_run": ..., "trajectory_run": ...}, from the policy run's config),
     only for the inputs the policy reads; (None, None) with `ground_truth`. ValueError, before
     anything is built, when a run the policy needs is missing and ground truth was not asked for
-    (the message names `--intention/--trajectory` and `--ground-truth-intentions`), when a named
+    (the message names the `intention_run` / `trajectory_run` and `ground_truth` arguments), when a named
     run directory does not exist, or when ground truth is asked for beside predictor runs."""
     if ground_truth:
         if intention_run is not None or trajectory_run is not None:
-            raise ValueError(f"{GROUND_TRUTH_FLAG} excludes --intention / --trajectory")
+            raise ValueError("ground_truth excludes intention_run / trajectory_run")
         return None, None
     out = {}
     for kind, given in (("intention", intention_run), ("trajectory", trajectory_run)):
@@ -229,11 +242,11 @@ def predictor_runs(cfg: PolicyConfig, source_name: str, named: dict, intention_r
         if run is None:
             raise ValueError(
                 f"{source_name} reads {kind} predictions and no {kind} predictor run is given: pass "
-                f"{PREDICTOR_FLAGS[kind]} (or {GROUND_TRUTH_FLAG} for the privileged upper bound)")
+                f"{PREDICTOR_ARGS[kind]} (or {GROUND_TRUTH_ARG} for the privileged upper bound)")
         if not Path(run).is_dir():
             origin = "given" if given is not None else f"named by {source_name}"
-            raise ValueError(f"{kind} predictor run {run} ({origin}) not found; pass {PREDICTOR_FLAGS[kind]} "
-                             f"or {GROUND_TRUTH_FLAG}")
+            raise ValueError(f"{kind} predictor run {run} ({origin}) not found; pass {PREDICTOR_ARGS[kind]} "
+                             f"or {GROUND_TRUTH_ARG}")
         out[kind] = str(run)
     return out["intention"], out["trajectory"]
 

@@ -1,0 +1,110 @@
+"""The library's interface for a user's own agent: an env, an agent of two functions, a benchmark.
+
+`make_env(data_dir, split, resolution, **config)` -> ConavEnv; an `Agent` (title, `init(key,
+obs) -> carry`, `act(carry, obs, key) -> (carry, action)`, the observation keys it reads and the
+privileged inputs it declares: envs.agents.base) -> `evaluate(env, agent)` runs every episode
+once (envs.rollout.evaluate) -> `Results`: per-episode records, the summary with 95% intervals
+(eval.report), and with `out_dir` the files `conav eval` writes for a row (episodes CSV,
+metrics.json, report.md with the paper's Table 2).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import weakref
+from pathlib import Path
+from typing import Any, NamedTuple, Sequence
+
+import numpy as np
+
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.agents.base import Agent, StateAgent, describe
+from conav_jax.envs.rollout import make_evaluator
+from conav_jax.eval.report import summarize_with_ci, table2_markdown
+from conav_jax.eval.sweep import episode_records, write_csv
+
+
+def make_env(data_dir: str | Path, split: str = "val", resolution: tuple[int, int] = (112, 448),
+             max_episodes: int | None = None, **config_overrides: Any) -> ConavEnv:
+    """The CoNav env over split `split` of the dataset at `data_dir` (written by `conav
+    generate`), rendering panoramas of `resolution` (H, W). `config_overrides` are EnvConfig
+    fields (e.g. `physics=PhysicsConfig(...)`, `end_at_reach=True`); a given `sensor` keeps its
+    other fields and takes `resolution`. `max_episodes`: load only the split's first episodes.
+    ValueError naming an unknown field."""
+    fields = {f.name for f in dataclasses.fields(EnvConfig)}
+    unknown = sorted(set(config_overrides) - fields)
+    if unknown:
+        raise ValueError(f"unknown EnvConfig fields {unknown}; known: {sorted(fields)}")
+    h, w = resolution
+    sensor = dataclasses.replace(config_overrides.pop("sensor", SensorConfig()), height=int(h), width=int(w))
+    return ConavEnv(data_dir, split, EnvConfig(sensor=sensor, **config_overrides), max_episodes=max_episodes)
+
+
+# Each env's evaluators by (agent, batch, seed, mesh): the same agent evaluated again (with
+# `out_dir`, or on other episodes) reuses its compiled rollout.
+_EVALUATORS: "weakref.WeakKeyDictionary[ConavEnv, dict]" = weakref.WeakKeyDictionary()
+
+
+class Results(NamedTuple):
+    """What `evaluate` returns. `summary`: {metric: {"value", "lo", "hi"}} (rates and SPLs in
+    percent, AS in steps; 95% intervals as eval.report makes them); `records`: one dict per
+    episode (the CSV rows of `conav eval`); `metrics`: the env's final metrics, arrays over
+    episodes (with "episode", the bank index); `agent`: the row's description (title with its
+    privileged inputs, intention source); `out_dir`: where the files went, or None."""
+
+    summary: dict[str, dict[str, float]]
+    records: list[dict]
+    metrics: dict[str, np.ndarray]
+    agent: dict
+    out_dir: Path | None = None
+
+
+def evaluate(env: ConavEnv, agent: Agent | StateAgent, batch: int = 256, seed: int = 0,
+             episodes: int | Sequence[int] | None = None, out_dir: str | Path | None = None, mesh=None) -> Results:
+    """Run `agent` once on each episode of `env` (all, the first `episodes` when an int, or the
+    given indices) on `batch` parallel lanes, keys from `seed` and the episode alone (the
+    numbers do not depend on the batch or device count; `mesh`: conav_jax.parallel.make_mesh),
+    and summarise. With `out_dir`, write `episodes_<name>.csv`, `metrics.json` and `report.md`
+    there. The same agent evaluated again on `env` reuses the compiled rollout. ValueError for
+    an env whose episodes end at the first reach (the benchmark runs them
+    to the human's end of activity B) or for an agent whose declarations do not hold."""
+    if env.config.end_at_reach:
+        raise ValueError("the benchmark runs episodes to t_end: build the env with end_at_reach=False")
+    if not isinstance(agent, (Agent, StateAgent)):
+        raise ValueError(f"evaluate needs a conav_jax.Agent, got {type(agent).__name__}")
+    agent = agent.check()
+    if isinstance(episodes, (int, np.integer)):
+        episodes = np.arange(min(int(episodes), env.num_episodes))
+    per_env = _EVALUATORS.setdefault(env, {})
+    if (agent, batch, seed, mesh) not in per_env:
+        per_env[agent, batch, seed, mesh] = make_evaluator(env, lambda _: agent, batch, seed, mesh)
+    metrics = per_env[agent, batch, seed, mesh](None, None if episodes is None else np.asarray(episodes))
+    given = describe(agent)
+    records = episode_records(env.split, metrics, given)
+    summary = summarize_with_ci(metrics, seed=seed)
+    out = None if out_dir is None else _write(Path(out_dir), env, given, records, summary, batch, seed)
+    return Results(summary, records, metrics, given, out)
+
+
+def _write(out: Path, env: ConavEnv, given: dict, records: list[dict], summary: dict, batch: int, seed: int) -> Path:
+    """The row's files in `out`: its episodes CSV, metrics.json and report.md."""
+    out.mkdir(parents=True, exist_ok=True)
+    key = re.sub(r"[^A-Za-z0-9_.-]+", "_", given["agent"])
+    write_csv(out / f"episodes_{key}.csv", records)
+    hw = f"{env.config.sensor.height}x{env.config.sensor.width}"
+    rounded = {m: {k: round(v, 4) for k, v in e.items()} for m, e in summary.items()}
+    doc = {"split": env.split.name, "episodes": len(records), "seed": seed,
+           "batch": batch, "resolution": hw, "agents": {key: {**given, "metrics": rounded}}}
+    (out / "metrics.json").write_text(json.dumps(doc, indent=1) + "\n")
+    privileged = ", ".join(given["privileged"]) or "none"
+    (out / "report.md").write_text("\n".join([
+        "# CoNav evaluation", "",
+        f"{len(records)} episodes (each run to the human's end of activity B); seed {seed}, batch {batch}, "
+        f"panorama {hw}.", "",
+        "## Agents (paper Table 2)", "",
+        table2_markdown([(given["title"], summary)]),
+        f"Intention inputs: {given['intention_source']}; privileged inputs: {privileged}. Rates and SPLs in "
+        "percent, AS in steps; `±` is half the width of the 95% interval (exact bounds in metrics.json).", ""]))
+    return out

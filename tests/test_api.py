@@ -1,0 +1,157 @@
+"""The public API (conav_jax.make_env, Agent, evaluate, OBSERVATIONS): the README's snippet runs,
+an agent sees exactly the observation keys it declares (privileged ones only when it declares
+their input), ConavEnv.step takes velocities only, user agents load from "module:factory", and
+the API and the command line import beside a user's own `train.py`, `eval.py` and `envs/`."""
+
+import os
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from worlds import make_split
+
+import conav_jax
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.agents.base import GROUND_TRUTH_INTENTIONS, row_title, switch_agent
+from conav_jax.envs.agents.registry import make_agent
+from conav_jax.envs.observations import OBSERVATION_KEYS, PRIVILEGED_KEYS, SENSOR_KEYS
+from conav_jax.envs.rollout import make_param_rollout
+
+ROOT = Path(__file__).resolve().parents[1]
+KEY = jax.random.PRNGKey(0)
+
+
+@pytest.fixture(scope="module")
+def hall():
+    split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi)])
+    return ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
+
+
+def _snippet() -> str:
+    text = (ROOT / "README.md").read_text()
+    found = re.search(r"<!-- snippet: evaluate-your-own-agent -->\s*```python\n(.*?)```\s*<!-- /snippet -->", text, re.S)
+    assert found, "README.md holds no evaluate-your-own-agent snippet"
+    return found.group(1)
+
+
+def test_readme_snippet_evaluates_an_agent(tiny_data, tmp_path, capsys):
+    code = _snippet().replace('"data/tiny"', repr(str(tiny_data)))
+    code = re.sub(r"resolution=\(\d+, \d+\)", "resolution=(8, 32)", code)
+    assert repr(str(tiny_data)) in code
+    scope = {}
+    exec(compile(code, "README.md", "exec"), scope)
+    env, results = scope["env"], scope["results"]
+    assert sorted(results.metrics["episode"]) == list(range(env.num_episodes)) == [r["episode"] for r in results.records]
+    fasr = results.summary["FASR"]
+    assert 0.0 <= fasr["lo"] <= fasr["value"] <= fasr["hi"] <= 100.0
+    assert repr(fasr["value"]) in capsys.readouterr().out
+    # Again with out_dir (the compiled rollout reused): the same numbers, and the files of a row.
+    agent = [v for v in scope.values() if isinstance(v, conav_jax.Agent)][0]
+    again = conav_jax.evaluate(env, agent, seed=0, out_dir=tmp_path)
+    assert again.summary == results.summary
+    report = (tmp_path / "report.md").read_text()
+    assert agent.title in report and "FASR" in report and (tmp_path / "metrics.json").exists()
+    assert len((tmp_path / f"episodes_{agent.title}.csv").read_text().splitlines()) == env.num_episodes + 1
+
+
+def test_the_api_and_command_line_import_beside_a_users_own_modules(tmp_path):
+    for name in ("train.py", "eval.py", "envs/__init__.py"):
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_text(f"raise RuntimeError('the user's own {name} was imported')\n")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    code = "import conav_jax; conav_jax.make_env, conav_jax.evaluate, conav_jax.OBSERVATIONS; import conav_jax.eval.cli"
+    for cmd in ([sys.executable, "-c", code], [str(Path(sys.executable).parent / "conav"), "--help"]):
+        proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+
+
+def test_step_refuses_anything_but_velocities(hall):
+    start = jax.eval_shape(lambda: hall.reset_to_episode(KEY, 0, observe=False))
+    for shape in ((3,), (6,), (1, 2)):
+        with pytest.raises(ValueError, match=r"action must have shape \(2,\).*step_to_pose"):
+            hall.step(start, jnp.zeros(shape))
+    with pytest.raises(ValueError, match=r"step_to_pose takes a pose \(3,\)"):
+        hall.step_to_pose(start, jnp.zeros(2))  # an oracle's pose goes through its own method
+
+
+def _spy(title, **declared):
+    """An Agent that stands still and records the observation keys init and act receive."""
+    seen = {}
+
+    def init(key, obs):
+        seen["init"] = set(obs)
+        return ()
+
+    def act(carry, obs, key):
+        seen["act"] = set(obs)
+        return carry, jnp.zeros(2)
+
+    return conav_jax.Agent(title, init, act, **declared), seen
+
+
+def _trace(env, agent_fn, params=None):
+    run = make_param_rollout(env, agent_fn, num_steps=2)
+    jax.eval_shape(run, params, KEY, jnp.arange(2, dtype=jnp.int32))
+
+
+def test_privileged_keys_reach_only_agents_that_declare_them(hall):
+    blind, blind_seen = _spy("blind")
+    told, told_seen = _spy("told", reads=("human_pos", "object_probs"), privileged=(GROUND_TRUTH_INTENTIONS,))
+    _trace(hall, lambda which: switch_agent([blind, told], which), jnp.int32(0))  # one rollout serving both
+    assert blind_seen["init"] == blind_seen["act"] == set(SENSOR_KEYS)
+    assert told_seen["init"] == told_seen["act"] == {"human_pos", "object_probs"}
+    assert row_title(told.check()) == "told (ground-truth intentions)" and row_title(blind.check()) == "blind"
+    sneaky, _ = _spy("sneaky", reads=("object_probs",))
+    with pytest.raises(ValueError, match=r"sneaky.*object_probs \(privileged='ground-truth intentions'\)"):
+        _trace(hall, lambda _: sneaky)
+    with pytest.raises(ValueError, match="unknown observation key 'map'"):
+        _trace(hall, lambda _: _spy("mapper", reads=("map",), privileged=("oracle map",))[0])
+
+
+def test_observation_table_matches_the_envs_observations(hall):
+    obs = jax.eval_shape(lambda: hall.observe(hall.reset_to_episode(KEY, 0, observe=False), OBSERVATION_KEYS)).obs
+    shapes = conav_jax.observation_shapes(hall.config)
+    assert set(obs) == {o.key for o in conav_jax.OBSERVATIONS} == set(shapes)
+    for o in conav_jax.OBSERVATIONS:
+        assert (obs[o.key].shape, obs[o.key].dtype) == (shapes[o.key], np.dtype(o.dtype)), o.key
+    assert {k: o.privileged for k, o in zip(OBSERVATION_KEYS, conav_jax.OBSERVATIONS) if o.privileged} == PRIVILEGED_KEYS
+    # brax's reset observes the sensors, and the ground truth only with intention_obs (training).
+    assert set(jax.eval_shape(hall.reset, KEY).obs) == set(SENSOR_KEYS) | set(PRIVILEGED_KEYS)
+    blind = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=hall.config.sensor, intention_obs=False))
+    assert set(jax.eval_shape(blind.reset, KEY).obs) == set(SENSOR_KEYS)
+
+
+def test_user_agents_load_from_module_and_factory(hall, tmp_path, monkeypatch):
+    (tmp_path / "my_agents.py").write_text(textwrap.dedent("""
+        import jax.numpy as jnp
+        import conav_jax
+
+        def act(carry, obs, key):
+            return carry, jnp.zeros(2)
+
+        def still(env):
+            return conav_jax.Agent("Standing still", lambda key, obs: (), act, reads=("gps_compass",))
+
+        def told():
+            return conav_jax.Agent("Told", lambda key, obs: (), act, reads=("object_probs",),
+                                   privileged=("ground-truth intentions",))
+
+        def not_an_agent(env):
+            return "still"
+    """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    still = make_agent("my_agents:still", hall)
+    assert (still.title, still.name, still.reads) == ("Standing still", "Standing still", ("gps_compass",))
+    assert row_title(make_agent("my_agents:told", hall)) == "Told (ground-truth intentions)"
+    for name, match in (("my_agents:not_an_agent", "returned str, not a conav_jax.Agent"),
+                        ("my_agents:missing", "has no 'missing'"),
+                        ("no_such_module_here:factory", "cannot import module 'no_such_module_here'"),
+                        ("my_agents:", "package.module:factory")):
+        with pytest.raises(ValueError, match=match):
+            make_agent(name, hall)
