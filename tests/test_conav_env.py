@@ -189,31 +189,31 @@ def test_a_pose_action_puts_the_robot_there_and_counts_the_move(hall):
     env, reset, step = hall
     target = np.append(np.asarray(goal_of(env.split)) - np.array([0.8, 0.0]), 0.5).astype(np.float32)
     s0 = reset(jax.random.PRNGKey(0), 3)
-    s1 = jax.jit(env.step)(s0, jnp.asarray(target))
+    s1 = jax.jit(env.step_to_pose)(s0, jnp.asarray(target))
     np.testing.assert_allclose(np.asarray(s1.pipeline_state.qpos), target, atol=1e-3)
     assert float(s1.metrics["t_reach"]) == 1.0
     moved = float(np.linalg.norm(target[:2] - np.asarray(s0.pipeline_state.qpos[:2])))
     assert float(s1.metrics["path_length_m"]) == pytest.approx(moved, abs=1e-3)
 
 
-def test_the_mixed_action_steps_as_the_velocity_or_the_pose_it_carries(hall):
-    """(kind, v_lin, v_ang, x, y, yaw): kind 0 is the (2,) step, kind 1 the (3,) step; a NaN
-    counts only in the part the kind uses."""
+def test_a_pose_step_given_velocities_steps_as_the_one_it_is_told(hall):
+    """step_to_pose(pose, action=velocities, use_pose): the pose step where use_pose, else the
+    velocity step; a NaN counts only in the part used."""
     env, reset, _ = hall
-    step = jax.jit(env.step)
+    either = jax.jit(lambda s, v, p, use: env.step_to_pose(s, p, action=v, use_pose=use))
+    step, to_pose = jax.jit(env.step), jax.jit(env.step_to_pose)
     s0 = reset(jax.random.PRNGKey(0), 3)
     target = np.append(np.asarray(goal_of(env.split)) - np.array([0.8, 0.0]), 0.5).astype(np.float32)
     velocity = np.array([0.7, -0.3], np.float32)
-    pairs = [(np.concatenate([[0.0], velocity, [np.nan] * 3]), velocity),
-             (np.concatenate([[1.0], [np.nan] * 2, target]), target),
-             (np.array([0.0, np.nan, 0.2, 1.0, 1.0, 1.0], np.float32), np.array([np.nan, 0.2], np.float32)),
-             (np.concatenate([[1.0], velocity, [np.nan, 1.0, 1.0]]), np.array([np.nan, 1.0, 1.0], np.float32))]
-    for mixed, plain in pairs:
-        a, b = step(s0, jnp.asarray(mixed, jnp.float32)), step(s0, jnp.asarray(plain))
+    cases = [(velocity, np.full(3, np.nan), False), (np.full(2, np.nan), target, True),
+             (np.array([np.nan, 0.2]), np.ones(3), False), (velocity, np.array([np.nan, 1.0, 1.0]), True)]
+    for v, p, use in cases:
+        v, p = jnp.asarray(v, jnp.float32), jnp.asarray(p, jnp.float32)
+        a, b = either(s0, v, p, jnp.bool_(use)), to_pose(s0, p) if use else step(s0, v)
         np.testing.assert_allclose(np.asarray(a.pipeline_state.qpos), np.asarray(b.pipeline_state.qpos), atol=1e-6)
         for key in ("nan_actions", "path_length_m", "t_reach"):
-            assert float(a.metrics[key]) == pytest.approx(float(b.metrics[key]), abs=1e-6), (mixed, key)
-    assert float(step(s0, jnp.asarray(pairs[0][0], jnp.float32)).metrics["nan_actions"]) == 0.0
+            assert float(a.metrics[key]) == pytest.approx(float(b.metrics[key]), abs=1e-6), (use, key)
+    assert float(either(s0, jnp.asarray(velocity), jnp.full(3, jnp.nan), jnp.bool_(False)).metrics["nan_actions"]) == 0.0
 
 
 def test_gps_compass_and_human_position_frames(hall):

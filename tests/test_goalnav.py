@@ -161,7 +161,7 @@ def test_the_object_goal_teacher_descends_to_the_nearest_instance_from_where_the
 
     @jax.jit
     def run(x, yaw):
-        start = planner.init(key, jnp.int32(0))
+        start = planner.init(key, state(3.5, 0.0))
         (action, chosen), (_, kept) = (teacher.act(state(x, yaw), start, key), planner.act(state(x, yaw), start, key))
         return start, action, chosen, kept
 
@@ -219,7 +219,7 @@ def _fake_state(episode: int, t: int, category: int = FRIDGE):
 def test_the_oracle_category_comes_from_the_episode(hall, trained, agents):
     params = trained.params["objectnav"]
     agent, state = agents["objectgoal-oracle"], _fake_state(0, 5, category=FRIDGE)
-    action, _ = agent.act(state, agent.init(jax.random.PRNGKey(0), 0), jax.random.PRNGKey(0))
+    action, _ = agent.act(state, agent.init(jax.random.PRNGKey(0), state), jax.random.PRNGKey(0))
     pol = make_policy_step(OBJ)
     table, fridge = (pol.step(params, {**state.obs, "object_probs": jax.nn.one_hot(c, 51)}, pol.init())[0]
                      for c in (TABLE, FRIDGE))
@@ -231,10 +231,11 @@ def test_the_predicted_category_is_the_predictors_argmax_every_step(trained):
     params = trained.params["objectnav"]
     agent = objectgoal_agent_from_params(params, OBJ, None, _category_predictor(FRIDGE, TABLE))
     pol = make_policy_step(OBJ)
-    carry, named = agent.init(jax.random.PRNGKey(0), 0), []
+    assert "object_probs" not in agent.reads  # the truth never reaches it
+    carry, named = agent.init(jax.random.PRNGKey(0), {}), []
     for t in range(4):
-        state = _fake_state(0, t, category=TABLE)  # the truth is never read
-        action, carry = agent.act(state, carry, jax.random.PRNGKey(t))
+        state = _fake_state(0, t, category=TABLE)
+        carry, action = agent.act(carry, state.obs, jax.random.PRNGKey(t))
         one_hot = np.asarray(carry.predicted["object_probs"])
         named.append(int(one_hot.argmax()))
         assert one_hot.sum() == 1.0 and one_hot.max() == 1.0
@@ -254,7 +255,7 @@ def test_the_image_goal_agent_sees_an_image_rendered_at_the_humans_position(hall
     monkeypatch.setattr(env, "render_at", render_at)
     b = env.bank
     for t in (0, T_ARRIVE):  # 1.5 m from the goal, then at it
-        agent.act(_fake_state(2, t), agent.init(jax.random.PRNGKey(0), 2), jax.random.PRNGKey(0))
+        agent.act(_fake_state(2, t), agent.init(jax.random.PRNGKey(0), _fake_state(2, t)), jax.random.PRNGKey(0))
         episode, pose, at = seen[-1]
         assert (episode, at) == (2, t)
         np.testing.assert_allclose(pose[:2], b.root_xy[2, t], atol=1e-6)  # where the human is
@@ -278,7 +279,7 @@ def test_goal_runs_load_through_the_registry_and_eval_takes_a_run_per_agent(hall
              for name in ("objectgoal-oracle", "imagegoal")}
     assert built["objectgoal-oracle"].privileged == ("oracle goal category", "oracle segmentation")
     assert built["imagegoal"].privileged == ("goal image from the human's position",)
-    with pytest.raises(ValueError, match="pass --intention RUN"):
+    with pytest.raises(ValueError, match="pass intention_run"):
         make_agent("objectgoal-predicted", env, run_dirs["objectnav"])
     with pytest.raises(ValueError, match="objectgoal-oracle agent"):
         make_agent("objectgoal-predicted", env, run_dirs["objectnav"], ground_truth=True)

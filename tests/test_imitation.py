@@ -347,7 +347,7 @@ def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0,
     with pytest.raises(ValueError, match="needs the predictor of every intention input"):
         im.make_rollout_fn(hall.env, PCFG, record_predicted=True)
     # A policy never reads predictions for one input and ground truth for another.
-    with pytest.raises(ValueError, match=r"no intention predictor is given \(--intention RUN\)"):
+    with pytest.raises(ValueError, match=r"no intention predictor is given \(intention_run\)"):
         im.make_rollout_fn(hall.env, PCFG, trajectory=FAKE_TRAJECTORY, record_predicted=True)
     # `conav train policy --train-intentions predicted` names the missing predictor runs up front.
     with pytest.raises(ValueError, match="predictor runs --intention, --trajectory"):
@@ -391,7 +391,7 @@ def test_policy_agent_runs_in_evaluate_with_ground_truth_only_when_asked(hall, t
 
 def test_the_conav_agent_refuses_to_run_without_predictors(hall, trained):
     # The run names no predictor runs and none are given: no silent ground truth.
-    with pytest.raises(ValueError, match="pass --intention RUN \\(or --ground-truth-intentions"):
+    with pytest.raises(ValueError, match="pass intention_run \\(or ground_truth=True"):
         policy_agent(hall.env, trained.run)
 
 
@@ -410,7 +410,8 @@ def test_at_evaluation_the_policy_reads_the_predictors_outputs_not_the_truth(hal
 
     @functools.partial(jax.jit, compiler_options=FAST)
     def act(state):
-        action, carry = agent.act(state, agent.init(jax.random.PRNGKey(0), 0), jax.random.PRNGKey(1))
+        obs = {k: state.obs[k] for k in agent.reads}
+        carry, action = agent.act(agent.init(jax.random.PRNGKey(0), obs), obs, jax.random.PRNGKey(1))
         inputs, _ = pol.predict(state.obs, pol.init())
         expected, _ = pol.act(trained.params, inputs, pol.init())
         truth, _ = truth_pol.step(trained.params, state.obs, truth_pol.init())
@@ -438,9 +439,11 @@ def test_policy_agent_rejects_wrong_runs_before_compiling(hall, trained, tmp_pat
     wide = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=SensorConfig(height=16, width=64)))
     with pytest.raises(ValueError, match="8x32 panoramas but the env renders 16x64"):
         policy_agent(wide, trained.run, ground_truth=True)
+    # The ground truth is read only by declaring it, whatever the env's brax observation holds.
     blind = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=SMALL.sensor, intention_obs=False))
-    with pytest.raises(ValueError, match="intention_obs=True"):
-        policy_agent(blind, trained.run, ground_truth=True)
+    truth = policy_agent(blind, trained.run, ground_truth=True)
+    assert {"activity_probs", "object_probs", "future_traj"} <= set(truth.reads)
+    assert truth.privileged[:2] == ("ground-truth intentions", "future human positions")
 
 
 def test_predictor_runs_default_to_the_ones_the_policy_run_names(tmp_path):
@@ -454,7 +457,7 @@ def test_predictor_runs_default_to_the_ones_the_policy_run_names(tmp_path):
     # An ablation that reads no trajectory needs no trajectory run, named or not.
     no_traj = dataclasses.replace(PCFG, use_trajectory=False)
     assert predictor_runs(no_traj, "run", {"intention_run": str(intention)}) == (str(intention), None)
-    with pytest.raises(ValueError, match="excludes --intention / --trajectory"):
+    with pytest.raises(ValueError, match="excludes intention_run / trajectory_run"):
         predictor_runs(PCFG, "run", named, str(intention), None, True)
     with pytest.raises(ValueError, match="reads trajectory predictions and no trajectory predictor run is given"):
         predictor_runs(PCFG, "run", {"intention_run": str(intention)})

@@ -203,7 +203,7 @@ def test_init_from_loads_the_imitation_policy_and_rejects_bad_runs(tmp_path):
     with pytest.raises(ValueError, match="trained on 8x32 panoramas but the env renders 8x64"):
         ppo_agent(wide, tmp_path / "rl8x32", ground_truth=True)
     # PPO trains on ground-truth intentions; evaluated, it reads predictors or says it was given the truth.
-    with pytest.raises(ValueError, match="pass --intention RUN \\(or --ground-truth-intentions"):
+    with pytest.raises(ValueError, match="pass intention_run \\(or ground_truth=True"):
         ppo_agent(wide, tmp_path / "rl8x32")
 
 

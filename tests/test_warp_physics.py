@@ -102,7 +102,7 @@ def test_brax_auto_reset_restarts_warp_episodes(hall):
 
 
 def test_refilled_lanes_run_warp_episodes_to_their_end(hall):
-    forward = Agent("forward", lambda key, episode: (), lambda state, carry, key: (jnp.array([1.0, 0.0]), carry))
+    forward = Agent("forward", lambda key, obs: (), lambda carry, obs, key: (carry, jnp.array([1.0, 0.0])), reads=())
     run = make_pool_rollout(hall, lambda _: forward, slots=2, chunk=4)  # 3 episodes on 2 lanes: one refill
     m = run(None, jax.random.PRNGKey(0), jnp.arange(3, dtype=jnp.int32), jnp.int32(3))
     m = {k: np.asarray(v) for k, v in m.items()}
