@@ -125,7 +125,7 @@ def _stage_runs(env, batch: int, steps: int) -> dict:
         def body(total, k):
             yaw = jax.random.uniform(k, (batch,), minval=-3.14, maxval=3.14)
             dd = d.replace(qpos=d.qpos.at[:, 2].set(yaw))
-            obs = jax.vmap(env._observe)(dd, ep)
+            obs = jax.vmap(lambda d, e: env._observe(d, e, ("rgbd", "front")))(dd, ep)
             # Every pixel of both images is read: XLA would otherwise compute only the ones used.
             return total + obs["rgbd"].mean() + obs["front"].mean(), None
 

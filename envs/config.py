@@ -192,8 +192,9 @@ class EnvConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
     human_history_steps: int = 8  # past human positions in the observation (trajectory predictor)
     future_steps: int = 5  # ground-truth future human positions (the short-term intention)
-    # Ground-truth intention observations (activity/object one-hots, future trajectory), as the
-    # paper feeds them during training; agents replace them with predictions at evaluation.
+    # Ground-truth intention observations (activity/object one-hots, future trajectory) in what
+    # brax's reset/step observe, as the paper feeds them during training. An agent in a rollout
+    # gets them only by declaring them (envs.observations), whatever this says.
     intention_obs: bool = True
     # False (the benchmark): an episode runs to t_end, the robot acting after it reached, so
     # CR_full sees what happens once it parks at the human's destination; success, SPL and AS
