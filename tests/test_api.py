@@ -40,10 +40,14 @@ def _snippet() -> str:
     return found.group(1)
 
 
-def test_readme_snippet_evaluates_an_agent(tiny_data, tmp_path, capsys):
+def test_readme_snippet_evaluates_an_agent(tiny_data, tmp_path, capsys, monkeypatch):
+    from conav_jax.eval import api
+
     code = _snippet().replace('"data/tiny"', repr(str(tiny_data)))
     code = re.sub(r"resolution=\(\d+, \d+\)", "resolution=(8, 32)", code)
     assert repr(str(tiny_data)) in code
+    agents, evaluate = [], api.evaluate
+    monkeypatch.setattr(api, "evaluate", lambda env, agent, **kw: agents.append(agent) or evaluate(env, agent, **kw))
     scope = {}
     exec(compile(code, "README.md", "exec"), scope)
     env, results = scope["env"], scope["results"]
@@ -52,8 +56,8 @@ def test_readme_snippet_evaluates_an_agent(tiny_data, tmp_path, capsys):
     assert 0.0 <= fasr["lo"] <= fasr["value"] <= fasr["hi"] <= 100.0
     assert repr(fasr["value"]) in capsys.readouterr().out
     # Again with out_dir (the compiled rollout reused): the same numbers, and the files of a row.
-    agent = [v for v in scope.values() if isinstance(v, conav_jax.Agent)][0]
-    again = conav_jax.evaluate(env, agent, seed=0, out_dir=tmp_path)
+    (agent,) = agents
+    again = evaluate(env, agent, seed=0, out_dir=tmp_path)
     assert again.summary == results.summary
     report = (tmp_path / "report.md").read_text()
     assert agent.title in report and "FASR" in report and (tmp_path / "metrics.json").exists()
@@ -107,6 +111,9 @@ def test_privileged_keys_reach_only_agents_that_declare_them(hall):
     assert blind_seen["init"] == blind_seen["act"] == set(SENSOR_KEYS)
     assert told_seen["init"] == told_seen["act"] == {"human_pos", "object_probs"}
     assert row_title(told.check()) == "told (ground-truth intentions)" and row_title(blind.check()) == "blind"
+    blind_seen.clear()
+    _trace(hall, lambda _: blind)  # on its own, in an env whose brax observation holds the ground truth
+    assert blind_seen["init"] == blind_seen["act"] == set(SENSOR_KEYS)
     sneaky, _ = _spy("sneaky", reads=("object_probs",))
     with pytest.raises(ValueError, match=r"sneaky.*object_probs \(privileged='ground-truth intentions'\)"):
         _trace(hall, lambda _: sneaky)
