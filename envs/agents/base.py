@@ -79,9 +79,9 @@ class Agent(NamedTuple):
             raise ValueError("an agent needs a title")
         if not callable(agent.init) or not callable(agent.act):
             raise ValueError(f"agent {agent.name!r}: init and act must be functions")
-        if ORACLE_MOVES in agent.privileged:
-            raise ValueError(f"agent {agent.name!r}: an observation-only agent acts with velocities; "
-                             f"{ORACLE_MOVES!r} is for the simulator's own oracle movers")
+        if ORACLE_MOVES in agent.privileged or agent.action_size != 2:
+            raise ValueError(f"agent {agent.name!r}: an observation-only agent acts with velocities (v_lin, "
+                             f"v_ang); {ORACLE_MOVES!r} is for the simulator's own oracle movers")
         return _check_declarations(agent)
 
 
