@@ -132,15 +132,15 @@ class ReproduceConfig:
         if self.preset not in BUDGETS:
             raise ValueError(f"unknown preset {self.preset!r}; choose from {', '.join(BUDGETS)}")
         if self.seeds < 1:
-            raise ValueError(f"--seeds must be at least 1, got {self.seeds}")
+            raise ValueError(f"ReproduceConfig.seeds must be at least 1, got {self.seeds}")
         if not 0.0 <= self.dagger_beta <= 1.0:
-            raise ValueError(f"--dagger-beta is a probability in [0, 1], got {self.dagger_beta}")
+            raise ValueError(f"ReproduceConfig.dagger_beta is a probability in [0, 1], got {self.dagger_beta}")
         if self.dagger_rounds is not None and self.dagger_rounds < 1:
-            raise ValueError(f"--dagger-rounds must be at least 1, got {self.dagger_rounds}")
+            raise ValueError(f"ReproduceConfig.dagger_rounds must be at least 1, got {self.dagger_rounds}")
         if self.dagger_episodes is not None and self.dagger_episodes < 1:
-            raise ValueError(f"--dagger-episodes must be at least 1, got {self.dagger_episodes}")
+            raise ValueError(f"ReproduceConfig.dagger_episodes must be at least 1, got {self.dagger_episodes}")
         if self.encoder not in ENCODERS:
-            raise ValueError(f"unknown --encoder {self.encoder!r}; choose from {', '.join(sorted(ENCODERS))}")
+            raise ValueError(f"unknown ReproduceConfig.encoder {self.encoder!r}; choose from {', '.join(sorted(ENCODERS))}")
 
     @property
     def budget(self) -> Budget:
@@ -233,7 +233,7 @@ def check_out(progress: dict, cfg: ReproduceConfig) -> None:
     for k, before in _OUT_FIELDS_ADDED.items():
         made.setdefault(k, before)
     shown = lambda v: {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v  # noqa: E731
-    differ = [f"--{k.replace('_', '-')} {shown(made[k])} (given {shown(mine[k])})"
+    differ = [f"ReproduceConfig.{k} {shown(made[k])} (given {shown(mine[k])})"
               for k in OUT_FIELDS if k in made and made[k] != mine[k]]
     if differ:
         raise ValueError(f"{cfg.out} was made with {', '.join(differ)}: give those, or another --out")
@@ -316,7 +316,7 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                             "--workers", str(cfg.workers)),), (data / "manifest.json",)),
         Stage("predictors", (
             ("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
-             "--sensor", res, *(("--mirror",) if cfg.mirror else ()), *(("--seen-objects",) if cfg.seen_objects else ()),
+             "--resolution", res, *(("--mirror",) if cfg.mirror else ()), *(("--seen-objects",) if cfg.seen_objects else ()),
              *quiet),  # crops of the panorama the agents render (envs.human_crop)
             ("train", "trajectory", "--data", str(data), "--out", str(trajectory), "--steps", str(b.trajectory_steps), *quiet),
         ), (intention / "ckpt_{:08d}.npz".format(b.intention_steps),
@@ -709,16 +709,16 @@ def visible_gpus() -> list[str] | None:
     return [str(i) for i, _ in enumerate(line for line in listed.splitlines() if line.startswith("GPU "))]
 
 
-def gpu_slots(count: int) -> list[str]:
-    """The GPUs `count` commands at once run on, one each: the first `count` of `visible_gpus`
-    (0..count-1 on a machine without a driver, where the commands run on the CPU). ValueError
+def gpu_slots(gpus: int) -> list[str]:
+    """The GPUs `gpus` commands at once run on, one each: the first `gpus` of `visible_gpus`
+    (0..gpus-1 on a machine without a driver, where the commands run on the CPU). ValueError
     when fewer are visible (a process given a GPU that does not exist would run on the CPU)."""
-    if count < 1:
-        raise ValueError(f"--gpus must be at least 1, got {count}")
+    if gpus < 1:
+        raise ValueError(f"gpu_slots.gpus must be at least 1, got {gpus}")
     ids = visible_gpus()
-    if ids is not None and len(ids) < count:
-        raise ValueError(f"--gpus {count}: {len(ids)} GPU(s) visible ({', '.join(ids) or 'none'})")
-    return ids[:count] if ids is not None else [str(i) for i in range(count)]
+    if ids is not None and len(ids) < gpus:
+        raise ValueError(f"gpu_slots.gpus {gpus}: {len(ids)} GPU(s) visible ({', '.join(ids) or 'none'})")
+    return ids[:gpus] if ids is not None else [str(i) for i in range(gpus)]
 
 
 def child_command(argv: tuple[str, ...], compile_cache: str | None) -> list[str]:

@@ -81,9 +81,9 @@ def plan_eval(
     if split not in manifest["splits"]:
         raise ValueError(f"{data}: no split {split!r}; has {sorted(manifest['splits'])}")
     if not agents:
-        raise ValueError("--agent needs at least one agent name")
+        raise ValueError("EvalPlan.agents needs at least one agent name")
     if len(set(agents)) != len(agents):
-        raise ValueError(f"--agent lists an agent twice: {','.join(agents)}")
+        raise ValueError(f"EvalPlan.agents lists an agent twice: {','.join(agents)}")
     own = dict(checkpoint) if isinstance(checkpoint, Mapping) else {None: checkpoint}
     default = own.pop(None, None)
     for name in agents:
@@ -92,11 +92,11 @@ def plan_eval(
     for name in own:
         if name not in agents or not AGENTS[name].needs_checkpoint:
             learned = [n for n in agents if AGENTS[n].needs_checkpoint]
-            raise ValueError(f"--checkpoint names a run for {name!r}, which is not a learned agent of this evaluation "
+            raise ValueError(f"EvalPlan.agent_checkpoints names a run for {name!r}, which is not a learned agent of this evaluation "
                              f"(learned agents: {', '.join(learned) or 'none'})")
     learned = dict(intention_kwargs or {})
     if learned and not ablations and not any(AGENTS[n].takes_intentions for n in agents):
-        raise ValueError("--intention / --trajectory / --ground-truth-intentions only apply to agents that read "
+        raise ValueError("EvalPlan.intention_kwargs only apply to agents that read "
                          "intention inputs (conav, ppo) and ablations")
     names = set()
     for name, run in ablations:
@@ -107,14 +107,14 @@ def plan_eval(
         names.add(name)
         check_agent("conav", run)
     if episodes is not None and episodes < 1:
-        raise ValueError(f"--episodes must be at least 1, got {episodes}")
+        raise ValueError(f"EvalPlan.episodes must be at least 1, got {episodes}")
     if batch < 1:
-        raise ValueError(f"--batch must be at least 1, got {batch}")
+        raise ValueError(f"EvalPlan.batch must be at least 1, got {batch}")
     if devices is not None and devices < 1:
-        raise ValueError(f"--devices must be at least 1, got {devices}")
+        raise ValueError(f"EvalPlan.devices must be at least 1, got {devices}")
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a directory")
+        raise ValueError(f"EvalPlan.out {out} exists and is not a directory")
     trained = [(name, own.get(name, default)) for name in agents if AGENTS[name].needs_checkpoint]
     trained += [("conav", run) for _, run in ablations]
     return EvalPlan(

@@ -36,7 +36,7 @@ def test_the_demos_commands_parse_and_its_predictor_crops_the_policys_panorama(t
 
     commands = demo_commands(tmp_path, seed=0, resolution="16x64")
     parsed = {tuple(argv[:2]): build_parser().parse_args(argv) for argv in commands}
-    assert tuple(parsed[("train", "intention")].sensor) == tuple(parsed[("train", "policy")].resolution) == (16, 64)
+    assert tuple(parsed[("train", "intention")].resolution) == tuple(parsed[("train", "policy")].resolution) == (16, 64)
 
 
 def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, monkeypatch):
@@ -51,13 +51,13 @@ def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, 
     monkeypatch.setattr(jax, "clear_caches", lambda: events.append("clear"))
     monkeypatch.setattr(cli, "main", lambda argv, compile_cache=True: events.append(tuple(argv)) or 0)
     args = cli.build_parser().parse_args(["demo", "--out", str(tmp_path / "demo")])
-    assert cli._run_demo(args) == 0
+    assert cli.demo.run(args) == 0
     stages = demo_commands(tmp_path / "demo", args.seed, "x".join(map(str, args.resolution)), args.pretrained)
     assert events == [x for argv in stages for x in ("clear", tuple(argv))]
     events.clear()
     args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--out", str(tmp_path / "r"), "--stage",
                                           "generate"])
-    cli._run_reproduce(args)
+    cli.reproduce.run(args)
     assert events[0] == "clear" and events[1][0] == "generate"
 
 

@@ -60,7 +60,7 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
     # There DAgger rounds record a subset of the train episodes each (their windows stay on the GPU).
     for argv in dagger[1::2]:
         assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
-        imitation = cli._imitation_config(cli.build_parser().parse_args(list(argv)))
+        imitation = cli.imitation_config(cli.build_parser().parse_args(list(argv)))
         assert imitation.dagger_episodes == rp.LARGE_PANORAMA_DAGGER_EPISODES
     assert not any("--dagger-episodes" in argv for st in low for argv in st.commands)
     # The paper preset's baselines record a subset of its 20,293 train episodes (at 112x448 as
@@ -71,7 +71,7 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
         assert argv[argv.index("--episodes") + 1] == bc[0][bc[0].index("--episodes") + 1] == "400"
         assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
         assert all(any(argv[i:i + len(f)] == f for i in range(len(argv))) for f in policy_cnn)
-        cli._train_config(cli.build_parser().parse_args(list(argv)))
+        cli.train_config(cli.build_parser().parse_args(list(argv)))
     for argv in {s.name: s for s in low}["baselines"].commands:
         assert argv[argv.index("--episodes") + 1] == "1000"
         assert not {"--conv-dtype", "--remat", "--dagger-episodes"} & set(argv)
@@ -84,8 +84,8 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
     for res in ((112, 448), (32, 128)):
         (intention,) = [argv for argv in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, resolution=res))[1].commands
                         if argv[1] == "intention"]
-        assert intention[intention.index("--sensor") + 1] == "x".join(map(str, res))
-    with pytest.raises(ValueError, match="--seeds must be at least 1"):
+        assert intention[intention.index("--resolution") + 1] == "x".join(map(str, res))
+    with pytest.raises(ValueError, match="ReproduceConfig.seeds must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, seeds=0)
 
 
@@ -114,7 +114,7 @@ def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_p
     for argv in policy_runs:
         assert argv[argv.index("--encoder") + 1] == "patch"
         args = parser.parse_args(list(argv))
-        net = cli._policy_model(args) if argv[1] == "policy" else cli._network_base(args, (8, 32))
+        net = cli.policy_model(args) if argv[1] == "policy" else cli.network_base(args, (8, 32))
         assert net.conv_strides == (4, 2, 2)
     # Nothing else changes: the default's commands are those of the published runs.
     assert not any("--encoder" in argv for st in plain.values() for argv in st.commands)
@@ -507,9 +507,9 @@ def test_every_planned_command_parses_into_a_valid_training_config(preset, tmp_p
                 continue
             args = parser.parse_args(list(argv))
             if argv[0] == "train":
-                cli._train_config(args)
+                cli.train_config(args)
                 if argv[1] == "policy":
-                    cli._imitation_config(args)
+                    cli.imitation_config(args)
 
 
 def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fake_conav, tmp_path):
@@ -575,7 +575,7 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
                                   "seen_objects": False}
     rp.check_out(progress, dataclasses.replace(cfg, seeds=5, dagger_beta=0.5))  # more seeds, other rows: the same OUT
     rp.write_progress(tmp_path, progress)
-    with pytest.raises(ValueError, match=r"made with --resolution 112x448 \(given 32x128\), --encoder conv \(given patch\)"):
+    with pytest.raises(ValueError, match=r"made with ReproduceConfig.resolution 112x448 \(given 32x128\), ReproduceConfig.encoder conv \(given patch\)"):
         rp.check_out(progress, dataclasses.replace(cfg, resolution=(32, 128), encoder="patch"))
     # The command line refuses before it plans or runs anything.
     args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--out", str(tmp_path), "--encoder", "patch",
@@ -584,7 +584,7 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
     assert "was made with --encoder conv (given patch): give those, or another --out" in capsys.readouterr().err
     # The predictor's options too; a directory recorded before they existed was made without them.
     older = {"config": {"preset": "tiny", "resolution": "112x448", "encoder": "conv"}}
-    with pytest.raises(ValueError, match=r"made with --seen-objects off \(given on\)"):
+    with pytest.raises(ValueError, match=r"made with ReproduceConfig.seen_objects off \(given on\)"):
         rp.check_out(older, dataclasses.replace(cfg, seen_objects=True))
     rp.check_out(older, cfg)
     assert older["config"]["mirror"] is False

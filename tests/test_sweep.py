@@ -170,7 +170,7 @@ def test_every_agent_is_built_before_the_first_rollout(two_sweeps, tiny_data, tm
         (["--agent", "pioneer", "--ablation-checkpoints", "all"], "name=RUN_DIR"),
         (["--agent", "pioneer", "--ablation-checkpoints", "all=/nonexistent/run"], "run directory not found"),
         (["--agent", "pioneer", "--split", "test"], "no split 'test'"),
-        (["--agent", "pioneer", "--batch", "0"], "--batch must be at least 1"),
+        (["--agent", "pioneer", "--batch", "0"], "EvalPlan.batch must be at least 1"),
     ],
 )
 def test_bad_input_fails_before_anything_is_built(tiny_data, tmp_path, monkeypatch, argv, message):
@@ -232,3 +232,13 @@ def test_a_run_listed_as_agent_and_ablation_is_swept_once_with_the_same_numbers(
     assert doc["ablations"]["ablation_all"]["title"].startswith("all: ")
     agent_rows, ablation_rows = (list(csv.DictReader((out / f"episodes_{k}.csv").open())) for k in ("conav", "ablation_all"))
     assert [r["t_reach"] for r in agent_rows] == [r["t_reach"] for r in ablation_rows]
+
+
+def test_the_command_line_names_the_flags_of_the_fields_a_library_error_names(tiny_data, tmp_path, capsys):
+    from conav_jax.eval.cli import main
+
+    base = ["--compile-cache", "off", "eval", "--data", str(tiny_data), "--out", str(tmp_path / "o")]
+    assert main([*base, "--agent", "pioneer", "--batch", "0"]) == 2
+    assert "error: --batch must be at least 1, got 0" in capsys.readouterr().err
+    assert main([*base, "--agent", "pioneer,pioneer"]) == 2
+    assert "error: --agent lists an agent twice" in capsys.readouterr().err
