@@ -1,13 +1,16 @@
-"""`conav reproduce`'s plan: the paper's Tables 2 and 3 as resumable stages of `conav` commands.
+"""`conav reproduce`'s plan: the paper's Tables 2 and 3 as resumable stages of declared steps.
 
-config -> `plan_stages` (each stage: the `conav` argument lists it runs and the files that show
-it is done) -> the command line runs each stage's commands in order, skipping stages already
-done; a stage cut short resumes (every training run resumes exactly from its checkpoints) ->
+config -> `plan_stages` (each stage: its steps, each declared as data: a name, the training seed
+it belongs to, the directories it reads and writes under OUT, and the `conav` command it runs;
+and the files that show the stage is done) -> one dependency graph (`prerequisites`, from the
+declared reads and writes) orders them, for the command line's runner in this process and for
+`run_parallel`'s processes alike; progress.json records each step by name, so a stage cut
+short resumes (every training run resumes exactly from its checkpoints) ->
 `collect_results` reads every evaluation's metrics.json into results.json (per agent, per
 seed; the commit, the command and the stage timings) -> `render_tables` writes tables.md:
 Table 2 (every agent beside the paper's figures, its privileged inputs named) and Table 3 (the
 five intention ablations), each learned cell the mean ± sd over seeds with the pooled 95%
-interval. Nothing here imports the training code: stages are command lines.
+interval. Nothing here imports the training code: a step's call is a `conav` command.
 """
 
 from __future__ import annotations
@@ -198,23 +201,74 @@ _DAGGER_ROW = re.compile(r"dagger(?:_beta([0-9.e+-]+))?(?:_rounds([0-9]+))?(?:_e
 
 
 @dataclass(frozen=True)
-class Stage:
-    """One stage: the `conav` argument lists it runs, in order (an entry starting with "@copy"
-    copies a run directory: DAgger continues a copy of the BC run), and the files it writes."""
+class Step:
+    """One unit of work, declared: `name` (its identity in progress.json: the command's words and
+    the directory it writes, relative to OUT, e.g. "train policy runs/bc_all_s0"), the training
+    `seed` it belongs to (None: every seed's), the directories it `reads` and `writes` (relative
+    to OUT), and its call, `argv`: the `conav` command it runs (("@copy", SRC, DST) copies a run
+    directory: DAgger continues a copy of the BC run)."""
 
     name: str
-    commands: tuple[tuple[str, ...], ...]
+    argv: tuple[str, ...]
+    writes: str
+    reads: tuple[str, ...] = ()
+    seed: int | None = None
+
+    @property
+    def is_copy(self) -> bool:
+        return self.argv[0] == "@copy"
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage: its steps, in order, and the files that show it is done."""
+
+    name: str
+    steps: tuple[Step, ...]
     outputs: tuple[Path, ...] = field(default=())
 
+    @property
+    def commands(self) -> tuple[tuple[str, ...], ...]:
+        """The steps' calls, in order."""
+        return tuple(s.argv for s in self.steps)
 
-# The commands and stages done, with their wall times (s), and under "cut" the time of attempts
-# cut short (a command's summed over its attempts; it counts in its stage's time).
+
+# The steps (by name, under "commands") and stages done, with their wall times (s), and under
+# "cut" the time of attempts cut short (a step's summed over its attempts; it counts in its
+# stage's time).
 PROGRESS_FILE = "progress.json"
+# The layout of progress.json. 1 (unmarked): records keyed by the command line, OUT written as
+# "OUT"; 2: keyed by step name (`upgrade_progress` maps the one onto the other).
+RUN_FORMAT = 2
 
 
 def read_progress(out: Path) -> dict:
     path = Path(out) / PROGRESS_FILE
-    return json.loads(path.read_text()) if path.is_file() else {"commands": {}, "stages": {}}
+    if path.is_file():
+        return json.loads(path.read_text())
+    return {"run_format": RUN_FORMAT, "commands": {}, "stages": {}}
+
+
+def upgrade_progress(progress: dict, plan: list["Stage"], out: Path) -> list[str]:
+    """Bring `progress` of an OUT made before RUN_FORMAT 2 (records keyed by command lines) to
+    step names, in place: each record of a planned step's command line moves to the step's
+    name. Returns the old records no planned step matches (dropped: a variant not planned now;
+    its runs resume from their checkpoints when it is planned again). ValueError for a
+    directory written by a newer format."""
+    made = progress.get("run_format", 1)
+    if made > RUN_FORMAT:
+        raise ValueError(f"{out}: progress.json has run format {made}, newer than this version's {RUN_FORMAT}: "
+                         "continue it with the version that made it, or use another output directory")
+    if made == RUN_FORMAT:
+        return []
+    old = {" ".join(s.argv).replace(str(Path(out).resolve()), "OUT"): s.name for st in plan for s in st.steps}
+    dropped = []
+    for record in ("commands", "cut"):
+        entries = progress.get(record, {})
+        dropped += [k for k in entries if k not in old]
+        progress[record] = {old[k]: v for k, v in entries.items() if k in old}
+    progress["run_format"] = RUN_FORMAT
+    return dropped
 
 
 # What one OUT directory holds one of: its runs and evaluations are of these (progress.json
@@ -257,29 +311,23 @@ def write_progress(out: Path, progress: dict) -> None:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             now = read_progress(out)
+            if now.get("run_format", 1) != RUN_FORMAT:  # records `upgrade_progress` has moved
+                now = {}
             for record in PROGRESS_RECORDS:
                 progress[record] = {**now.get(record, {}), **progress.get(record, {})}
+            progress["run_format"] = RUN_FORMAT
             save_json(out / PROGRESS_FILE, progress)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
-def command_key(argv: tuple[str, ...], out: Path) -> str:
-    """How progress.json names a command: its words, with the run's directory as OUT (a run
-    packed on one machine continues in another directory on the next). `out` is absolute: a
-    relative one ("." above all) would match inside other words."""
-    if not Path(out).is_absolute():
-        raise ValueError(f"command_key needs the run's absolute directory, got {out}")
-    return " ".join(argv).replace(str(out), "OUT")
-
-
-def stage_seconds(plan: list["Stage"], progress: dict, out: Path) -> dict[str, float]:
-    """Each stage's time: the sum of its commands' recorded wall times, with the time of their
+def stage_seconds(plan: list["Stage"], progress: dict) -> dict[str, float]:
+    """Each stage's time: the sum of its steps' recorded wall times, with the time of their
     attempts cut short ("cut": failed, interrupted; a stage run over several calls or machines
-    counts every part once); a stage without commands, its own record."""
+    counts every part once); a stage without steps, its own record."""
     seconds = {}
     for st in plan:
-        keys = [command_key(a, out) for a in st.commands]
+        keys = [s.name for s in st.steps]
         done = [log[k] for log in (progress["commands"], progress.get("cut", {})) for k in keys if k in log]
         if done:
             seconds[st.name] = round(sum(done), 1)
@@ -311,60 +359,71 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     # commands their runs were made with.
     episodes = b.policy_episodes if large and b.policy_episodes else b.baseline_episodes
     baseline = (*(("--episodes", str(episodes)) if episodes else ()), *((*network, *subset) if large else encoder))
+    def step(argv: tuple[str, ...], writes: Path, reads: tuple[Path, ...] = (data,), seed: int | None = None) -> Step:
+        """The step of `argv`, named by its command words and the directory it writes."""
+        words = "copy" if argv[0] == "@copy" else " ".join(w for w in argv[:2] if not w.startswith("-"))
+        rel = str(writes.relative_to(out))
+        return Step(f"{words} {rel}", tuple(argv), rel, tuple(str(r.relative_to(out)) for r in reads), seed)
+
     stages = [
-        Stage("generate", (("generate", "--preset", cfg.preset, "--out", str(data), "--seed", str(cfg.data_seed),
-                            "--workers", str(cfg.workers)),), (data / "manifest.json",)),
+        Stage("generate", (step(("generate", "--preset", cfg.preset, "--out", str(data), "--seed", str(cfg.data_seed),
+                                 "--workers", str(cfg.workers)), data, reads=()),), (data / "manifest.json",)),
         Stage("predictors", (
-            ("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
-             "--resolution", res, *(("--mirror",) if cfg.mirror else ()), *(("--seen-objects",) if cfg.seen_objects else ()),
-             *quiet),  # crops of the panorama the agents render (envs.human_crop)
-            ("train", "trajectory", "--data", str(data), "--out", str(trajectory), "--steps", str(b.trajectory_steps), *quiet),
+            step(("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
+                  "--resolution", res, *(("--mirror",) if cfg.mirror else ()),
+                  *(("--seen-objects",) if cfg.seen_objects else ()), *quiet),
+                 intention),  # crops of the panorama the agents render (envs.human_crop)
+            step(("train", "trajectory", "--data", str(data), "--out", str(trajectory), "--steps",
+                  str(b.trajectory_steps), *quiet), trajectory),
         ), (intention / "ckpt_{:08d}.npz".format(b.intention_steps),
             trajectory / "ckpt_{:08d}.npz".format(b.trajectory_steps))),
-        Stage("baselines", (
-            ("train", "objectnav", "--data", str(data), "--out", str(runs / "objectnav"), "--resolution", res,
-             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline, *validated),
-            ("train", "imagenav", "--data", str(data), "--out", str(runs / "imagenav"), "--resolution", res,
-             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline, *validated),
+        Stage("baselines", tuple(
+            step(("train", kind, "--data", str(data), "--out", str(runs / kind), "--resolution", res,
+                  "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline,
+                  *validated), runs / kind) for kind in ("objectnav", "imagenav")
         ), (runs / "objectnav" / "log.jsonl", runs / "imagenav" / "log.jsonl")),
     ]
+    predictors = (data, intention, trajectory)
     policy = ("--data", str(data), "--intention", str(intention), "--trajectory", str(trajectory),
               "--train-intentions", "predicted", "--resolution", res, "--steps", str(b.policy_steps),
               "--batch", str(b.policy_batch), *(("--episodes", str(b.policy_episodes)) if b.policy_episodes else ()),
               *network, *validated)
     common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
+
+    def evaluation(agent: str, target: Path, run: Path | None = None, seed: int | None = None,
+                   reads: tuple[Path, ...] = ()) -> Step:
+        checkpoint = ("--checkpoint", str(run)) if run is not None else ()
+        extra = ("--intention", str(intention)) if intention in reads else ()
+        return step(("eval", *common, "--agent", agent, *checkpoint, *extra, "--out", str(target)), target,
+                    (data, *((run,) if run is not None else ()), *reads), seed)
+
     # Each BC run, then its evaluation on val: an evaluated run needs no checkpoint to travel in a
     # pack (at 112x448 a policy's is 15 MB, the pack's limit four of them) but the one DAgger continues.
     bc = []
     for s in range(cfg.seeds):
         for a in ABLATIONS:
             run = runs / f"bc_{a}_s{s}"
-            bc.append(("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(run)))
-            bc.append(("eval", *common, "--agent", "conav", "--checkpoint", str(run),
-                       "--out", str(evals / BC_ROW_EVAL.format(row=a, seed=s))))
+            bc.append(step(("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(run)), run,
+                           predictors, s))
+            bc.append(evaluation("conav", evals / BC_ROW_EVAL.format(row=a, seed=s), run, s))
     stages.append(Stage("bc", tuple(bc), tuple(evals / BC_ROW_EVAL.format(row=a, seed=s) / "metrics.json"
                                                for s in range(cfg.seeds) for a in ABLATIONS)))
     dagger, name = [], cfg.dagger
     mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
-        dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"{name}_s{s}")))
-        dagger.append(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
-                       str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
-                       *(("--dagger-episodes", str(cfg.round_episodes)) if cfg.round_episodes else ()),
-                       "--out", str(runs / f"{name}_s{s}")))
+        run, start = runs / f"{name}_s{s}", runs / f"bc_all_s{s}"
+        dagger.append(step(("@copy", str(start), str(run)), run, (start,), s))
+        dagger.append(step(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
+                            str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
+                            *(("--dagger-episodes", str(cfg.round_episodes)) if cfg.round_episodes else ()),
+                            "--out", str(run)), run, predictors, s))
     stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
-    evals_ = [("eval", *common, "--agent", "random,follower,pioneer,pioneer-drive,objectgoal-planner,expert",
-               "--out", str(evals / "scripted")),
-              ("eval", *common, "--agent", "objectgoal-oracle", "--checkpoint", str(runs / "objectnav"),
-               "--out", str(evals / "objectgoal-oracle")),
-              ("eval", *common, "--agent", "objectgoal-predicted", "--checkpoint", str(runs / "objectnav"),
-               "--intention", str(intention), "--out", str(evals / "objectgoal-predicted")),
-              ("eval", *common, "--agent", "imagegoal", "--checkpoint", str(runs / "imagenav"),
-               "--out", str(evals / "imagegoal"))]
+    evals_ = [evaluation("random,follower,pioneer,pioneer-drive,objectgoal-planner,expert", evals / "scripted"),
+              evaluation("objectgoal-oracle", evals / "objectgoal-oracle", runs / "objectnav"),
+              evaluation("objectgoal-predicted", evals / "objectgoal-predicted", runs / "objectnav", reads=(intention,)),
+              evaluation("imagegoal", evals / "imagegoal", runs / "imagenav")]
     dagger_eval = CONAV_EVAL.format(row=name, seed="{}")
-    for s in range(cfg.seeds):
-        evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"{name}_s{s}"),
-                       "--out", str(evals / dagger_eval.format(s))))
+    evals_ += [evaluation("conav", evals / dagger_eval.format(s), runs / f"{name}_s{s}", s) for s in range(cfg.seeds)]
     names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [
         dagger_eval.format(s) for s in range(cfg.seeds)]
     stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
@@ -373,49 +432,27 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     return stages
 
 
-_SEEDED_RUN = re.compile(r".+_s([0-9]+)")
-
-
-def command_seed(argv: tuple[str, ...]) -> int | None:
-    """The training seed a command belongs to (a seeded run or its evaluation, named `..._s{seed}`),
-    None for a command of every seed (data, predictors, baselines, scripted agents)."""
-    target = writes(argv)
-    m = None if target is None else _SEEDED_RUN.fullmatch(target.name)
-    return None if m is None else int(m.group(1))
-
-
-def runs_read(argv: tuple[str, ...]) -> list[Path]:
-    """The run directories a command reads (checkpoints, predictors, the run a copy starts from)."""
-    found = []
-    for flag in ("--checkpoint", "--intention", "--trajectory", "--init-from"):
-        if flag in argv:
-            found.append(Path(argv[argv.index(flag) + 1]))
-    if argv[0] == "@copy":
-        found.append(Path(argv[1]))
-    if "--ablation-checkpoints" in argv:
-        found += [Path(item.split("=", 1)[1]) for item in argv[argv.index("--ablation-checkpoints") + 1].split(",")]
-    return found
-
-
 def stage_seed(stage: Stage, seed: int | None) -> int | None:
-    """The training seed whose commands `--seed` selects in `stage`: None (every command) in a
-    stage without seeded commands (data, predictors, baselines)."""
-    return seed if seed is not None and any(command_seed(argv) is not None for argv in stage.commands) else None
+    """The training seed whose steps `--seed` selects in `stage`: None (every step) in a stage
+    without seeded steps (data, predictors, baselines)."""
+    return seed if seed is not None and any(s.seed is not None for s in stage.steps) else None
 
 
-def ready_commands(plan: list[Stage], stage: Stage, seed: int | None, done: set[str], out: Path) -> tuple[list, list]:
-    """`stage`'s commands of training seed `seed` (every command for None) not in `done` (command
-    keys), split into those ready to run and those waiting: a command waits while a run it reads
-    is the output of another stage's command not done yet (a DAgger run's evaluation before the
-    DAgger run, a baseline's before its training; a stage's own commands run in order, each BC
-    run before its evaluation)."""
-    made_by = {writes(argv): command_key(argv, out) for st in plan if st is not stage for argv in st.commands}
-    ready, waiting = [], []
-    for argv in stage.commands:
-        if (seed is not None and command_seed(argv) != seed) or command_key(argv, out) in done:
+def ready_steps(plan: list[Stage], stage: Stage, seed: int | None, done: set[str]) -> tuple[list[Step], list[Step]]:
+    """`stage`'s steps of training seed `seed` (every step for None) not in `done` (step names),
+    split into those ready to run in order and those waiting: a step waits while one of its
+    `prerequisites` is neither done nor ready before it (a DAgger run's evaluation before the
+    DAgger run, a baseline's before its training)."""
+    needs = prerequisites(plan)
+    ready, waiting, coming = [], [], set(done)
+    for st in stage.steps:
+        if (seed is not None and st.seed != seed) or st.name in done:
             continue
-        blocked = [r for r in runs_read(argv) if r in made_by and made_by[r] not in done]
-        (waiting if blocked else ready).append(argv)
+        if needs[st.name] <= coming:
+            ready.append(st)
+            coming.add(st.name)
+        else:
+            waiting.append(st)
     return ready, waiting
 
 
@@ -657,35 +694,24 @@ def render_tables(results: dict) -> str:
 # -- several commands at once (`--gpus`) -----------------------------------------------------------
 
 
-def writes(argv: tuple[str, ...]) -> Path | None:
-    """The directory a command makes: a copy's target, else its --out (None: neither)."""
-    if argv[0] == "@copy":
-        return Path(argv[2])
-    return Path(argv[argv.index("--out") + 1]) if "--out" in argv else None
-
-
-def prerequisites(plan: list[Stage], out: Path) -> dict[str, set[str]]:
-    """Each planned command's (by key) prerequisites: the commands before it in the plan that
-    write its data, a run it reads, or the directory it writes itself (a DAgger run trains in the
-    copy of its BC run; a run cut short and its copy never run at once)."""
-    found, made = {}, []  # made: (directory, key) of the commands so far, in plan order
-    for st in plan:
-        for argv in st.commands:
-            needs = set(runs_read(argv)) | {writes(argv)}
-            if "--data" in argv:
-                needs.add(Path(argv[argv.index("--data") + 1]))
-            key = command_key(argv, out)
-            found[key] = {k for d, k in made if d in needs}
-            made.append((writes(argv), key))
+def prerequisites(plan: list[Stage]) -> dict[str, set[str]]:
+    """The one dependency graph of the plan: each step's (by name) prerequisites, the steps before
+    it in the plan that write a directory it reads or the directory it writes itself (a DAgger run
+    trains in the copy of its BC run; a run cut short and its copy never run at once)."""
+    found, made = {}, []  # made: (directory, name) of the steps so far, in plan order
+    for st in (x for stage in plan for x in stage.steps):
+        needs = {*st.reads, st.writes}
+        found[st.name] = {name for d, name in made if d in needs}
+        made.append((st.writes, st.name))
     return found
 
 
-def by_dependents(todo: list[tuple[str, ...]], needs: dict[str, set[str]], out: Path) -> list[tuple[str, ...]]:
-    """`todo` in the order `run_parallel` starts what is ready: the most commands of `todo` waiting
+def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
+    """`todo` in the order `run_parallel` starts what is ready: the most steps of `todo` waiting
     on it (directly or not) first, then plan order. A BC run that a DAgger run and two
     evaluations wait for starts before a run only its evaluation waits for."""
-    keys = {command_key(argv, out) for argv in todo}
-    below = {k: set() for k in keys}  # the commands of todo waiting on k
+    keys = {st.name for st in todo}
+    below = {k: set() for k in keys}  # the steps of todo waiting on k
     for k in keys:
         stack = [n for n in needs[k] if n in keys]
         while stack:
@@ -693,8 +719,8 @@ def by_dependents(todo: list[tuple[str, ...]], needs: dict[str, set[str]], out: 
             if k not in below[n]:
                 below[n].add(k)
                 stack += [m for m in needs[n] if m in keys]
-    index = {command_key(argv, out): i for i, argv in enumerate(todo)}
-    return sorted(todo, key=lambda argv: (-len(below[command_key(argv, out)]), index[command_key(argv, out)]))
+    index = {st.name: i for i, st in enumerate(todo)}
+    return sorted(todo, key=lambda st: (-len(below[st.name]), index[st.name]))
 
 
 def visible_gpus() -> list[str] | None:
@@ -726,16 +752,8 @@ def child_command(argv: tuple[str, ...], compile_cache: str | None) -> list[str]
     return [sys.executable, "-m", "conav_jax.eval.cli", *(("--compile-cache", compile_cache) if compile_cache else ()), *argv]
 
 
-def _log_name(argv: tuple[str, ...]) -> str:
-    words = [w for w in argv[:2] if not w.startswith("-")]
-    target = writes(argv)
-    return "_".join(words + ([target.name] if target is not None else [])) + ".log"
-
-
-def _describe(argv: tuple[str, ...], out: Path) -> str:
-    target = writes(argv)
-    where = target.relative_to(out) if target is not None and target.is_relative_to(out) else target
-    return " ".join(w for w in argv[:2] if not w.startswith("-")) + f" -> {where}"
+def _log_name(step: Step) -> str:
+    return step.name.replace(" ", "_").replace("/", "_") + ".log"
 
 
 def _tail(path: Path, lines: int = 15) -> str:
@@ -743,23 +761,23 @@ def _tail(path: Path, lines: int = 15) -> str:
     return "\n".join("    " + line for line in text[-lines:])
 
 
-def run_parallel(plan: list[Stage], todo: list[tuple[str, ...]], out: Path, progress: dict, gpus: list[str],
-                 compile_cache: str | None = None, say=None, poll_seconds: float = 0.1) -> tuple[int, list]:
-    """Run `todo` (commands of `plan`) up to len(gpus) at once, each in a `conav` process of its
-    own that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a command starting once its
-    `prerequisites` are done (in `by_dependents` order); copies run here. Each command's wall time goes into
+def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict, gpus: list[str],
+                 compile_cache: str | None = None, say=None, poll_seconds: float = 0.1) -> tuple[int, list[Step]]:
+    """Run `todo` (steps of `plan`) up to len(gpus) at once, each in a `conav` process of its
+    own that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a step starting once its
+    `prerequisites` are done (in `by_dependents` order); copies run here. Each step's wall time goes into
     `progress` (saved) as it ends, a failed or stopped one's under "cut". After a failure no new
-    command starts and those running finish. An interrupt (SIGTERM raised as KeyboardInterrupt)
+    step starts and those running finish. An interrupt (SIGTERM raised as KeyboardInterrupt)
     stops every process, records their time as cut and is raised again. Returns (0 or the first
-    failure's exit code, the commands left waiting for prerequisites not run here)."""
+    failure's exit code, the steps left waiting for prerequisites not run here)."""
     say = say or (lambda message: print(message, flush=True))
-    needs = prerequisites(plan, out)
+    needs = prerequisites(plan)
     done = set(progress["commands"])
-    pending, running, free, failed = by_dependents(todo, needs, out), {}, list(gpus), 0
+    pending, running, free, failed = by_dependents(todo, needs), {}, list(gpus), 0
     (out / "logs").mkdir(parents=True, exist_ok=True)
 
-    def record(argv, seconds: float, ok: bool) -> None:
-        key = command_key(argv, out)
+    def record(step: Step, seconds: float, ok: bool) -> None:
+        key = step.name
         if ok:
             progress["commands"][key] = round(seconds, 1)
             done.add(key)
@@ -773,26 +791,26 @@ def run_parallel(plan: list[Stage], todo: list[tuple[str, ...]], out: Path, prog
             started = True
             while started and not failed:  # a copy done may let others start
                 started = False
-                for argv in list(pending):
-                    if not needs[command_key(argv, out)] <= done or (argv[0] != "@copy" and not free):
+                for step in list(pending):
+                    if not needs[step.name] <= done or (not step.is_copy and not free):
                         continue
-                    pending.remove(argv)
+                    pending.remove(step)
                     started = True
-                    if argv[0] == "@copy":
+                    if step.is_copy:
                         t0 = time.perf_counter()
-                        if not Path(argv[2]).exists():
-                            shutil.copytree(argv[1], argv[2])
-                        record(argv, time.perf_counter() - t0, True)
-                        say(f"copied {argv[1]} -> {argv[2]}")
+                        copy_run(step)
+                        record(step, time.perf_counter() - t0, True)
+                        say(f"copied {step.argv[1]} -> {step.argv[2]}")
                         continue
-                    gpu, log = free.pop(0), out / "logs" / _log_name(argv)
+                    gpu, log = free.pop(0), out / "logs" / _log_name(step)
                     with open(log, "a") as f:
-                        f.write(f"$ conav {' '.join(argv)}\n")
+                        f.write(f"$ conav {' '.join(step.argv)}\n")
                         f.flush()
-                        proc = subprocess.Popen(child_command(argv, compile_cache), stdout=f, stderr=subprocess.STDOUT,
+                        proc = subprocess.Popen(child_command(step.argv, compile_cache), stdout=f,
+                                                stderr=subprocess.STDOUT,
                                                 env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu, "PYTHONUNBUFFERED": "1"})
-                    running[proc] = (argv, gpu, log, time.perf_counter())
-                    say(f"[gpu {gpu}] {_describe(argv, out)} started (log {log})")
+                    running[proc] = (step, gpu, log, time.perf_counter())
+                    say(f"[gpu {gpu}] {step.name} started (log {log})")
             if not running:
                 break  # what is left waits for commands not run here
             ended = [proc for proc in running if proc.poll() is not None]
@@ -800,29 +818,29 @@ def run_parallel(plan: list[Stage], todo: list[tuple[str, ...]], out: Path, prog
                 time.sleep(poll_seconds)
                 continue
             for proc in ended:
-                argv, gpu, log, t0 = running.pop(proc)
+                step, gpu, log, t0 = running.pop(proc)
                 seconds = time.perf_counter() - t0
-                record(argv, seconds, proc.returncode == 0)
+                record(step, seconds, proc.returncode == 0)
                 free = sorted(free + [gpu], key=gpus.index)
                 if proc.returncode == 0:
-                    say(f"[gpu {gpu}] {_describe(argv, out)} done in {seconds:.0f} s "
+                    say(f"[gpu {gpu}] {step.name} done in {seconds:.0f} s "
                         f"({len(done & set(needs))} done, {len(running)} running, {len(pending)} to run)")
                 else:
                     failed = failed or proc.returncode
-                    say(f"[gpu {gpu}] {_describe(argv, out)} failed (exit {proc.returncode}) after {seconds:.0f} s; "
+                    say(f"[gpu {gpu}] {step.name} failed (exit {proc.returncode}) after {seconds:.0f} s; "
                         f"no new command starts. The end of {log}:\n{_tail(log)}")
     except BaseException:
         for proc in running:
             proc.terminate()
         deadline = time.perf_counter() + 30.0
-        for proc, (argv, gpu, log, t0) in running.items():
+        for proc, (step, gpu, log, t0) in running.items():
             try:
                 proc.wait(timeout=max(0.1, deadline - time.perf_counter()))
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-            record(argv, time.perf_counter() - t0, False)
-            say(f"[gpu {gpu}] {_describe(argv, out)} stopped")
+            record(step, time.perf_counter() - t0, False)
+            say(f"[gpu {gpu}] {step.name} stopped")
         raise
     return failed, pending
 
@@ -830,14 +848,20 @@ def run_parallel(plan: list[Stage], todo: list[tuple[str, ...]], out: Path, prog
 # -- pack ------------------------------------------------------------------------------------------
 
 
+def copy_run(step: Step) -> None:
+    """Run a copy step: its source run directory to its target, unless the target exists."""
+    if not Path(step.argv[2]).exists():
+        shutil.copytree(step.argv[1], step.argv[2])
+
+
 def _pending_runs(cfg: ReproduceConfig, progress: dict) -> tuple[set[Path], set[Path]]:
-    """(the runs that commands still to run read, the runs they write)."""
+    """(the runs that steps still to run read, the runs they write); the data are regenerated."""
     out = Path(cfg.out)
     read, written = set(), set()
-    for argv in (a for st in plan_stages(cfg) for a in st.commands if command_key(a, out) not in progress["commands"]):
-        read.update(runs_read(argv))
-        written.add(writes(argv))
-    written.discard(None)
+    for step in (x for st in plan_stages(cfg) for x in st.steps if x.name not in progress["commands"]):
+        read.update(out / r for r in step.reads if r != "data")
+        written.add(out / step.writes)
+    written.discard(out / "data")
     return read, written
 
 

@@ -121,7 +121,7 @@ def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_p
     for name in plain:
         assert [tuple(a for a in argv if a not in ("--encoder", "patch")) for argv in patch[name].commands] == \
             list(plain[name].commands)
-    with pytest.raises(ValueError, match="unknown --encoder 'resnet'"):
+    with pytest.raises(ValueError, match="unknown ReproduceConfig.encoder 'resnet'"):
         rp.ReproduceConfig(out=tmp_path, encoder="resnet")
     # The command line passes it on.
     assert cli.main(["--compile-cache", "off", "reproduce", "--preset", "tiny", "--seeds", "1", "--out",
@@ -244,7 +244,7 @@ def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_
     # The policy-alone runs keep their commands (and so their progress.json records).
     plain = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=2))}
     assert "--dagger-beta" not in plain["dagger"].commands[1] and plain["dagger"].commands[1][-1] == str(runs / "dagger_s0")
-    with pytest.raises(ValueError, match="--dagger-beta is a probability"):
+    with pytest.raises(ValueError, match="ReproduceConfig.dagger_beta is a probability"):
         rp.ReproduceConfig(out=tmp_path, dagger_beta=1.5)
 
     _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
@@ -279,7 +279,7 @@ def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(
     # Every share a row can be named by reads back, however `:g` writes it.
     assert all(rp.dagger_variant(rp.dagger_row(b, 2)) == (b, 2, None) for b in (1.0, 0.25, 1e-05))
     assert rp.dagger_variant("dagger_beta1e-05.") is None
-    with pytest.raises(ValueError, match="--dagger-rounds must be at least 1"):
+    with pytest.raises(ValueError, match="ReproduceConfig.dagger_rounds must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, dagger_rounds=0)
 
     _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
@@ -314,7 +314,7 @@ def test_another_dagger_episode_count_runs_under_its_own_name_and_the_baselines_
     assert "--dagger-episodes" not in {s.name: s for s in rp.plan_stages(
         dataclasses.replace(small, dagger_episodes=None))}["dagger"].commands[1]
     assert rp.dagger_variant(cfg.dagger) == (0.5, 1, 200) and rp.dagger_variant("dagger_episodes") is None
-    with pytest.raises(ValueError, match="--dagger-episodes must be at least 1"):
+    with pytest.raises(ValueError, match="ReproduceConfig.dagger_episodes must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, dagger_episodes=0)
 
     _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
@@ -401,7 +401,7 @@ def test_a_command_cut_short_counts_its_time_in_its_stage(fake_conav, tmp_path, 
         _reproduce(out)
     assert signal.getsignal(signal.SIGTERM) == handler  # the command's own handler is gone
     plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
-    cut_key = rp.command_key({s.name: s for s in plan}["bc"].commands[0], out)
+    cut_key = {s.name: s for s in plan}["bc"].steps[0].name
     assert "bc_none_s0" in cut_key
     progress = rp.read_progress(out)
     assert progress["cut"][cut_key] >= 0.0 and cut_key not in progress["commands"]
@@ -412,7 +412,7 @@ def test_a_command_cut_short_counts_its_time_in_its_stage(fake_conav, tmp_path, 
     assert 300.0 <= rp.read_progress(out)["cut"][cut_key] < 310.0
     assert _reproduce(out) == 0
     results = json.loads((out / "results.json").read_text())
-    bc = [rp.command_key(argv, out) for argv in {s.name: s for s in plan}["bc"].commands]
+    bc = [step.name for step in {s.name: s for s in plan}["bc"].steps]
     assert results["cut_seconds"] == rp.read_progress(out)["cut"]
     assert results["stage_seconds"]["bc"] == pytest.approx(
         sum(results["command_seconds"][k] for k in bc) + results["cut_seconds"][cut_key], abs=0.2)
@@ -445,7 +445,7 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
     with pytest.raises(FileNotFoundError, match="no pack"):
         rp.unpack(tmp_path / "missing.tar", tmp_path / "junk")
     # Packing there reads no data: the record of their making stays.
-    gen_key = rp.command_key(rp.plan_stages(rp.ReproduceConfig(out=fresh, preset="tiny", seeds=2))[0].commands[0], fresh)
+    gen_key = rp.plan_stages(rp.ReproduceConfig(out=fresh, preset="tiny", seeds=2))[0].steps[0].name
     assert _reproduce(fresh, "--stage", "pack") == 0 and gen_key in rp.read_progress(fresh)["commands"]
     # On the fresh machine the data are made again, then the run goes on where it was cut, also
     # when one stage is asked for alone.
@@ -529,7 +529,7 @@ def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fak
     assert "ours (seed" not in (out / "tables.md").read_text()
     # The bc stage ran in two calls: its time is every bc command's, not the last call's.
     plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
-    bc_keys = [rp.command_key(argv, out) for argv in {s.name: s for s in plan}["bc"].commands]
+    bc_keys = [step.name for step in {s.name: s for s in plan}["bc"].steps]
     assert results["stage_seconds"]["bc"] == pytest.approx(sum(results["command_seconds"][k] for k in bc_keys), abs=0.2)
     assert results["stage_seconds"]["bc"] >= 100.0 * len(rp.ABLATIONS)
 
@@ -553,18 +553,40 @@ def test_a_finished_run_continued_with_the_expert_mixed_in_runs_only_its_dagger_
     assert json.loads((out / "results.json").read_text())["missing"] == ["eval/conav_dagger_beta0.5_s1"]
 
 
-def test_a_relative_out_directory_names_commands_by_out(fake_conav, tmp_path, monkeypatch):
+def test_a_relative_out_directory_names_steps_relative_to_out(fake_conav, tmp_path, monkeypatch):
     calls, _ = fake_conav
     monkeypatch.chdir(tmp_path)
-    assert _reproduce(".") == 0  # "." must not be replaced inside every word of a command
-    keys = rp.read_progress(tmp_path)["commands"]
-    assert "generate --preset tiny --out OUT/data --seed 0 --workers 2" in keys
+    assert _reproduce(".") == 0
+    progress = rp.read_progress(tmp_path)
+    keys = progress["commands"]
+    assert progress["run_format"] == rp.RUN_FORMAT and "generate data" in keys and "train policy runs/bc_all_s1" in keys
     results = json.loads((tmp_path / "results.json").read_text())
-    assert results["stage_seconds"]["generate"] == keys["generate --preset tiny --out OUT/data --seed 0 --workers 2"]
+    assert results["stage_seconds"]["generate"] == keys["generate data"]
     calls.clear()
     assert _reproduce(".") == 0 and calls == []  # done: nothing runs again
-    with pytest.raises(ValueError, match="absolute"):
-        rp.command_key(("generate",), Path("."))
+
+
+def test_an_out_directory_keyed_by_command_lines_resumes_under_step_names(fake_conav, tmp_path, capsys):
+    calls, _ = fake_conav
+    out = tmp_path / "r"
+    assert _reproduce(out, "--stage", "predictors") == 0
+    progress = rp.read_progress(out)
+    plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
+    steps = {s.name: s for st in plan for s in st.steps}
+    # As the previous format wrote it: each command line, OUT written as "OUT", and no run_format.
+    old = {" ".join(steps[k].argv).replace(str(out), "OUT"): v for k, v in progress["commands"].items()}
+    old["train policy --out OUT/runs/a_variant_not_planned_s0"] = 5.0
+    (out / rp.PROGRESS_FILE).write_text(json.dumps({"commands": old, "stages": progress["stages"],
+                                                    "config": progress["config"]}))
+    calls.clear()
+    assert _reproduce(out, "--stage", "predictors") == 0
+    assert calls == []  # the predictors are done: their records moved to their step names
+    assert "1 record(s) of commands this plan does not hold were dropped" in capsys.readouterr().out
+    again = rp.read_progress(out)
+    assert again["run_format"] == rp.RUN_FORMAT and set(again["commands"]) == set(progress["commands"])
+    (out / rp.PROGRESS_FILE).write_text(json.dumps({**again, "run_format": rp.RUN_FORMAT + 1}))
+    assert _reproduce(out) == 2 and calls == []
+    assert "newer than this version's" in capsys.readouterr().err
 
 
 def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
@@ -700,19 +722,20 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
     out = tmp_path / "two"
     plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
     made = [argv for st in plan for argv in st.commands if argv[0] != "@copy"]
-    assert sorted(r["out"] for r in runs) == sorted(str(rp.writes(a)) for a in made)  # each once, in a process
+    steps = {s.argv: s for st in plan for s in st.steps}
+    assert sorted(r["out"] for r in runs) == sorted(str(out / steps[a].writes) for a in made)  # each once, in a process
     # Each started after every command it waits for had ended: the data, the runs it reads.
-    needs = rp.prerequisites(plan, out)
+    needs = rp.prerequisites(plan)
     ended = {r["out"]: r["end"] for r in runs}
+    by_name = {s.name: s for s in steps.values()}
     for argv in made:
-        mine = next(r for r in runs if r["out"] == str(rp.writes(argv)))
-        for key in needs[rp.command_key(argv, out)]:
-            other = next(a for a in (x for st in plan for x in st.commands) if rp.command_key(a, out) == key)
-            if other[0] != "@copy":
-                assert ended[str(rp.writes(other))] <= mine["start"]
+        mine = next(r for r in runs if r["out"] == str(out / steps[argv].writes))
+        for name in needs[steps[argv].name]:
+            if not by_name[name].is_copy:
+                assert ended[str(out / by_name[name].writes)] <= mine["start"]
     # What most commands wait on first: the BC runs that DAgger continues before the other BC
     # runs, which only their evaluations wait for (in plan order `none` comes first).
-    started = [line.split(" -> ")[1].split()[0] for line in capsys.readouterr().out.splitlines()
+    started = [line.split(" started (log ")[0].split()[-1] for line in capsys.readouterr().out.splitlines()
                if line.startswith("[gpu ") and line.endswith(".log)")]
     assert started[0] == "data" and set(started[1:3]) == {"runs/intention", "runs/trajectory"}
     bc_runs = [name for name in started if name.startswith("runs/bc_")]
@@ -721,7 +744,7 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
     assert {r["gpu"] for r in runs} == {"5", "7"}
     overlaps = [(a, b) for i, a in enumerate(runs) for b in runs[i + 1:] if a["start"] < b["end"] and b["start"] < a["end"]]
     assert overlaps and all(a["gpu"] != b["gpu"] for a, b in overlaps)
-    assert (out / "logs" / "train_policy_bc_all_s1.log").read_text().startswith("$ conav train policy")
+    assert (out / "logs" / "train_policy_runs_bc_all_s1.log").read_text().startswith("$ conav train policy")
     one, two = (json.loads((tmp_path / d / "results.json").read_text()) for d in ("one", "two"))
     for doc in (one, two):
         for key in ("command", "stage_seconds", "command_seconds", "cut_seconds"):
@@ -788,7 +811,7 @@ def test_the_gpus_are_those_the_driver_lists_and_several_named_without_gpus_get_
     monkeypatch.setattr(rp.shutil, "which", lambda name: "/usr/bin/" + name)
     monkeypatch.setattr(rp.subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, listed, ""))
     assert rp.visible_gpus() == ["0", "1"] and rp.gpu_slots(2) == ["0", "1"]
-    with pytest.raises(ValueError, match="--gpus 3: 2 GPU"):
+    with pytest.raises(ValueError, match="gpu_slots.gpus 3: 2 GPU"):
         rp.gpu_slots(3)
     assert _reproduce(tmp_path / "r", "--stage", "generate") == 0
     assert "2 GPUs visible: each command runs on all of them as one device mesh; --gpus 2" in capsys.readouterr().out

@@ -91,7 +91,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _reproduce_stages(args: argparse.Namespace) -> int:
-    import shutil
     import subprocess
 
     from conav_jax.eval import reproduce as rp
@@ -116,12 +115,23 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         print(f"conav reproduce: {as_flags(str(e), args.field_flags)}", file=sys.stderr)
         return 2
     plan = rp.plan_stages(cfg)
+    older = progress.get("run_format", 1) < rp.RUN_FORMAT
+    try:  # an OUT made before steps had names: its records move to them
+        dropped = rp.upgrade_progress(progress, plan, cfg.out)
+    except ValueError as e:
+        print(f"conav reproduce: {e}", file=sys.stderr)
+        return 2
+    if older and not args.dry_run:
+        rp.write_progress(cfg.out, progress)
+    if dropped:
+        print(f"progress.json: {len(dropped)} record(s) of commands this plan does not hold were dropped (another "
+              "variant's; its runs resume from their checkpoints when it is planned again)", flush=True)
     # Data are regenerated from their seed on a fresh machine (tables and pack read none: their
     # record of the data's making stays).
     if args.stage not in ("tables", "pack") and not all(p.exists() for p in plan[0].outputs):
         progress["stages"].pop(plan[0].name, None)
-        for argv in plan[0].commands:
-            progress["commands"].pop(rp.command_key(argv, cfg.out), None)
+        for step in plan[0].steps:
+            progress["commands"].pop(step.name, None)
     stages = [st for st in plan if args.stage in (None, st.name)]
     if args.stage not in (None, plan[0].name, "tables", "pack") and plan[0].name not in progress["stages"]:
         # A stage asked for alone on a machine without the data (a fresh one, after --unpack) makes them first.
@@ -140,59 +150,52 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         if isinstance(stages, int):
             return stages
     for st in stages:
-        todo = [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]]
-        if not args.dry_run:
-            # A stage asked for alone runs what it can: a command whose runs are not trained yet waits
-            # (the learned baselines' evaluations before their training, say) instead of failing.
-            todo, waiting = rp.ready_commands(plan, st, rp.stage_seed(st, args.seed), set(progress["commands"]),
-                                             cfg.out)
-            for argv in waiting:
-                print(f"[{st.name}] waits for the runs it reads: conav {shlex.join(argv)}")
         if args.dry_run:
-            print(f"[{st.name}] {'done' if st.name in progress['stages'] and not todo else 'to run'}")
-            for argv in st.commands:
-                line = f"copy {argv[1]} -> {argv[2]}" if argv[0] == "@copy" else f"conav {shlex.join(argv)}"
-                print(f"  {'(done) ' if rp.command_key(argv, cfg.out) in progress['commands'] else ''}{line}")
+            _print_stage(st, progress)
             continue
+        # A stage asked for alone runs what it can: a step whose runs are not made yet waits (the
+        # learned baselines' evaluations before their training, say) instead of failing.
+        todo, waiting = rp.ready_steps(plan, st, rp.stage_seed(st, args.seed), set(progress["commands"]))
+        for step in waiting:
+            print(f"[{st.name}] waits for the runs it reads: {_shown(step)}")
         if st.name in progress["stages"] and not todo and st.name not in ("tables", "pack"):  # those two are of now
             print(f"[{st.name}] done ({progress['stages'][st.name]:.0f} s), skipped")
             continue
         t_stage = time.perf_counter()
-        for argv in todo:
-            print(f"\n$ conav {shlex.join(argv)}" if argv[0] != "@copy" else f"\ncopy {argv[1]} -> {argv[2]}", flush=True)
+        for step in todo:
+            print(f"\n{'' if step.is_copy else '$ '}{_shown(step)}", flush=True)
             t0, rc = time.perf_counter(), 0
             try:
-                if argv[0] == "@copy":
-                    if not Path(argv[2]).exists():
-                        shutil.copytree(argv[1], argv[2])
+                if step.is_copy:
+                    rp.copy_run(step)
                 else:
-                    rc = run_stage(argv)
-            finally:  # a command cut short (failed, interrupted, SIGTERM) still counts its time
-                key, seconds = rp.command_key(argv, cfg.out), round(time.perf_counter() - t0, 1)
+                    rc = run_stage(step.argv)
+            finally:  # a step cut short (failed, interrupted, SIGTERM) still counts its time
+                seconds = round(time.perf_counter() - t0, 1)
                 if rc or sys.exc_info()[0] is not None:
                     cut = progress.setdefault("cut", {})
-                    cut[key] = round(cut.get(key, 0.0) + seconds, 1)
+                    cut[step.name] = round(cut.get(step.name, 0.0) + seconds, 1)
                 else:
-                    progress["commands"][key] = seconds
+                    progress["commands"][step.name] = seconds
                 rp.write_progress(cfg.out, progress)
             if rc:
-                print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: conav {shlex.join(argv)}")
+                print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: {_shown(step)}")
                 return rc
-        left = [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]]
-        if left:  # commands waiting for their runs, or with --seed the other seeds' commands
+        left = [step for step in st.steps if step.name not in progress["commands"]]
+        if left:  # steps waiting for their runs, or with --seed the other seeds' steps
             if args.seed is None:
-                print(f"[{st.name}] {len(left)} of the stage's {len(st.commands)} commands wait for their runs: "
+                print(f"[{st.name}] {len(left)} of the stage's {len(st.steps)} steps wait for their runs: "
                       "the stage is not done", flush=True)
                 continue
-            mine = sum(rp.command_seed(argv) == args.seed for argv in left)
-            print(f"[{st.name}] seed {args.seed}: " + (f"{mine} command(s) wait for their runs" if mine else
-                  "its commands done") + f"; {len(left)} of the stage's {len(st.commands)} to run", flush=True)
+            mine = sum(step.seed == args.seed for step in left)
+            print(f"[{st.name}] seed {args.seed}: " + (f"{mine} step(s) wait for their runs" if mine else
+                  "its steps done") + f"; {len(left)} of the stage's {len(st.steps)} to run", flush=True)
             continue
         if st.name == "tables":
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
                      "encoder": cfg.encoder,
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
-                     "stage_seconds": rp.stage_seconds(plan, progress, cfg.out), "command_seconds": progress["commands"],
+                     "stage_seconds": rp.stage_seconds(plan, progress), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}
             # FileNotFoundError without the scripted agents' evaluation
             results = rp.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger)
@@ -213,10 +216,23 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     return 0
 
 
+def _shown(step) -> str:
+    """A step as a person would type it."""
+    return f"copy {step.argv[1]} -> {step.argv[2]}" if step.is_copy else f"conav {shlex.join(step.argv)}"
+
+
+def _print_stage(st, progress: dict) -> None:
+    """--dry-run: the stage, whether it is done, and each step's call."""
+    todo = [step for step in st.steps if step.name not in progress["commands"]]
+    print(f"[{st.name}] {'done' if st.name in progress['stages'] and not todo else 'to run'}")
+    for step in st.steps:
+        print(f"  {'(done) ' if step.name in progress['commands'] else ''}{_shown(step)}")
+
+
 def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list, progress: dict) -> list | int:
-    """`--gpus N`: every command of `stages` not done (training seed `--seed`'s alone in the seeded
-    stages) runs through `reproduce.run_parallel`; stages whose commands are all done are marked so,
-    with their commands' summed time. Returns the stages left to run here (tables, pack), or an
+    """`--gpus N`: every step of `stages` not done (training seed `--seed`'s alone in the seeded
+    stages) runs through `reproduce.run_parallel`; stages whose steps are all done are marked so,
+    with their steps' summed time. Returns the stages left to run here (tables, pack), or an
     exit code."""
     from conav_jax.eval import reproduce as rp
 
@@ -234,15 +250,14 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     todo = []
     for st in work:
         seed = rp.stage_seed(st, args.seed)
-        todo += [argv for argv in st.commands if rp.command_key(argv, cfg.out) not in progress["commands"]
-                 and seed in (None, rp.command_seed(argv))]
+        todo += [step for step in st.steps if step.name not in progress["commands"] and seed in (None, step.seed)]
     print(f"{len(todo)} command(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
     t0 = time.perf_counter()
     rc, waiting = rp.run_parallel(plan, todo, cfg.out, progress, gpus, args.compile_cache)
-    for argv in waiting:
-        print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: conav {shlex.join(argv)}")
+    for step in waiting:
+        print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: {_shown(step)}")
     for st in work:
-        keys = [rp.command_key(argv, cfg.out) for argv in st.commands]
+        keys = [step.name for step in st.steps]
         if all(k in progress["commands"] for k in keys):
             progress["stages"][st.name] = round(sum(progress["commands"][k] for k in keys), 1)
     rp.write_progress(cfg.out, progress)
