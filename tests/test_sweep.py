@@ -2,6 +2,7 @@
 determinism, and input errors raised before anything is compiled."""
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -242,3 +243,33 @@ def test_the_command_line_names_the_flags_of_the_fields_a_library_error_names(ti
     assert "error: --batch must be at least 1, got 0" in capsys.readouterr().err
     assert main([*base, "--agent", "pioneer,pioneer"]) == 2
     assert "error: --agent lists an agent twice" in capsys.readouterr().err
+
+
+def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data):
+    """`conav bench eval --untrained`'s agents: built from `init` at the env's panorama, with
+    fresh predictors where they read predictions; each acts and its title says untrained."""
+    import jax
+    import numpy as np
+
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.eval.bench import UNTRAINED_AGENTS, untrained_agent
+    from conav_jax.models.policy import PolicyConfig, ablation_config
+
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64)))
+    small = PolicyConfig(image_hw=(16, 64), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
+                         intention_dim=8, hidden=8)
+    configs = {"conav": small, "ppo": small, "imagegoal": dataclasses.replace(
+        ablation_config(small, "none"), goal_image=True, use_human_pos=False)}
+    goal = dataclasses.replace(ablation_config(small, "object"), use_human_pos=False)
+    key = jax.random.PRNGKey(0)
+    state = env.reset(key)
+    for name in UNTRAINED_AGENTS:
+        agent = untrained_agent(name, env, configs.get(name, goal), key, frames=2)
+        assert agent.name == name and agent.title.endswith("(untrained)")
+        action, _ = agent.act(state, agent.init(key, state.info["episode"]), key)
+        assert np.asarray(action).shape == (2,) and np.all(np.isfinite(action))
+    assert untrained_agent("conav", env, small, key, 2).intention_source == "predicted"
+    with pytest.raises(ValueError, match="no untrained variant of agent 'pioneer'"):
+        untrained_agent("pioneer", env, small, key, 2)
+    with pytest.raises(ValueError, match="16x64"):
+        untrained_agent("conav", env, dataclasses.replace(small, image_hw=(8, 32)), key, 2)

@@ -113,9 +113,11 @@ def add_fields(p, cls: type, names: tuple[str, ...] | None = None, defaults=None
     """Add `--field-name` (or `flags[name]`) for the fields `names` of dataclass `cls` (default:
     all), each with the field's type, its default (from `defaults`, an instance, when given) and
     its documenting comment as help (`helps[name]` overrides it). Booleans become --x / --no-x."""
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+    names = names or tuple(f.name for f in dataclasses.fields(cls))
     defaults = defaults if defaults is not None else cls()
-    for name in names or tuple(fields):
+    added = p.get_default("config_fields") or {}
+    p.set_defaults(config_fields={**added, _qualified(cls): added.get(_qualified(cls), ()) + tuple(names)})
+    for name in names:
         default = getattr(defaults, name)
         text = helps.get(name) or field_docs(cls).get(name) or f"{cls.__name__}.{name}"
         text = f"{text} (default {default})".replace("%", "%%")
@@ -126,11 +128,15 @@ def add_fields(p, cls: type, names: tuple[str, ...] | None = None, defaults=None
             p.add_argument(option, dest=name, type=_value_type(cls, name, default), default=default, help=text)
 
 
+def _qualified(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
 def config_from_args(cls: type, args: argparse.Namespace, **extra):
-    """`cls` built from the namespace attributes named as its fields (those `add_fields` made),
-    with `extra` keywords over them."""
-    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
-    return cls(**{**given, **extra})
+    """`cls` built from the fields `add_fields` made flags for on this command, with `extra`
+    keywords over them (the other fields keep their defaults)."""
+    names = (getattr(args, "config_fields", None) or {}).get(_qualified(cls), ())
+    return cls(**{**{name: getattr(args, name) for name in names}, **extra})
 
 
 # -- library errors in flag names ----------------------------------------------------------------
