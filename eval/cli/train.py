@@ -148,20 +148,27 @@ def _add_train_goalnav(models) -> None:
         p.set_defaults(func=_run_train_goalnav)
 
 
+def _trained(args: argparse.Namespace, train, *a, **kw):
+    """`train(*a, **kw)`'s result, or None after saying why the run stopped: a loss that became
+    non-finite (FloatingPointError, train.loop.NonFiniteLoss among them)."""
+    try:
+        return train(*a, **kw)
+    except FloatingPointError as e:
+        print(f"conav train {args.model}: {e}")
+        return None
+
+
 def _run_train_intention(args: argparse.Namespace) -> int:
     from conav_jax.models.perceiver import PerceiverConfig
     from conav_jax.envs.human_crop import default_crop_hw
     from conav_jax.train.intention import IntentionDataConfig, train_intention
-    from conav_jax.train.loop import NonFiniteLoss
 
     sensor_hw = args.resolution or IntentionDataConfig.sensor_hw
     data = config_from_args(IntentionDataConfig, args, sensor_hw=sensor_hw)
     model = config_from_args(PerceiverConfig, args, image_hw=args.image or default_crop_hw(sensor_hw))
-    try:
-        result = train_intention(args.data, args.out, train_config(args), model, data, progress=not args.no_progress,
-                                 mesh=mesh(args), val_split=args.val_split)
-    except NonFiniteLoss as e:
-        print(f"conav train intention: {e}")
+    result = _trained(args, train_intention, args.data, args.out, train_config(args), model, data,
+                      progress=not args.no_progress, mesh=mesh(args), val_split=args.val_split)
+    if result is None:
         return 1
     v, split = result.val, args.val_split
     print(f"intention run: {result.run_dir} ({result.step} steps), validated on {split}")
@@ -186,14 +193,11 @@ def _run_train_intention(args: argparse.Namespace) -> int:
 
 def _run_train_trajectory(args: argparse.Namespace) -> int:
     from conav_jax.models.trajectory import TrajectoryConfig
-    from conav_jax.train.loop import NonFiniteLoss
     from conav_jax.train.trajectory import train_trajectory
 
-    try:
-        result = train_trajectory(args.data, args.out, train_config(args), TrajectoryConfig(hidden=args.hidden),
-                                  progress=not args.no_progress, mesh=mesh(args))
-    except NonFiniteLoss as e:
-        print(f"conav train trajectory: {e}")
+    result = _trained(args, train_trajectory, args.data, args.out, train_config(args),
+                      TrajectoryConfig(hidden=args.hidden), progress=not args.no_progress, mesh=mesh(args))
+    if result is None:
         return 1
     v = result.val
     print(f"trajectory run: {result.run_dir} ({result.step} steps)")
@@ -213,20 +217,16 @@ def policy_model(args: argparse.Namespace):
 
 
 def _run_train_policy(args: argparse.Namespace) -> int:
-    from conav_jax.train.loop import NonFiniteLoss
     from conav_jax.train.policy import train_policy
 
     imitation = imitation_config(args, train_intentions=args.train_intentions)
     for flag, run in (("--intention", args.intention), ("--trajectory", args.trajectory)):
         if run is not None and not Path(run).is_dir():
             raise FileNotFoundError(f"{flag} run directory not found: {run}")
-    try:
-        result = train_policy(args.data, args.out, train_config(args), policy_model(args), imitation,
-                              intention_run=args.intention, trajectory_run=args.trajectory,
-                              progress=not args.no_progress, mesh=mesh(args), remat=args.remat,
-                              share_expert=args.share_expert)
-    except NonFiniteLoss as e:
-        print(f"conav train policy: {e}")
+    result = _trained(args, train_policy, args.data, args.out, train_config(args), policy_model(args), imitation,
+                      intention_run=args.intention, trajectory_run=args.trajectory, progress=not args.no_progress,
+                      mesh=mesh(args), remat=args.remat, share_expert=args.share_expert)
+    if result is None:
         return 1
     _print_imitation_result("policy", "expert", result, imitation.val_split)
     return 0
@@ -273,11 +273,9 @@ def _run_train_rl(args: argparse.Namespace) -> int:
             raise ValueError("--hidden and --resolution size a new network; with --init-from the network is the imitation run's")
     else:
         policy_config = PolicyConfig(image_hw=run_resolution([], args.resolution), hidden=args.hidden or PolicyConfig.hidden)
-    try:
-        result = train_ppo(args.data, args.out, config, policy_config, args.init_from, progress=not args.no_progress,
-                           mesh=mesh(args))
-    except FloatingPointError as e:
-        print(f"conav train rl: {e}")
+    result = _trained(args, train_ppo, args.data, args.out, config, policy_config, args.init_from,
+                      progress=not args.no_progress, mesh=mesh(args))
+    if result is None:
         return 1
     print(f"ppo run: {result.run_dir} ({result.env_steps} env steps)")
     if result.val:
@@ -288,7 +286,6 @@ def _run_train_rl(args: argparse.Namespace) -> int:
 def _run_train_goalnav(args: argparse.Namespace) -> int:
     from conav_jax.envs.agents.registry import run_resolution
     from conav_jax.train import goalnav
-    from conav_jax.train.loop import NonFiniteLoss
 
     imitation = imitation_config(args)
     hw = run_resolution([], args.resolution)
@@ -297,11 +294,9 @@ def _run_train_goalnav(args: argparse.Namespace) -> int:
         model, train = goalnav.objectnav_model(hw, args.object_saliency, base), goalnav.train_objectnav
     else:
         model, train = goalnav.imagenav_model(hw, base), goalnav.train_imagenav
-    try:
-        result = train(args.data, args.out, train_config(args), model, imitation, progress=not args.no_progress,
-                       mesh=mesh(args), remat=args.remat)
-    except NonFiniteLoss as e:
-        print(f"conav train {args.model}: {e}")
+    result = _trained(args, train, args.data, args.out, train_config(args), model, imitation,
+                      progress=not args.no_progress, mesh=mesh(args), remat=args.remat)
+    if result is None:
         return 1
     _print_imitation_result(args.model, "planner", result, imitation.val_split)
     return 0
