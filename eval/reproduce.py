@@ -21,10 +21,10 @@ import os
 import re
 import shutil
 import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from conav_jax.models.policy import DEFAULT_ENCODER, ENCODERS
 from conav_jax.envs.metrics import METRIC_NAMES
@@ -747,11 +747,6 @@ def gpu_slots(gpus: int) -> list[str]:
     return ids[:gpus] if ids is not None else [str(i) for i in range(gpus)]
 
 
-def child_command(argv: tuple[str, ...], compile_cache: str | None) -> list[str]:
-    """The process that runs one `conav` command (`run_parallel`)."""
-    return [sys.executable, "-m", "conav_jax.eval.cli", *(("--compile-cache", compile_cache) if compile_cache else ()), *argv]
-
-
 def _log_name(step: Step) -> str:
     return step.name.replace(" ", "_").replace("/", "_") + ".log"
 
@@ -762,9 +757,9 @@ def _tail(path: Path, lines: int = 15) -> str:
 
 
 def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict, gpus: list[str],
-                 compile_cache: str | None = None, say=None, poll_seconds: float = 0.1) -> tuple[int, list[Step]]:
-    """Run `todo` (steps of `plan`) up to len(gpus) at once, each in a `conav` process of its
-    own that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a step starting once its
+                 command: Callable[[Step], list[str]], say=None, poll_seconds: float = 0.1) -> tuple[int, list[Step]]:
+    """Run `todo` (steps of `plan`) up to len(gpus) at once, each in a process of its own
+    (`command(step)`: the command line that runs that step alone, by name) that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a step starting once its
     `prerequisites` are done (in `by_dependents` order); copies run here. Each step's wall time goes into
     `progress` (saved) as it ends, a failed or stopped one's under "cut". After a failure no new
     step starts and those running finish. An interrupt (SIGTERM raised as KeyboardInterrupt)
@@ -806,7 +801,7 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                     with open(log, "a") as f:
                         f.write(f"$ conav {' '.join(step.argv)}\n")
                         f.flush()
-                        proc = subprocess.Popen(child_command(step.argv, compile_cache), stdout=f,
+                        proc = subprocess.Popen(command(step), stdout=f,
                                                 stderr=subprocess.STDOUT,
                                                 env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu, "PYTHONUNBUFFERED": "1"})
                     running[proc] = (step, gpu, log, time.perf_counter())

@@ -702,7 +702,7 @@ def fake_children(monkeypatch, tmp_path):
     returns the file of their records."""
     script, record = tmp_path / "fake_child.py", tmp_path / "record.jsonl"
     script.write_text(FAKE_CHILD)
-    monkeypatch.setattr(rp, "child_command", lambda argv, cache: [sys.executable, str(script), *argv])
+    monkeypatch.setattr(cli.reproduce, "child_command", lambda step, args, cfg: [sys.executable, str(script), *step.argv])
     monkeypatch.setenv("FAKE_RECORD", str(record))
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5,7")
     return record
@@ -850,3 +850,19 @@ def test_two_processes_on_one_out_keep_each_others_records(fake_conav, tmp_path)
     assert on_disk["cut"] == {"eval ... OUT/eval/other_s0": 3.0, "eval ... OUT/eval/both_s0": 5.0}
     assert on_disk["stages"]["mine"] == 7.0
     assert mine == on_disk  # the writer sees the others' records too
+
+
+def test_a_gpu_process_runs_its_step_alone_by_name_with_the_runs_options(fake_conav, tmp_path):
+    calls, _ = fake_conav
+    out = tmp_path / "r"
+    cfg = rp.ReproduceConfig(out=out, preset="tiny", seeds=2, dagger_beta=0.5, dagger_rounds=3, mirror=True)
+    (step,) = [s for st in rp.plan_stages(cfg) for s in st.steps if s.name == "train policy runs/dagger_beta0.5_rounds3_s1"]
+    argv = cli.reproduce.child_command(step, cli.build_parser().parse_args(["reproduce", "--out", str(out)]), cfg)
+    assert argv[1:3] == ["-m", "conav_jax.eval.cli"] and argv[-2:] == ["--run-step", step.name]
+    child = cli.build_parser().parse_args(argv[3:])
+    assert child.func(child) == 0
+    assert calls == [step.argv]  # that step's call alone
+    assert not (out / rp.PROGRESS_FILE).exists()  # the parent records it
+    child.run_step = "train policy runs/nothing_s0"
+    with pytest.raises(ValueError, match="the plan has no step 'train policy runs/nothing_s0'"):
+        child.func(child)

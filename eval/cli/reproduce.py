@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from conav_jax.eval.cli.args import as_flags, parse_resolution
+from conav_jax.eval.cli.args import as_flags, flag, parse_resolution
 from conav_jax.eval.cli.demo import run_stage
 
 def add(sub) -> None:
@@ -74,6 +74,10 @@ def add(sub) -> None:
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
+    p.add_argument("--run-step", default=None, metavar="NAME",
+                   help="run the one step of the plan named NAME (as --dry-run and progress.json name them, e.g. "
+                   "'train policy runs/bc_all_s0') in this process and record nothing: what each process of --gpus "
+                   "runs")
     p.set_defaults(func=run)
 
 
@@ -115,6 +119,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         print(f"conav reproduce: {as_flags(str(e), args.field_flags)}", file=sys.stderr)
         return 2
     plan = rp.plan_stages(cfg)
+    if args.run_step is not None:
+        return _run_step(plan, args.run_step)
     older = progress.get("run_format", 1) < rp.RUN_FORMAT
     try:  # an OUT made before steps had names: its records move to them
         dropped = rp.upgrade_progress(progress, plan, cfg.out)
@@ -216,6 +222,33 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_step(plan: list, name: str) -> int:
+    """--run-step: the step of `plan` named `name`, run here; its exit code."""
+    from conav_jax.eval import reproduce as rp
+
+    steps = {step.name: step for st in plan for step in st.steps}
+    if name not in steps:
+        raise ValueError(f"the plan has no step {name!r}; --dry-run lists them (e.g. {next(iter(steps))!r})")
+    if steps[name].is_copy:
+        rp.copy_run(steps[name])
+        return 0
+    return run_stage(steps[name].argv)
+
+
+def child_command(step, args: argparse.Namespace, cfg) -> list[str]:
+    """The process `--gpus` runs a step in: this command with this run's options, for `step`
+    alone (`--run-step`)."""
+    options = ["--preset", cfg.preset, "--seeds", str(cfg.seeds), "--resolution", "x".join(map(str, cfg.resolution)),
+               "--workers", str(cfg.workers), "--dagger-beta", f"{cfg.dagger_beta:g}", "--encoder", cfg.encoder]
+    for name in ("dagger_rounds", "dagger_episodes"):
+        if getattr(cfg, name) is not None:
+            options += [flag(name), str(getattr(cfg, name))]
+    options += [option for option, on in (("--mirror", cfg.mirror), ("--seen-objects", cfg.seen_objects)) if on]
+    cache = ("--compile-cache", args.compile_cache) if args.compile_cache else ()
+    return [sys.executable, "-m", "conav_jax.eval.cli", *cache, "reproduce", "--out", str(cfg.out), *options,
+            "--run-step", step.name]
+
+
 def _shown(step) -> str:
     """A step as a person would type it."""
     return f"copy {step.argv[1]} -> {step.argv[2]}" if step.is_copy else f"conav {shlex.join(step.argv)}"
@@ -253,7 +286,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
         todo += [step for step in st.steps if step.name not in progress["commands"] and seed in (None, step.seed)]
     print(f"{len(todo)} command(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
     t0 = time.perf_counter()
-    rc, waiting = rp.run_parallel(plan, todo, cfg.out, progress, gpus, args.compile_cache)
+    rc, waiting = rp.run_parallel(plan, todo, cfg.out, progress, gpus, lambda step: child_command(step, args, cfg))
     for step in waiting:
         print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: {_shown(step)}")
     for st in work:
