@@ -42,17 +42,23 @@ def untrained_agent(name: str, env, config, key, frames: int):
 
     if name not in UNTRAINED_AGENTS:
         raise ValueError(f"no untrained variant of agent {name!r}; learned agents: {', '.join(UNTRAINED_AGENTS)}")
+    def init(model, k, cfg):  # one compiled program instead of one per leaf
+        return jax.jit(model.init, static_argnums=1)(k, cfg)
+
     k_policy, k_intention, k_trajectory = jax.random.split(key, 3)
-    params = policy.init(k_policy, config)
+    params = init(policy, k_policy, config)
     hw = (env.config.sensor.height, env.config.sensor.width)
     seen = PerceiverConfig(image_hw=default_crop_hw(hw))
-    intention = make_intention_predictor(perceiver.init(k_intention, seen), seen, frames, FrameSpec("human", hw))
+    reads_intention = name == "objectgoal-predicted" or name in ("conav", "ppo") and (config.use_activity or
+                                                                                     config.use_object)
+    intention = (make_intention_predictor(init(perceiver, k_intention, seen), seen, frames, FrameSpec("human", hw))
+                 if reads_intention else None)
     source = f"untrained {name} policy"
     if name in ("conav", "ppo"):
         traj = TrajectoryConfig()
         agent = policy_agent_from_params(
-            params, config, intention if config.use_activity or config.use_object else None,
-            trajectory_predictor(trajectory.init(k_trajectory, traj), traj) if config.use_trajectory else None,
+            params, config, intention,
+            trajectory_predictor(init(trajectory, k_trajectory, traj), traj) if config.use_trajectory else None,
             name=name, title="CoNav Agent" if name == "conav" else "PPO Agent")
         check_policy_env(env, config, source, agent.intention_source)
     elif name == "imagegoal":
@@ -60,8 +66,7 @@ def untrained_agent(name: str, env, config, key, frames: int):
         agent = goalnav.imagegoal_agent_from_params(params, config, env)
     else:
         check_policy_env(env, config, source, NO_INTENTIONS)
-        agent = goalnav.objectgoal_agent_from_params(params, config, env,
-                                                     intention if name == "objectgoal-predicted" else None)
+        agent = goalnav.objectgoal_agent_from_params(params, config, env, intention)
     title = f"{agent.title or agent.name} ({UNTRAINED})"
     return agent._replace(title=title) if hasattr(agent, "_replace") else dataclasses.replace(agent, title=title)
 

@@ -245,7 +245,7 @@ def test_the_command_line_names_the_flags_of_the_fields_a_library_error_names(ti
     assert "error: --agent lists an agent twice" in capsys.readouterr().err
 
 
-def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data):
+def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data, monkeypatch):
     """`conav bench eval --untrained`'s agents: built from `init` at the env's panorama, with
     fresh predictors where they read predictions; each acts and its title says untrained."""
     import jax
@@ -253,7 +253,17 @@ def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data):
 
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
     from conav_jax.eval.bench import UNTRAINED_AGENTS, untrained_agent
+    from conav_jax.models import perceiver, policy, trajectory
     from conav_jax.models.policy import PolicyConfig, ablation_config
+
+    made = []
+    for model in (policy, perceiver, trajectory):  # zeros of init's shapes: the random draws compile slowly on CPU
+        def zeros(key, config, init=model.init):
+            made.append(type(config).__name__)
+            shapes = jax.eval_shape(lambda k: init(k, config), key)
+            return jax.tree.map(lambda x: jax.numpy.zeros(x.shape, x.dtype), shapes)
+
+        monkeypatch.setattr(model, "init", zeros)
 
     env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64)))
     small = PolicyConfig(image_hw=(16, 64), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
@@ -269,6 +279,7 @@ def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data):
         carry = jax.eval_shape(agent.init, key, state.info["episode"])
         action, _ = jax.eval_shape(agent.act, state, carry, key)
         assert action.shape == (2,) and action.dtype == np.float32
+    assert set(made) == {"PolicyConfig", "PerceiverConfig", "TrajectoryConfig"}  # the weights are init's
     assert untrained_agent("conav", env, small, key, 2).intention_source == "predicted"
     with pytest.raises(ValueError, match="no untrained variant of agent 'pioneer'"):
         untrained_agent("pioneer", env, small, key, 2)
