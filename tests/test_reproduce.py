@@ -14,6 +14,8 @@ import pytest
 
 from conav_jax.eval import cli
 from conav_jax.eval import reproduce as rp
+from conav_jax.eval import reproduce_run as rr
+from conav_jax.eval import reproduce_tables as rt
 
 METRICS = ("FASR", "RASR", "FASPL", "RASPL", "CR", "AS")
 
@@ -128,8 +130,8 @@ def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_p
                      str(tmp_path / "out"), "--encoder", "patch", "--dry-run"]) == 0
     assert capsys.readouterr().out.count("--encoder patch") == len(policy_runs)
     results = {"preset": "small", "seeds": 1, "resolution": "112x448", "agents": {}, "conav": {}}
-    assert "encoder" not in rp.render_tables(results)  # results.json files written before the key
-    assert "panorama 112x448 (the CoNav policy's panorama encoder: `patch`);" in rp.render_tables({**results, "encoder": "patch"})
+    assert "encoder" not in rt.render_tables(results)  # results.json files written before the key
+    assert "panorama 112x448 (the CoNav policy's panorama encoder: `patch`);" in rt.render_tables({**results, "encoder": "patch"})
 
 
 def test_learned_cells_are_the_mean_and_sd_over_seeds_with_the_pooled_interval():
@@ -137,9 +139,9 @@ def test_learned_cells_are_the_mean_and_sd_over_seeds_with_the_pooled_interval()
         "0": {"metrics": _metrics((10, 20, 5, 6, 30, 100)), "episodes": 100},
         "1": {"metrics": _metrics((20, 30, 7, 8, 10, 200)), "episodes": 100}}}
     # FASR: mean 15, sd sqrt(50) = 7.07; pooled 30 of 200: Wilson [10.7, 20.6].
-    assert rp._learned_cell(row, "FASR") == "15.0 ± 7.1 [10.7, 20.6]"
+    assert rt._learned_cell(row, "FASR") == "15.0 ± 7.1 [10.7, 20.6]"
     # AS: not a rate: mean 150, sd 70.7, the seeds' mean bounds.
-    assert rp._learned_cell(row, "AS") == "150.0 ± 70.7 [149.0, 151.0]"
+    assert rt._learned_cell(row, "AS") == "150.0 ± 70.7 [149.0, 151.0]"
 
 
 def test_tables_compare_rows_seed_by_seed_with_their_reference():
@@ -150,7 +152,7 @@ def test_tables_compare_rows_seed_by_seed_with_their_reference():
     results = {"seeds": 3, "agents": {}, "conav": {
         "none": row((10, 20), (14, 22), (12, 30)), "object": row((13, 20), (15, 25), (18, 30)),
         "all": row((20, 30), (10, 20)), "dagger": row((26, 31), (13, 20), (30, 30))}}
-    lines = rp.render_tables(results).splitlines()
+    lines = rt.render_tables(results).splitlines()
     # object - none: +3, +1, +6 (mean 3.33, sd 2.52); RASR 0, +3, 0.
     assert ("| object | none | s0 13.0 / s1 15.0 / s2 18.0 | +3.0 / +1.0 / +6.0 | +3.3 ± 2.5 | "
             "s0 20.0 / s1 25.0 / s2 30.0 | +0.0 / +3.0 / +0.0 | +1.0 ± 1.7 |") in lines
@@ -160,7 +162,7 @@ def test_tables_compare_rows_seed_by_seed_with_their_reference():
     assert any(line.startswith("| dagger | all | s0 26.0 / s1 13.0 / s2 30.0 | +6.0 / +3.0 | +4.5 ± 2.1 |")
                for line in lines)
     assert not any(line.startswith("| activity |") for line in lines)  # not run: no row
-    assert "Seed by seed" not in rp.render_tables({**results, "conav": {"none": results["conav"]["none"]}})
+    assert "Seed by seed" not in rt.render_tables({**results, "conav": {"none": results["conav"]["none"]}})
 
 
 def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
@@ -174,7 +176,7 @@ def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
         "conav": {"all": {"title": "CoNav Agent", "intention_source": "predicted", "privileged": ["oracle segmentation"],
                           "seeds": {"0": {"metrics": _metrics((12, 13, 14, 15, 16, 17)), "episodes": 100}}}},
     }
-    md = rp.render_tables(results)
+    md = rt.render_tables(results)
     lines = md.splitlines()
     assert "| agent | given (privileged inputs) | source | FASR | RASR | FASPL | RASPL | CR | CR_full | AS |" in lines
     # CR_full beside CR: "-" where a row (or the paper) has none.
@@ -203,34 +205,34 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     # runs made before that did): its all-inputs run is no DAgger row.
     for a in rp.ABLATIONS:
         _write_eval(evals / rp.BC_ROW_EVAL.format(row=a, seed=1), _eval_doc({"conav": (20, 30, 7, 8, 10, 200)}))
-    results = rp.collect_results(tmp_path, 2, {"seeds": 2})
+    results = rt.collect_results(tmp_path, 2, {"seeds": 2})
     assert set(results["conav"]["dagger"]["seeds"]) == {"0"}
     assert all(set(results["conav"][a]["seeds"]) == {"0", "1"} for a in rp.ABLATIONS)
-    lines = rp.render_tables(results).splitlines()
+    lines = rt.render_tables(results).splitlines()
     # One seed: its value and interval, no spread; the source names the seed.
     assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 40.0 [") for line in lines)
     assert any(line.startswith("| T conav (BC) | oracle map | ours | 15.0 ± 7.1 [") for line in lines)
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours | 15.0 ± 7.1 [") for line in lines)
-    assert results["missing"] == ["eval/conav_dagger_s1"] and "## Not run yet" in rp.render_tables(results)
+    assert results["missing"] == ["eval/conav_dagger_s1"] and "## Not run yet" in rt.render_tables(results)
     # Evaluations not made yet are listed, their rows marked; the learned rows name their seeds.
     (evals / rp.BC_ROW_EVAL.format(row="none", seed=1) / "metrics.json").unlink()
     (evals / "imagegoal" / "metrics.json").unlink()
-    results = rp.collect_results(tmp_path, 2, {"seeds": 2})
+    results = rt.collect_results(tmp_path, 2, {"seeds": 2})
     assert results["missing"] == ["eval/imagegoal", "eval/conav_bc_none_s1", "eval/conav_dagger_s1"]
     assert set(results["conav"]["activity"]["seeds"]) == {"0", "1"}
-    lines = rp.render_tables(results).splitlines()
+    lines = rt.render_tables(results).splitlines()
     assert "| imagegoal | | not run yet | - | - | - | - | - | - | - |" in lines and "- `eval/imagegoal`" in lines
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours (seed 0 of 2) | 10.0 [") for line in lines)
     (evals / rp.DAGGER_EVAL.format(0) / "metrics.json").unlink()
     (evals / rp.BC_EVAL.format(0) / "metrics.json").unlink()
     for a in rp.ABLATIONS[1:]:
         (evals / rp.BC_ROW_EVAL.format(row=a, seed=1) / "metrics.json").unlink()
-    lines = rp.render_tables(rp.collect_results(tmp_path, 2, {"seeds": 2})).splitlines()
+    lines = rt.render_tables(rt.collect_results(tmp_path, 2, {"seeds": 2})).splitlines()
     assert "| CoNav Agent (BC + DAgger) | | not run yet | - | - | - | - | - | - | - |" in lines
     assert "| 5 | ✓ | ✓ | ✓ | not run yet | - | - | - | - | - | - | - |" in lines
     (evals / "scripted" / "metrics.json").unlink()
     with pytest.raises(FileNotFoundError, match="no evaluation of the scripted agents"):
-        rp.collect_results(tmp_path, 2, {"seeds": 2})
+        rt.collect_results(tmp_path, 2, {"seeds": 2})
 
 
 def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_show_every_variant(tmp_path):
@@ -254,16 +256,16 @@ def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_
         _write_eval(evals / f"conav_dagger_beta0.5_s{s}", _eval_doc({"conav": (30 + s, 40, 5, 6, 20, 100)}))
     _write_eval(evals / rp.DAGGER_EVAL.format(0), _eval_doc({"conav": (5, 50, 5, 6, 30, 100)}))
     (evals / "conav_daggerish_s0").mkdir()  # not a DAgger row's evaluation
-    mixed = rp.collect_results(tmp_path, 2, {"seeds": 2}, dagger="dagger_beta0.5")
+    mixed = rt.collect_results(tmp_path, 2, {"seeds": 2}, dagger="dagger_beta0.5")
     assert [k for k in mixed["conav"] if k.startswith("dagger")] == ["dagger", "dagger_beta0.5"]
     assert set(mixed["conav"]["dagger_beta0.5"]["seeds"]) == {"0", "1"}
     # Only the run's own variant can be missing; the other is shown with the seeds it has.
     assert mixed["missing"] == ["eval/objectgoal-oracle", "eval/objectgoal-predicted", "eval/imagegoal"]
-    lines = rp.render_tables(mixed).splitlines()
+    lines = rt.render_tables(mixed).splitlines()
     assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 5.0 [") for line in lines)
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps) | oracle map | "
                                "ours | 30.5 ± 0.7 [") for line in lines)
-    assert "eval/conav_dagger_s1" in rp.collect_results(tmp_path, 2, {"seeds": 2})["missing"]
+    assert "eval/conav_dagger_s1" in rt.collect_results(tmp_path, 2, {"seeds": 2})["missing"]
 
 
 def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(tmp_path):
@@ -285,16 +287,16 @@ def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(
     _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
     for row, fasr in (("dagger", 5), ("dagger_beta0.5_rounds1", 25), ("dagger_beta0.5", 20), ("dagger_rounds1", 8)):
         _write_eval(evals / f"conav_{row}_s0", _eval_doc({"conav": (fasr, 40, 5, 6, 20, 100)}))
-    results = rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
+    results = rt.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
     # By share, then round count, the preset's first.
     assert [k for k in results["conav"] if k.startswith("dagger")] == [
         "dagger", "dagger_rounds1", "dagger_beta0.5", "dagger_beta0.5_rounds1"]
-    lines = rp.render_tables(results).splitlines()
+    lines = rt.render_tables(results).splitlines()
     assert any(line.startswith("| T conav (BC + DAgger, 1 round) | oracle map | ours | 8.0 [") for line in lines)
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps, 1 round) | "
                                "oracle map | ours | 25.0 [") for line in lines)
     (evals / "conav_dagger_beta0.5_rounds1_s0" / "metrics.json").unlink()
-    assert rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)["missing"][-1] == \
+    assert rt.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)["missing"][-1] == \
         "eval/conav_dagger_beta0.5_rounds1_s0"
 
 
@@ -320,12 +322,12 @@ def test_another_dagger_episode_count_runs_under_its_own_name_and_the_baselines_
     _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
     for row, fasr in (("dagger_beta0.5_rounds1_episodes200", 25), ("dagger_beta0.5_rounds1", 20)):
         _write_eval(evals / f"conav_{row}_s0", _eval_doc({"conav": (fasr, 40, 5, 6, 20, 100)}))
-    results = rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
+    results = rt.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
     assert [k for k in results["conav"] if k.startswith("dagger")] == [
         "dagger_beta0.5_rounds1", "dagger_beta0.5_rounds1_episodes200"]
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps, 1 round, 200 "
                                "train episodes a round) | oracle map | ours | 25.0 [")
-               for line in rp.render_tables(results).splitlines())
+               for line in rt.render_tables(results).splitlines())
 
 
 @pytest.fixture
@@ -441,9 +443,9 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
     assert (fresh / "runs" / "bc_all_s1" / "ckpt_00000005.npz").is_file()
     (tmp_path / "junk.tar").write_text("not a tar")
     with pytest.raises(ValueError, match="not a pack"):
-        rp.unpack(tmp_path / "junk.tar", tmp_path / "junk")
+        rr.unpack(tmp_path / "junk.tar", tmp_path / "junk")
     with pytest.raises(FileNotFoundError, match="no pack"):
-        rp.unpack(tmp_path / "missing.tar", tmp_path / "junk")
+        rr.unpack(tmp_path / "missing.tar", tmp_path / "junk")
     # Packing there reads no data: the record of their making stays.
     gen_key = rp.plan_stages(rp.ReproduceConfig(out=fresh, preset="tiny", seeds=2))[0].steps[0].name
     assert _reproduce(fresh, "--stage", "pack") == 0 and gen_key in rp.read_progress(fresh)["commands"]
@@ -485,9 +487,9 @@ def test_the_pack_carries_a_run_cut_in_its_first_round_while_it_fits(fake_conav,
             "runs/bc_object_s0/ckpt_00000005.npz"} <= names
     assert not any("round_1" in n or "bc_object_s0/round_0" in n for n in names)
     # Without room for it the pack is still written, without it, and the command says so.
-    required = sum(p.stat().st_size for p in rp.pack_members(rp.ReproduceConfig(out=out, preset="tiny", seeds=2),
+    required = sum(p.stat().st_size for p in rr.pack_members(rp.ReproduceConfig(out=out, preset="tiny", seeds=2),
                                                              rp.read_progress(out)))
-    monkeypatch.setattr(rp, "PACK_LIMIT_BYTES", required + 10)
+    monkeypatch.setattr(rr, "PACK_LIMIT_BYTES", required + 10)
     capsys.readouterr()
     assert _reproduce(out, "--stage", "pack") == 0
     assert not any("bc_none_s0" in n for n in tarfile.open(out / "pack.tar").getnames())
@@ -805,14 +807,14 @@ def test_several_gpus_stopped_stop_every_command_and_count_their_time_as_cut(fak
 def test_the_gpus_are_those_the_driver_lists_and_several_named_without_gpus_get_a_hint(fake_conav, tmp_path,
                                                                                      monkeypatch, capsys):
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
-    monkeypatch.setattr(rp.shutil, "which", lambda name: None)
-    assert rp.visible_gpus() is None and rp.gpu_slots(2) == ["0", "1"]  # a CPU machine
+    monkeypatch.setattr(rr.shutil, "which", lambda name: None)
+    assert rr.visible_gpus() is None and rr.gpu_slots(2) == ["0", "1"]  # a CPU machine
     listed = "GPU 0: NVIDIA H100 80GB HBM3 (UUID: a)\nGPU 1: NVIDIA H100 80GB HBM3 (UUID: b)\n"
-    monkeypatch.setattr(rp.shutil, "which", lambda name: "/usr/bin/" + name)
-    monkeypatch.setattr(rp.subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, listed, ""))
-    assert rp.visible_gpus() == ["0", "1"] and rp.gpu_slots(2) == ["0", "1"]
+    monkeypatch.setattr(rr.shutil, "which", lambda name: "/usr/bin/" + name)
+    monkeypatch.setattr(rr.subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, listed, ""))
+    assert rr.visible_gpus() == ["0", "1"] and rr.gpu_slots(2) == ["0", "1"]
     with pytest.raises(ValueError, match="gpu_slots.gpus 3: 2 GPU"):
-        rp.gpu_slots(3)
+        rr.gpu_slots(3)
     assert _reproduce(tmp_path / "r", "--stage", "generate") == 0
     assert "2 GPUs visible: each command runs on all of them as one device mesh; --gpus 2" in capsys.readouterr().out
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1")
@@ -824,9 +826,9 @@ def test_more_gpus_than_visible_is_an_error(fake_conav, fake_children, tmp_path,
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3")
     assert _reproduce(tmp_path / "r", "--gpus", "2") == 2
     assert "--gpus 2: 1 GPU(s) visible (3)" in capsys.readouterr().err
-    assert rp.gpu_slots(1) == ["3"]
+    assert rr.gpu_slots(1) == ["3"]
     with pytest.raises(ValueError, match="at least 1"):
-        rp.gpu_slots(0)
+        rr.gpu_slots(0)
     for bad in ("0", "-2"):  # not a silent run of one command at a time
         assert _reproduce(tmp_path / "r", "--gpus", bad) == 2
         assert f"--gpus must be at least 1, got {bad}" in capsys.readouterr().err

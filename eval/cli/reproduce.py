@@ -98,6 +98,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     import subprocess
 
     from conav_jax.eval import reproduce as rp
+    from conav_jax.eval import reproduce_run as rr
+    from conav_jax.eval import reproduce_tables as rt
 
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
@@ -111,7 +113,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         return 2
     cfg.out.mkdir(parents=True, exist_ok=True)
     if args.unpack:
-        print(f"unpacked {len(rp.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
+        print(f"unpacked {len(rr.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
     progress = rp.read_progress(cfg.out)
     try:
         rp.check_out(progress, cfg)
@@ -147,7 +149,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
         cwd=Path(__file__).resolve().parents[2]).stdout.strip() or "unknown"
-    gpus = rp.visible_gpus() if args.gpus == 1 and not args.dry_run else None
+    gpus = rr.visible_gpus() if args.gpus == 1 and not args.dry_run else None
     if gpus is not None and len(gpus) > 1:
         print(f"{len(gpus)} GPUs visible: each command runs on all of them as one device mesh; --gpus {len(gpus)} "
               "runs that many commands at once instead, one GPU each", flush=True)
@@ -204,12 +206,12 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                      "stage_seconds": rp.stage_seconds(plan, progress), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}
             # FileNotFoundError without the scripted agents' evaluation
-            results = rp.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger)
+            results = rt.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger)
             results["episodes"] = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())["episodes"]
             (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-            (cfg.out / "tables.md").write_text(rp.render_tables(results))
+            (cfg.out / "tables.md").write_text(rt.render_tables(results))
         if st.name == "pack":
-            path, size, left_out = rp.write_pack(cfg, progress)
+            path, size, left_out = rr.write_pack(cfg, progress)
             print(f"wrote {path} ({size / 2**20:.1f} MiB)")
             for ckpt in left_out:
                 print(f"left out of the pack for want of room: {ckpt.relative_to(cfg.out)} (continued from this "
@@ -268,12 +270,13 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     with their steps' summed time. Returns the stages left to run here (tables, pack), or an
     exit code."""
     from conav_jax.eval import reproduce as rp
+    from conav_jax.eval import reproduce_run as rr
 
     work = [st for st in stages if st.name not in ("tables", "pack")]
     if not work:
         return stages
     try:
-        gpus = rp.gpu_slots(args.gpus)
+        gpus = rr.gpu_slots(args.gpus)
     except ValueError as e:
         print(f"conav reproduce: {as_flags(str(e), args.field_flags)}", file=sys.stderr)
         return 2
@@ -286,7 +289,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
         todo += [step for step in st.steps if step.name not in progress["commands"] and seed in (None, step.seed)]
     print(f"{len(todo)} command(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
     t0 = time.perf_counter()
-    rc, waiting = rp.run_parallel(plan, todo, cfg.out, progress, gpus, lambda step: child_command(step, args, cfg))
+    rc, waiting = rr.run_parallel(plan, todo, cfg.out, progress, gpus, lambda step: child_command(step, args, cfg))
     for step in waiting:
         print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: {_shown(step)}")
     for st in work:
