@@ -29,11 +29,11 @@ def add(sub) -> None:
     from conav_jax.train.bench import DEFAULT_BATCH, SETUPS
 
     bench = sub.add_parser("bench", help="throughput benchmarks (run them on a GPU)")
+    # One sub-parser per benchmark, each with its `_run_bench_*` below.
     what = bench.add_subparsers(dest="bench", metavar="WHAT", required=True)
 
     p = what.add_parser("sim", help="simulator throughput: env steps/s with sensors")
-    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
-    p.add_argument("--split", default="val")
+    _dataset_args(p)
     p.add_argument("--batch", type=int, nargs="+", default=[1024])
     p.add_argument("--resolution", type=parse_resolution, nargs="+", default=[(112, 448)], metavar="HxW")
     p.add_argument("--sensor", nargs="+", choices=[*SENSOR_KINDS, "both"], default=["auto"],
@@ -92,8 +92,7 @@ def add(sub) -> None:
     p.set_defaults(func=_run_bench_train)
 
     p = what.add_parser("eval", help="evaluation throughput: val episodes/min for one agent")
-    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
-    p.add_argument("--split", default="val")
+    _dataset_args(p)
     p.add_argument("--agent", default="pioneer", help=f"one of {', '.join(AGENTS)}")
     agent_run_args(p)
     p.add_argument("--untrained", action="store_true",
@@ -114,8 +113,7 @@ def add(sub) -> None:
     p.set_defaults(func=_run_bench_eval)
 
     p = what.add_parser("render", help="our panorama caster against MuJoCo Warp's batch renderer (needs warp-lang)")
-    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
-    p.add_argument("--split", default="val")
+    _dataset_args(p)
     p.add_argument("--batch", type=int, nargs="+", default=[1024])
     p.add_argument("--resolution", type=parse_resolution, nargs="+", default=[(112, 448)], metavar="HxW")
     p.add_argument("--sensor", choices=[k for k in SENSOR_KINDS if k != "reference"], default="auto",
@@ -131,6 +129,12 @@ def add(sub) -> None:
                    "-1: the model's padding poses")
     p.add_argument("--json", action="store_true", help="print one JSON line per resolution and batch")
     p.set_defaults(func=_run_bench_render)
+
+
+def _dataset_args(p) -> None:
+    """--data and --split of the benchmarks that build an env (without --data: the tiny preset)."""
+    p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
+    p.add_argument("--split", default="val")
 
 
 def _run_bench_sim(args: argparse.Namespace) -> int:
