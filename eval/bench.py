@@ -6,13 +6,69 @@ its own ends); after a compile-and-first sweep, the median of repeated timed swe
 seconds per sweep and episodes/min. `--mode fixed`: one jitted full-length rollout
 (envs.rollout.make_rollout) of `batch` episodes, timed the same way: episodes/min = batch /
 seconds * 60 and env steps/s. With `--devices N` the lanes (batch) are split over N devices
-(conav_jax.parallel). Prints the device, batch and resolution.
+(conav_jax.parallel). Prints the device, batch and resolution. `untrained_agent` builds a learned
+agent from freshly initialised parameters, so a sweep's speed is measured without a trained run.
 """
 
 from __future__ import annotations
 
 import statistics
 import time
+
+# The learned agents `untrained_agent` builds, and the word their rows carry.
+UNTRAINED_AGENTS = ("conav", "ppo", "objectgoal-oracle", "objectgoal-predicted", "imagegoal")
+UNTRAINED = "untrained"
+
+
+def untrained_agent(name: str, env, config, key, frames: int):
+    """Learned agent `name` (one of UNTRAINED_AGENTS) acting with `models.policy.init(key,
+    config)`'s parameters, and where it reads predictions with freshly initialised predictors
+    (the Perceiver over `frames` crops around the human at the env's panorama, the trajectory
+    model): the computation of a trained agent, at the env's resolution, for timing without a
+    run directory. Its title says it is untrained. ValueError for another name or a `config`
+    the agent cannot read (`config.image_hw` must be the env's panorama)."""
+    import dataclasses
+
+    import jax
+
+    from conav_jax.envs.agents import goalnav
+    from conav_jax.envs.agents.base import NO_INTENTIONS
+    from conav_jax.envs.agents.policy import check_policy_env, policy_agent_from_params
+    from conav_jax.envs.agents.predictors import FrameSpec, make_intention_predictor, trajectory_predictor
+    from conav_jax.envs.human_crop import default_crop_hw
+    from conav_jax.models import perceiver, policy, trajectory
+    from conav_jax.models.perceiver import PerceiverConfig
+    from conav_jax.models.trajectory import TrajectoryConfig
+
+    if name not in UNTRAINED_AGENTS:
+        raise ValueError(f"no untrained variant of agent {name!r}; learned agents: {', '.join(UNTRAINED_AGENTS)}")
+    def init(model, k, cfg):  # one compiled program instead of one per leaf
+        return jax.jit(model.init, static_argnums=1)(k, cfg)
+
+    k_policy, k_intention, k_trajectory = jax.random.split(key, 3)
+    params = init(policy, k_policy, config)
+    hw = (env.config.sensor.height, env.config.sensor.width)
+    seen = PerceiverConfig(image_hw=default_crop_hw(hw))
+    reads_intention = name == "objectgoal-predicted" or name in ("conav", "ppo") and (config.use_activity or
+                                                                                     config.use_object)
+    intention = (make_intention_predictor(init(perceiver, k_intention, seen), seen, frames, FrameSpec("human", hw))
+                 if reads_intention else None)
+    source = f"untrained {name} policy"
+    if name in ("conav", "ppo"):
+        traj = TrajectoryConfig()
+        agent = policy_agent_from_params(
+            params, config, intention,
+            trajectory_predictor(init(trajectory, k_trajectory, traj), traj) if config.use_trajectory else None,
+            name=name, title="CoNav Agent" if name == "conav" else "PPO Agent")
+        check_policy_env(env, config, source, agent.intention_source)
+    elif name == "imagegoal":
+        check_policy_env(env, config, source, NO_INTENTIONS)
+        agent = goalnav.imagegoal_agent_from_params(params, config, env)
+    else:
+        check_policy_env(env, config, source, NO_INTENTIONS)
+        agent = goalnav.objectgoal_agent_from_params(params, config, env, intention)
+    title = f"{agent.title or agent.name} ({UNTRAINED})"
+    return agent._replace(title=title) if hasattr(agent, "_replace") else dataclasses.replace(agent, title=title)
 
 
 def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
@@ -65,7 +121,7 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
     from conav_jax.envs.rollout import make_evaluator
 
     if episodes is not None and episodes > env.num_episodes:
-        raise ValueError(f"--episodes {episodes}: the split has only {env.num_episodes} episodes")
+        raise ValueError(f"bench_sweep.episodes {episodes}: the split has only {env.num_episodes} episodes")
     n = env.num_episodes if episodes is None else episodes
     evaluator = make_evaluator(env, lambda _: agent, batch, 0, mesh)
     idx = np.arange(n)

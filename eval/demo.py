@@ -22,7 +22,7 @@ def demo_commands(out: Path, seed: int, resolution: str, pretrained: bool = True
     conav = ["--pretrained"] if pretrained else ["--checkpoint", str(runs / "policy")]
     return [
         ["generate", "--preset", "tiny", "--out", str(data), "--seed", str(seed)],
-        ["train", "intention", "--data", str(data), "--out", str(runs / "intention"), "--sensor", resolution, "--steps", "100",
+        ["train", "intention", "--data", str(data), "--out", str(runs / "intention"), "--resolution", resolution, "--steps", "100",
          "--batch", "16", "--val-every", "100", "--ckpt-every", "100", "--seed", str(seed), *quick],
         ["train", "trajectory", "--data", str(data), "--out", str(runs / "trajectory"), "--steps", "200",
          "--batch", "64", "--val-every", "200", "--ckpt-every", "200", "--seed", str(seed), *quick],

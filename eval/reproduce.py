@@ -1,34 +1,28 @@
-"""`conav reproduce`'s plan: the paper's Tables 2 and 3 as resumable stages of `conav` commands.
+"""`conav reproduce`'s plan: the paper's Tables 2 and 3 as resumable stages of declared steps.
 
-config -> `plan_stages` (each stage: the `conav` argument lists it runs and the files that show
-it is done) -> the command line runs each stage's commands in order, skipping stages already
-done; a stage cut short resumes (every training run resumes exactly from its checkpoints) ->
-`collect_results` reads every evaluation's metrics.json into results.json (per agent, per
-seed; the commit, the command and the stage timings) -> `render_tables` writes tables.md:
-Table 2 (every agent beside the paper's figures, its privileged inputs named) and Table 3 (the
-five intention ablations), each learned cell the mean ± sd over seeds with the pooled 95%
-interval. Nothing here imports the training code: stages are command lines.
+config -> `plan_stages` (each stage: its steps, each declared as data: a name, the training seed
+it belongs to, the directories it reads and writes under OUT, and the `conav` command it runs;
+and the files that show the stage is done) -> one dependency graph (`prerequisites`, from the
+declared reads and writes) orders them, for the command line's runner in this process and for
+`run_parallel`'s processes alike; progress.json records each step by name, so a stage cut
+short resumes (every training run resumes exactly from its checkpoints) ->
+results and tables (eval.reproduce_tables); several steps at once and the pack that carries a
+run to another machine (eval.reproduce_run). Nothing here imports the training code: a step's
+call is a `conav` command.
 """
 
 from __future__ import annotations
 
 import json
-import math
-import os
 import re
 import shutil
-import subprocess
-import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from conav_jax.models.policy import DEFAULT_ENCODER, ENCODERS
-from conav_jax.envs.metrics import METRIC_NAMES
 
 STAGES = ("generate", "predictors", "baselines", "bc", "dagger", "eval", "tables", "pack")
 ABLATIONS = ("none", "activity", "object", "activity_object", "all")  # the paper's Table 3 rows 1-5
-PACK_LIMIT_BYTES = 60 * 2**20
 # Panoramas of at least this many pixels train the CoNav policy with `--remat`: at 112x448 it ran
 # 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
 # smaller panoramas keep the plain update (their runs' commands as made).
@@ -41,25 +35,6 @@ REMAT_FROM_PIXELS = 112 * 448
 # a round of 64 recorded 307 and 370 windows (H100, 112x448), about 4 GB: `--dagger-episodes`
 # asks for more.
 LARGE_PANORAMA_DAGGER_EPISODES = 64
-
-# The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
-PAPER_TABLE2 = {
-    "random": ("Random Agent", (4.5, 4.6, 3.7, 3.7, 32.7, 442.6)),
-    "pioneer": ("Pioneer Agent (Oracle Pathfinder)", (61.6, 61.8, 46.6, 46.7, 30.4, 308.1)),
-    "follower": ("Human-following Agent", (3.5, 3.7, 1.6, 1.7, 49.0, 350.8)),
-    "objectgoal-oracle": ("Object-goal Agent (Oracle Goal Object)", (15.6, 16.4, 10.7, 10.9, 46.1, 295.5)),
-    "objectgoal-predicted": ("Object-goal Agent (Predicted Goal Object)", (8.6, 9.3, 7.2, 7.5, 38.7, 377.4)),
-    "imagegoal": ("Image-goal Agent", (7.6, 8.1, 6.0, 6.2, 41.4, 372.5)),
-    "conav": ("CoNav Agent (Ours)", (19.8, 23.2, 13.5, 14.9, 20.1, 354.5)),
-}
-PAPER_TABLE3 = {
-    "none": (14.5, 17.0, 10.6, 11.8, 14.7, 402.9),
-    "activity": (14.4, 17.4, 10.2, 11.9, 27.7, 330.1),
-    "object": (15.7, 18.6, 10.6, 11.7, 16.0, 391.9),
-    "activity_object": (17.5, 20.4, 11.4, 12.8, 22.2, 352.5),
-    "all": (19.8, 23.2, 13.5, 14.9, 20.1, 354.5),
-}
-
 
 @dataclass(frozen=True)
 class Budget:
@@ -132,15 +107,15 @@ class ReproduceConfig:
         if self.preset not in BUDGETS:
             raise ValueError(f"unknown preset {self.preset!r}; choose from {', '.join(BUDGETS)}")
         if self.seeds < 1:
-            raise ValueError(f"--seeds must be at least 1, got {self.seeds}")
+            raise ValueError(f"ReproduceConfig.seeds must be at least 1, got {self.seeds}")
         if not 0.0 <= self.dagger_beta <= 1.0:
-            raise ValueError(f"--dagger-beta is a probability in [0, 1], got {self.dagger_beta}")
+            raise ValueError(f"ReproduceConfig.dagger_beta is a probability in [0, 1], got {self.dagger_beta}")
         if self.dagger_rounds is not None and self.dagger_rounds < 1:
-            raise ValueError(f"--dagger-rounds must be at least 1, got {self.dagger_rounds}")
+            raise ValueError(f"ReproduceConfig.dagger_rounds must be at least 1, got {self.dagger_rounds}")
         if self.dagger_episodes is not None and self.dagger_episodes < 1:
-            raise ValueError(f"--dagger-episodes must be at least 1, got {self.dagger_episodes}")
+            raise ValueError(f"ReproduceConfig.dagger_episodes must be at least 1, got {self.dagger_episodes}")
         if self.encoder not in ENCODERS:
-            raise ValueError(f"unknown --encoder {self.encoder!r}; choose from {', '.join(sorted(ENCODERS))}")
+            raise ValueError(f"unknown ReproduceConfig.encoder {self.encoder!r}; choose from {', '.join(sorted(ENCODERS))}")
 
     @property
     def budget(self) -> Budget:
@@ -198,23 +173,74 @@ _DAGGER_ROW = re.compile(r"dagger(?:_beta([0-9.e+-]+))?(?:_rounds([0-9]+))?(?:_e
 
 
 @dataclass(frozen=True)
-class Stage:
-    """One stage: the `conav` argument lists it runs, in order (an entry starting with "@copy"
-    copies a run directory: DAgger continues a copy of the BC run), and the files it writes."""
+class Step:
+    """One unit of work, declared: `name` (its identity in progress.json: the command's words and
+    the directory it writes, relative to OUT, e.g. "train policy runs/bc_all_s0"), the training
+    `seed` it belongs to (None: every seed's), the directories it `reads` and `writes` (relative
+    to OUT), and its call, `argv`: the `conav` command it runs (("@copy", SRC, DST) copies a run
+    directory: DAgger continues a copy of the BC run)."""
 
     name: str
-    commands: tuple[tuple[str, ...], ...]
+    argv: tuple[str, ...]
+    writes: str
+    reads: tuple[str, ...] = ()
+    seed: int | None = None
+
+    @property
+    def is_copy(self) -> bool:
+        return self.argv[0] == "@copy"
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage: its steps, in order, and the files that show it is done."""
+
+    name: str
+    steps: tuple[Step, ...]
     outputs: tuple[Path, ...] = field(default=())
 
+    @property
+    def commands(self) -> tuple[tuple[str, ...], ...]:
+        """The steps' calls, in order."""
+        return tuple(s.argv for s in self.steps)
 
-# The commands and stages done, with their wall times (s), and under "cut" the time of attempts
-# cut short (a command's summed over its attempts; it counts in its stage's time).
+
+# The steps (by name, under "commands") and stages done, with their wall times (s), and under
+# "cut" the time of attempts cut short (a step's summed over its attempts; it counts in its
+# stage's time).
 PROGRESS_FILE = "progress.json"
+# The layout of progress.json. 1 (unmarked): records keyed by the command line, OUT written as
+# "OUT"; 2: keyed by step name (`upgrade_progress` maps the one onto the other).
+RUN_FORMAT = 2
 
 
 def read_progress(out: Path) -> dict:
     path = Path(out) / PROGRESS_FILE
-    return json.loads(path.read_text()) if path.is_file() else {"commands": {}, "stages": {}}
+    if path.is_file():
+        return json.loads(path.read_text())
+    return {"run_format": RUN_FORMAT, "commands": {}, "stages": {}}
+
+
+def upgrade_progress(progress: dict, plan: list["Stage"], out: Path) -> list[str]:
+    """Bring `progress` of an OUT made before RUN_FORMAT 2 (records keyed by command lines) to
+    step names, in place: each record of a planned step's command line moves to the step's
+    name. Returns the old records no planned step matches (dropped: a variant not planned now;
+    its runs resume from their checkpoints when it is planned again). ValueError for a
+    directory written by a newer format."""
+    made = progress.get("run_format", 1)
+    if made > RUN_FORMAT:
+        raise ValueError(f"{out}: progress.json has run format {made}, newer than this version's {RUN_FORMAT}: "
+                         "continue it with the version that made it, or use another output directory")
+    if made == RUN_FORMAT:
+        return []
+    old = {" ".join(s.argv).replace(str(Path(out).resolve()), "OUT"): s.name for st in plan for s in st.steps}
+    dropped = []
+    for record in ("commands", "cut"):
+        entries = progress.get(record, {})
+        dropped += [k for k in entries if k not in old]
+        progress[record] = {old[k]: v for k, v in entries.items() if k in old}
+    progress["run_format"] = RUN_FORMAT
+    return dropped
 
 
 # What one OUT directory holds one of: its runs and evaluations are of these (progress.json
@@ -233,7 +259,7 @@ def check_out(progress: dict, cfg: ReproduceConfig) -> None:
     for k, before in _OUT_FIELDS_ADDED.items():
         made.setdefault(k, before)
     shown = lambda v: {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v  # noqa: E731
-    differ = [f"--{k.replace('_', '-')} {shown(made[k])} (given {shown(mine[k])})"
+    differ = [f"ReproduceConfig.{k} {shown(made[k])} (given {shown(mine[k])})"
               for k in OUT_FIELDS if k in made and made[k] != mine[k]]
     if differ:
         raise ValueError(f"{cfg.out} was made with {', '.join(differ)}: give those, or another --out")
@@ -257,29 +283,23 @@ def write_progress(out: Path, progress: dict) -> None:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             now = read_progress(out)
+            if now.get("run_format", 1) != RUN_FORMAT:  # records `upgrade_progress` has moved
+                now = {}
             for record in PROGRESS_RECORDS:
                 progress[record] = {**now.get(record, {}), **progress.get(record, {})}
+            progress["run_format"] = RUN_FORMAT
             save_json(out / PROGRESS_FILE, progress)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
-def command_key(argv: tuple[str, ...], out: Path) -> str:
-    """How progress.json names a command: its words, with the run's directory as OUT (a run
-    packed on one machine continues in another directory on the next). `out` is absolute: a
-    relative one ("." above all) would match inside other words."""
-    if not Path(out).is_absolute():
-        raise ValueError(f"command_key needs the run's absolute directory, got {out}")
-    return " ".join(argv).replace(str(out), "OUT")
-
-
-def stage_seconds(plan: list["Stage"], progress: dict, out: Path) -> dict[str, float]:
-    """Each stage's time: the sum of its commands' recorded wall times, with the time of their
+def stage_seconds(plan: list["Stage"], progress: dict) -> dict[str, float]:
+    """Each stage's time: the sum of its steps' recorded wall times, with the time of their
     attempts cut short ("cut": failed, interrupted; a stage run over several calls or machines
-    counts every part once); a stage without commands, its own record."""
+    counts every part once); a stage without steps, its own record."""
     seconds = {}
     for st in plan:
-        keys = [command_key(a, out) for a in st.commands]
+        keys = [s.name for s in st.steps]
         done = [log[k] for log in (progress["commands"], progress.get("cut", {})) for k in keys if k in log]
         if done:
             seconds[st.name] = round(sum(done), 1)
@@ -311,60 +331,71 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     # commands their runs were made with.
     episodes = b.policy_episodes if large and b.policy_episodes else b.baseline_episodes
     baseline = (*(("--episodes", str(episodes)) if episodes else ()), *((*network, *subset) if large else encoder))
+    def step(argv: tuple[str, ...], writes: Path, reads: tuple[Path, ...] = (data,), seed: int | None = None) -> Step:
+        """The step of `argv`, named by its command words and the directory it writes."""
+        words = "copy" if argv[0] == "@copy" else " ".join(w for w in argv[:2] if not w.startswith("-"))
+        rel = str(writes.relative_to(out))
+        return Step(f"{words} {rel}", tuple(argv), rel, tuple(str(r.relative_to(out)) for r in reads), seed)
+
     stages = [
-        Stage("generate", (("generate", "--preset", cfg.preset, "--out", str(data), "--seed", str(cfg.data_seed),
-                            "--workers", str(cfg.workers)),), (data / "manifest.json",)),
+        Stage("generate", (step(("generate", "--preset", cfg.preset, "--out", str(data), "--seed", str(cfg.data_seed),
+                                 "--workers", str(cfg.workers)), data, reads=()),), (data / "manifest.json",)),
         Stage("predictors", (
-            ("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
-             "--sensor", res, *(("--mirror",) if cfg.mirror else ()), *(("--seen-objects",) if cfg.seen_objects else ()),
-             *quiet),  # crops of the panorama the agents render (envs.human_crop)
-            ("train", "trajectory", "--data", str(data), "--out", str(trajectory), "--steps", str(b.trajectory_steps), *quiet),
+            step(("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
+                  "--resolution", res, *(("--mirror",) if cfg.mirror else ()),
+                  *(("--seen-objects",) if cfg.seen_objects else ()), *quiet),
+                 intention),  # crops of the panorama the agents render (envs.human_crop)
+            step(("train", "trajectory", "--data", str(data), "--out", str(trajectory), "--steps",
+                  str(b.trajectory_steps), *quiet), trajectory),
         ), (intention / "ckpt_{:08d}.npz".format(b.intention_steps),
             trajectory / "ckpt_{:08d}.npz".format(b.trajectory_steps))),
-        Stage("baselines", (
-            ("train", "objectnav", "--data", str(data), "--out", str(runs / "objectnav"), "--resolution", res,
-             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline, *validated),
-            ("train", "imagenav", "--data", str(data), "--out", str(runs / "imagenav"), "--resolution", res,
-             "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline, *validated),
+        Stage("baselines", tuple(
+            step(("train", kind, "--data", str(data), "--out", str(runs / kind), "--resolution", res,
+                  "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline,
+                  *validated), runs / kind) for kind in ("objectnav", "imagenav")
         ), (runs / "objectnav" / "log.jsonl", runs / "imagenav" / "log.jsonl")),
     ]
+    predictors = (data, intention, trajectory)
     policy = ("--data", str(data), "--intention", str(intention), "--trajectory", str(trajectory),
               "--train-intentions", "predicted", "--resolution", res, "--steps", str(b.policy_steps),
               "--batch", str(b.policy_batch), *(("--episodes", str(b.policy_episodes)) if b.policy_episodes else ()),
               *network, *validated)
     common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
+
+    def evaluation(agent: str, target: Path, run: Path | None = None, seed: int | None = None,
+                   reads: tuple[Path, ...] = ()) -> Step:
+        checkpoint = ("--checkpoint", str(run)) if run is not None else ()
+        extra = ("--intention", str(intention)) if intention in reads else ()
+        return step(("eval", *common, "--agent", agent, *checkpoint, *extra, "--out", str(target)), target,
+                    (data, *((run,) if run is not None else ()), *reads), seed)
+
     # Each BC run, then its evaluation on val: an evaluated run needs no checkpoint to travel in a
     # pack (at 112x448 a policy's is 15 MB, the pack's limit four of them) but the one DAgger continues.
     bc = []
     for s in range(cfg.seeds):
         for a in ABLATIONS:
             run = runs / f"bc_{a}_s{s}"
-            bc.append(("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(run)))
-            bc.append(("eval", *common, "--agent", "conav", "--checkpoint", str(run),
-                       "--out", str(evals / BC_ROW_EVAL.format(row=a, seed=s))))
+            bc.append(step(("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(run)), run,
+                           predictors, s))
+            bc.append(evaluation("conav", evals / BC_ROW_EVAL.format(row=a, seed=s), run, s))
     stages.append(Stage("bc", tuple(bc), tuple(evals / BC_ROW_EVAL.format(row=a, seed=s) / "metrics.json"
                                                for s in range(cfg.seeds) for a in ABLATIONS)))
     dagger, name = [], cfg.dagger
     mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
-        dagger.append(("@copy", str(runs / f"bc_all_s{s}"), str(runs / f"{name}_s{s}")))
-        dagger.append(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
-                       str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
-                       *(("--dagger-episodes", str(cfg.round_episodes)) if cfg.round_episodes else ()),
-                       "--out", str(runs / f"{name}_s{s}")))
+        run, start = runs / f"{name}_s{s}", runs / f"bc_all_s{s}"
+        dagger.append(step(("@copy", str(start), str(run)), run, (start,), s))
+        dagger.append(step(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
+                            str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
+                            *(("--dagger-episodes", str(cfg.round_episodes)) if cfg.round_episodes else ()),
+                            "--out", str(run)), run, predictors, s))
     stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
-    evals_ = [("eval", *common, "--agent", "random,follower,pioneer,pioneer-drive,objectgoal-planner,expert",
-               "--out", str(evals / "scripted")),
-              ("eval", *common, "--agent", "objectgoal-oracle", "--checkpoint", str(runs / "objectnav"),
-               "--out", str(evals / "objectgoal-oracle")),
-              ("eval", *common, "--agent", "objectgoal-predicted", "--checkpoint", str(runs / "objectnav"),
-               "--intention", str(intention), "--out", str(evals / "objectgoal-predicted")),
-              ("eval", *common, "--agent", "imagegoal", "--checkpoint", str(runs / "imagenav"),
-               "--out", str(evals / "imagegoal"))]
+    evals_ = [evaluation("random,follower,pioneer,pioneer-drive,objectgoal-planner,expert", evals / "scripted"),
+              evaluation("objectgoal-oracle", evals / "objectgoal-oracle", runs / "objectnav"),
+              evaluation("objectgoal-predicted", evals / "objectgoal-predicted", runs / "objectnav", reads=(intention,)),
+              evaluation("imagegoal", evals / "imagegoal", runs / "imagenav")]
     dagger_eval = CONAV_EVAL.format(row=name, seed="{}")
-    for s in range(cfg.seeds):
-        evals_.append(("eval", *common, "--agent", "conav", "--checkpoint", str(runs / f"{name}_s{s}"),
-                       "--out", str(evals / dagger_eval.format(s))))
+    evals_ += [evaluation("conav", evals / dagger_eval.format(s), runs / f"{name}_s{s}", s) for s in range(cfg.seeds)]
     names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [
         dagger_eval.format(s) for s in range(cfg.seeds)]
     stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
@@ -373,59 +404,30 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     return stages
 
 
-_SEEDED_RUN = re.compile(r".+_s([0-9]+)")
-
-
-def command_seed(argv: tuple[str, ...]) -> int | None:
-    """The training seed a command belongs to (a seeded run or its evaluation, named `..._s{seed}`),
-    None for a command of every seed (data, predictors, baselines, scripted agents)."""
-    target = writes(argv)
-    m = None if target is None else _SEEDED_RUN.fullmatch(target.name)
-    return None if m is None else int(m.group(1))
-
-
-def runs_read(argv: tuple[str, ...]) -> list[Path]:
-    """The run directories a command reads (checkpoints, predictors, the run a copy starts from)."""
-    found = []
-    for flag in ("--checkpoint", "--intention", "--trajectory", "--init-from"):
-        if flag in argv:
-            found.append(Path(argv[argv.index(flag) + 1]))
-    if argv[0] == "@copy":
-        found.append(Path(argv[1]))
-    if "--ablation-checkpoints" in argv:
-        found += [Path(item.split("=", 1)[1]) for item in argv[argv.index("--ablation-checkpoints") + 1].split(",")]
-    return found
-
-
 def stage_seed(stage: Stage, seed: int | None) -> int | None:
-    """The training seed whose commands `--seed` selects in `stage`: None (every command) in a
-    stage without seeded commands (data, predictors, baselines)."""
-    return seed if seed is not None and any(command_seed(argv) is not None for argv in stage.commands) else None
+    """The training seed whose steps `--seed` selects in `stage`: None (every step) in a stage
+    without seeded steps (data, predictors, baselines)."""
+    return seed if seed is not None and any(s.seed is not None for s in stage.steps) else None
 
 
-def ready_commands(plan: list[Stage], stage: Stage, seed: int | None, done: set[str], out: Path) -> tuple[list, list]:
-    """`stage`'s commands of training seed `seed` (every command for None) not in `done` (command
-    keys), split into those ready to run and those waiting: a command waits while a run it reads
-    is the output of another stage's command not done yet (a DAgger run's evaluation before the
-    DAgger run, a baseline's before its training; a stage's own commands run in order, each BC
-    run before its evaluation)."""
-    made_by = {writes(argv): command_key(argv, out) for st in plan if st is not stage for argv in st.commands}
-    ready, waiting = [], []
-    for argv in stage.commands:
-        if (seed is not None and command_seed(argv) != seed) or command_key(argv, out) in done:
+def ready_steps(plan: list[Stage], stage: Stage, seed: int | None, done: set[str]) -> tuple[list[Step], list[Step]]:
+    """`stage`'s steps of training seed `seed` (every step for None) not in `done` (step names),
+    split into those ready to run in order and those waiting: a step waits while one of its
+    `prerequisites` is neither done nor ready before it (a DAgger run's evaluation before the
+    DAgger run, a baseline's before its training)."""
+    needs = prerequisites(plan)
+    ready, waiting, coming = [], [], set(done)
+    for st in stage.steps:
+        if (seed is not None and st.seed != seed) or st.name in done:
             continue
-        blocked = [r for r in runs_read(argv) if r in made_by and made_by[r] not in done]
-        (waiting if blocked else ready).append(argv)
+        if needs[st.name] <= coming:
+            ready.append(st)
+            coming.add(st.name)
+        else:
+            waiting.append(st)
     return ready, waiting
 
 
-# -- results and tables ------------------------------------------------------------------------
-
-
-def _mean_sd(values: list[float]) -> tuple[float, float]:
-    m = sum(values) / len(values)
-    sd = math.sqrt(sum((v - m) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
-    return m, sd
 
 
 # A seed's evaluations under OUT/eval: each BC run (Table 3's rows), a DAgger row's run. Runs made
@@ -433,259 +435,29 @@ def _mean_sd(values: list[float]) -> tuple[float, float]:
 CONAV_EVAL = "conav_{row}_s{seed}"
 BC_ROW_EVAL = CONAV_EVAL.format(row="bc_{row}", seed="{seed}")
 BC_EVAL, DAGGER_EVAL = (CONAV_EVAL.format(row=row, seed="{}") for row in ("bc", "dagger"))
-_SEEDED_EVAL = re.compile(r"conav_(.+)_s[0-9]+")
 
 
-def dagger_rows(evals: Path, planned: str = "dagger") -> list[str]:
-    """The DAgger rows to tabulate: the run's own (`planned`, a `dagger_row` name) and every other
-    one evaluated under `evals`, by the expert's share, then round count, then episodes a round
-    (the defaults first)."""
-    found = {m.group(1) for m in map(_SEEDED_EVAL.fullmatch, (d.name for d in Path(evals).glob("conav_dagger*"))) if m}
-    variants = {v: row for row in found | {planned} if (v := dagger_variant(row)) is not None}
-    return [variants[v] for v in sorted(variants, key=lambda v: (v[0], v[1] or 0, v[2] or 0))]
+# -- the dependency graph ------------------------------------------------------------------------
 
 
-def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") -> dict:
-    """results.json's content from the evaluations under `out/eval`: per agent its title,
-    intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
-
-    A seed's BC rows come from `eval/conav_bc_{row}_s{s}` (else, as made before, from
-    `eval/conav_bc_s{s}`, its five BC runs as one evaluation's ablations), a DAgger
-    row (a `dagger_row` name: "dagger", "dagger_beta{share}" with the expert mixed in, either with
-    "_rounds{n}" for a round count other than the preset's) from `eval/conav_{row}_s{s}`; each row
-    lists the seeds it was measured on. An evaluation of the BC rows or of the run's own DAgger
-    row (`dagger`) not made yet is listed under "missing" and the tables say so; other DAgger rows
-    appear where evaluated.
-    FileNotFoundError without the scripted agents' evaluation (nothing to tabulate)."""
-    evals = Path(out) / "eval"
-    if not (evals / "scripted" / "metrics.json").is_file():
-        raise FileNotFoundError(f"no evaluation of the scripted agents at {evals / 'scripted' / 'metrics.json'}")
-    agents: dict[str, dict] = {}
-    missing: list[str] = []
-    for name in ("scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"):
-        path = evals / name / "metrics.json"
-        if not path.is_file():
-            missing.append(f"eval/{name}")
-            continue
-        doc = json.loads(path.read_text())
-        for key, entry in doc["agents"].items():
-            agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
-    conav: dict[str, dict] = {}
-
-    def add(row: str, s: int, entry: dict, episodes: int) -> None:
-        slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
-        slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": episodes}
-
-    for s in range(seeds):
-        for row in ABLATIONS:
-            path, combined = evals / BC_ROW_EVAL.format(row=row, seed=s) / "metrics.json", evals / BC_EVAL.format(s) / "metrics.json"
-            if path.is_file():
-                doc = json.loads(path.read_text())
-                add(row, s, doc["agents"]["conav"], doc["episodes"])
-            elif combined.is_file():
-                doc = json.loads(combined.read_text())
-                add(row, s, doc["ablations"][f"ablation_{row}"], doc["episodes"])
-            else:
-                missing.append(f"eval/{path.parent.name}")
-    for row in dagger_rows(evals, dagger):
-        for s in range(seeds):
-            path = evals / CONAV_EVAL.format(row=row, seed=s) / "metrics.json"
-            if not path.is_file():
-                if row == dagger:
-                    missing.append(f"eval/{path.parent.name}")
-                continue
-            doc = json.loads(path.read_text())
-            add(row, s, doc["agents"]["conav"], doc["episodes"])
-    return {**extra, "agents": agents, "conav": conav, "missing": missing}
-
-
-def _cell(value: float) -> str:
-    return f"{value:.1f}"
-
-
-def _learned_cell(row: dict, metric: str) -> str:
-    """'mean ± sd [lo, hi]' over seeds ('value [lo, hi]' for one seed): the pooled 95% interval
-    treats every seed's episodes as one sample (for rates: the Wilson interval of the pooled
-    counts; otherwise the seeds' mean of the per-seed bounds)."""
-    from conav_jax.eval.report import RATES, wilson_interval
-
-    per_seed = [s["metrics"][metric] for s in row["seeds"].values()]
-    m, sd = _mean_sd([p["value"] for p in per_seed])
-    if metric in RATES:
-        n = [s["episodes"] for s in row["seeds"].values()]
-        hits = round(sum(p["value"] / 100.0 * k for p, k in zip(per_seed, n)))
-        lo, hi = (100.0 * v for v in wilson_interval(hits, sum(n)))
-    else:
-        lo, hi = (sum(p[b] for p in per_seed) / len(per_seed) for b in ("lo", "hi"))
-    if len(per_seed) == 1:  # one seed has no spread to report
-        return f"{m:.1f} [{lo:.1f}, {hi:.1f}]"
-    return f"{m:.1f} ± {sd:.1f} [{lo:.1f}, {hi:.1f}]"
-
-
-# The tables' columns: the paper's, with CR_full (contacts up to the end of activity B) beside CR.
-TABLE_COLUMNS = tuple(c for m in METRIC_NAMES for c in ((m, "CR_full") if m == "CR" else (m,)))
-
-
-def _paper_cells(paper: tuple[float, ...]) -> str:
-    """The paper's figures in TABLE_COLUMNS order; "-" where the paper reports none (CR_full)."""
-    values = dict(zip(METRIC_NAMES, paper))
-    return " | ".join(_cell(values[c]) if c in values else "-" for c in TABLE_COLUMNS)
-
-
-def _our_cells(metrics: dict) -> str:
-    return " | ".join(_cell(metrics[c]["value"]) if c in metrics else "-" for c in TABLE_COLUMNS)
-
-
-def _learned_cells(row: dict) -> str:
-    have = set.intersection(*(set(s["metrics"]) for s in row["seeds"].values()))
-    return " | ".join(_learned_cell(row, c) if c in have else "-" for c in TABLE_COLUMNS)
-
-
-def _learned_source(row: dict, seeds: int | None) -> str:
-    """The source column of a learned row: "ours", and which seeds when not all of the run's."""
-    have = sorted(row["seeds"], key=int)
-    if seeds is None or len(have) == seeds:
-        return "ours"
-    return f"ours (seed{'s' if len(have) > 1 else ''} {', '.join(have)} of {seeds})"
-
-
-def _paired_lines(results: dict, metrics: tuple[str, ...] = ("FASR", "RASR")) -> list[str]:
-    """Seed by seed: each learned row's values per seed and its difference from its reference on
-    the seeds both hold (Table 3's rows against no inputs, DAgger rows against BC with all
-    inputs), with the mean ± sd of those differences: whether a row's gain exceeds the spread of
-    training seeds, which pooled intervals (counting episodes, not seeds) do not show."""
-    conav = results["conav"]
-    pairs = [(name, "none") for name in ABLATIONS[1:]] + [(name, "all") for name in conav if name.startswith("dagger")]
-    pairs = [(a, b) for a, b in pairs if a in conav and b in conav]
-    if not pairs:
-        return []
-    lines = ["", "## Seed by seed", "",
-             "Each row's value per training seed and its difference from the reference row on the seeds both hold "
-             "(mean ± sd of the differences over those seeds): a difference within the seeds' spread is not shown "
-             "to be one.", "",
-             "| row | reference | " + " | ".join(f"{m} by seed | {m} − reference by seed | mean ± sd" for m in metrics) + " |",
-             "|---|---" + "|---|---|---:" * len(metrics) + "|"]
-    for name, ref in pairs:
-        row, base = conav[name]["seeds"], conav[ref]["seeds"]
-        shared = sorted(set(row) & set(base), key=int)
-        cells = []
-        for m in metrics:
-            values = " / ".join(f"s{s} {row[s]['metrics'][m]['value']:.1f}" for s in sorted(row, key=int))
-            diffs = [row[s]["metrics"][m]["value"] - base[s]["metrics"][m]["value"] for s in shared]
-            summary = "-"
-            if diffs:
-                mean, sd = _mean_sd(diffs)
-                summary = f"{mean:+.1f} ± {sd:.1f}" if len(diffs) > 1 else f"{mean:+.1f}"
-            cells += [values, " / ".join(f"{d:+.1f}" for d in diffs) or "-", summary]
-        lines.append(f"| {name} | {ref} | " + " | ".join(cells) + " |")
-    return lines
-
-
-def render_tables(results: dict) -> str:
-    """tables.md: Table 2 (ours beside the paper's) and Table 3 from results.json's content."""
-    cols = TABLE_COLUMNS
-    head = "| " + " | ".join(cols) + " |"
-    lines = [
-        "# CoNav: the paper's Tables 2 and 3, reproduced",
-        "",
-        f"Data: preset `{results.get('preset', '?')}`, split val ({results.get('episodes', '?')} episodes), panorama "
-        f"{results.get('resolution', '?')}"
-        + (f" (the CoNav policy's panorama encoder: `{results['encoder']}`)" if "encoder" in results else "")
-        + f"; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "
-        f"commit {results.get('commit', '?')}. Rates and SPLs in percent, AS in steps. Learned rows: mean ± sd over "
-        "seeds [pooled 95% interval] (a row measured on fewer seeds says which). CR counts contacts up to the "
-        "first reach (the paper's), CR_full up to the end of activity B. Paper: the published figures (a different simulator, scenes and agents' "
-        "implementations; they are context, not a target).",
-        "",
-        "## Table 2: agents",
-        "",
-        "| agent | given (privileged inputs) | source " + head,
-        "|---|---|---" + "|---:" * len(cols) + "|",
-    ]
-    not_run = " | ".join("-" for _ in cols)
-    for key, (paper_title, paper) in PAPER_TABLE2.items():
-        if key == "conav":
-            row = results["conav"].get("all")
-            if row is not None:
-                title = row["title"].removeprefix("all: ")  # the evaluation names its ablation rows "NAME: title"
-                lines.append(f"| {title} (BC) | {', '.join(row['privileged']) or 'none'} | "
-                             f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
-            else:
-                lines.append(f"| CoNav Agent (BC) | | not run yet | {not_run} |")
-            daggers = [k for k in results["conav"] if k.startswith("dagger")]
-            for name in daggers:
-                row, (share, rounds, episodes) = results["conav"][name], dagger_variant(name)
-                how = ("BC + DAgger" + ("" if share == 0.0 else f", the expert acting at {share:g}^r of round r's steps")
-                       + ("" if rounds is None else f", {rounds} round{'s' * (rounds > 1)}")
-                       + ("" if episodes is None else f", {episodes} train episodes a round"))
-                lines.append(f"| {row['title']} ({how}) | {', '.join(row['privileged']) or 'none'} | "
-                             f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
-            if not daggers:
-                lines.append(f"| CoNav Agent (BC + DAgger) | | not run yet | {not_run} |")
-        else:
-            entry = results["agents"].get(key)
-            if entry is not None:
-                lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
-                             + _our_cells(entry["metrics"]) + " |")
-            else:
-                lines.append(f"| {key} | | not run yet | {not_run} |")
-        lines.append(f"| {paper_title} | | paper | " + _paper_cells(paper) + " |")
-    for key, entry in results["agents"].items():
-        if key not in PAPER_TABLE2:  # ours without a paper row (e.g. the planner, the expert)
-            lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
-                         + _our_cells(entry["metrics"]) + " |")
-    lines += ["", "## Table 3: intention inputs (BC, predicted intentions)", "",
-              "| # | activity | object | trajectory | source " + head, "|---|:---:|:---:|:---:|---" + "|---:" * len(cols) + "|"]
-    flags = {"none": (0, 0, 0), "activity": (1, 0, 0), "object": (0, 1, 0), "activity_object": (1, 1, 0), "all": (1, 1, 1)}
-    for k, name in enumerate(ABLATIONS, start=1):
-        marks = " | ".join("✓" if f else "✗" for f in flags[name])
-        row = results["conav"].get(name)
-        if row is not None:
-            lines.append(f"| {k} | {marks} | {_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
-        else:
-            lines.append(f"| {k} | {marks} | not run yet | {not_run} |")
-        lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
-    lines += _paired_lines(results)
-    if results.get("missing"):
-        lines += ["", "## Not run yet", "",
-                  "These evaluations are not made yet; the rows above that need them are marked so, and the learned "
-                  "rows name the seeds they hold. Running `conav reproduce` again with the same arguments continues.", ""]
-        lines += [f"- `{m}`" for m in results["missing"]]
-    return "\n".join(lines) + "\n"
-
-
-# -- several commands at once (`--gpus`) -----------------------------------------------------------
-
-
-def writes(argv: tuple[str, ...]) -> Path | None:
-    """The directory a command makes: a copy's target, else its --out (None: neither)."""
-    if argv[0] == "@copy":
-        return Path(argv[2])
-    return Path(argv[argv.index("--out") + 1]) if "--out" in argv else None
-
-
-def prerequisites(plan: list[Stage], out: Path) -> dict[str, set[str]]:
-    """Each planned command's (by key) prerequisites: the commands before it in the plan that
-    write its data, a run it reads, or the directory it writes itself (a DAgger run trains in the
-    copy of its BC run; a run cut short and its copy never run at once)."""
-    found, made = {}, []  # made: (directory, key) of the commands so far, in plan order
-    for st in plan:
-        for argv in st.commands:
-            needs = set(runs_read(argv)) | {writes(argv)}
-            if "--data" in argv:
-                needs.add(Path(argv[argv.index("--data") + 1]))
-            key = command_key(argv, out)
-            found[key] = {k for d, k in made if d in needs}
-            made.append((writes(argv), key))
+def prerequisites(plan: list[Stage]) -> dict[str, set[str]]:
+    """The one dependency graph of the plan: each step's (by name) prerequisites, the steps before
+    it in the plan that write a directory it reads or the directory it writes itself (a DAgger run
+    trains in the copy of its BC run; a run cut short and its copy never run at once)."""
+    found, made = {}, []  # made: (directory, name) of the steps so far, in plan order
+    for st in (x for stage in plan for x in stage.steps):
+        needs = {*st.reads, st.writes}
+        found[st.name] = {name for d, name in made if d in needs}
+        made.append((st.writes, st.name))
     return found
 
 
-def by_dependents(todo: list[tuple[str, ...]], needs: dict[str, set[str]], out: Path) -> list[tuple[str, ...]]:
-    """`todo` in the order `run_parallel` starts what is ready: the most commands of `todo` waiting
+def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
+    """`todo` in the order `run_parallel` starts what is ready: the most steps of `todo` waiting
     on it (directly or not) first, then plan order. A BC run that a DAgger run and two
     evaluations wait for starts before a run only its evaluation waits for."""
-    keys = {command_key(argv, out) for argv in todo}
-    below = {k: set() for k in keys}  # the commands of todo waiting on k
+    keys = {st.name for st in todo}
+    below = {k: set() for k in keys}  # the steps of todo waiting on k
     for k in keys:
         stack = [n for n in needs[k] if n in keys]
         while stack:
@@ -693,235 +465,11 @@ def by_dependents(todo: list[tuple[str, ...]], needs: dict[str, set[str]], out: 
             if k not in below[n]:
                 below[n].add(k)
                 stack += [m for m in needs[n] if m in keys]
-    index = {command_key(argv, out): i for i, argv in enumerate(todo)}
-    return sorted(todo, key=lambda argv: (-len(below[command_key(argv, out)]), index[command_key(argv, out)]))
+    index = {st.name: i for i, st in enumerate(todo)}
+    return sorted(todo, key=lambda st: (-len(below[st.name]), index[st.name]))
 
 
-def visible_gpus() -> list[str] | None:
-    """The GPU ids a process started here may use: CUDA_VISIBLE_DEVICES's, else those `nvidia-smi -L`
-    lists; None where neither says (no NVIDIA driver: a CPU machine)."""
-    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
-    if visible is not None:
-        return [d.strip() for d in visible.split(",") if d.strip()]
-    if shutil.which("nvidia-smi") is None:
-        return None
-    listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
-    return [str(i) for i, _ in enumerate(line for line in listed.splitlines() if line.startswith("GPU "))]
-
-
-def gpu_slots(count: int) -> list[str]:
-    """The GPUs `count` commands at once run on, one each: the first `count` of `visible_gpus`
-    (0..count-1 on a machine without a driver, where the commands run on the CPU). ValueError
-    when fewer are visible (a process given a GPU that does not exist would run on the CPU)."""
-    if count < 1:
-        raise ValueError(f"--gpus must be at least 1, got {count}")
-    ids = visible_gpus()
-    if ids is not None and len(ids) < count:
-        raise ValueError(f"--gpus {count}: {len(ids)} GPU(s) visible ({', '.join(ids) or 'none'})")
-    return ids[:count] if ids is not None else [str(i) for i in range(count)]
-
-
-def child_command(argv: tuple[str, ...], compile_cache: str | None) -> list[str]:
-    """The process that runs one `conav` command (`run_parallel`)."""
-    return [sys.executable, "-m", "conav_jax.eval.cli", *(("--compile-cache", compile_cache) if compile_cache else ()), *argv]
-
-
-def _log_name(argv: tuple[str, ...]) -> str:
-    words = [w for w in argv[:2] if not w.startswith("-")]
-    target = writes(argv)
-    return "_".join(words + ([target.name] if target is not None else [])) + ".log"
-
-
-def _describe(argv: tuple[str, ...], out: Path) -> str:
-    target = writes(argv)
-    where = target.relative_to(out) if target is not None and target.is_relative_to(out) else target
-    return " ".join(w for w in argv[:2] if not w.startswith("-")) + f" -> {where}"
-
-
-def _tail(path: Path, lines: int = 15) -> str:
-    text = path.read_text(errors="replace").splitlines() if path.exists() else []
-    return "\n".join("    " + line for line in text[-lines:])
-
-
-def run_parallel(plan: list[Stage], todo: list[tuple[str, ...]], out: Path, progress: dict, gpus: list[str],
-                 compile_cache: str | None = None, say=None, poll_seconds: float = 0.1) -> tuple[int, list]:
-    """Run `todo` (commands of `plan`) up to len(gpus) at once, each in a `conav` process of its
-    own that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a command starting once its
-    `prerequisites` are done (in `by_dependents` order); copies run here. Each command's wall time goes into
-    `progress` (saved) as it ends, a failed or stopped one's under "cut". After a failure no new
-    command starts and those running finish. An interrupt (SIGTERM raised as KeyboardInterrupt)
-    stops every process, records their time as cut and is raised again. Returns (0 or the first
-    failure's exit code, the commands left waiting for prerequisites not run here)."""
-    say = say or (lambda message: print(message, flush=True))
-    needs = prerequisites(plan, out)
-    done = set(progress["commands"])
-    pending, running, free, failed = by_dependents(todo, needs, out), {}, list(gpus), 0
-    (out / "logs").mkdir(parents=True, exist_ok=True)
-
-    def record(argv, seconds: float, ok: bool) -> None:
-        key = command_key(argv, out)
-        if ok:
-            progress["commands"][key] = round(seconds, 1)
-            done.add(key)
-        else:
-            cut = progress.setdefault("cut", {})
-            cut[key] = round(cut.get(key, 0.0) + seconds, 1)
-        write_progress(out, progress)
-
-    try:
-        while pending or running:
-            started = True
-            while started and not failed:  # a copy done may let others start
-                started = False
-                for argv in list(pending):
-                    if not needs[command_key(argv, out)] <= done or (argv[0] != "@copy" and not free):
-                        continue
-                    pending.remove(argv)
-                    started = True
-                    if argv[0] == "@copy":
-                        t0 = time.perf_counter()
-                        if not Path(argv[2]).exists():
-                            shutil.copytree(argv[1], argv[2])
-                        record(argv, time.perf_counter() - t0, True)
-                        say(f"copied {argv[1]} -> {argv[2]}")
-                        continue
-                    gpu, log = free.pop(0), out / "logs" / _log_name(argv)
-                    with open(log, "a") as f:
-                        f.write(f"$ conav {' '.join(argv)}\n")
-                        f.flush()
-                        proc = subprocess.Popen(child_command(argv, compile_cache), stdout=f, stderr=subprocess.STDOUT,
-                                                env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu, "PYTHONUNBUFFERED": "1"})
-                    running[proc] = (argv, gpu, log, time.perf_counter())
-                    say(f"[gpu {gpu}] {_describe(argv, out)} started (log {log})")
-            if not running:
-                break  # what is left waits for commands not run here
-            ended = [proc for proc in running if proc.poll() is not None]
-            if not ended:
-                time.sleep(poll_seconds)
-                continue
-            for proc in ended:
-                argv, gpu, log, t0 = running.pop(proc)
-                seconds = time.perf_counter() - t0
-                record(argv, seconds, proc.returncode == 0)
-                free = sorted(free + [gpu], key=gpus.index)
-                if proc.returncode == 0:
-                    say(f"[gpu {gpu}] {_describe(argv, out)} done in {seconds:.0f} s "
-                        f"({len(done & set(needs))} done, {len(running)} running, {len(pending)} to run)")
-                else:
-                    failed = failed or proc.returncode
-                    say(f"[gpu {gpu}] {_describe(argv, out)} failed (exit {proc.returncode}) after {seconds:.0f} s; "
-                        f"no new command starts. The end of {log}:\n{_tail(log)}")
-    except BaseException:
-        for proc in running:
-            proc.terminate()
-        deadline = time.perf_counter() + 30.0
-        for proc, (argv, gpu, log, t0) in running.items():
-            try:
-                proc.wait(timeout=max(0.1, deadline - time.perf_counter()))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-            record(argv, time.perf_counter() - t0, False)
-            say(f"[gpu {gpu}] {_describe(argv, out)} stopped")
-        raise
-    return failed, pending
-
-
-# -- pack ------------------------------------------------------------------------------------------
-
-
-def _pending_runs(cfg: ReproduceConfig, progress: dict) -> tuple[set[Path], set[Path]]:
-    """(the runs that commands still to run read, the runs they write)."""
-    out = Path(cfg.out)
-    read, written = set(), set()
-    for argv in (a for st in plan_stages(cfg) for a in st.commands if command_key(a, out) not in progress["commands"]):
-        read.update(runs_read(argv))
-        written.add(writes(argv))
-    written.discard(None)
-    return read, written
-
-
-def pack_members(cfg: ReproduceConfig, progress: dict) -> list[Path]:
-    """What a fresh machine needs to continue: the progress record, every evaluation's outputs,
-    results and tables, and the latest checkpoint of every run a stage still to run reads (the
-    data are regenerated from their seed; a training round cut short restarts from the run's
-    last finished round, or from `first_round_checkpoints`' when the pack carries them)."""
-    from conav_jax.checkpoints import latest_checkpoint
-
-    out = Path(cfg.out)
-    members = [out / PROGRESS_FILE] + sorted((out / "eval").rglob("*.json")) + sorted((out / "eval").rglob("*.md"))
-    members += [p for p in (out / "results.json", out / "tables.md") if p.exists()]
-    for run in sorted(set.union(*_pending_runs(cfg, progress))):
-        found = latest_checkpoint(run)
-        if found is not None:
-            members += [found] + [p for p in (run / "log.jsonl",) if p.exists()]
-    return [p for p in members if p.exists()]
-
-
-def first_round_checkpoints(cfg: ReproduceConfig, progress: dict) -> list[tuple[Path, ...]]:
-    """(the latest checkpoint within round 0, the run's and the round's logs) of every run still
-    to train that has finished no round (a BC run cut short): on a fresh machine the run records
-    round 0 again (the teacher's rollouts: same data, same records) and goes on from that update.
-    A later round's checkpoints never travel: its data came from a policy that no longer exists."""
-    from conav_jax.checkpoints import latest_checkpoint
-
-    found = []
-    for run in sorted(_pending_runs(cfg, progress)[1]):
-        ckpt = latest_checkpoint(run / "round_0")
-        if ckpt is not None and latest_checkpoint(run) is None:
-            found.append((ckpt, *(p for p in (run / "log.jsonl", ckpt.parent / "log.jsonl") if p.exists())))
-    return found
-
-
-def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[Path]]:
-    """OUT/pack.tar (atomically): `pack_members`, paths relative to OUT, and the runs cut in their
-    first round (`first_round_checkpoints`) while the pack stays within PACK_LIMIT_BYTES; returns
-    (the pack, its bytes, the first-round checkpoints left out for want of room). ValueError when
-    `pack_members` alone would exceed the limit, naming the largest members."""
-    import os
-    import tarfile
-    import tempfile
-
-    out = Path(cfg.out)
-    members = pack_members(cfg, progress)
-    total = sum(p.stat().st_size for p in members)
-    if total > PACK_LIMIT_BYTES:
-        big = sorted(members, key=lambda p: -p.stat().st_size)[:5]
-        raise ValueError(f"the pack would hold {total / 2**20:.1f} MiB (limit {PACK_LIMIT_BYTES / 2**20:.0f} MiB); "
-                         "largest: " + ", ".join(f"{p.relative_to(out)} {p.stat().st_size / 2**20:.1f} MiB" for p in big))
-    left_out = []
-    for files in first_round_checkpoints(cfg, progress):
-        size = sum(p.stat().st_size for p in files)
-        if total + size <= PACK_LIMIT_BYTES:
-            members += files
-            total += size
-        else:
-            left_out.append(files[0])
-    fd, tmp = tempfile.mkstemp(prefix=".pack.", suffix=".tmp", dir=out)
-    os.close(fd)
-    with tarfile.open(tmp, "w") as tar:
-        for p in members:
-            tar.add(p, arcname=str(p.relative_to(out)))
-    os.replace(tmp, out / "pack.tar")
-    return out / "pack.tar", total, left_out
-
-
-def unpack(pack: Path, out: Path) -> list[str]:
-    """Unpack a pack into OUT (a fresh machine continuing a run); the member names."""
-    import tarfile
-
-    out, pack = Path(out), Path(pack)
-    if not pack.is_file():
-        raise FileNotFoundError(f"no pack at {pack}")
-    try:
-        tar = tarfile.open(pack)
-    except tarfile.TarError as e:
-        raise ValueError(f"{pack} is not a pack written by `conav reproduce --stage pack`: {e}") from e
-    out.mkdir(parents=True, exist_ok=True)
-    with tar:
-        names = tar.getnames()
-        bad = [n for n in names if n.startswith("/") or ".." in Path(n).parts]
-        if bad:
-            raise ValueError(f"{pack}: unsafe member paths {bad[:3]}")
-        tar.extractall(out)
-    return names
+def copy_run(step: Step) -> None:
+    """Run a copy step: its source run directory to its target, unless the target exists."""
+    if not Path(step.argv[2]).exists():
+        shutil.copytree(step.argv[1], step.argv[2])

@@ -24,6 +24,17 @@ import numpy as np
 from conav_jax.envs.agents.registry import AGENTS, check_agent
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")  # ablation names become file names
+
+
+def _learned(name: str) -> bool:
+    """Whether agent `name` loads a trained run (an agent outside the registry, a user's
+    `package.module:factory`, loads none here)."""
+    return name in AGENTS and AGENTS[name].needs_checkpoint
+
+
+def _reads_intentions(name: str) -> bool:
+    """Whether agent `name` takes the intention keywords (predictor runs or ground truth)."""
+    return name in AGENTS and AGENTS[name].takes_intentions
 _INPUT_KEYS = ("use_activity", "use_object", "use_trajectory")
 
 
@@ -49,7 +60,7 @@ class EvalPlan:
 
     def checkpoint_of(self, name: str) -> str | None:
         """The run agent `name` loads (None for agents without one)."""
-        if not AGENTS[name].needs_checkpoint:
+        if not _learned(name):
             return None
         return dict(self.agent_checkpoints).get(name, self.checkpoint)
 
@@ -81,22 +92,21 @@ def plan_eval(
     if split not in manifest["splits"]:
         raise ValueError(f"{data}: no split {split!r}; has {sorted(manifest['splits'])}")
     if not agents:
-        raise ValueError("--agent needs at least one agent name")
+        raise ValueError("EvalPlan.agents needs at least one agent name")
     if len(set(agents)) != len(agents):
-        raise ValueError(f"--agent lists an agent twice: {','.join(agents)}")
+        raise ValueError(f"EvalPlan.agents lists an agent twice: {','.join(agents)}")
     own = dict(checkpoint) if isinstance(checkpoint, Mapping) else {None: checkpoint}
     default = own.pop(None, None)
     for name in agents:
-        learned_agent = name in AGENTS and AGENTS[name].needs_checkpoint
-        check_agent(name, own.get(name, default) if learned_agent else default)
+        check_agent(name, own.get(name, default) if _learned(name) else default)
     for name in own:
-        if name not in agents or not AGENTS[name].needs_checkpoint:
-            learned = [n for n in agents if AGENTS[n].needs_checkpoint]
-            raise ValueError(f"--checkpoint names a run for {name!r}, which is not a learned agent of this evaluation "
+        if name not in agents or not _learned(name):
+            learned = [n for n in agents if _learned(n)]
+            raise ValueError(f"EvalPlan.agent_checkpoints names a run for {name!r}, which is not a learned agent of this evaluation "
                              f"(learned agents: {', '.join(learned) or 'none'})")
     learned = dict(intention_kwargs or {})
-    if learned and not ablations and not any(AGENTS[n].takes_intentions for n in agents):
-        raise ValueError("--intention / --trajectory / --ground-truth-intentions only apply to agents that read "
+    if learned and not ablations and not any(_reads_intentions(n) for n in agents):
+        raise ValueError("EvalPlan.intention_kwargs only apply to agents that read "
                          "intention inputs (conav, ppo) and ablations")
     names = set()
     for name, run in ablations:
@@ -107,15 +117,15 @@ def plan_eval(
         names.add(name)
         check_agent("conav", run)
     if episodes is not None and episodes < 1:
-        raise ValueError(f"--episodes must be at least 1, got {episodes}")
+        raise ValueError(f"EvalPlan.episodes must be at least 1, got {episodes}")
     if batch < 1:
-        raise ValueError(f"--batch must be at least 1, got {batch}")
+        raise ValueError(f"EvalPlan.batch must be at least 1, got {batch}")
     if devices is not None and devices < 1:
-        raise ValueError(f"--devices must be at least 1, got {devices}")
+        raise ValueError(f"EvalPlan.devices must be at least 1, got {devices}")
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a directory")
-    trained = [(name, own.get(name, default)) for name in agents if AGENTS[name].needs_checkpoint]
+        raise ValueError(f"EvalPlan.out {out} exists and is not a directory")
+    trained = [(name, own.get(name, default)) for name in agents if _learned(name)]
     trained += [("conav", run) for _, run in ablations]
     return EvalPlan(
         data=Path(data),
@@ -172,7 +182,7 @@ def build_evaluators(env, runs: list[tuple[str, str | None, dict]], batch: int, 
     agents = [make_agent(name, env, ckpt, **kw) for name, ckpt, kw in runs]
     # The scripted agents share one evaluator, the pioneer's poses and the others' velocities
     # alike (envs.agents.base.switch_agent).
-    scripted = [j for j, (name, _, _) in enumerate(runs) if not AGENTS[name].needs_checkpoint]
+    scripted = [j for j, (name, _, _) in enumerate(runs) if not _learned(name)]
     out = []
     for k, (agent, (name, ckpt, kw)) in enumerate(zip(agents, runs)):
         if k in scripted and len(scripted) > 1:
@@ -318,7 +328,7 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
     episodes = np.arange(env.num_episodes)
     runs = [(name, name, plan.checkpoint_of(name)) for name in plan.agents]
     runs += [(f"ablation_{n}", "conav", run) for n, run in plan.ablations]
-    built = build_evaluators(env, [(name, ckpt, plan.intention_kwargs if AGENTS[name].takes_intentions else {})
+    built = build_evaluators(env, [(name, ckpt, plan.intention_kwargs if _reads_intentions(name) else {})
                                    for _, name, ckpt in runs], plan.batch, plan.seed, mesh)
     results, summaries, given, maps = {}, {}, {}, []
     # A run listed twice (Table 3's all-inputs row is usually the agent itself) is swept once:

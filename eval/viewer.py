@@ -235,15 +235,14 @@ def view_episode(
         raise ValueError(f"{data}: no split {split!r}; has {sorted(manifest['splits'])}")
     n = int(manifest["splits"][split]["episodes"])
     if not 0 <= episode < n:
-        raise ValueError(f"--episode must be in [0, {n}) for split {split!r}, got {episode}")
+        raise ValueError(f"view_episode.episode must be in [0, {n}) for split {split!r}, got {episode}")
     spec = check_agent(agent, checkpoint)
     predictors = dict(intention_kwargs or {})
     if predictors and not spec.takes_intentions:
-        raise ValueError(f"agent {agent!r} reads no intention inputs (--intention / --trajectory / "
-                         "--ground-truth-intentions)")
+        raise ValueError(f"agent {agent!r} reads no intention inputs (view_episode.intention_kwargs)")
     out = Path(out)
     if out.suffix != ".rrd":
-        raise ValueError(f"--out must name a .rrd file, got {out}")
+        raise ValueError(f"view_episode.out must name a .rrd file, got {out}")
     h, w = run_resolution([(agent, checkpoint)] if spec.needs_checkpoint else [], resolution)
     out.parent.mkdir(parents=True, exist_ok=True)
 

@@ -36,7 +36,7 @@ def test_the_demos_commands_parse_and_its_predictor_crops_the_policys_panorama(t
 
     commands = demo_commands(tmp_path, seed=0, resolution="16x64")
     parsed = {tuple(argv[:2]): build_parser().parse_args(argv) for argv in commands}
-    assert tuple(parsed[("train", "intention")].sensor) == tuple(parsed[("train", "policy")].resolution) == (16, 64)
+    assert tuple(parsed[("train", "intention")].resolution) == tuple(parsed[("train", "policy")].resolution) == (16, 64)
 
 
 def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, monkeypatch):
@@ -51,13 +51,13 @@ def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, 
     monkeypatch.setattr(jax, "clear_caches", lambda: events.append("clear"))
     monkeypatch.setattr(cli, "main", lambda argv, compile_cache=True: events.append(tuple(argv)) or 0)
     args = cli.build_parser().parse_args(["demo", "--out", str(tmp_path / "demo")])
-    assert cli._run_demo(args) == 0
+    assert cli.demo.run(args) == 0
     stages = demo_commands(tmp_path / "demo", args.seed, "x".join(map(str, args.resolution)), args.pretrained)
     assert events == [x for argv in stages for x in ("clear", tuple(argv))]
     events.clear()
     args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--out", str(tmp_path / "r"), "--stage",
                                           "generate"])
-    cli._run_reproduce(args)
+    cli.reproduce.run(args)
     assert events[0] == "clear" and events[1][0] == "generate"
 
 
@@ -74,3 +74,52 @@ def test_output_read_only_in_part_stops_without_a_traceback(tmp_path):
                           check=False)
     assert proc.stdout.strip() == "[generate] to run"
     assert "Traceback" not in proc.stderr and "BrokenPipeError" not in proc.stderr
+
+
+def test_config_flags_carry_the_fields_type_default_and_documenting_comment():
+    import argparse
+
+    from conav_jax.eval.cli.args import add_fields, config_from_args, field_docs
+    from conav_jax.train.loop import TrainConfig
+    from conav_jax.train.ppo import PPOConfig
+
+    assert field_docs(TrainConfig)["steps"] == "total updates (a resumed run continues up to this count)"
+    assert field_docs(PPOConfig)["reset_every"].startswith("Iterations between re-resets")  # the block above it
+    p = argparse.ArgumentParser()
+    add_fields(p, TrainConfig, ("steps", "lr"), defaults=TrainConfig(steps=700), flags={"lr": "--learning-rate"})
+    add_fields(p, PPOConfig, ("recurrent", "reset_every"))
+    helps = {a.dest: a.help for a in p._actions}
+    assert helps["steps"] == "total updates (a resumed run continues up to this count) (default 700)"
+    args = p.parse_args(["--learning-rate", "0.5", "--no-recurrent", "--reset-every", "3"])
+    assert config_from_args(TrainConfig, args) == TrainConfig(steps=700, lr=0.5)
+    assert config_from_args(PPOConfig, args) == PPOConfig(recurrent=False, reset_every=3)
+
+
+def test_library_errors_name_flags_where_the_command_maps_the_field():
+    from conav_jax.eval.cli import build_parser
+    from conav_jax.eval.cli.args import as_flags
+
+    flags = build_parser().parse_args(["train", "rl", "--data", "d", "--out", "o"]).field_flags
+    message = "TrainConfig.steps and PPOConfig.total_env_steps and gpu_slots.gpus and metrics.json"
+    assert as_flags(message, flags) == "TrainConfig.steps and --steps and gpu_slots.gpus and metrics.json"
+    flags = build_parser().parse_args(["train", "intention", "--data", "d", "--out", "o"]).field_flags
+    assert as_flags("TrainConfig.steps, PerceiverConfig.num_latents", flags) == "--steps, --latents"
+
+
+def test_bench_eval_untrained_refuses_a_run_and_accepts_agents_outside_the_registry(tmp_path, monkeypatch, capsys):
+    from conav_jax.eval import cli
+
+    base = ["--compile-cache", "off", "bench", "eval", "--data", str(tmp_path / "none")]
+    assert cli.main([*base, "--agent", "conav", "--untrained", "--checkpoint", str(tmp_path)]) == 2
+    assert "--untrained builds the agent from fresh weights" in capsys.readouterr().err
+    # A name outside the registry reaches make_agent (package.module:factory agents), not a check before it.
+    seen = []
+
+    def make_agent(name, *args, **kwargs):
+        seen.append(name)
+        raise ValueError("built here")
+
+    monkeypatch.setattr("conav_jax.envs.agents.registry.make_agent", make_agent)
+    monkeypatch.setattr("conav_jax.envs.ConavEnv", lambda *a, **k: None)
+    assert cli.main([*base, "--agent", "mypkg.agents:make", "--resolution", "8x32"]) == 2
+    assert seen == ["mypkg.agents:make"] and "built here" in capsys.readouterr().err

@@ -14,6 +14,8 @@ import pytest
 
 from conav_jax.eval import cli
 from conav_jax.eval import reproduce as rp
+from conav_jax.eval import reproduce_run as rr
+from conav_jax.eval import reproduce_tables as rt
 
 METRICS = ("FASR", "RASR", "FASPL", "RASPL", "CR", "AS")
 
@@ -60,7 +62,7 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
     # There DAgger rounds record a subset of the train episodes each (their windows stay on the GPU).
     for argv in dagger[1::2]:
         assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
-        imitation = cli._imitation_config(cli.build_parser().parse_args(list(argv)))
+        imitation = cli.imitation_config(cli.build_parser().parse_args(list(argv)))
         assert imitation.dagger_episodes == rp.LARGE_PANORAMA_DAGGER_EPISODES
     assert not any("--dagger-episodes" in argv for st in low for argv in st.commands)
     # The paper preset's baselines record a subset of its 20,293 train episodes (at 112x448 as
@@ -71,7 +73,7 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
         assert argv[argv.index("--episodes") + 1] == bc[0][bc[0].index("--episodes") + 1] == "400"
         assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
         assert all(any(argv[i:i + len(f)] == f for i in range(len(argv))) for f in policy_cnn)
-        cli._train_config(cli.build_parser().parse_args(list(argv)))
+        cli.train_config(cli.build_parser().parse_args(list(argv)))
     for argv in {s.name: s for s in low}["baselines"].commands:
         assert argv[argv.index("--episodes") + 1] == "1000"
         assert not {"--conv-dtype", "--remat", "--dagger-episodes"} & set(argv)
@@ -84,8 +86,8 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
     for res in ((112, 448), (32, 128)):
         (intention,) = [argv for argv in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, resolution=res))[1].commands
                         if argv[1] == "intention"]
-        assert intention[intention.index("--sensor") + 1] == "x".join(map(str, res))
-    with pytest.raises(ValueError, match="--seeds must be at least 1"):
+        assert intention[intention.index("--resolution") + 1] == "x".join(map(str, res))
+    with pytest.raises(ValueError, match="ReproduceConfig.seeds must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, seeds=0)
 
 
@@ -114,22 +116,22 @@ def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_p
     for argv in policy_runs:
         assert argv[argv.index("--encoder") + 1] == "patch"
         args = parser.parse_args(list(argv))
-        net = cli._policy_model(args) if argv[1] == "policy" else cli._network_base(args, (8, 32))
+        net = cli.policy_model(args) if argv[1] == "policy" else cli.network_base(args, (8, 32))
         assert net.conv_strides == (4, 2, 2)
     # Nothing else changes: the default's commands are those of the published runs.
     assert not any("--encoder" in argv for st in plain.values() for argv in st.commands)
     for name in plain:
         assert [tuple(a for a in argv if a not in ("--encoder", "patch")) for argv in patch[name].commands] == \
             list(plain[name].commands)
-    with pytest.raises(ValueError, match="unknown --encoder 'resnet'"):
+    with pytest.raises(ValueError, match="unknown ReproduceConfig.encoder 'resnet'"):
         rp.ReproduceConfig(out=tmp_path, encoder="resnet")
     # The command line passes it on.
     assert cli.main(["--compile-cache", "off", "reproduce", "--preset", "tiny", "--seeds", "1", "--out",
                      str(tmp_path / "out"), "--encoder", "patch", "--dry-run"]) == 0
     assert capsys.readouterr().out.count("--encoder patch") == len(policy_runs)
     results = {"preset": "small", "seeds": 1, "resolution": "112x448", "agents": {}, "conav": {}}
-    assert "encoder" not in rp.render_tables(results)  # results.json files written before the key
-    assert "panorama 112x448 (the CoNav policy's panorama encoder: `patch`);" in rp.render_tables({**results, "encoder": "patch"})
+    assert "encoder" not in rt.render_tables(results)  # results.json files written before the key
+    assert "panorama 112x448 (the CoNav policy's panorama encoder: `patch`);" in rt.render_tables({**results, "encoder": "patch"})
 
 
 def test_learned_cells_are_the_mean_and_sd_over_seeds_with_the_pooled_interval():
@@ -137,9 +139,9 @@ def test_learned_cells_are_the_mean_and_sd_over_seeds_with_the_pooled_interval()
         "0": {"metrics": _metrics((10, 20, 5, 6, 30, 100)), "episodes": 100},
         "1": {"metrics": _metrics((20, 30, 7, 8, 10, 200)), "episodes": 100}}}
     # FASR: mean 15, sd sqrt(50) = 7.07; pooled 30 of 200: Wilson [10.7, 20.6].
-    assert rp._learned_cell(row, "FASR") == "15.0 ± 7.1 [10.7, 20.6]"
+    assert rt._learned_cell(row, "FASR") == "15.0 ± 7.1 [10.7, 20.6]"
     # AS: not a rate: mean 150, sd 70.7, the seeds' mean bounds.
-    assert rp._learned_cell(row, "AS") == "150.0 ± 70.7 [149.0, 151.0]"
+    assert rt._learned_cell(row, "AS") == "150.0 ± 70.7 [149.0, 151.0]"
 
 
 def test_tables_compare_rows_seed_by_seed_with_their_reference():
@@ -150,7 +152,7 @@ def test_tables_compare_rows_seed_by_seed_with_their_reference():
     results = {"seeds": 3, "agents": {}, "conav": {
         "none": row((10, 20), (14, 22), (12, 30)), "object": row((13, 20), (15, 25), (18, 30)),
         "all": row((20, 30), (10, 20)), "dagger": row((26, 31), (13, 20), (30, 30))}}
-    lines = rp.render_tables(results).splitlines()
+    lines = rt.render_tables(results).splitlines()
     # object - none: +3, +1, +6 (mean 3.33, sd 2.52); RASR 0, +3, 0.
     assert ("| object | none | s0 13.0 / s1 15.0 / s2 18.0 | +3.0 / +1.0 / +6.0 | +3.3 ± 2.5 | "
             "s0 20.0 / s1 25.0 / s2 30.0 | +0.0 / +3.0 / +0.0 | +1.0 ± 1.7 |") in lines
@@ -160,7 +162,7 @@ def test_tables_compare_rows_seed_by_seed_with_their_reference():
     assert any(line.startswith("| dagger | all | s0 26.0 / s1 13.0 / s2 30.0 | +6.0 / +3.0 | +4.5 ± 2.1 |")
                for line in lines)
     assert not any(line.startswith("| activity |") for line in lines)  # not run: no row
-    assert "Seed by seed" not in rp.render_tables({**results, "conav": {"none": results["conav"]["none"]}})
+    assert "Seed by seed" not in rt.render_tables({**results, "conav": {"none": results["conav"]["none"]}})
 
 
 def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
@@ -174,7 +176,7 @@ def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
         "conav": {"all": {"title": "CoNav Agent", "intention_source": "predicted", "privileged": ["oracle segmentation"],
                           "seeds": {"0": {"metrics": _metrics((12, 13, 14, 15, 16, 17)), "episodes": 100}}}},
     }
-    md = rp.render_tables(results)
+    md = rt.render_tables(results)
     lines = md.splitlines()
     assert "| agent | given (privileged inputs) | source | FASR | RASR | FASPL | RASPL | CR | CR_full | AS |" in lines
     # CR_full beside CR: "-" where a row (or the paper) has none.
@@ -203,34 +205,34 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     # runs made before that did): its all-inputs run is no DAgger row.
     for a in rp.ABLATIONS:
         _write_eval(evals / rp.BC_ROW_EVAL.format(row=a, seed=1), _eval_doc({"conav": (20, 30, 7, 8, 10, 200)}))
-    results = rp.collect_results(tmp_path, 2, {"seeds": 2})
+    results = rt.collect_results(tmp_path, 2, {"seeds": 2})
     assert set(results["conav"]["dagger"]["seeds"]) == {"0"}
     assert all(set(results["conav"][a]["seeds"]) == {"0", "1"} for a in rp.ABLATIONS)
-    lines = rp.render_tables(results).splitlines()
+    lines = rt.render_tables(results).splitlines()
     # One seed: its value and interval, no spread; the source names the seed.
     assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 40.0 [") for line in lines)
     assert any(line.startswith("| T conav (BC) | oracle map | ours | 15.0 ± 7.1 [") for line in lines)
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours | 15.0 ± 7.1 [") for line in lines)
-    assert results["missing"] == ["eval/conav_dagger_s1"] and "## Not run yet" in rp.render_tables(results)
+    assert results["missing"] == ["eval/conav_dagger_s1"] and "## Not run yet" in rt.render_tables(results)
     # Evaluations not made yet are listed, their rows marked; the learned rows name their seeds.
     (evals / rp.BC_ROW_EVAL.format(row="none", seed=1) / "metrics.json").unlink()
     (evals / "imagegoal" / "metrics.json").unlink()
-    results = rp.collect_results(tmp_path, 2, {"seeds": 2})
+    results = rt.collect_results(tmp_path, 2, {"seeds": 2})
     assert results["missing"] == ["eval/imagegoal", "eval/conav_bc_none_s1", "eval/conav_dagger_s1"]
     assert set(results["conav"]["activity"]["seeds"]) == {"0", "1"}
-    lines = rp.render_tables(results).splitlines()
+    lines = rt.render_tables(results).splitlines()
     assert "| imagegoal | | not run yet | - | - | - | - | - | - | - |" in lines and "- `eval/imagegoal`" in lines
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours (seed 0 of 2) | 10.0 [") for line in lines)
     (evals / rp.DAGGER_EVAL.format(0) / "metrics.json").unlink()
     (evals / rp.BC_EVAL.format(0) / "metrics.json").unlink()
     for a in rp.ABLATIONS[1:]:
         (evals / rp.BC_ROW_EVAL.format(row=a, seed=1) / "metrics.json").unlink()
-    lines = rp.render_tables(rp.collect_results(tmp_path, 2, {"seeds": 2})).splitlines()
+    lines = rt.render_tables(rt.collect_results(tmp_path, 2, {"seeds": 2})).splitlines()
     assert "| CoNav Agent (BC + DAgger) | | not run yet | - | - | - | - | - | - | - |" in lines
     assert "| 5 | ✓ | ✓ | ✓ | not run yet | - | - | - | - | - | - | - |" in lines
     (evals / "scripted" / "metrics.json").unlink()
     with pytest.raises(FileNotFoundError, match="no evaluation of the scripted agents"):
-        rp.collect_results(tmp_path, 2, {"seeds": 2})
+        rt.collect_results(tmp_path, 2, {"seeds": 2})
 
 
 def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_show_every_variant(tmp_path):
@@ -244,7 +246,7 @@ def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_
     # The policy-alone runs keep their commands (and so their progress.json records).
     plain = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=2))}
     assert "--dagger-beta" not in plain["dagger"].commands[1] and plain["dagger"].commands[1][-1] == str(runs / "dagger_s0")
-    with pytest.raises(ValueError, match="--dagger-beta is a probability"):
+    with pytest.raises(ValueError, match="ReproduceConfig.dagger_beta is a probability"):
         rp.ReproduceConfig(out=tmp_path, dagger_beta=1.5)
 
     _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
@@ -254,16 +256,16 @@ def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_
         _write_eval(evals / f"conav_dagger_beta0.5_s{s}", _eval_doc({"conav": (30 + s, 40, 5, 6, 20, 100)}))
     _write_eval(evals / rp.DAGGER_EVAL.format(0), _eval_doc({"conav": (5, 50, 5, 6, 30, 100)}))
     (evals / "conav_daggerish_s0").mkdir()  # not a DAgger row's evaluation
-    mixed = rp.collect_results(tmp_path, 2, {"seeds": 2}, dagger="dagger_beta0.5")
+    mixed = rt.collect_results(tmp_path, 2, {"seeds": 2}, dagger="dagger_beta0.5")
     assert [k for k in mixed["conav"] if k.startswith("dagger")] == ["dagger", "dagger_beta0.5"]
     assert set(mixed["conav"]["dagger_beta0.5"]["seeds"]) == {"0", "1"}
     # Only the run's own variant can be missing; the other is shown with the seeds it has.
     assert mixed["missing"] == ["eval/objectgoal-oracle", "eval/objectgoal-predicted", "eval/imagegoal"]
-    lines = rp.render_tables(mixed).splitlines()
+    lines = rt.render_tables(mixed).splitlines()
     assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 5.0 [") for line in lines)
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps) | oracle map | "
                                "ours | 30.5 ± 0.7 [") for line in lines)
-    assert "eval/conav_dagger_s1" in rp.collect_results(tmp_path, 2, {"seeds": 2})["missing"]
+    assert "eval/conav_dagger_s1" in rt.collect_results(tmp_path, 2, {"seeds": 2})["missing"]
 
 
 def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(tmp_path):
@@ -279,22 +281,22 @@ def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(
     # Every share a row can be named by reads back, however `:g` writes it.
     assert all(rp.dagger_variant(rp.dagger_row(b, 2)) == (b, 2, None) for b in (1.0, 0.25, 1e-05))
     assert rp.dagger_variant("dagger_beta1e-05.") is None
-    with pytest.raises(ValueError, match="--dagger-rounds must be at least 1"):
+    with pytest.raises(ValueError, match="ReproduceConfig.dagger_rounds must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, dagger_rounds=0)
 
     _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
     for row, fasr in (("dagger", 5), ("dagger_beta0.5_rounds1", 25), ("dagger_beta0.5", 20), ("dagger_rounds1", 8)):
         _write_eval(evals / f"conav_{row}_s0", _eval_doc({"conav": (fasr, 40, 5, 6, 20, 100)}))
-    results = rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
+    results = rt.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
     # By share, then round count, the preset's first.
     assert [k for k in results["conav"] if k.startswith("dagger")] == [
         "dagger", "dagger_rounds1", "dagger_beta0.5", "dagger_beta0.5_rounds1"]
-    lines = rp.render_tables(results).splitlines()
+    lines = rt.render_tables(results).splitlines()
     assert any(line.startswith("| T conav (BC + DAgger, 1 round) | oracle map | ours | 8.0 [") for line in lines)
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps, 1 round) | "
                                "oracle map | ours | 25.0 [") for line in lines)
     (evals / "conav_dagger_beta0.5_rounds1_s0" / "metrics.json").unlink()
-    assert rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)["missing"][-1] == \
+    assert rt.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)["missing"][-1] == \
         "eval/conav_dagger_beta0.5_rounds1_s0"
 
 
@@ -314,18 +316,18 @@ def test_another_dagger_episode_count_runs_under_its_own_name_and_the_baselines_
     assert "--dagger-episodes" not in {s.name: s for s in rp.plan_stages(
         dataclasses.replace(small, dagger_episodes=None))}["dagger"].commands[1]
     assert rp.dagger_variant(cfg.dagger) == (0.5, 1, 200) and rp.dagger_variant("dagger_episodes") is None
-    with pytest.raises(ValueError, match="--dagger-episodes must be at least 1"):
+    with pytest.raises(ValueError, match="ReproduceConfig.dagger_episodes must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, dagger_episodes=0)
 
     _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
     for row, fasr in (("dagger_beta0.5_rounds1_episodes200", 25), ("dagger_beta0.5_rounds1", 20)):
         _write_eval(evals / f"conav_{row}_s0", _eval_doc({"conav": (fasr, 40, 5, 6, 20, 100)}))
-    results = rp.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
+    results = rt.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)
     assert [k for k in results["conav"] if k.startswith("dagger")] == [
         "dagger_beta0.5_rounds1", "dagger_beta0.5_rounds1_episodes200"]
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps, 1 round, 200 "
                                "train episodes a round) | oracle map | ours | 25.0 [")
-               for line in rp.render_tables(results).splitlines())
+               for line in rt.render_tables(results).splitlines())
 
 
 @pytest.fixture
@@ -401,7 +403,7 @@ def test_a_command_cut_short_counts_its_time_in_its_stage(fake_conav, tmp_path, 
         _reproduce(out)
     assert signal.getsignal(signal.SIGTERM) == handler  # the command's own handler is gone
     plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
-    cut_key = rp.command_key({s.name: s for s in plan}["bc"].commands[0], out)
+    cut_key = {s.name: s for s in plan}["bc"].steps[0].name
     assert "bc_none_s0" in cut_key
     progress = rp.read_progress(out)
     assert progress["cut"][cut_key] >= 0.0 and cut_key not in progress["commands"]
@@ -412,7 +414,7 @@ def test_a_command_cut_short_counts_its_time_in_its_stage(fake_conav, tmp_path, 
     assert 300.0 <= rp.read_progress(out)["cut"][cut_key] < 310.0
     assert _reproduce(out) == 0
     results = json.loads((out / "results.json").read_text())
-    bc = [rp.command_key(argv, out) for argv in {s.name: s for s in plan}["bc"].commands]
+    bc = [step.name for step in {s.name: s for s in plan}["bc"].steps]
     assert results["cut_seconds"] == rp.read_progress(out)["cut"]
     assert results["stage_seconds"]["bc"] == pytest.approx(
         sum(results["command_seconds"][k] for k in bc) + results["cut_seconds"][cut_key], abs=0.2)
@@ -441,11 +443,11 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
     assert (fresh / "runs" / "bc_all_s1" / "ckpt_00000005.npz").is_file()
     (tmp_path / "junk.tar").write_text("not a tar")
     with pytest.raises(ValueError, match="not a pack"):
-        rp.unpack(tmp_path / "junk.tar", tmp_path / "junk")
+        rr.unpack(tmp_path / "junk.tar", tmp_path / "junk")
     with pytest.raises(FileNotFoundError, match="no pack"):
-        rp.unpack(tmp_path / "missing.tar", tmp_path / "junk")
+        rr.unpack(tmp_path / "missing.tar", tmp_path / "junk")
     # Packing there reads no data: the record of their making stays.
-    gen_key = rp.command_key(rp.plan_stages(rp.ReproduceConfig(out=fresh, preset="tiny", seeds=2))[0].commands[0], fresh)
+    gen_key = rp.plan_stages(rp.ReproduceConfig(out=fresh, preset="tiny", seeds=2))[0].steps[0].name
     assert _reproduce(fresh, "--stage", "pack") == 0 and gen_key in rp.read_progress(fresh)["commands"]
     # On the fresh machine the data are made again, then the run goes on where it was cut, also
     # when one stage is asked for alone.
@@ -485,9 +487,9 @@ def test_the_pack_carries_a_run_cut_in_its_first_round_while_it_fits(fake_conav,
             "runs/bc_object_s0/ckpt_00000005.npz"} <= names
     assert not any("round_1" in n or "bc_object_s0/round_0" in n for n in names)
     # Without room for it the pack is still written, without it, and the command says so.
-    required = sum(p.stat().st_size for p in rp.pack_members(rp.ReproduceConfig(out=out, preset="tiny", seeds=2),
+    required = sum(p.stat().st_size for p in rr.pack_members(rp.ReproduceConfig(out=out, preset="tiny", seeds=2),
                                                              rp.read_progress(out)))
-    monkeypatch.setattr(rp, "PACK_LIMIT_BYTES", required + 10)
+    monkeypatch.setattr(rr, "PACK_LIMIT_BYTES", required + 10)
     capsys.readouterr()
     assert _reproduce(out, "--stage", "pack") == 0
     assert not any("bc_none_s0" in n for n in tarfile.open(out / "pack.tar").getnames())
@@ -507,9 +509,9 @@ def test_every_planned_command_parses_into_a_valid_training_config(preset, tmp_p
                 continue
             args = parser.parse_args(list(argv))
             if argv[0] == "train":
-                cli._train_config(args)
+                cli.train_config(args)
                 if argv[1] == "policy":
-                    cli._imitation_config(args)
+                    cli.imitation_config(args)
 
 
 def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fake_conav, tmp_path):
@@ -529,7 +531,7 @@ def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fak
     assert "ours (seed" not in (out / "tables.md").read_text()
     # The bc stage ran in two calls: its time is every bc command's, not the last call's.
     plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
-    bc_keys = [rp.command_key(argv, out) for argv in {s.name: s for s in plan}["bc"].commands]
+    bc_keys = [step.name for step in {s.name: s for s in plan}["bc"].steps]
     assert results["stage_seconds"]["bc"] == pytest.approx(sum(results["command_seconds"][k] for k in bc_keys), abs=0.2)
     assert results["stage_seconds"]["bc"] >= 100.0 * len(rp.ABLATIONS)
 
@@ -553,18 +555,40 @@ def test_a_finished_run_continued_with_the_expert_mixed_in_runs_only_its_dagger_
     assert json.loads((out / "results.json").read_text())["missing"] == ["eval/conav_dagger_beta0.5_s1"]
 
 
-def test_a_relative_out_directory_names_commands_by_out(fake_conav, tmp_path, monkeypatch):
+def test_a_relative_out_directory_names_steps_relative_to_out(fake_conav, tmp_path, monkeypatch):
     calls, _ = fake_conav
     monkeypatch.chdir(tmp_path)
-    assert _reproduce(".") == 0  # "." must not be replaced inside every word of a command
-    keys = rp.read_progress(tmp_path)["commands"]
-    assert "generate --preset tiny --out OUT/data --seed 0 --workers 2" in keys
+    assert _reproduce(".") == 0
+    progress = rp.read_progress(tmp_path)
+    keys = progress["commands"]
+    assert progress["run_format"] == rp.RUN_FORMAT and "generate data" in keys and "train policy runs/bc_all_s1" in keys
     results = json.loads((tmp_path / "results.json").read_text())
-    assert results["stage_seconds"]["generate"] == keys["generate --preset tiny --out OUT/data --seed 0 --workers 2"]
+    assert results["stage_seconds"]["generate"] == keys["generate data"]
     calls.clear()
     assert _reproduce(".") == 0 and calls == []  # done: nothing runs again
-    with pytest.raises(ValueError, match="absolute"):
-        rp.command_key(("generate",), Path("."))
+
+
+def test_an_out_directory_keyed_by_command_lines_resumes_under_step_names(fake_conav, tmp_path, capsys):
+    calls, _ = fake_conav
+    out = tmp_path / "r"
+    assert _reproduce(out, "--stage", "predictors") == 0
+    progress = rp.read_progress(out)
+    plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
+    steps = {s.name: s for st in plan for s in st.steps}
+    # As the previous format wrote it: each command line, OUT written as "OUT", and no run_format.
+    old = {" ".join(steps[k].argv).replace(str(out), "OUT"): v for k, v in progress["commands"].items()}
+    old["train policy --out OUT/runs/a_variant_not_planned_s0"] = 5.0
+    (out / rp.PROGRESS_FILE).write_text(json.dumps({"commands": old, "stages": progress["stages"],
+                                                    "config": progress["config"]}))
+    calls.clear()
+    assert _reproduce(out, "--stage", "predictors") == 0
+    assert calls == []  # the predictors are done: their records moved to their step names
+    assert "1 record(s) of commands this plan does not hold were dropped" in capsys.readouterr().out
+    again = rp.read_progress(out)
+    assert again["run_format"] == rp.RUN_FORMAT and set(again["commands"]) == set(progress["commands"])
+    (out / rp.PROGRESS_FILE).write_text(json.dumps({**again, "run_format": rp.RUN_FORMAT + 1}))
+    assert _reproduce(out) == 2 and calls == []
+    assert "newer than this version's" in capsys.readouterr().err
 
 
 def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
@@ -575,7 +599,7 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
                                   "seen_objects": False}
     rp.check_out(progress, dataclasses.replace(cfg, seeds=5, dagger_beta=0.5))  # more seeds, other rows: the same OUT
     rp.write_progress(tmp_path, progress)
-    with pytest.raises(ValueError, match=r"made with --resolution 112x448 \(given 32x128\), --encoder conv \(given patch\)"):
+    with pytest.raises(ValueError, match=r"made with ReproduceConfig.resolution 112x448 \(given 32x128\), ReproduceConfig.encoder conv \(given patch\)"):
         rp.check_out(progress, dataclasses.replace(cfg, resolution=(32, 128), encoder="patch"))
     # The command line refuses before it plans or runs anything.
     args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--out", str(tmp_path), "--encoder", "patch",
@@ -584,7 +608,7 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
     assert "was made with --encoder conv (given patch): give those, or another --out" in capsys.readouterr().err
     # The predictor's options too; a directory recorded before they existed was made without them.
     older = {"config": {"preset": "tiny", "resolution": "112x448", "encoder": "conv"}}
-    with pytest.raises(ValueError, match=r"made with --seen-objects off \(given on\)"):
+    with pytest.raises(ValueError, match=r"made with ReproduceConfig.seen_objects off \(given on\)"):
         rp.check_out(older, dataclasses.replace(cfg, seen_objects=True))
     rp.check_out(older, cfg)
     assert older["config"]["mirror"] is False
@@ -680,7 +704,7 @@ def fake_children(monkeypatch, tmp_path):
     returns the file of their records."""
     script, record = tmp_path / "fake_child.py", tmp_path / "record.jsonl"
     script.write_text(FAKE_CHILD)
-    monkeypatch.setattr(rp, "child_command", lambda argv, cache: [sys.executable, str(script), *argv])
+    monkeypatch.setattr(cli.reproduce, "child_command", lambda step, args, cfg: [sys.executable, str(script), *step.argv])
     monkeypatch.setenv("FAKE_RECORD", str(record))
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5,7")
     return record
@@ -700,19 +724,20 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
     out = tmp_path / "two"
     plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
     made = [argv for st in plan for argv in st.commands if argv[0] != "@copy"]
-    assert sorted(r["out"] for r in runs) == sorted(str(rp.writes(a)) for a in made)  # each once, in a process
+    steps = {s.argv: s for st in plan for s in st.steps}
+    assert sorted(r["out"] for r in runs) == sorted(str(out / steps[a].writes) for a in made)  # each once, in a process
     # Each started after every command it waits for had ended: the data, the runs it reads.
-    needs = rp.prerequisites(plan, out)
+    needs = rp.prerequisites(plan)
     ended = {r["out"]: r["end"] for r in runs}
+    by_name = {s.name: s for s in steps.values()}
     for argv in made:
-        mine = next(r for r in runs if r["out"] == str(rp.writes(argv)))
-        for key in needs[rp.command_key(argv, out)]:
-            other = next(a for a in (x for st in plan for x in st.commands) if rp.command_key(a, out) == key)
-            if other[0] != "@copy":
-                assert ended[str(rp.writes(other))] <= mine["start"]
+        mine = next(r for r in runs if r["out"] == str(out / steps[argv].writes))
+        for name in needs[steps[argv].name]:
+            if not by_name[name].is_copy:
+                assert ended[str(out / by_name[name].writes)] <= mine["start"]
     # What most commands wait on first: the BC runs that DAgger continues before the other BC
     # runs, which only their evaluations wait for (in plan order `none` comes first).
-    started = [line.split(" -> ")[1].split()[0] for line in capsys.readouterr().out.splitlines()
+    started = [line.split(" started (log ")[0].split()[-1] for line in capsys.readouterr().out.splitlines()
                if line.startswith("[gpu ") and line.endswith(".log)")]
     assert started[0] == "data" and set(started[1:3]) == {"runs/intention", "runs/trajectory"}
     bc_runs = [name for name in started if name.startswith("runs/bc_")]
@@ -721,7 +746,7 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
     assert {r["gpu"] for r in runs} == {"5", "7"}
     overlaps = [(a, b) for i, a in enumerate(runs) for b in runs[i + 1:] if a["start"] < b["end"] and b["start"] < a["end"]]
     assert overlaps and all(a["gpu"] != b["gpu"] for a, b in overlaps)
-    assert (out / "logs" / "train_policy_bc_all_s1.log").read_text().startswith("$ conav train policy")
+    assert (out / "logs" / "train_policy_runs_bc_all_s1.log").read_text().startswith("$ conav train policy")
     one, two = (json.loads((tmp_path / d / "results.json").read_text()) for d in ("one", "two"))
     for doc in (one, two):
         for key in ("command", "stage_seconds", "command_seconds", "cut_seconds"):
@@ -782,14 +807,14 @@ def test_several_gpus_stopped_stop_every_command_and_count_their_time_as_cut(fak
 def test_the_gpus_are_those_the_driver_lists_and_several_named_without_gpus_get_a_hint(fake_conav, tmp_path,
                                                                                      monkeypatch, capsys):
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
-    monkeypatch.setattr(rp.shutil, "which", lambda name: None)
-    assert rp.visible_gpus() is None and rp.gpu_slots(2) == ["0", "1"]  # a CPU machine
+    monkeypatch.setattr(rr.shutil, "which", lambda name: None)
+    assert rr.visible_gpus() is None and rr.gpu_slots(2) == ["0", "1"]  # a CPU machine
     listed = "GPU 0: NVIDIA H100 80GB HBM3 (UUID: a)\nGPU 1: NVIDIA H100 80GB HBM3 (UUID: b)\n"
-    monkeypatch.setattr(rp.shutil, "which", lambda name: "/usr/bin/" + name)
-    monkeypatch.setattr(rp.subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, listed, ""))
-    assert rp.visible_gpus() == ["0", "1"] and rp.gpu_slots(2) == ["0", "1"]
-    with pytest.raises(ValueError, match="--gpus 3: 2 GPU"):
-        rp.gpu_slots(3)
+    monkeypatch.setattr(rr.shutil, "which", lambda name: "/usr/bin/" + name)
+    monkeypatch.setattr(rr.subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, listed, ""))
+    assert rr.visible_gpus() == ["0", "1"] and rr.gpu_slots(2) == ["0", "1"]
+    with pytest.raises(ValueError, match="gpu_slots.gpus 3: 2 GPU"):
+        rr.gpu_slots(3)
     assert _reproduce(tmp_path / "r", "--stage", "generate") == 0
     assert "2 GPUs visible: each command runs on all of them as one device mesh; --gpus 2" in capsys.readouterr().out
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1")
@@ -801,9 +826,9 @@ def test_more_gpus_than_visible_is_an_error(fake_conav, fake_children, tmp_path,
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3")
     assert _reproduce(tmp_path / "r", "--gpus", "2") == 2
     assert "--gpus 2: 1 GPU(s) visible (3)" in capsys.readouterr().err
-    assert rp.gpu_slots(1) == ["3"]
+    assert rr.gpu_slots(1) == ["3"]
     with pytest.raises(ValueError, match="at least 1"):
-        rp.gpu_slots(0)
+        rr.gpu_slots(0)
     for bad in ("0", "-2"):  # not a silent run of one command at a time
         assert _reproduce(tmp_path / "r", "--gpus", bad) == 2
         assert f"--gpus must be at least 1, got {bad}" in capsys.readouterr().err
@@ -827,3 +852,19 @@ def test_two_processes_on_one_out_keep_each_others_records(fake_conav, tmp_path)
     assert on_disk["cut"] == {"eval ... OUT/eval/other_s0": 3.0, "eval ... OUT/eval/both_s0": 5.0}
     assert on_disk["stages"]["mine"] == 7.0
     assert mine == on_disk  # the writer sees the others' records too
+
+
+def test_a_gpu_process_runs_its_step_alone_by_name_with_the_runs_options(fake_conav, tmp_path):
+    calls, _ = fake_conav
+    out = tmp_path / "r"
+    cfg = rp.ReproduceConfig(out=out, preset="tiny", seeds=2, dagger_beta=0.5, dagger_rounds=3, mirror=True)
+    (step,) = [s for st in rp.plan_stages(cfg) for s in st.steps if s.name == "train policy runs/dagger_beta0.5_rounds3_s1"]
+    argv = cli.reproduce.child_command(step, cli.build_parser().parse_args(["reproduce", "--out", str(out)]), cfg)
+    assert argv[1:3] == ["-m", "conav_jax.eval.cli"] and argv[-2:] == ["--run-step", step.name]
+    child = cli.build_parser().parse_args(argv[3:])
+    assert child.func(child) == 0
+    assert calls == [step.argv]  # that step's call alone
+    assert not (out / rp.PROGRESS_FILE).exists()  # the parent records it
+    child.run_step = "train policy runs/nothing_s0"
+    with pytest.raises(ValueError, match="the plan has no step 'train policy runs/nothing_s0'"):
+        child.func(child)

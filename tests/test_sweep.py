@@ -2,6 +2,7 @@
 determinism, and input errors raised before anything is compiled."""
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -170,7 +171,7 @@ def test_every_agent_is_built_before_the_first_rollout(two_sweeps, tiny_data, tm
         (["--agent", "pioneer", "--ablation-checkpoints", "all"], "name=RUN_DIR"),
         (["--agent", "pioneer", "--ablation-checkpoints", "all=/nonexistent/run"], "run directory not found"),
         (["--agent", "pioneer", "--split", "test"], "no split 'test'"),
-        (["--agent", "pioneer", "--batch", "0"], "--batch must be at least 1"),
+        (["--agent", "pioneer", "--batch", "0"], "EvalPlan.batch must be at least 1"),
     ],
 )
 def test_bad_input_fails_before_anything_is_built(tiny_data, tmp_path, monkeypatch, argv, message):
@@ -232,3 +233,55 @@ def test_a_run_listed_as_agent_and_ablation_is_swept_once_with_the_same_numbers(
     assert doc["ablations"]["ablation_all"]["title"].startswith("all: ")
     agent_rows, ablation_rows = (list(csv.DictReader((out / f"episodes_{k}.csv").open())) for k in ("conav", "ablation_all"))
     assert [r["t_reach"] for r in agent_rows] == [r["t_reach"] for r in ablation_rows]
+
+
+def test_the_command_line_names_the_flags_of_the_fields_a_library_error_names(tiny_data, tmp_path, capsys):
+    from conav_jax.eval.cli import main
+
+    base = ["--compile-cache", "off", "eval", "--data", str(tiny_data), "--out", str(tmp_path / "o")]
+    assert main([*base, "--agent", "pioneer", "--batch", "0"]) == 2
+    assert "error: --batch must be at least 1, got 0" in capsys.readouterr().err
+    assert main([*base, "--agent", "pioneer,pioneer"]) == 2
+    assert "error: --agent lists an agent twice" in capsys.readouterr().err
+
+
+def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data, monkeypatch):
+    """`conav bench eval --untrained`'s agents: built from `init` at the env's panorama, with
+    fresh predictors where they read predictions; each acts and its title says untrained."""
+    import jax
+    import numpy as np
+
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.eval.bench import UNTRAINED_AGENTS, untrained_agent
+    from conav_jax.models import perceiver, policy, trajectory
+    from conav_jax.models.policy import PolicyConfig, ablation_config
+
+    made = []
+    for model in (policy, perceiver, trajectory):  # zeros of init's shapes: the random draws compile slowly on CPU
+        def zeros(key, config, init=model.init):
+            made.append(type(config).__name__)
+            shapes = jax.eval_shape(lambda k: init(k, config), key)
+            return jax.tree.map(lambda x: jax.numpy.zeros(x.shape, x.dtype), shapes)
+
+        monkeypatch.setattr(model, "init", zeros)
+
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64)))
+    small = PolicyConfig(image_hw=(16, 64), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
+                         intention_dim=8, hidden=8)
+    configs = {"conav": small, "ppo": small, "imagegoal": dataclasses.replace(
+        ablation_config(small, "none"), goal_image=True, use_human_pos=False)}
+    goal = dataclasses.replace(ablation_config(small, "object"), use_human_pos=False)
+    key = jax.random.PRNGKey(0)
+    state = jax.eval_shape(env.reset, key)  # shapes only: the agents are traced, not compiled
+    for name in UNTRAINED_AGENTS:
+        agent = untrained_agent(name, env, configs.get(name, goal), key, frames=2)
+        assert agent.name == name and agent.title.endswith("(untrained)")
+        carry = jax.eval_shape(agent.init, key, state.info["episode"])
+        action, _ = jax.eval_shape(agent.act, state, carry, key)
+        assert action.shape == (2,) and action.dtype == np.float32
+    assert set(made) == {"PolicyConfig", "PerceiverConfig", "TrajectoryConfig"}  # the weights are init's
+    assert untrained_agent("conav", env, small, key, 2).intention_source == "predicted"
+    with pytest.raises(ValueError, match="no untrained variant of agent 'pioneer'"):
+        untrained_agent("pioneer", env, small, key, 2)
+    with pytest.raises(ValueError, match="16x64"):
+        untrained_agent("conav", env, dataclasses.replace(small, image_hw=(8, 32)), key, 2)

@@ -85,7 +85,7 @@ def test_predictions_are_read_from_an_agents_carry():
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["--episode", "999"], r"--episode must be in \[0, \d+\)"),
+        (["--episode", "999"], r"episode must be in \[0, \d+\)"),
         (["--episode", "0", "--agent", "nope"], "unknown agent"),
         (["--episode", "0", "--out", "x.png"], "must name a .rrd file"),
     ],

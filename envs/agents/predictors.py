@@ -281,8 +281,11 @@ def load_trajectory_predictor(run_dir: str | Path) -> TrajectoryPredictor:
     """The latest checkpoint of a `conav train trajectory` run as a predictor (FileNotFoundError /
     ValueError naming the run when it is missing or of another kind)."""
     ckpt = runs.load_run(run_dir, runs.TRAJECTORY)
-    config = TrajectoryConfig(**ckpt.config["model"])
-    params = ckpt.params
+    return trajectory_predictor(ckpt.params, TrajectoryConfig(**ckpt.config["model"]))
+
+
+def trajectory_predictor(params, config: TrajectoryConfig) -> TrajectoryPredictor:
+    """The trajectory model of these parameters as a predictor (a run's, or `init`'s)."""
 
     def predict(history: jax.Array) -> jax.Array:
         if history.shape[-2:] != (config.history, 2):

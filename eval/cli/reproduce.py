@@ -1,0 +1,305 @@
+"""`conav reproduce`: the paper's Tables 2 and 3, every stage from data to tables, resumable;
+the plan, progress, parallel runner and pack live in conav_jax.eval.reproduce."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import shlex
+import signal
+import sys
+import time
+from pathlib import Path
+
+from conav_jax.eval.cli.args import as_flags, flag, parse_resolution
+from conav_jax.eval.cli.demo import run_stage
+
+def add(sub) -> None:
+    from conav_jax.models.policy import ENCODERS
+    from conav_jax.eval.reproduce import BUDGETS, LARGE_PANORAMA_DAGGER_EPISODES, STAGES, ReproduceConfig
+
+    d = {f.name: f.default for f in dataclasses.fields(ReproduceConfig)}
+
+    p = sub.add_parser(
+        "reproduce", help="the paper's Tables 2 and 3: every stage from data to tables, resumable",
+        description="Generate the data, train the predictors, the learned baselines and every CoNav row "
+        "(Table 3's five intention ablations and DAgger, each for --seeds seeds), evaluate every agent on the "
+        "val split and write results.json and tables.md. Stages already done are skipped; a stage cut short "
+        "resumes where it stopped (every training run resumes from its checkpoints).")
+    h, w = d["resolution"]
+    p.add_argument("--preset", choices=sorted(BUDGETS), default=d["preset"])
+    p.add_argument("--out", required=True, help="output directory (data, runs, eval, results.json, tables.md)")
+    p.add_argument("--seeds", type=int, default=d["seeds"],
+                   help=f"training seeds of every learned CoNav row (default {d['seeds']})")
+    p.add_argument("--stage", choices=STAGES, default=None,
+                   help="run only this stage (default: every stage not done); a command whose runs are not trained "
+                   "yet waits, and the stage stays to run")
+    p.add_argument("--resolution", type=parse_resolution, default=d["resolution"], metavar="HxW",
+                   help=f"panorama HxW of every agent (default the paper's {h}x{w})")
+    p.add_argument("--workers", type=int, default=min(d["workers"], os.cpu_count() or 1),
+                   help="dataset generation processes")
+    p.add_argument("--dagger-beta", type=float, default=d["dagger_beta"], metavar="P",
+                   help="DAgger with the expert acting at a step of round r with probability P**r (`conav train "
+                        "policy --dagger-beta`); 0 (default): the policy alone. Other values train and evaluate runs "
+                        "of their own (runs/dagger_betaP_s*), and the tables show every DAgger variant evaluated")
+    p.add_argument("--dagger-rounds", type=int, default=d["dagger_rounds"], metavar="N",
+                   help="DAgger rounds after BC (default: the preset's, " +
+                        ", ".join(f"{k} {b.dagger_rounds}" for k, b in BUDGETS.items()) +
+                        "); another count trains and evaluates runs of its own (runs/dagger[_betaP]_roundsN_s*)")
+    p.add_argument("--dagger-episodes", type=int, default=d["dagger_episodes"], metavar="N",
+                   help="train episodes each DAgger round records (`conav train policy --dagger-episodes`; default: "
+                        f"{LARGE_PANORAMA_DAGGER_EPISODES} at panoramas of 112x448 and more, else all the policy's); "
+                        "another count trains and evaluates runs of its own (runs/dagger[...]_episodesN_s*)")
+    p.add_argument("--encoder", choices=sorted(ENCODERS), default=d["encoder"],
+                   help="the CoNav policy's panorama encoder in every BC and DAgger run (`conav train policy "
+                        f"--encoder`; default {d['encoder']}, the published runs'; patch trains about 2x faster at "
+                        "112x448); one OUT directory holds one encoder")
+    p.add_argument("--mirror", action="store_true",
+                   help="train the intention predictor on frames mirrored half the time (`conav train intention --mirror`)")
+    p.add_argument("--seen-objects", action="store_true",
+                   help="the intention predictor weighs activities by whether the robot's panoramas have shown their "
+                   "object (`conav train intention --seen-objects`: oracle segmentation, listed as privileged)")
+    p.add_argument("--seed", type=int, default=None, metavar="S",
+                   help="run only training seed S's commands of the bc, dagger and eval stages (each BC run is "
+                        "evaluated as soon as it has trained; an evaluation of a run not trained yet waits): a machine "
+                        "with the time for one seed leaves it finished, and its pack small; a stage is done once "
+                        "every seed's commands are")
+    p.add_argument("--gpus", type=int, default=1, metavar="N",
+                   help="run up to N commands at once, each in a process of its own on one GPU (the first N of "
+                        "CUDA_VISIBLE_DEVICES, else 0..N-1), a command starting as soon as the runs it reads are made; "
+                        "each logs to OUT/logs/ (default 1: one command at a time, in this process, on every visible "
+                        "device)")
+    p.add_argument("--unpack", default=None, metavar="PACK",
+                   help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
+    p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
+    p.add_argument("--run-step", default=None, metavar="NAME",
+                   help="run the one step of the plan named NAME (as --dry-run and progress.json name them, e.g. "
+                   "'train policy runs/bc_all_s0') in this process and record nothing: what each process of --gpus "
+                   "runs")
+    p.set_defaults(func=run)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def run(args: argparse.Namespace) -> int:
+    # `timeout` and batch schedulers stop a run with SIGTERM: raise, so the command it cut records its time.
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        return _reproduce_stages(args)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _reproduce_stages(args: argparse.Namespace) -> int:
+    import subprocess
+
+    from conav_jax.eval import reproduce as rp
+    from conav_jax.eval import reproduce_run as rr
+    from conav_jax.eval import reproduce_tables as rt
+
+    cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
+                             resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
+                             dagger_rounds=args.dagger_rounds, dagger_episodes=args.dagger_episodes,
+                             encoder=args.encoder, mirror=args.mirror, seen_objects=args.seen_objects)
+    if args.gpus < 1:
+        print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
+        return 2
+    if args.seed is not None and not 0 <= args.seed < cfg.seeds:
+        print(f"conav reproduce: --seed {args.seed} is not one of the run's seeds 0..{cfg.seeds - 1}", file=sys.stderr)
+        return 2
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    if args.unpack:
+        print(f"unpacked {len(rr.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
+    progress = rp.read_progress(cfg.out)
+    try:
+        rp.check_out(progress, cfg)
+    except ValueError as e:
+        print(f"conav reproduce: {as_flags(str(e), args.field_flags)}", file=sys.stderr)
+        return 2
+    plan = rp.plan_stages(cfg)
+    if args.run_step is not None:
+        return _run_step(plan, args.run_step)
+    older = progress.get("run_format", 1) < rp.RUN_FORMAT
+    try:  # an OUT made before steps had names: its records move to them
+        dropped = rp.upgrade_progress(progress, plan, cfg.out)
+    except ValueError as e:
+        print(f"conav reproduce: {e}", file=sys.stderr)
+        return 2
+    if older and not args.dry_run:
+        rp.write_progress(cfg.out, progress)
+    if dropped:
+        print(f"progress.json: {len(dropped)} record(s) of commands this plan does not hold were dropped (another "
+              "variant's; its runs resume from their checkpoints when it is planned again)", flush=True)
+    # Data are regenerated from their seed on a fresh machine (tables and pack read none: their
+    # record of the data's making stays).
+    if args.stage not in ("tables", "pack") and not all(p.exists() for p in plan[0].outputs):
+        progress["stages"].pop(plan[0].name, None)
+        for step in plan[0].steps:
+            progress["commands"].pop(step.name, None)
+    stages = [st for st in plan if args.stage in (None, st.name)]
+    if args.stage not in (None, plan[0].name, "tables", "pack") and plan[0].name not in progress["stages"]:
+        # A stage asked for alone on a machine without the data (a fresh one, after --unpack) makes them first.
+        print(f"[{plan[0].name}] the data are missing: making them before [{args.stage}]")
+        stages.insert(0, plan[0])
+    # CONAV_COMMIT names the commit of a copy of the tree that is not a git checkout.
+    commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+        cwd=Path(__file__).resolve().parents[2]).stdout.strip() or "unknown"
+    gpus = rr.visible_gpus() if args.gpus == 1 and not args.dry_run else None
+    if gpus is not None and len(gpus) > 1:
+        print(f"{len(gpus)} GPUs visible: each command runs on all of them as one device mesh; --gpus {len(gpus)} "
+              "runs that many commands at once instead, one GPU each", flush=True)
+    if args.gpus > 1 and not args.dry_run:
+        stages = _reproduce_parallel(args, cfg, plan, stages, progress)
+        if isinstance(stages, int):
+            return stages
+    for st in stages:
+        if args.dry_run:
+            _print_stage(st, progress)
+            continue
+        # A stage asked for alone runs what it can: a step whose runs are not made yet waits (the
+        # learned baselines' evaluations before their training, say) instead of failing.
+        todo, waiting = rp.ready_steps(plan, st, rp.stage_seed(st, args.seed), set(progress["commands"]))
+        for step in waiting:
+            print(f"[{st.name}] waits for the runs it reads: {_shown(step)}")
+        if st.name in progress["stages"] and not todo and st.name not in ("tables", "pack"):  # those two are of now
+            print(f"[{st.name}] done ({progress['stages'][st.name]:.0f} s), skipped")
+            continue
+        t_stage = time.perf_counter()
+        for step in todo:
+            print(f"\n{'' if step.is_copy else '$ '}{_shown(step)}", flush=True)
+            t0, rc = time.perf_counter(), 0
+            try:
+                if step.is_copy:
+                    rp.copy_run(step)
+                else:
+                    rc = run_stage(step.argv)
+            finally:  # a step cut short (failed, interrupted, SIGTERM) still counts its time
+                seconds = round(time.perf_counter() - t0, 1)
+                if rc or sys.exc_info()[0] is not None:
+                    cut = progress.setdefault("cut", {})
+                    cut[step.name] = round(cut.get(step.name, 0.0) + seconds, 1)
+                else:
+                    progress["commands"][step.name] = seconds
+                rp.write_progress(cfg.out, progress)
+            if rc:
+                print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: {_shown(step)}")
+                return rc
+        left = [step for step in st.steps if step.name not in progress["commands"]]
+        if left:  # steps waiting for their runs, or with --seed the other seeds' steps
+            if args.seed is None:
+                print(f"[{st.name}] {len(left)} of the stage's {len(st.steps)} steps wait for their runs: "
+                      "the stage is not done", flush=True)
+                continue
+            mine = sum(step.seed == args.seed for step in left)
+            print(f"[{st.name}] seed {args.seed}: " + (f"{mine} step(s) wait for their runs" if mine else
+                  "its steps done") + f"; {len(left)} of the stage's {len(st.steps)} to run", flush=True)
+            continue
+        if st.name == "tables":
+            extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
+                     "encoder": cfg.encoder,
+                     "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
+                     "stage_seconds": rp.stage_seconds(plan, progress), "command_seconds": progress["commands"],
+                     "cut_seconds": progress.get("cut", {})}
+            # FileNotFoundError without the scripted agents' evaluation
+            results = rt.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger)
+            results["episodes"] = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())["episodes"]
+            (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+            (cfg.out / "tables.md").write_text(rt.render_tables(results))
+        if st.name == "pack":
+            path, size, left_out = rr.write_pack(cfg, progress)
+            print(f"wrote {path} ({size / 2**20:.1f} MiB)")
+            for ckpt in left_out:
+                print(f"left out of the pack for want of room: {ckpt.relative_to(cfg.out)} (continued from this "
+                      "pack, that run starts its first round again)")
+        progress["stages"][st.name] = round(time.perf_counter() - t_stage, 1)
+        rp.write_progress(cfg.out, progress)
+        print(f"[{st.name}] done in {progress['stages'][st.name]:.0f} s", flush=True)
+    if (cfg.out / "tables.md").exists() and not args.dry_run:
+        print((cfg.out / "tables.md").read_text())
+    return 0
+
+
+def _run_step(plan: list, name: str) -> int:
+    """--run-step: the step of `plan` named `name`, run here; its exit code."""
+    from conav_jax.eval import reproduce as rp
+
+    steps = {step.name: step for st in plan for step in st.steps}
+    if name not in steps:
+        raise ValueError(f"the plan has no step {name!r}; --dry-run lists them (e.g. {next(iter(steps))!r})")
+    if steps[name].is_copy:
+        rp.copy_run(steps[name])
+        return 0
+    return run_stage(steps[name].argv)
+
+
+def child_command(step, args: argparse.Namespace, cfg) -> list[str]:
+    """The process `--gpus` runs a step in: this command with this run's options, for `step`
+    alone (`--run-step`)."""
+    options = ["--preset", cfg.preset, "--seeds", str(cfg.seeds), "--resolution", "x".join(map(str, cfg.resolution)),
+               "--workers", str(cfg.workers), "--dagger-beta", f"{cfg.dagger_beta:g}", "--encoder", cfg.encoder]
+    for name in ("dagger_rounds", "dagger_episodes"):
+        if getattr(cfg, name) is not None:
+            options += [flag(name), str(getattr(cfg, name))]
+    options += [option for option, on in (("--mirror", cfg.mirror), ("--seen-objects", cfg.seen_objects)) if on]
+    cache = ("--compile-cache", args.compile_cache) if args.compile_cache else ()
+    return [sys.executable, "-m", "conav_jax.eval.cli", *cache, "reproduce", "--out", str(cfg.out), *options,
+            "--run-step", step.name]
+
+
+def _shown(step) -> str:
+    """A step as a person would type it."""
+    return f"copy {step.argv[1]} -> {step.argv[2]}" if step.is_copy else f"conav {shlex.join(step.argv)}"
+
+
+def _print_stage(st, progress: dict) -> None:
+    """--dry-run: the stage, whether it is done, and each step's call."""
+    todo = [step for step in st.steps if step.name not in progress["commands"]]
+    print(f"[{st.name}] {'done' if st.name in progress['stages'] and not todo else 'to run'}")
+    for step in st.steps:
+        print(f"  {'(done) ' if step.name in progress['commands'] else ''}{_shown(step)}")
+
+
+def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list, progress: dict) -> list | int:
+    """`--gpus N`: every step of `stages` not done (training seed `--seed`'s alone in the seeded
+    stages) runs through `reproduce.run_parallel`; stages whose steps are all done are marked so,
+    with their steps' summed time. Returns the stages left to run here (tables, pack), or an
+    exit code."""
+    from conav_jax.eval import reproduce as rp
+    from conav_jax.eval import reproduce_run as rr
+
+    work = [st for st in stages if st.name not in ("tables", "pack")]
+    if not work:
+        return stages
+    try:
+        gpus = rr.gpu_slots(args.gpus)
+    except ValueError as e:
+        print(f"conav reproduce: {as_flags(str(e), args.field_flags)}", file=sys.stderr)
+        return 2
+    import jax
+
+    jax.config.update("jax_platforms", "cpu")  # this process runs no program: its GPUs are the commands'
+    todo = []
+    for st in work:
+        seed = rp.stage_seed(st, args.seed)
+        todo += [step for step in st.steps if step.name not in progress["commands"] and seed in (None, step.seed)]
+    print(f"{len(todo)} command(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
+    t0 = time.perf_counter()
+    rc, waiting = rr.run_parallel(plan, todo, cfg.out, progress, gpus, lambda step: child_command(step, args, cfg))
+    for step in waiting:
+        print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: {_shown(step)}")
+    for st in work:
+        keys = [step.name for step in st.steps]
+        if all(k in progress["commands"] for k in keys):
+            progress["stages"][st.name] = round(sum(progress["commands"][k] for k in keys), 1)
+    rp.write_progress(cfg.out, progress)
+    print(f"{len(todo) - len(waiting)} command(s) ended in {time.perf_counter() - t0:.0f} s", flush=True)
+    if rc:
+        print(f"conav reproduce: a command failed (exit {rc}); its log is named above", file=sys.stderr)
+        return rc
+    return [st for st in stages if st.name in ("tables", "pack")]
+

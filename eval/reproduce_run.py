@@ -1,0 +1,245 @@
+"""`conav reproduce` on several GPUs and across machines: steps run at once, each in a process
+of its own on one GPU, in the order of the plan's one dependency graph (eval.reproduce
+prerequisites); the pack that carries a run's progress and the checkpoints still needed to a
+fresh machine.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+from typing import Callable
+
+from conav_jax.eval.reproduce import (
+    PROGRESS_FILE,
+    ReproduceConfig,
+    Stage,
+    Step,
+    by_dependents,
+    copy_run,
+    plan_stages,
+    prerequisites,
+    write_progress,
+)
+
+PACK_LIMIT_BYTES = 60 * 2**20
+
+
+def visible_gpus() -> list[str] | None:
+    """The GPU ids a process started here may use: CUDA_VISIBLE_DEVICES's, else those `nvidia-smi -L`
+    lists; None where neither says (no NVIDIA driver: a CPU machine)."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [d.strip() for d in visible.split(",") if d.strip()]
+    if shutil.which("nvidia-smi") is None:
+        return None
+    listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
+    return [str(i) for i, _ in enumerate(line for line in listed.splitlines() if line.startswith("GPU "))]
+
+
+def gpu_slots(gpus: int) -> list[str]:
+    """The GPUs `gpus` commands at once run on, one each: the first `gpus` of `visible_gpus`
+    (0..gpus-1 on a machine without a driver, where the commands run on the CPU). ValueError
+    when fewer are visible (a process given a GPU that does not exist would run on the CPU)."""
+    if gpus < 1:
+        raise ValueError(f"gpu_slots.gpus must be at least 1, got {gpus}")
+    ids = visible_gpus()
+    if ids is not None and len(ids) < gpus:
+        raise ValueError(f"gpu_slots.gpus {gpus}: {len(ids)} GPU(s) visible ({', '.join(ids) or 'none'})")
+    return ids[:gpus] if ids is not None else [str(i) for i in range(gpus)]
+
+
+def _log_name(step: Step) -> str:
+    return step.name.replace(" ", "_").replace("/", "_") + ".log"
+
+
+def _tail(path: Path, lines: int = 15) -> str:
+    text = path.read_text(errors="replace").splitlines() if path.exists() else []
+    return "\n".join("    " + line for line in text[-lines:])
+
+
+def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict, gpus: list[str],
+                 command: Callable[[Step], list[str]], say=None, poll_seconds: float = 0.1) -> tuple[int, list[Step]]:
+    """Run `todo` (steps of `plan`) up to len(gpus) at once, each in a process of its own
+    (`command(step)`: the command line that runs that step alone, by name) that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a step starting once its
+    `prerequisites` are done (in `by_dependents` order); copies run here. Each step's wall time goes into
+    `progress` (saved) as it ends, a failed or stopped one's under "cut". After a failure no new
+    step starts and those running finish. An interrupt (SIGTERM raised as KeyboardInterrupt)
+    stops every process, records their time as cut and is raised again. Returns (0 or the first
+    failure's exit code, the steps left waiting for prerequisites not run here)."""
+    say = say or (lambda message: print(message, flush=True))
+    needs = prerequisites(plan)
+    done = set(progress["commands"])
+    pending, running, free, failed = by_dependents(todo, needs), {}, list(gpus), 0
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+
+    def record(step: Step, seconds: float, ok: bool) -> None:
+        key = step.name
+        if ok:
+            progress["commands"][key] = round(seconds, 1)
+            done.add(key)
+        else:
+            cut = progress.setdefault("cut", {})
+            cut[key] = round(cut.get(key, 0.0) + seconds, 1)
+        write_progress(out, progress)
+
+    try:
+        while pending or running:
+            started = True
+            while started and not failed:  # a copy done may let others start
+                started = False
+                for step in list(pending):
+                    if not needs[step.name] <= done or (not step.is_copy and not free):
+                        continue
+                    pending.remove(step)
+                    started = True
+                    if step.is_copy:
+                        t0 = time.perf_counter()
+                        copy_run(step)
+                        record(step, time.perf_counter() - t0, True)
+                        say(f"copied {step.argv[1]} -> {step.argv[2]}")
+                        continue
+                    gpu, log = free.pop(0), out / "logs" / _log_name(step)
+                    with open(log, "a") as f:
+                        f.write(f"$ conav {' '.join(step.argv)}\n")
+                        f.flush()
+                        proc = subprocess.Popen(command(step), stdout=f,
+                                                stderr=subprocess.STDOUT,
+                                                env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu, "PYTHONUNBUFFERED": "1"})
+                    running[proc] = (step, gpu, log, time.perf_counter())
+                    say(f"[gpu {gpu}] {step.name} started (log {log})")
+            if not running:
+                break  # what is left waits for commands not run here
+            ended = [proc for proc in running if proc.poll() is not None]
+            if not ended:
+                time.sleep(poll_seconds)
+                continue
+            for proc in ended:
+                step, gpu, log, t0 = running.pop(proc)
+                seconds = time.perf_counter() - t0
+                record(step, seconds, proc.returncode == 0)
+                free = sorted(free + [gpu], key=gpus.index)
+                if proc.returncode == 0:
+                    say(f"[gpu {gpu}] {step.name} done in {seconds:.0f} s "
+                        f"({len(done & set(needs))} done, {len(running)} running, {len(pending)} to run)")
+                else:
+                    failed = failed or proc.returncode
+                    say(f"[gpu {gpu}] {step.name} failed (exit {proc.returncode}) after {seconds:.0f} s; "
+                        f"no new command starts. The end of {log}:\n{_tail(log)}")
+    except BaseException:
+        for proc in running:
+            proc.terminate()
+        deadline = time.perf_counter() + 30.0
+        for proc, (step, gpu, log, t0) in running.items():
+            try:
+                proc.wait(timeout=max(0.1, deadline - time.perf_counter()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            record(step, time.perf_counter() - t0, False)
+            say(f"[gpu {gpu}] {step.name} stopped")
+        raise
+    return failed, pending
+
+
+# -- pack ------------------------------------------------------------------------------------------
+
+
+def _pending_runs(cfg: ReproduceConfig, progress: dict) -> tuple[set[Path], set[Path]]:
+    """(the runs that steps still to run read, the runs they write); the data are regenerated."""
+    out = Path(cfg.out)
+    read, written = set(), set()
+    for step in (x for st in plan_stages(cfg) for x in st.steps if x.name not in progress["commands"]):
+        read.update(out / r for r in step.reads if r != "data")
+        written.add(out / step.writes)
+    written.discard(out / "data")
+    return read, written
+
+
+def pack_members(cfg: ReproduceConfig, progress: dict) -> list[Path]:
+    """What a fresh machine needs to continue: the progress record, every evaluation's outputs,
+    results and tables, and the latest checkpoint of every run a stage still to run reads (the
+    data are regenerated from their seed; a training round cut short restarts from the run's
+    last finished round, or from `first_round_checkpoints`' when the pack carries them)."""
+    from conav_jax.checkpoints import latest_checkpoint
+
+    out = Path(cfg.out)
+    members = [out / PROGRESS_FILE] + sorted((out / "eval").rglob("*.json")) + sorted((out / "eval").rglob("*.md"))
+    members += [p for p in (out / "results.json", out / "tables.md") if p.exists()]
+    for run in sorted(set.union(*_pending_runs(cfg, progress))):
+        found = latest_checkpoint(run)
+        if found is not None:
+            members += [found] + [p for p in (run / "log.jsonl",) if p.exists()]
+    return [p for p in members if p.exists()]
+
+
+def first_round_checkpoints(cfg: ReproduceConfig, progress: dict) -> list[tuple[Path, ...]]:
+    """(the latest checkpoint within round 0, the run's and the round's logs) of every run still
+    to train that has finished no round (a BC run cut short): on a fresh machine the run records
+    round 0 again (the teacher's rollouts: same data, same records) and goes on from that update.
+    A later round's checkpoints never travel: its data came from a policy that no longer exists."""
+    from conav_jax.checkpoints import latest_checkpoint
+
+    found = []
+    for run in sorted(_pending_runs(cfg, progress)[1]):
+        ckpt = latest_checkpoint(run / "round_0")
+        if ckpt is not None and latest_checkpoint(run) is None:
+            found.append((ckpt, *(p for p in (run / "log.jsonl", ckpt.parent / "log.jsonl") if p.exists())))
+    return found
+
+
+def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[Path]]:
+    """OUT/pack.tar (atomically): `pack_members`, paths relative to OUT, and the runs cut in their
+    first round (`first_round_checkpoints`) while the pack stays within PACK_LIMIT_BYTES; returns
+    (the pack, its bytes, the first-round checkpoints left out for want of room). ValueError when
+    `pack_members` alone would exceed the limit, naming the largest members."""
+    import os
+    import tarfile
+    import tempfile
+
+    out = Path(cfg.out)
+    members = pack_members(cfg, progress)
+    total = sum(p.stat().st_size for p in members)
+    if total > PACK_LIMIT_BYTES:
+        big = sorted(members, key=lambda p: -p.stat().st_size)[:5]
+        raise ValueError(f"the pack would hold {total / 2**20:.1f} MiB (limit {PACK_LIMIT_BYTES / 2**20:.0f} MiB); "
+                         "largest: " + ", ".join(f"{p.relative_to(out)} {p.stat().st_size / 2**20:.1f} MiB" for p in big))
+    left_out = []
+    for files in first_round_checkpoints(cfg, progress):
+        size = sum(p.stat().st_size for p in files)
+        if total + size <= PACK_LIMIT_BYTES:
+            members += files
+            total += size
+        else:
+            left_out.append(files[0])
+    fd, tmp = tempfile.mkstemp(prefix=".pack.", suffix=".tmp", dir=out)
+    os.close(fd)
+    with tarfile.open(tmp, "w") as tar:
+        for p in members:
+            tar.add(p, arcname=str(p.relative_to(out)))
+    os.replace(tmp, out / "pack.tar")
+    return out / "pack.tar", total, left_out
+
+
+def unpack(pack: Path, out: Path) -> list[str]:
+    """Unpack a pack into OUT (a fresh machine continuing a run); the member names."""
+    import tarfile
+
+    out, pack = Path(out), Path(pack)
+    if not pack.is_file():
+        raise FileNotFoundError(f"no pack at {pack}")
+    try:
+        tar = tarfile.open(pack)
+    except tarfile.TarError as e:
+        raise ValueError(f"{pack} is not a pack written by `conav reproduce --stage pack`: {e}") from e
+    out.mkdir(parents=True, exist_ok=True)
+    with tar:
+        names = tar.getnames()
+        bad = [n for n in names if n.startswith("/") or ".." in Path(n).parts]
+        if bad:
+            raise ValueError(f"{pack}: unsafe member paths {bad[:3]}")
+        tar.extractall(out)
+    return names

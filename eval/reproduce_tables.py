@@ -1,0 +1,270 @@
+"""`conav reproduce`'s results and tables: every evaluation's metrics.json -> results.json ->
+tables.md.
+
+`collect_results` reads the evaluations under OUT/eval into results.json's content (per agent, per
+seed; the command line adds the commit, the command and the stage timings) -> `render_tables`
+writes tables.md: Table 2 (every agent beside the paper's figures, its privileged inputs named)
+and Table 3 (the five intention ablations), each learned cell the mean ± sd over seeds with the
+pooled 95% interval.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+from conav_jax.envs.metrics import METRIC_NAMES
+from conav_jax.eval.reproduce import ABLATIONS, BC_EVAL, BC_ROW_EVAL, CONAV_EVAL, dagger_variant
+
+# The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
+PAPER_TABLE2 = {
+    "random": ("Random Agent", (4.5, 4.6, 3.7, 3.7, 32.7, 442.6)),
+    "pioneer": ("Pioneer Agent (Oracle Pathfinder)", (61.6, 61.8, 46.6, 46.7, 30.4, 308.1)),
+    "follower": ("Human-following Agent", (3.5, 3.7, 1.6, 1.7, 49.0, 350.8)),
+    "objectgoal-oracle": ("Object-goal Agent (Oracle Goal Object)", (15.6, 16.4, 10.7, 10.9, 46.1, 295.5)),
+    "objectgoal-predicted": ("Object-goal Agent (Predicted Goal Object)", (8.6, 9.3, 7.2, 7.5, 38.7, 377.4)),
+    "imagegoal": ("Image-goal Agent", (7.6, 8.1, 6.0, 6.2, 41.4, 372.5)),
+    "conav": ("CoNav Agent (Ours)", (19.8, 23.2, 13.5, 14.9, 20.1, 354.5)),
+}
+PAPER_TABLE3 = {
+    "none": (14.5, 17.0, 10.6, 11.8, 14.7, 402.9),
+    "activity": (14.4, 17.4, 10.2, 11.9, 27.7, 330.1),
+    "object": (15.7, 18.6, 10.6, 11.7, 16.0, 391.9),
+    "activity_object": (17.5, 20.4, 11.4, 12.8, 22.2, 352.5),
+    "all": (19.8, 23.2, 13.5, 14.9, 20.1, 354.5),
+}
+
+
+
+
+def _mean_sd(values: list[float]) -> tuple[float, float]:
+    m = sum(values) / len(values)
+    sd = math.sqrt(sum((v - m) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
+    return m, sd
+
+
+
+
+_SEEDED_EVAL = re.compile(r"conav_(.+)_s[0-9]+")
+
+
+
+
+def dagger_rows(evals: Path, planned: str = "dagger") -> list[str]:
+    """The DAgger rows to tabulate: the run's own (`planned`, a `dagger_row` name) and every other
+    one evaluated under `evals`, by the expert's share, then round count, then episodes a round
+    (the defaults first)."""
+    found = {m.group(1) for m in map(_SEEDED_EVAL.fullmatch, (d.name for d in Path(evals).glob("conav_dagger*"))) if m}
+    variants = {v: row for row in found | {planned} if (v := dagger_variant(row)) is not None}
+    return [variants[v] for v in sorted(variants, key=lambda v: (v[0], v[1] or 0, v[2] or 0))]
+
+
+def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") -> dict:
+    """results.json's content from the evaluations under `out/eval`: per agent its title,
+    intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
+
+    A seed's BC rows come from `eval/conav_bc_{row}_s{s}` (else, as made before, from
+    `eval/conav_bc_s{s}`, its five BC runs as one evaluation's ablations), a DAgger
+    row (a `dagger_row` name: "dagger", "dagger_beta{share}" with the expert mixed in, either with
+    "_rounds{n}" for a round count other than the preset's) from `eval/conav_{row}_s{s}`; each row
+    lists the seeds it was measured on. An evaluation of the BC rows or of the run's own DAgger
+    row (`dagger`) not made yet is listed under "missing" and the tables say so; other DAgger rows
+    appear where evaluated.
+    FileNotFoundError without the scripted agents' evaluation (nothing to tabulate)."""
+    evals = Path(out) / "eval"
+    if not (evals / "scripted" / "metrics.json").is_file():
+        raise FileNotFoundError(f"no evaluation of the scripted agents at {evals / 'scripted' / 'metrics.json'}")
+    agents: dict[str, dict] = {}
+    missing: list[str] = []
+    for name in ("scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"):
+        path = evals / name / "metrics.json"
+        if not path.is_file():
+            missing.append(f"eval/{name}")
+            continue
+        doc = json.loads(path.read_text())
+        for key, entry in doc["agents"].items():
+            agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
+    conav: dict[str, dict] = {}
+
+    def add(row: str, s: int, entry: dict, episodes: int) -> None:
+        slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
+        slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": episodes}
+
+    for s in range(seeds):
+        for row in ABLATIONS:
+            path, combined = evals / BC_ROW_EVAL.format(row=row, seed=s) / "metrics.json", evals / BC_EVAL.format(s) / "metrics.json"
+            if path.is_file():
+                doc = json.loads(path.read_text())
+                add(row, s, doc["agents"]["conav"], doc["episodes"])
+            elif combined.is_file():
+                doc = json.loads(combined.read_text())
+                add(row, s, doc["ablations"][f"ablation_{row}"], doc["episodes"])
+            else:
+                missing.append(f"eval/{path.parent.name}")
+    for row in dagger_rows(evals, dagger):
+        for s in range(seeds):
+            path = evals / CONAV_EVAL.format(row=row, seed=s) / "metrics.json"
+            if not path.is_file():
+                if row == dagger:
+                    missing.append(f"eval/{path.parent.name}")
+                continue
+            doc = json.loads(path.read_text())
+            add(row, s, doc["agents"]["conav"], doc["episodes"])
+    return {**extra, "agents": agents, "conav": conav, "missing": missing}
+
+
+def _cell(value: float) -> str:
+    return f"{value:.1f}"
+
+
+def _learned_cell(row: dict, metric: str) -> str:
+    """'mean ± sd [lo, hi]' over seeds ('value [lo, hi]' for one seed): the pooled 95% interval
+    treats every seed's episodes as one sample (for rates: the Wilson interval of the pooled
+    counts; otherwise the seeds' mean of the per-seed bounds)."""
+    from conav_jax.eval.report import RATES, wilson_interval
+
+    per_seed = [s["metrics"][metric] for s in row["seeds"].values()]
+    m, sd = _mean_sd([p["value"] for p in per_seed])
+    if metric in RATES:
+        n = [s["episodes"] for s in row["seeds"].values()]
+        hits = round(sum(p["value"] / 100.0 * k for p, k in zip(per_seed, n)))
+        lo, hi = (100.0 * v for v in wilson_interval(hits, sum(n)))
+    else:
+        lo, hi = (sum(p[b] for p in per_seed) / len(per_seed) for b in ("lo", "hi"))
+    if len(per_seed) == 1:  # one seed has no spread to report
+        return f"{m:.1f} [{lo:.1f}, {hi:.1f}]"
+    return f"{m:.1f} ± {sd:.1f} [{lo:.1f}, {hi:.1f}]"
+
+
+# The tables' columns: the paper's, with CR_full (contacts up to the end of activity B) beside CR.
+TABLE_COLUMNS = tuple(c for m in METRIC_NAMES for c in ((m, "CR_full") if m == "CR" else (m,)))
+
+
+def _paper_cells(paper: tuple[float, ...]) -> str:
+    """The paper's figures in TABLE_COLUMNS order; "-" where the paper reports none (CR_full)."""
+    values = dict(zip(METRIC_NAMES, paper))
+    return " | ".join(_cell(values[c]) if c in values else "-" for c in TABLE_COLUMNS)
+
+
+def _our_cells(metrics: dict) -> str:
+    return " | ".join(_cell(metrics[c]["value"]) if c in metrics else "-" for c in TABLE_COLUMNS)
+
+
+def _learned_cells(row: dict) -> str:
+    have = set.intersection(*(set(s["metrics"]) for s in row["seeds"].values()))
+    return " | ".join(_learned_cell(row, c) if c in have else "-" for c in TABLE_COLUMNS)
+
+
+def _learned_source(row: dict, seeds: int | None) -> str:
+    """The source column of a learned row: "ours", and which seeds when not all of the run's."""
+    have = sorted(row["seeds"], key=int)
+    if seeds is None or len(have) == seeds:
+        return "ours"
+    return f"ours (seed{'s' if len(have) > 1 else ''} {', '.join(have)} of {seeds})"
+
+
+def _paired_lines(results: dict, metrics: tuple[str, ...] = ("FASR", "RASR")) -> list[str]:
+    """Seed by seed: each learned row's values per seed and its difference from its reference on
+    the seeds both hold (Table 3's rows against no inputs, DAgger rows against BC with all
+    inputs), with the mean ± sd of those differences: whether a row's gain exceeds the spread of
+    training seeds, which pooled intervals (counting episodes, not seeds) do not show."""
+    conav = results["conav"]
+    pairs = [(name, "none") for name in ABLATIONS[1:]] + [(name, "all") for name in conav if name.startswith("dagger")]
+    pairs = [(a, b) for a, b in pairs if a in conav and b in conav]
+    if not pairs:
+        return []
+    lines = ["", "## Seed by seed", "",
+             "Each row's value per training seed and its difference from the reference row on the seeds both hold "
+             "(mean ± sd of the differences over those seeds): a difference within the seeds' spread is not shown "
+             "to be one.", "",
+             "| row | reference | " + " | ".join(f"{m} by seed | {m} − reference by seed | mean ± sd" for m in metrics) + " |",
+             "|---|---" + "|---|---|---:" * len(metrics) + "|"]
+    for name, ref in pairs:
+        row, base = conav[name]["seeds"], conav[ref]["seeds"]
+        shared = sorted(set(row) & set(base), key=int)
+        cells = []
+        for m in metrics:
+            values = " / ".join(f"s{s} {row[s]['metrics'][m]['value']:.1f}" for s in sorted(row, key=int))
+            diffs = [row[s]["metrics"][m]["value"] - base[s]["metrics"][m]["value"] for s in shared]
+            summary = "-"
+            if diffs:
+                mean, sd = _mean_sd(diffs)
+                summary = f"{mean:+.1f} ± {sd:.1f}" if len(diffs) > 1 else f"{mean:+.1f}"
+            cells += [values, " / ".join(f"{d:+.1f}" for d in diffs) or "-", summary]
+        lines.append(f"| {name} | {ref} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def render_tables(results: dict) -> str:
+    """tables.md: Table 2 (ours beside the paper's) and Table 3 from results.json's content."""
+    cols = TABLE_COLUMNS
+    head = "| " + " | ".join(cols) + " |"
+    lines = [
+        "# CoNav: the paper's Tables 2 and 3, reproduced",
+        "",
+        f"Data: preset `{results.get('preset', '?')}`, split val ({results.get('episodes', '?')} episodes), panorama "
+        f"{results.get('resolution', '?')}"
+        + (f" (the CoNav policy's panorama encoder: `{results['encoder']}`)" if "encoder" in results else "")
+        + f"; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "
+        f"commit {results.get('commit', '?')}. Rates and SPLs in percent, AS in steps. Learned rows: mean ± sd over "
+        "seeds [pooled 95% interval] (a row measured on fewer seeds says which). CR counts contacts up to the "
+        "first reach (the paper's), CR_full up to the end of activity B. Paper: the published figures (a different simulator, scenes and agents' "
+        "implementations; they are context, not a target).",
+        "",
+        "## Table 2: agents",
+        "",
+        "| agent | given (privileged inputs) | source " + head,
+        "|---|---|---" + "|---:" * len(cols) + "|",
+    ]
+    not_run = " | ".join("-" for _ in cols)
+    for key, (paper_title, paper) in PAPER_TABLE2.items():
+        if key == "conav":
+            row = results["conav"].get("all")
+            if row is not None:
+                title = row["title"].removeprefix("all: ")  # the evaluation names its ablation rows "NAME: title"
+                lines.append(f"| {title} (BC) | {', '.join(row['privileged']) or 'none'} | "
+                             f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
+            else:
+                lines.append(f"| CoNav Agent (BC) | | not run yet | {not_run} |")
+            daggers = [k for k in results["conav"] if k.startswith("dagger")]
+            for name in daggers:
+                row, (share, rounds, episodes) = results["conav"][name], dagger_variant(name)
+                how = ("BC + DAgger" + ("" if share == 0.0 else f", the expert acting at {share:g}^r of round r's steps")
+                       + ("" if rounds is None else f", {rounds} round{'s' * (rounds > 1)}")
+                       + ("" if episodes is None else f", {episodes} train episodes a round"))
+                lines.append(f"| {row['title']} ({how}) | {', '.join(row['privileged']) or 'none'} | "
+                             f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
+            if not daggers:
+                lines.append(f"| CoNav Agent (BC + DAgger) | | not run yet | {not_run} |")
+        else:
+            entry = results["agents"].get(key)
+            if entry is not None:
+                lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
+                             + _our_cells(entry["metrics"]) + " |")
+            else:
+                lines.append(f"| {key} | | not run yet | {not_run} |")
+        lines.append(f"| {paper_title} | | paper | " + _paper_cells(paper) + " |")
+    for key, entry in results["agents"].items():
+        if key not in PAPER_TABLE2:  # ours without a paper row (e.g. the planner, the expert)
+            lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
+                         + _our_cells(entry["metrics"]) + " |")
+    lines += ["", "## Table 3: intention inputs (BC, predicted intentions)", "",
+              "| # | activity | object | trajectory | source " + head, "|---|:---:|:---:|:---:|---" + "|---:" * len(cols) + "|"]
+    flags = {"none": (0, 0, 0), "activity": (1, 0, 0), "object": (0, 1, 0), "activity_object": (1, 1, 0), "all": (1, 1, 1)}
+    for k, name in enumerate(ABLATIONS, start=1):
+        marks = " | ".join("✓" if f else "✗" for f in flags[name])
+        row = results["conav"].get(name)
+        if row is not None:
+            lines.append(f"| {k} | {marks} | {_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
+        else:
+            lines.append(f"| {k} | {marks} | not run yet | {not_run} |")
+        lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
+    lines += _paired_lines(results)
+    if results.get("missing"):
+        lines += ["", "## Not run yet", "",
+                  "These evaluations are not made yet; the rows above that need them are marked so, and the learned "
+                  "rows name the seeds they hold. Running `conav reproduce` again with the same arguments continues.", ""]
+        lines += [f"- `{m}`" for m in results["missing"]]
+    return "\n".join(lines) + "\n"
