@@ -1,10 +1,11 @@
-"""`conav demo`'s stages: the whole pipeline on the tiny preset, as the `conav` command lines a
+"""`conav demo`'s stages: the whole pipeline on the `demo` preset (the paper preset's apartments,
+activities and walks in a few scenes: conav_jax.data.presets), as the `conav` command lines a
 user would type (the command line runs them one after another and prints each).
 
 generate -> train intention -> train trajectory -> train policy (BC + one DAgger round) ->
 evaluate every agent (report, plots) -> one rerun recording.
 
-A few hundred updates on 12 episodes show the training pipeline but make no policy that
+A few hundred updates on 16 episodes show the training pipeline but make no policy that
 reaches the goal, so by default the evaluation and the recording drive the CoNav agent with the
 policy and predictor shipped with the package (`--pretrained`, trained on the paper preset at
 32x128: the evaluation renders that panorama); `pretrained=False` evaluates the demo's own.
@@ -14,6 +15,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+DEMO_PRESET = "demo"  # conav_jax.data.presets: paper-like episodes, small enough for a CPU
+
 
 def demo_commands(out: Path, seed: int, resolution: str, pretrained: bool = True) -> list[list[str]]:
     """The demo's `conav` argument lists, writing under `out` (data/, runs/, eval/, episode0.rrd)."""
@@ -21,7 +24,7 @@ def demo_commands(out: Path, seed: int, resolution: str, pretrained: bool = True
     quick = ["--log-every", "25", "--no-progress"]
     conav = ["--pretrained"] if pretrained else ["--checkpoint", str(runs / "policy")]
     return [
-        ["generate", "--preset", "tiny", "--out", str(data), "--seed", str(seed)],
+        ["generate", "--preset", DEMO_PRESET, "--out", str(data), "--seed", str(seed)],
         ["train", "intention", "--data", str(data), "--out", str(runs / "intention"), "--resolution", resolution, "--steps", "100",
          "--batch", "16", "--val-every", "100", "--ckpt-every", "100", "--seed", str(seed), *quick],
         ["train", "trajectory", "--data", str(data), "--out", str(runs / "trajectory"), "--steps", "200",

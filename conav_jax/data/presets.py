@@ -1,10 +1,14 @@
-"""Named dataset presets: `tiny` (seconds on a laptop CPU, for tests and the demo), `small`
-(enough to train and compare agents on one GPU) and `paper` (the paper's split sizes: 49 scenes,
-37 train / 12 val, 20,293 / 4,962 episodes, mean episode length near 539 steps).
+"""Named dataset presets: `tiny` (seconds on a laptop CPU, for tests), `small` (enough to train
+and compare agents on one GPU), `paper` (the paper's split sizes: 49 scenes, 37 train / 12 val,
+20,293 / 4,962 episodes, mean episode length near 539 steps) and `demo` (`conav demo`: the paper
+preset's apartments, activities and walks in 5 scenes and 30 episodes, so the shipped policy,
+trained on the paper preset, meets the activity durations and distances it knows; tiny's
+activities last 4-6 s, once, where the paper's clips of 4-12 s loop 2-4 times).
 
 Every preset adds a `minival` split on scenes of its own, disjoint from train and val, for
 choosing hyper-parameters without touching the reported val split: tiny 1 scene / 6 episodes
-(one scene is all a smoke test needs), small 2 / 200 and paper 4 / 1,000 (a handful of scenes
+(one scene is all a smoke test needs), demo 1 / 2 (it validates the demo's own brief
+training), small 2 / 200 and paper 4 / 1,000 (a handful of scenes
 so a choice does not fit one apartment; episodes per scene near val's: small 100 vs 125, paper
 250 vs ~414). Its scenes are generated after val's, so train and val are the same with or
 without it (paper: still 37 / 12 scenes and 20,293 / 4,962 episodes)."""
@@ -49,6 +53,18 @@ PRESETS: dict[str, DatasetConfig] = {
         motion=MotionConfig(activity_loops=(2, 4)),
     ),
 }
+# The paper preset's apartments, activities and walks in a few scenes and episodes: the
+# activity durations, walking distances and episode lengths the shipped policy was trained on.
+PRESETS["demo"] = dataclasses.replace(
+    PRESETS["paper"],
+    name="demo",
+    train_scenes=2,
+    val_scenes=2,
+    train_episodes=16,
+    val_episodes=12,
+    minival_scenes=1,
+    minival_episodes=2,
+)
 
 
 def preset(name: str, seed: int | None = None) -> DatasetConfig:
