@@ -4,18 +4,19 @@ tables.md.
 `collect_results` reads the evaluations under OUT/eval into results.json's content (per agent, per
 seed; the command line adds the commit, the command and the stage timings) -> `render_tables`
 writes tables.md: Table 2 (every agent beside the paper's figures, its privileged inputs named)
-and Table 3 (the five intention ablations), each learned cell the mean ± sd over seeds with the
-pooled 95% interval.
+and Table 3 (the five intention ablations), each learned cell the mean ± sd over training seeds
+with the 95% t-interval of the mean over seeds (eval.stats), and a seed-by-seed section of paired
+contrasts (each row minus its reference, seed by seed, with the t-interval of the mean difference).
 """
 
 from __future__ import annotations
 
 import json
-import math
 import re
 from pathlib import Path
 
 from conav_jax.envs.metrics import METRIC_NAMES
+from conav_jax.eval.stats import paired_difference, resolved, seed_summary
 from conav_jax.eval.reproduce import ABLATIONS, BC_EVAL, BC_ROW_EVAL, CONAV_EVAL, dagger_variant
 
 # The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
@@ -37,12 +38,6 @@ PAPER_TABLE3 = {
 }
 
 
-
-
-def _mean_sd(values: list[float]) -> tuple[float, float]:
-    m = sum(values) / len(values)
-    sd = math.sqrt(sum((v - m) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
-    return m, sd
 
 
 
@@ -120,22 +115,10 @@ def _cell(value: float) -> str:
 
 
 def _learned_cell(row: dict, metric: str) -> str:
-    """'mean ± sd [lo, hi]' over seeds ('value [lo, hi]' for one seed): the pooled 95% interval
-    treats every seed's episodes as one sample (for rates: the Wilson interval of the pooled
-    counts; otherwise the seeds' mean of the per-seed bounds)."""
-    from conav_jax.eval.report import RATES, wilson_interval
-
-    per_seed = [s["metrics"][metric] for s in row["seeds"].values()]
-    m, sd = _mean_sd([p["value"] for p in per_seed])
-    if metric in RATES:
-        n = [s["episodes"] for s in row["seeds"].values()]
-        hits = round(sum(p["value"] / 100.0 * k for p, k in zip(per_seed, n)))
-        lo, hi = (100.0 * v for v in wilson_interval(hits, sum(n)))
-    else:
-        lo, hi = (sum(p[b] for p in per_seed) / len(per_seed) for b in ("lo", "hi"))
-    if len(per_seed) == 1:  # one seed has no spread to report
-        return f"{m:.1f} [{lo:.1f}, {hi:.1f}]"
-    return f"{m:.1f} ± {sd:.1f} [{lo:.1f}, {hi:.1f}]"
+    """'mean ± sd [lo, hi] (n=k)' over training seeds, the 95% t-interval of the mean over seeds
+    (eval.stats.seed_summary; one seed: its value alone). Seeds, not episodes, are the unit: two
+    seeds of one row differ by more than their episodes' binomial noise."""
+    return seed_summary([s["metrics"][metric]["value"] for s in row["seeds"].values()]).text()
 
 
 # The tables' columns: the paper's, with CR_full (contacts up to the end of activity B) beside CR.
@@ -166,20 +149,21 @@ def _learned_source(row: dict, seeds: int | None) -> str:
 
 
 def _paired_lines(results: dict, metrics: tuple[str, ...] = ("FASR", "RASR")) -> list[str]:
-    """Seed by seed: each learned row's values per seed and its difference from its reference on
-    the seeds both hold (Table 3's rows against no inputs, DAgger rows against BC with all
-    inputs), with the mean ± sd of those differences: whether a row's gain exceeds the spread of
-    training seeds, which pooled intervals (counting episodes, not seeds) do not show."""
+    """Seed by seed: each learned row's values per seed and its paired difference from its
+    reference on the seeds both hold (Table 3's rows against no inputs, DAgger rows against BC
+    with all inputs), with the mean difference and its 95% t-interval over those seeds
+    (eval.stats.paired_difference); "resolved" where the interval excludes zero."""
     conav = results["conav"]
     pairs = [(name, "none") for name in ABLATIONS[1:]] + [(name, "all") for name in conav if name.startswith("dagger")]
     pairs = [(a, b) for a, b in pairs if a in conav and b in conav]
     if not pairs:
         return []
     lines = ["", "## Seed by seed", "",
-             "Each row's value per training seed and its difference from the reference row on the seeds both hold "
-             "(mean ± sd of the differences over those seeds): a difference within the seeds' spread is not shown "
-             "to be one.", "",
-             "| row | reference | " + " | ".join(f"{m} by seed | {m} − reference by seed | mean ± sd" for m in metrics) + " |",
+             "Each row's value per training seed and its difference from the reference row on the seeds both hold; "
+             "the mean difference ± sd [95% t-interval over those seeds] (n seeds). A contrast whose interval holds "
+             "zero is not resolved.", "",
+             "| row | reference | " + " | ".join(f"{m} by seed | {m} − reference by seed | paired difference"
+                                                 for m in metrics) + " |",
              "|---|---" + "|---|---|---:" * len(metrics) + "|"]
     for name, ref in pairs:
         row, base = conav[name]["seeds"], conav[ref]["seeds"]
@@ -187,12 +171,13 @@ def _paired_lines(results: dict, metrics: tuple[str, ...] = ("FASR", "RASR")) ->
         cells = []
         for m in metrics:
             values = " / ".join(f"s{s} {row[s]['metrics'][m]['value']:.1f}" for s in sorted(row, key=int))
-            diffs = [row[s]["metrics"][m]["value"] - base[s]["metrics"][m]["value"] for s in shared]
+            mine = {int(s): row[s]["metrics"][m]["value"] for s in shared}
+            theirs = {int(s): base[s]["metrics"][m]["value"] for s in shared}
             summary = "-"
-            if diffs:
-                mean, sd = _mean_sd(diffs)
-                summary = f"{mean:+.1f} ± {sd:.1f}" if len(diffs) > 1 else f"{mean:+.1f}"
-            cells += [values, " / ".join(f"{d:+.1f}" for d in diffs) or "-", summary]
+            if shared:
+                contrast = paired_difference(mine, theirs)
+                summary = contrast.text(signed=True) + (" resolved" if resolved(contrast) else "")
+            cells += [values, " / ".join(f"{mine[int(s)] - theirs[int(s)]:+.1f}" for s in shared) or "-", summary]
         lines.append(f"| {name} | {ref} | " + " | ".join(cells) + " |")
     return lines
 
@@ -209,7 +194,7 @@ def render_tables(results: dict) -> str:
         + (f" (the CoNav policy's panorama encoder: `{results['encoder']}`)" if "encoder" in results else "")
         + f"; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "
         f"commit {results.get('commit', '?')}. Rates and SPLs in percent, AS in steps. Learned rows: mean ± sd over "
-        "seeds [pooled 95% interval] (a row measured on fewer seeds says which). CR counts contacts up to the "
+        "training seeds [95% t-interval of the mean over seeds] (n seeds; a row measured on fewer seeds says which). CR counts contacts up to the "
         "first reach (the paper's), CR_full up to the end of activity B. Paper: the published figures (a different simulator, scenes and agents' "
         "implementations; they are context, not a target).",
         "",

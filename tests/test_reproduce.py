@@ -134,14 +134,15 @@ def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_p
     assert "panorama 112x448 (the CoNav policy's panorama encoder: `patch`);" in rt.render_tables({**results, "encoder": "patch"})
 
 
-def test_learned_cells_are_the_mean_and_sd_over_seeds_with_the_pooled_interval():
+def test_learned_cells_are_the_mean_and_sd_with_the_t_interval_over_seeds():
     row = {"title": "CoNav", "privileged": [], "seeds": {
         "0": {"metrics": _metrics((10, 20, 5, 6, 30, 100)), "episodes": 100},
         "1": {"metrics": _metrics((20, 30, 7, 8, 10, 200)), "episodes": 100}}}
-    # FASR: mean 15, sd sqrt(50) = 7.07; pooled 30 of 200: Wilson [10.7, 20.6].
-    assert rt._learned_cell(row, "FASR") == "15.0 ± 7.1 [10.7, 20.6]"
-    # AS: not a rate: mean 150, sd 70.7, the seeds' mean bounds.
-    assert rt._learned_cell(row, "AS") == "150.0 ± 70.7 [149.0, 151.0]"
+    # FASR: mean 15, sd sqrt(50) = 7.07; t(0.975, 1 df) = 12.706: 15 ± 12.706 * 7.07 / sqrt(2).
+    assert rt._learned_cell(row, "FASR") == "15.0 ± 7.1 [-48.5, 78.5] (n=2)"
+    assert rt._learned_cell(row, "AS") == "150.0 ± 70.7 [-485.3, 785.3] (n=2)"
+    one = {**row, "seeds": {"0": row["seeds"]["0"]}}
+    assert rt._learned_cell(one, "FASR") == "10.0 (1 seed)"
 
 
 def test_tables_compare_rows_seed_by_seed_with_their_reference():
@@ -153,16 +154,26 @@ def test_tables_compare_rows_seed_by_seed_with_their_reference():
         "none": row((10, 20), (14, 22), (12, 30)), "object": row((13, 20), (15, 25), (18, 30)),
         "all": row((20, 30), (10, 20)), "dagger": row((26, 31), (13, 20), (30, 30))}}
     lines = rt.render_tables(results).splitlines()
-    # object - none: +3, +1, +6 (mean 3.33, sd 2.52); RASR 0, +3, 0.
-    assert ("| object | none | s0 13.0 / s1 15.0 / s2 18.0 | +3.0 / +1.0 / +6.0 | +3.3 ± 2.5 | "
-            "s0 20.0 / s1 25.0 / s2 30.0 | +0.0 / +3.0 / +0.0 | +1.0 ± 1.7 |") in lines
+    # object - none: +3, +1, +6 (mean 3.33, sd 2.52, t(0.975, 2 df) = 4.303); RASR 0, +3, 0.
+    assert ("| object | none | s0 13.0 / s1 15.0 / s2 18.0 | +3.0 / +1.0 / +6.0 | +3.3 ± 2.5 [-2.9, +9.6] (n=3) | "
+            "s0 20.0 / s1 25.0 / s2 30.0 | +0.0 / +3.0 / +0.0 | +1.0 ± 1.7 [-3.3, +5.3] (n=3) |") in lines
     # all holds two seeds: compared on those only.
-    assert any(line.startswith("| all | none | s0 20.0 / s1 10.0 | +10.0 / -4.0 | +3.0 ± 9.9 |") for line in lines)
-    # DAgger rows against BC with all inputs, on the seeds both hold.
-    assert any(line.startswith("| dagger | all | s0 26.0 / s1 13.0 / s2 30.0 | +6.0 / +3.0 | +4.5 ± 2.1 |")
+    assert any(line.startswith("| all | none | s0 20.0 / s1 10.0 | +10.0 / -4.0 | +3.0 ± 9.9 [-85.9, +91.9] (n=2) |")
                for line in lines)
+    # DAgger rows against BC with all inputs, on the seeds both hold.
+    assert any(line.startswith("| dagger | all | s0 26.0 / s1 13.0 / s2 30.0 | +6.0 / +3.0 | +4.5 ± 2.1 [-14.6, +23.6]"
+                               " (n=2) |") for line in lines)
     assert not any(line.startswith("| activity |") for line in lines)  # not run: no row
     assert "Seed by seed" not in rt.render_tables({**results, "conav": {"none": results["conav"]["none"]}})
+
+
+def test_a_contrast_whose_interval_excludes_zero_is_marked_resolved():
+    fasr = {"none": (10, 12, 9, 11, 10, 13, 8, 12), "all": (15, 18, 13, 16, 17, 18, 14, 16)}  # +5 +6 +4 +5 +7 +5 +6 +4
+    results = {"seeds": 8, "agents": {}, "conav": {name: {"title": "CoNav", "privileged": [], "seeds": {
+        str(s): {"metrics": _metrics((f, f, 0, 0, 0, 0)), "episodes": 100} for s, f in enumerate(v)}}
+        for name, v in fasr.items()}}
+    line = next(line for line in rt.render_tables(results).splitlines() if line.startswith("| all | none |"))
+    assert "| +5.2 ± 1.0 [+4.4, +6.1] (n=8) resolved |" in line
 
 
 def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
@@ -183,7 +194,7 @@ def test_tables_put_ours_beside_the_papers_and_name_privileged_inputs():
     assert "| Random Agent | none | ours | 1.0 | 2.0 | 3.0 | 4.0 | 5.0 | - | 6.0 |" in lines
     assert "| Random Agent | | paper | 4.5 | 4.6 | 3.7 | 3.7 | 32.7 | - | 442.6 |" in lines
     assert "| Imitation expert | oracle map | ours | 90.0 | 95.0 | 80.0 | 85.0 | 2.0 | 37.0 | 70.0 |" in lines
-    assert any(line.startswith("| CoNav Agent (BC) | oracle segmentation | ours | 12.0 [") for line in lines)
+    assert any(line.startswith("| CoNav Agent (BC) | oracle segmentation | ours | 12.0 (1 seed) |") for line in lines)
     assert "| 5 | ✓ | ✓ | ✓ | paper | 19.8 | 23.2 | 13.5 | 14.9 | 20.1 | - | 354.5 |" in lines
     assert "commit abc1234" in md
 
@@ -209,8 +220,9 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     assert set(results["conav"]["dagger"]["seeds"]) == {"0"}
     assert all(set(results["conav"][a]["seeds"]) == {"0", "1"} for a in rp.ABLATIONS)
     lines = rt.render_tables(results).splitlines()
-    # One seed: its value and interval, no spread; the source names the seed.
-    assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 40.0 [") for line in lines)
+    # One seed: its value, no spread and no interval; the source names the seed.
+    assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 40.0 (1 seed) |")
+               for line in lines)
     assert any(line.startswith("| T conav (BC) | oracle map | ours | 15.0 ± 7.1 [") for line in lines)
     assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours | 15.0 ± 7.1 [") for line in lines)
     assert results["missing"] == ["eval/conav_dagger_s1"] and "## Not run yet" in rt.render_tables(results)
@@ -222,7 +234,7 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     assert set(results["conav"]["activity"]["seeds"]) == {"0", "1"}
     lines = rt.render_tables(results).splitlines()
     assert "| imagegoal | | not run yet | - | - | - | - | - | - | - |" in lines and "- `eval/imagegoal`" in lines
-    assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours (seed 0 of 2) | 10.0 [") for line in lines)
+    assert any(line.startswith("| 1 | ✗ | ✗ | ✗ | ours (seed 0 of 2) | 10.0 (1 seed) |") for line in lines)
     (evals / rp.DAGGER_EVAL.format(0) / "metrics.json").unlink()
     (evals / rp.BC_EVAL.format(0) / "metrics.json").unlink()
     for a in rp.ABLATIONS[1:]:
@@ -262,7 +274,7 @@ def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_
     # Only the run's own variant can be missing; the other is shown with the seeds it has.
     assert mixed["missing"] == ["eval/objectgoal-oracle", "eval/objectgoal-predicted", "eval/imagegoal"]
     lines = rt.render_tables(mixed).splitlines()
-    assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 5.0 [") for line in lines)
+    assert any(line.startswith("| T conav (BC + DAgger) | oracle map | ours (seed 0 of 2) | 5.0 (1 seed) |") for line in lines)
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps) | oracle map | "
                                "ours | 30.5 ± 0.7 [") for line in lines)
     assert "eval/conav_dagger_s1" in rt.collect_results(tmp_path, 2, {"seeds": 2})["missing"]
@@ -292,9 +304,9 @@ def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(
     assert [k for k in results["conav"] if k.startswith("dagger")] == [
         "dagger", "dagger_rounds1", "dagger_beta0.5", "dagger_beta0.5_rounds1"]
     lines = rt.render_tables(results).splitlines()
-    assert any(line.startswith("| T conav (BC + DAgger, 1 round) | oracle map | ours | 8.0 [") for line in lines)
+    assert any(line.startswith("| T conav (BC + DAgger, 1 round) | oracle map | ours | 8.0 (1 seed) |") for line in lines)
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps, 1 round) | "
-                               "oracle map | ours | 25.0 [") for line in lines)
+                               "oracle map | ours | 25.0 (1 seed) |") for line in lines)
     (evals / "conav_dagger_beta0.5_rounds1_s0" / "metrics.json").unlink()
     assert rt.collect_results(tmp_path, 1, {"seeds": 1}, dagger=cfg.dagger)["missing"][-1] == \
         "eval/conav_dagger_beta0.5_rounds1_s0"
@@ -326,7 +338,7 @@ def test_another_dagger_episode_count_runs_under_its_own_name_and_the_baselines_
     assert [k for k in results["conav"] if k.startswith("dagger")] == [
         "dagger_beta0.5_rounds1", "dagger_beta0.5_rounds1_episodes200"]
     assert any(line.startswith("| T conav (BC + DAgger, the expert acting at 0.5^r of round r's steps, 1 round, 200 "
-                               "train episodes a round) | oracle map | ours | 25.0 [")
+                               "train episodes a round) | oracle map | ours | 25.0 (1 seed) |")
                for line in rt.render_tables(results).splitlines())
 
 
