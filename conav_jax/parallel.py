@@ -3,7 +3,8 @@ samples; parameters and optimiser state are replicated on every device.
 
 `make_mesh(N)` -> `shard_batch` / `replicate` (device_put) on the host side, `constrain_batch`
 inside jit (`jax.lax.with_sharding_constraint`); jit partitions the vmapped computation from
-them. Several hosts join through `maybe_initialize_distributed()` before the first jax call;
+them. Work whose lanes are independent (env steps, rollouts) runs per device instead, through
+`per_device` (`jax.shard_map`): XLA cannot partition a Pallas call, and nothing needs to. Several hosts join through `maybe_initialize_distributed()` before the first jax call;
 `jax.devices()` then lists every host's devices and a mesh spans them all. No other imports
 from this repository: envs, train and eval use it.
 """
@@ -77,6 +78,25 @@ def constrain_batch(tree: PyTree, mesh: Mesh | None) -> PyTree:
     """Inside jit: `tree`'s leading axis (the batch) split over the mesh's devices, so what
     follows runs data-parallel; `tree` unchanged without a mesh."""
     return tree if mesh is None else jax.lax.with_sharding_constraint(tree, batch_sharding(mesh))
+
+
+def per_device(fn, mesh: Mesh | None, in_batched: tuple, out_batched: Any = True):
+    """`fn` run once on each device of `mesh` over its share of the lanes (`jax.shard_map`):
+    each positional argument whose `in_batched` entry is True has its leading axis split over
+    the devices, the others are replicated; likewise the outputs by `out_batched` (a prefix of
+    the output tree). Outputs marked False must be the same on every device (e.g. reduced with
+    `jax.lax.psum(x, BATCH_AXIS)` inside `fn`). The body sees one device's lanes, so a Pallas
+    kernel inside it runs as on one GPU. `fn` itself without a mesh."""
+    if mesh is None:
+        return fn
+
+    def spec(batched):
+        return jax.tree.map(lambda b: PartitionSpec(BATCH_AXIS) if b else PartitionSpec(), batched)
+
+    # The lanes never talk to each other, so the replication checks (which a Pallas call and
+    # lax.cond over per-lane data do not satisfy) have nothing to find.
+    return jax.shard_map(fn, mesh=mesh, in_specs=spec(tuple(in_batched)), out_specs=spec(out_batched),
+                         check_vma=False)
 
 
 def round_up(size: int, mesh: Mesh | None) -> int:

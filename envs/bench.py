@@ -19,7 +19,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from conav_jax.parallel import check_divisible, constrain_batch
+from conav_jax.parallel import check_divisible, per_device
 from conav_jax.envs.rollout import select_lanes
 
 
@@ -30,24 +30,28 @@ def _memory_bytes() -> int | None:
 
 def _sensor_run(env, batch: int, steps: int, mesh=None):
     """Panoramas only: `steps` frames of `batch` robots at random yaws in their start poses
-    (split over `mesh`'s devices if given)."""
+    (each of `mesh`'s devices casting its share, `per_device`)."""
     n = env.num_episodes
     reset = jax.vmap(env.reset_to_episode)
 
-    @jax.jit
-    def run(key):
-        state = constrain_batch(reset(jax.random.split(key, batch), jnp.arange(batch) % n), mesh)
+    def lanes(keys, episodes):
+        state = reset(keys, episodes)
         d = state.pipeline_state
-        episodes = state.info["episode"]
 
-        def body(total, k):
-            yaw = jax.random.uniform(k, (batch,), minval=-3.14, maxval=3.14)
+        def body(total, t):
+            yaw = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, t), (), minval=-3.14, maxval=3.14))(keys)
             dd = d.replace(qpos=d.qpos.at[:, 2].set(yaw))
             depth, _ = jax.vmap(env.panorama)(dd, episodes)
-            return total + depth.mean(), None
+            return total + depth.mean(axis=(1, 2)), None
 
-        total, _ = jax.lax.scan(body, jnp.zeros(()), jax.random.split(key, steps))
+        total, _ = jax.lax.scan(body, jnp.zeros(keys.shape[0]), jnp.arange(steps))
         return total
+
+    run_lanes = per_device(lanes, mesh, (True, True))
+
+    @jax.jit
+    def run(key):
+        return run_lanes(jax.random.split(key, batch), jnp.arange(batch) % n).sum()
 
     return run
 
@@ -135,25 +139,35 @@ def _stage_runs(env, batch: int, steps: int) -> dict:
     return {"physics": physics, "humanoid": humanoid, "sensors": sensors, "step": _step_run(env, batch, steps)}
 
 
-def _step_run(env, batch: int, steps: int, mesh=None):
-    """Full env steps of `batch` episodes under random actions (split over `mesh`'s devices if
-    given: the batch axis of the state is sharded, XLA partitions the scan)."""
-    n = env.num_episodes
+def step_lanes(env, steps: int, mesh=None):
+    """A function (keys (B, 2), episodes (B,)) -> per-lane totals (B,) of `steps` full env steps
+    under random actions from each lane's key, run on each of `mesh`'s devices over its share
+    of the lanes (`per_device`: the Pallas caster runs on every device, nothing is partitioned
+    by XLA); the reference of the multi-device benchmarks."""
     reset = jax.vmap(env.reset_to_episode)
     step = jax.vmap(env.step)
 
+    def lanes(keys, episodes):
+        state = reset(keys, episodes)
+
+        def body(state, t):
+            a = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, t), (2,), minval=-1.0, maxval=1.0))(keys)
+            state = step(state, a)
+            return state, state.reward
+
+        state, r = jax.lax.scan(body, state, jnp.arange(steps))
+        return r.sum(0) + state.obs["rgbd"][:, 0, 0, 3]
+
+    return per_device(lanes, mesh, (True, True))
+
+
+def _step_run(env, batch: int, steps: int, mesh=None):
+    """Full env steps of `batch` episodes under random actions (`step_lanes`)."""
+    run_lanes = step_lanes(env, steps, mesh)
+
     @jax.jit
     def run_steps(key):
-        keys = jax.random.split(key, batch)
-        state = constrain_batch(reset(keys, jnp.arange(batch) % n), mesh)
-
-        def body(state, k):
-            a = jax.random.uniform(k, (batch, 2), minval=-1.0, maxval=1.0)
-            state = step(state, a)
-            return state, state.reward.sum()
-
-        state, r = jax.lax.scan(body, state, jax.random.split(key, steps))
-        return r.sum() + state.obs["rgbd"][:, 0, 0, 3].sum()
+        return run_lanes(jax.random.split(key, batch), jnp.arange(batch) % env.num_episodes).sum()
 
     return run_steps
 

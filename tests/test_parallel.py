@@ -138,6 +138,24 @@ def _recording(mesh) -> dict:
             "sums": [float(np.asarray(x, np.float64).sum()) for x in jax.tree.leaves(windows)]}
 
 
+def _env_steps(mesh) -> dict:
+    """envs.bench.step_lanes: 3 env steps of 8 hall lanes through the Pallas caster (interpreted
+    on the CPU), per lane; with a mesh each device steps and casts its own 2 lanes."""
+    import jax
+    import jax.numpy as jnp
+    from worlds import make_split
+
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.bench import step_lanes
+
+    split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0)])
+    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32, kind="pallas",
+                                                                        pallas_interpret=True)))
+    run = jax.jit(step_lanes(env, 3, mesh))
+    out = run(jax.random.split(jax.random.PRNGKey(3), 8), jnp.arange(8) % 4)
+    return {"lanes": np.asarray(out).tolist(), "devices": len(out.sharding.device_set)}
+
+
 def _child(tmp: str) -> dict:
     import jax
 
@@ -146,7 +164,8 @@ def _child(tmp: str) -> dict:
     mesh = make_mesh(DEVICES)
     out = {"devices": jax.device_count(), "mesh": mesh.size}
     for name, fn in (("loop", lambda m: _loop_losses(Path(tmp), m)), ("evaluate", _evaluate_metrics),
-                     ("policy", _policy_updates), ("recording", _recording)):
+                     ("policy", _policy_updates), ("recording", _recording),
+                     ("steps", _env_steps)):
         out[name] = {"single": fn(None), "sharded": fn(mesh)}
     return out
 
@@ -184,6 +203,13 @@ def test_sharded_evaluation_gives_identical_metrics(runs):
     single, sharded = runs["evaluate"]["single"], runs["evaluate"]["sharded"]
     assert single["episode"] == [0, 1, 2, 3, 4] and max(single["path_length_m"]) > 0.5  # it moved
     assert sharded == single
+
+
+def test_env_steps_with_the_pallas_caster_run_on_every_device(runs):
+    single, sharded = runs["steps"]["single"], runs["steps"]["sharded"]
+    assert single["devices"] == 1 and sharded["devices"] == DEVICES
+    assert len(set(single["lanes"])) > 1  # the lanes differ: a lane mix-up would show
+    assert sharded["lanes"] == single["lanes"]
 
 
 def test_sharded_policy_update_gives_the_single_device_loss(runs):
