@@ -157,7 +157,7 @@ def make_renderer(env: ConavEnv, model: PerceiverConfig, spec: FrameSpec, chunk:
         # are counted before its resize).
         seen = front_view(human) if spec.view == "front" else human_crop(human, pos, (h, w), spec.camera_height_m)
         return (frame, jnp.sum(seen, dtype=jnp.int32), jnp.sum(human, dtype=jnp.int32),
-                categories_in_view(rgbd[..., :3]))
+                categories_in_view(env.segmentation(ids, episode)))
 
     def render(episodes, steps, poses, pos):
         return jax.lax.map(lambda x: one(*x), (episodes, steps, poses, pos), batch_size=chunk)
@@ -362,7 +362,7 @@ def run_config(model: PerceiverConfig, data: IntentionDataConfig, content_hash: 
         "kind": KIND,
         "model": model_fields,
         "data": {**data_fields, "content_hash": content_hash, "frame_spacing_steps": spacing,
-                 "camera_height_m": camera_height_m, **extra},
+                 "camera_height_m": camera_height_m, "materials": SensorConfig.materials, **extra},
     }
 
 

@@ -31,6 +31,7 @@ from conav_jax.envs.agents.base import (
     Agent,
 )
 from conav_jax.envs.agents.predictors import load_intention_predictor, load_trajectory_predictor
+from conav_jax.envs.config import check_materials, materials_of_run
 
 INTENTION_KEYS = ("activity_probs", "object_probs", "future_traj")
 # The arguments that give each predictor run, and ask for ground truth, for error messages
@@ -64,10 +65,12 @@ class PolicyStep(NamedTuple):
 
 def policy_inputs(cfg: PolicyConfig) -> tuple[str, ...]:
     """The observation keys the policy reads: the panorama, pose, human position (unless
-    switched off), the intention inputs its ablation keeps and the goal image if it has one."""
+    switched off), the intention inputs its ablation keeps, the segmentation its saliency
+    channel reads and the goal image if it has one."""
     on = (cfg.use_activity, cfg.use_object, cfg.use_trajectory)
     return (("rgbd", "gps_compass") + (("human_pos",) if cfg.use_human_pos else ())
-            + tuple(k for k, use in zip(INTENTION_KEYS, on) if use) + (("goal_image",) if cfg.goal_image else ()))
+            + tuple(k for k, use in zip(INTENTION_KEYS, on) if use) + (("segmentation",) if cfg.uses_saliency else ())
+            + (("goal_image",) if cfg.goal_image else ()))
 
 
 def policy_reads(cfg: PolicyConfig, source: str) -> tuple[str, ...]:
@@ -160,6 +163,14 @@ def check_policy_env(env, cfg: PolicyConfig, source_name: str, intention_source_
             f"{source_name} was trained on {h}x{w} panoramas but the env renders {hw[0]}x{hw[1]}; "
             f"build the env with SensorConfig(height={h}, width={w})"
         )
+
+
+def check_run_materials(env, config: dict, source_name: str, intention=None) -> None:
+    """ValueError, naming both, unless `env` renders the materials (SensorConfig.materials) the
+    run of checkpoint config `config` and its intention predictor, if any, were trained on."""
+    check_materials(materials_of_run(config), env.config.sensor, source_name)
+    if intention is not None:
+        check_materials(intention.spec.materials, env.config.sensor, f"the intention predictor of {source_name}")
 
 
 def privileged_inputs(cfg: PolicyConfig, source: str, intention=None) -> tuple[str, ...]:
@@ -270,4 +281,5 @@ def policy_agent(env, run_dir: str | Path, intention_run: str | Path | None = No
         *predictor_runs(cfg, name, config, intention_run, trajectory_run, ground_truth))
     agent = policy_agent_from_params(params, cfg, intention, trajectory, name="conav")
     check_policy_env(env, cfg, name, agent.intention_source)
+    check_run_materials(env, config, name, intention)
     return agent
