@@ -494,6 +494,11 @@ class ConavEnv(Env):
         d = self._data0.replace(qpos=jnp.asarray(robot_pose, self._data0.qpos.dtype))
         d = d.replace(userdata=d.userdata.at[UD["t"]].set(t.astype(d.userdata.dtype)))
         d = self._pose_human(d, episode, t)  # mocap poses: what the mjx.ray reference sees
+        return self.render(d, episode)
+
+    def render(self, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(rgbd (H, W, 4), geom ids (H, W)) of the robot's camera in data `d`: `panorama`
+        coloured in the configured materials."""
         depth, ids = self.panorama(d, episode)
         return self._colour(d, episode, depth, ids), ids
 
@@ -509,8 +514,7 @@ class ConavEnv(Env):
 
         def cast():  # (rgbd, geom ids), rendered once for the keys that read the panorama
             if not made:
-                depth, ids = self.panorama(d, episode)
-                made["cast"] = self._colour(d, episode, depth, ids), ids
+                made["cast"] = self.render(d, episode)
             return made["cast"]
 
         def rgbd():

@@ -148,7 +148,7 @@ def test_records_hold_compact_observations(bc):
     _, recs = bc
     assert recs.obs["rgb"].dtype == np.uint8 and recs.obs["rgb"].shape == (3, T_END + 1, 8, 32, 3)
     assert recs.obs["depth"].dtype == np.float16 and recs.obs["depth"].shape == (3, T_END + 1, 8, 32)
-    assert set(recs.obs) == {"rgb", "depth", *im.RECORDED_KEYS}
+    assert set(recs.obs) == {"rgb", "depth", "segmentation", *im.RECORDED_KEYS}
     np.testing.assert_array_equal(recs.obs["activity_probs"].argmax(-1), 4)  # the hall's activity B
 
 
