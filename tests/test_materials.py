@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from brax.envs.base import State
 from worlds import make_split
 
 from conav_jax.config import SceneGenConfig
@@ -15,6 +16,7 @@ from conav_jax.data.materials import MATERIAL_WIDTH, Material, clothing_rgb
 from conav_jax.data.scene import default_materials, scene_boxes, scene_from_json_dict
 from conav_jax.data.scenegen import generate_scene
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.bench import with_materials
 from conav_jax.envs.panorama import SKY_RGB, SceneGeometry, fast_depth_ids, shade
 
 
@@ -108,16 +110,15 @@ def test_shading_follows_the_surface_normal_not_the_distance():
 def observed():
     """(env, {materials: (observation, geom ids)}) of one hall episode's first step."""
     split = make_split([(7.5, 2.0, 0.0)], t_arrive=20, t_end=40)  # the table ahead, the fridge behind
+    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=16, width=64)))
+    # The episode's start, without the physics' forward pass (the sensor reads positions only).
+    state = State(env._data0.replace(qpos=env.bank.robot_start[0]), {}, jnp.zeros(()), jnp.zeros(()), {},
+                  {"episode": jnp.int32(0)})
     out = {}
     for materials in ("instance", "flat"):
-        env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=16, width=64, materials=materials)))
-
-        @jax.jit
-        def first(env=env):
-            state = env.reset_to_episode(jax.random.PRNGKey(0), 0, observe=False)
-            return env.observe(state).obs, env.render(state.pipeline_state, 0)[1]
-
-        out[materials] = jax.tree.map(np.asarray, first())
+        e = with_materials(env, materials)
+        out[materials] = jax.tree.map(np.asarray, jax.jit(
+            lambda s, e=e: (e.observe(s).obs, e.render(s.pipeline_state, 0)[1]))(state))
     return env, out
 
 

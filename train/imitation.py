@@ -50,7 +50,8 @@ GOAL_IMAGE_BYTES_PER_PIXEL = 3  # a goal image, uint8 RGB
 
 class StepRecord(NamedTuple):
     """One recorded step, fields (B, T, ...) from a rollout. `obs` holds the policy's inputs in
-    compact form: "rgb" (H, W, 3) uint8, "depth" (H, W) float16 metres and RECORDED_KEYS."""
+    compact form: "rgb" (H, W, 3) uint8, "depth" (H, W) float16 metres, "segmentation" (H, W) int8
+    where the env observes it, and RECORDED_KEYS."""
 
     obs: dict
     label: jax.Array  # (2,) the expert's action in this state
