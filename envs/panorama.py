@@ -2,7 +2,9 @@
 
 Both cast the same rays (SensorConfig's equirectangular layout) and return depth (metres along
 the ray, max_depth where nothing is hit) and the MJX geom id hit (-1 for none), from which RGB
-is a colour lookup. The fast caster uses the scene's structure: every box is axis-aligned, so
+is computed after the cast, the same for every caster: `shade` (instance materials with
+procedural patterns, Lambertian-shaded by the surface normal) or `colourise` (flat colours per
+geom). The fast caster uses the scene's structure: every box is axis-aligned, so
 per image column the ray is a 2-D ray and each box a 2-D slab interval; per row the box's z
 range turns into a second interval along the same horizontal distance; their intersection
 gives the exact hit. The floor is analytic per row; capsules (the humanoid) are tested per ray.
@@ -17,7 +19,7 @@ one expression whose min over geoms XLA fuses, so only (H, W) arrays reach memor
 Triton kernel that also skips geoms a block of columns cannot see. `reference_depth_ids` (kind
 "reference") casts through mjx.ray, so it takes the MJX model and data instead.
 Data flow: robot pose + SceneGeometry (scene boxes, human capsules, floor) -> keys (H, W)
--> (depth, geom id) -> rgbd.
+-> (depth, geom id) -> + materials, normals -> rgbd.
 """
 
 from __future__ import annotations
