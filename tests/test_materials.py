@@ -39,6 +39,7 @@ def test_instances_of_a_category_differ_and_categories_share_colours():
 def test_materials_follow_the_seed_and_survive_the_json_round_trip():
     a, b, other = _scene(3), _scene(3), _scene(4)
     assert a.materials == b.materials and a.materials != other.materials
+    assert len({_scene(seed).materials.walls for seed in range(4)}) > 1  # drawn from each scene's seed
     assert {m.pattern for m in a.materials.objects} == {"stripes", "checks", "noise"}
     back = scene_from_json_dict(json.loads(json.dumps(a.to_json_dict())))
     assert back == a
