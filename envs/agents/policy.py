@@ -167,10 +167,12 @@ def check_policy_env(env, cfg: PolicyConfig, source_name: str, intention_source_
 
 def check_run_materials(env, config: dict, source_name: str, intention=None) -> None:
     """ValueError, naming both, unless `env` renders the materials (SensorConfig.materials) the
-    run of checkpoint config `config` and its intention predictor, if any, were trained on."""
+    run of checkpoint config `config` and its intention predictor, if any, were trained on (a
+    predictor that records no FrameSpec, such as one written by hand, is taken at its word)."""
     check_materials(materials_of_run(config), env.config.sensor, source_name)
-    if intention is not None:
-        check_materials(intention.spec.materials, env.config.sensor, f"the intention predictor of {source_name}")
+    trained = getattr(getattr(intention, "spec", None), "materials", None)
+    if trained is not None:
+        check_materials(trained, env.config.sensor, f"the intention predictor of {source_name}")
 
 
 def privileged_inputs(cfg: PolicyConfig, source: str, intention=None) -> tuple[str, ...]:
