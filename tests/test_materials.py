@@ -119,7 +119,7 @@ def observed():
     for materials in ("instance", "flat"):
         e = with_materials(env, materials)
         out[materials] = jax.tree.map(np.asarray, jax.jit(
-            lambda s, e=e: (e.observe(s).obs, e.render(s.pipeline_state, 0)[1]))(state))
+            lambda s, e=e: (e.observe(s, ("rgbd", "segmentation")).obs, e.render(s.pipeline_state, 0)[1]))(state))
     return env, out
 
 

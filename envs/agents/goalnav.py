@@ -147,7 +147,8 @@ def objectgoal_agent_from_params(params, cfg: PolicyConfig, env, intention=None)
             action, carry = pol.step(params, obs, carry)
             return carry, action
 
-        return Agent(OBJECTGOAL_TITLE, lambda key, obs: pol.init(), act_on_obs, reads=policy_reads(cfg, PREDICTED),
+        return Agent(OBJECTGOAL_TITLE, lambda key, obs: pol.init(), act_on_obs,
+                     reads=policy_reads(cfg, PREDICTED, intention),
                      privileged=segmentation + tuple(p for p in intention.privileged if p not in segmentation),
                      name="objectgoal-predicted", intention_source=PREDICTED).check()
     b = env.bank_view

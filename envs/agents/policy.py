@@ -73,14 +73,17 @@ def policy_inputs(cfg: PolicyConfig) -> tuple[str, ...]:
             + (("goal_image",) if cfg.goal_image else ()))
 
 
-def policy_reads(cfg: PolicyConfig, source: str) -> tuple[str, ...]:
+def policy_reads(cfg: PolicyConfig, source: str, intention=None) -> tuple[str, ...]:
     """The observation keys the policy's stepping reads when its intentions come from `source`:
     its inputs (the intention ones only from the env's ground truth; no goal image, which its
-    agent supplies) and what its predictors read."""
+    agent supplies) and what its predictors read (the segmentation for an `intention` predictor
+    that keeps the objects seen)."""
     keys = [k for k in policy_inputs(cfg) if k != "goal_image" and (k not in INTENTION_KEYS or source == GROUND_TRUTH)]
     if source == PREDICTED:
         keys += (["rgbd", "human_pos"] if cfg.use_activity or cfg.use_object else []) + (
             ["human_history"] if cfg.use_trajectory else [])
+        if ORACLE_SEGMENTATION in getattr(intention, "privileged", ()):
+            keys.append("segmentation")
     return tuple(dict.fromkeys(keys))
 
 
@@ -184,7 +187,7 @@ def privileged_inputs(cfg: PolicyConfig, source: str, intention=None) -> tuple[s
         if cfg.use_trajectory:
             out.append(FUTURE_HUMAN_POSITIONS)  # the true future trajectory is where the human will be
     if cfg.use_object and cfg.object_saliency:
-        out.append(ORACLE_SEGMENTATION)  # each pixel's category from its render colour
+        out.append(ORACLE_SEGMENTATION)  # each pixel's category: the observation's segmentation
     if intention is not None and source == PREDICTED and (cfg.use_activity or cfg.use_object):
         out += [p for p in intention.privileged if p not in out]
     return tuple(out)
@@ -204,7 +207,7 @@ def policy_agent_from_params(
         action, carry = pol.step(params, obs, carry)
         return carry, action
 
-    return Agent(title, lambda key, obs: pol.init(), act, reads=policy_reads(cfg, pol.source),
+    return Agent(title, lambda key, obs: pol.init(), act, reads=policy_reads(cfg, pol.source, intention),
                  privileged=privileged_inputs(cfg, pol.source, intention), name=name,
                  intention_source=pol.source).check()
 
