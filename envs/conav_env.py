@@ -201,7 +201,7 @@ class ConavEnv(Env):
 
     def default_observation_keys(self) -> tuple[str, ...]:
         """The keys `reset`/`step` observe (brax's interface, training): the sensors, and the
-        ground-truth intentions with `EnvConfig.intention_obs`. An agent in a rollout observes
+        privileged keys (ground-truth intentions, segmentation) with `EnvConfig.intention_obs`. An agent in a rollout observes
         only the keys it declares (envs.rollout)."""
         return SENSOR_KEYS + (tuple(PRIVILEGED_KEYS) if self.config.intention_obs else ())
 
