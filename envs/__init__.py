@@ -16,8 +16,8 @@ with _contextlib.redirect_stdout(_io.StringIO()):
 from brax import envs as _brax_envs
 
 from conav_jax.envs.conav_env import ConavEnv
-from conav_jax.envs.config import EnvConfig, PhysicsConfig, RewardConfig, SensorConfig
+from conav_jax.envs.config import EnvConfig, PhysicsConfig, RewardConfig, SensorConfig, run_materials
 
 _brax_envs.register_environment("conav", ConavEnv)
 
-__all__ = ["ConavEnv", "EnvConfig", "PhysicsConfig", "RewardConfig", "SensorConfig"]
+__all__ = ["ConavEnv", "EnvConfig", "PhysicsConfig", "RewardConfig", "SensorConfig", "run_materials"]

@@ -19,6 +19,7 @@ import numpy as np
 from conav_jax.data.activities import NUM_ACTIVITIES
 from conav_jax.data.categories import FLOOR_RGB, NUM_CATEGORIES
 from conav_jax.data.episodes import EpisodeSplit
+from conav_jax.data.materials import MATERIAL_WIDTH, clothing_rgb
 from conav_jax.data.scene import scene_boxes
 from conav_jax.nav.expert import clearance_map
 from conav_jax.nav.planning import fill_blocked
@@ -35,11 +36,16 @@ class EpisodeBank:
     col_lo: jax.Array  # (S, Gc, 3) blocking box min corners (m)
     col_hi: jax.Array  # (S, Gc, 3)
     col_valid: jax.Array  # (S, Gc) bool
-    col_rgb: jax.Array  # (S, Gc, 3) float in [0, 1]
+    col_rgb: jax.Array  # (S, Gc, 3) float in [0, 1]: flat colours (SensorConfig.materials "flat")
+    col_material: jax.Array  # (S, Gc, MATERIAL_WIDTH) material rows (conav_jax.data.materials)
+    col_category: jax.Array  # (S, Gc) int32 object category, -1 for walls and padding
     vis_lo: jax.Array  # (S, Gv, 3) visual-only boxes
     vis_hi: jax.Array
     vis_valid: jax.Array
     vis_rgb: jax.Array
+    vis_material: jax.Array
+    vis_category: jax.Array
+    floor_material: jax.Array  # (S, MATERIAL_WIDTH)
     fields: jax.Array  # (S, K, ny, nx) float16 geodesic metres to each usable object
     field_origin: jax.Array  # (S, 2) grid origin (m)
     field_category: jax.Array  # (S, K) category id of each field's object, -1 for padding
@@ -61,6 +67,7 @@ class EpisodeBank:
     root_yaw: jax.Array  # (N, T)
     joints_local: jax.Array  # (N, T, 22, 3) float16
     phase: jax.Array  # (N, T) int8
+    clothing_rgb: jax.Array  # (N, 3, 3) float in [0, 1]: the humanoid's skin, shirt, trousers
     cell_m: float = 0.1
 
     @property
@@ -88,19 +95,24 @@ jax.tree_util.register_dataclass(
 )
 
 
-def _pad_boxes(boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray]], slots: int):
+def _pad_boxes(boxes: list[tuple[np.ndarray, ...]], slots: int):
+    """Per scene (centres, half-extents, rgb, material rows, categories) -> padded (lo, hi,
+    rgb, valid, material, category) arrays of `slots` boxes per scene."""
     lo = np.zeros((len(boxes), slots, 3), np.float32)
     hi = np.zeros((len(boxes), slots, 3), np.float32)
     rgb = np.zeros((len(boxes), slots, 3), np.float32)
     valid = np.zeros((len(boxes), slots), bool)
+    material = np.zeros((len(boxes), slots, MATERIAL_WIDTH), np.float32)
+    cat = np.full((len(boxes), slots), -1, np.int32)
     lo[..., 2] = PAD_Z_M - 0.01
     hi[..., 2] = PAD_Z_M + 0.01
     lo[..., :2] = -0.01
     hi[..., :2] = 0.01
-    for s, (c, h, col) in enumerate(boxes):
+    for s, (c, h, col, mat, category) in enumerate(boxes):
         n = len(c)
         lo[s, :n], hi[s, :n], rgb[s, :n], valid[s, :n] = c - h, c + h, col, True
-    return lo, hi, rgb, valid
+        material[s, :n], cat[s, :n] = mat, category
+    return lo, hi, rgb, valid, material, cat
 
 
 def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int = 1) -> EpisodeBank:
@@ -110,14 +122,15 @@ def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int =
     col, vis = [], []
     for scene in split.scenes:
         b = scene_boxes(scene, robot_h)
-        rgb = b.rgb.astype(np.float32) / 255.0
+        arrays = (b.center, b.half_extents, b.rgb.astype(np.float32) / 255.0, b.material,
+                  b.category)  # STRUCTURE_WALL is -1: no category
         m = b.blocks_robot
-        col.append((b.center[m], b.half_extents[m], rgb[m]))
-        vis.append((b.center[~m], b.half_extents[~m], rgb[~m]))
+        col.append(tuple(a[m] for a in arrays))
+        vis.append(tuple(a[~m] for a in arrays))
     gc = max(min_col_slots, max(len(c[0]) for c in col))
     gv = max(min_vis_slots, max(len(v[0]) for v in vis))
-    col_lo, col_hi, col_rgb, col_valid = _pad_boxes(col, gc)
-    vis_lo, vis_hi, vis_rgb, vis_valid = _pad_boxes(vis, gv)
+    col_lo, col_hi, col_rgb, col_valid, col_material, col_category = _pad_boxes(col, gc)
+    vis_lo, vis_hi, vis_rgb, vis_valid, vis_material, vis_category = _pad_boxes(vis, gv)
 
     cell = float(split.navs[0].grid.cell_m)
     k = max(1, max(n.fields.shape[0] for n in split.navs))
@@ -142,10 +155,15 @@ def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int =
         col_hi=jnp.asarray(col_hi),
         col_valid=jnp.asarray(col_valid),
         col_rgb=jnp.asarray(col_rgb),
+        col_material=jnp.asarray(col_material),
+        col_category=jnp.asarray(col_category),
         vis_lo=jnp.asarray(vis_lo),
         vis_hi=jnp.asarray(vis_hi),
         vis_valid=jnp.asarray(vis_valid),
         vis_rgb=jnp.asarray(vis_rgb),
+        vis_material=jnp.asarray(vis_material),
+        vis_category=jnp.asarray(vis_category),
+        floor_material=jnp.asarray(np.stack([s.materials.floor.row() for s in split.scenes])),
         fields=jnp.asarray(fields),
         field_origin=jnp.asarray(origin),
         field_category=jnp.asarray(field_cat),
@@ -167,6 +185,7 @@ def build_bank(split: EpisodeSplit, min_col_slots: int = 0, min_vis_slots: int =
         root_yaw=jnp.asarray(e["root_yaw"]),
         joints_local=jnp.asarray(e["joints_local"]),
         phase=jnp.asarray(e["phase"]),
+        clothing_rgb=jnp.asarray(clothing_rgb(np.arange(len(e["t_end"]))).astype(np.float32) / 255.0),
         cell_m=cell,
     )
 

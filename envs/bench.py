@@ -13,6 +13,8 @@ step against H100 rates (FP32 non-tensor throughput, HBM bandwidth).
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import statistics
 import time
 
@@ -29,8 +31,8 @@ def _memory_bytes() -> int | None:
 
 
 def _sensor_run(env, batch: int, steps: int, mesh=None):
-    """Panoramas only: `steps` frames of `batch` robots at random yaws in their start poses
-    (each of `mesh`'s devices casting its share, `per_device`)."""
+    """Panoramas only (RGB-D, coloured in the env's materials): `steps` frames of `batch` robots
+    at random yaws in their start poses (each of `mesh`'s devices casting its share, `per_device`)."""
     n = env.num_episodes
     reset = jax.vmap(env.reset_to_episode)
 
@@ -41,8 +43,8 @@ def _sensor_run(env, batch: int, steps: int, mesh=None):
         def body(total, t):
             yaw = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, t), (), minval=-3.14, maxval=3.14))(keys)
             dd = d.replace(qpos=d.qpos.at[:, 2].set(yaw))
-            depth, _ = jax.vmap(env.panorama)(dd, episodes)
-            return total + depth.mean(axis=(1, 2)), None
+            rgbd, _ = jax.vmap(env.render)(dd, episodes)
+            return total + rgbd.mean(axis=(1, 2, 3)), None
 
         total, _ = jax.lax.scan(body, jnp.zeros(keys.shape[0]), jnp.arange(steps))
         return total
@@ -228,9 +230,22 @@ def bench_compile(env, batch: int) -> dict:
     return out
 
 
-def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mesh=None) -> dict:
+def with_materials(env, materials: str | None):
+    """`env` rendering `materials` (SensorConfig.materials; None: its own): a shallow copy
+    sharing the bank and the models, so one process times both without building a second env."""
+    if materials is None or materials == env.config.sensor.materials:
+        return env
+    other = copy.copy(env)
+    other.config = dataclasses.replace(env.config, sensor=dataclasses.replace(env.config.sensor, materials=materials))
+    return other
+
+
+def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mesh=None,
+              materials: str | None = None) -> dict:
     """Time `steps` env steps (or panoramas) of `batch` episodes (in all, split over `mesh`'s
-    devices if given); returns a dict of figures, rates in total and per device."""
+    devices if given) with the env's sensor rendering `materials` (SensorConfig.materials;
+    None: the env's own); returns a dict of figures, rates in total and per device."""
+    env = with_materials(env, materials)
     if what == "compile":
         if mesh is not None and mesh.size > 1:
             raise ValueError("--what compile runs on one device; use --devices 1")
@@ -255,6 +270,7 @@ def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mes
         "compile_and_first_call_s": round(compile_s, 2),
         "median_call_s": round(med, 4),
         "what": what,
+        "materials": env.config.sensor.materials,
         ("env_steps_per_s" if what == "step" else "frames_per_s"): round(rate, 1),
         "peak_bytes_in_use": _memory_bytes(),
     }

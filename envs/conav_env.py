@@ -48,7 +48,7 @@ from conav_jax.nav.planning import field_value
 from conav_jax.envs import contact
 from conav_jax.envs.bank import FLOOR_RGB_F, EpisodeBank, build_bank
 from conav_jax.envs.config import EnvConfig, resolve_physics_impl, resolve_sensor_kind
-from conav_jax.envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_poses, quat_z_to
+from conav_jax.envs.humanoid import CAPSULE_RADII, capsule_colours, capsule_groups, capsule_poses, quat_z_to
 from conav_jax.envs.observations import PRIVILEGED_KEYS, SENSOR_KEYS, observation
 from conav_jax.envs.mjcf import (
     UD,
@@ -65,6 +65,7 @@ from conav_jax.envs.panorama import (
     colourise,
     front_view,
     reference_depth_ids,
+    shade,
 )
 
 ROBOT_RGB = np.array([0.3, 0.3, 0.32], np.float32)
@@ -200,7 +201,7 @@ class ConavEnv(Env):
 
     def default_observation_keys(self) -> tuple[str, ...]:
         """The keys `reset`/`step` observe (brax's interface, training): the sensors, and the
-        ground-truth intentions with `EnvConfig.intention_obs`. An agent in a rollout observes
+        privileged keys (ground-truth intentions, segmentation) with `EnvConfig.intention_obs`. An agent in a rollout observes
         only the keys it declares (envs.rollout)."""
         return SENSOR_KEYS + (tuple(PRIVILEGED_KEYS) if self.config.intention_obs else ())
 
@@ -417,21 +418,62 @@ class ConavEnv(Env):
             [jnp.asarray(floor)[None], b.col_rgb[s], b.vis_rgb[s], hidden, jnp.asarray(robot)[None], jnp.asarray(human)]
         )
 
+    def _geom_material(self, episode: jax.Array) -> jax.Array:
+        """(ngeom, MATERIAL_WIDTH) material rows by geom id (SensorConfig.materials "instance"):
+        the scene's floor, boxes, the robot in its flat colour, the humanoid in the episode's
+        clothing."""
+        b = self.bank
+        s = b.scene_index[episode]
+        flat = lambda rgb: jnp.concatenate([rgb, rgb, jnp.zeros(rgb.shape[:-1] + (1,)),
+                                            jnp.ones(rgb.shape[:-1] + (1,)), jnp.zeros(rgb.shape[:-1] + (1,))], -1)
+        hidden = jnp.zeros((self.layout.physics_slots, b.floor_material.shape[-1]))
+        human = flat(b.clothing_rgb[episode][jnp.asarray(capsule_groups())])
+        return jnp.concatenate([b.floor_material[s][None], b.col_material[s], b.vis_material[s], hidden,
+                                flat(jnp.asarray(ROBOT_RGB))[None], human])
+
+    def _geom_category(self, episode: jax.Array) -> jax.Array:
+        """(ngeom,) int32 object category by geom id, -1 for the floor, walls, robot and humanoid."""
+        b = self.bank
+        s = b.scene_index[episode]
+        none = lambda n: jnp.full((n,), -1, jnp.int32)
+        lay = self.layout
+        return jnp.concatenate([none(1), b.col_category[s], b.vis_category[s],
+                                none(lay.ngeom - lay.physics_start)])
+
+    def segmentation(self, ids: jax.Array, episode: jax.Array) -> jax.Array:
+        """Object category per pixel (int32, like `ids`) of hit geom ids `ids` in `episode`'s
+        scene: -1 for the sky, floor, walls and the humanoid (observation key "segmentation")."""
+        return jnp.where(ids >= 0, self._geom_category(episode)[jnp.maximum(ids, 0)], -1)
+
+    def _colour(self, d: mjx.Data, episode: jax.Array, depth: jax.Array, ids: jax.Array) -> jax.Array:
+        """RGB-D (H, W, 4) of a cast (depth, ids) from the robot's camera in `d`, in the
+        configured materials (SensorConfig.materials)."""
+        cfg = self.config.sensor
+        if cfg.materials == "flat":
+            return colourise(depth, ids, self._geom_rgb(episode))
+        cam = jnp.array([d.qpos[0], d.qpos[1], self.task.camera_height_m])
+        return shade(cfg, cam, d.qpos[2], depth, ids, self._scene_geometry(d, episode), self._geom_material(episode))
+
     def panorama(self, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(depth (H, W) metres, geom ids (H, W)) of the robot's camera in data `d` from the
         configured sensor: mjx.ray in the episode's render model for "reference", else its caster
         over the episode's boxes and the humanoid's capsules at the data's step, as a
         SceneGeometry."""
-        cfg, b = self.config.sensor, self.bank
+        cfg = self.config.sensor
         cam = jnp.array([d.qpos[0], d.qpos[1], self.task.camera_height_m])
         yaw = d.qpos[2]
         if cfg.kind == "reference":
             m = self._episode_model(episode, d.qpos[:2], render=True)
             return reference_depth_ids(cfg, m, d, cam, yaw, self._robot_body)
+        return caster_for(cfg.kind)(cfg, cam, yaw, self._scene_geometry(d, episode))
+
+    def _scene_geometry(self, d: mjx.Data, episode: jax.Array) -> SceneGeometry:
+        """The episode's boxes and the humanoid's capsules at the data's step."""
+        b = self.bank
         s = b.scene_index[episode]
         t = d.userdata[UD["t"]].astype(jnp.int32)
         _, _, ends = capsule_poses(self.human_joints(episode, t))
-        geometry = SceneGeometry(
+        return SceneGeometry(
             box_lo_m=jnp.concatenate([b.col_lo[s], b.vis_lo[s]]),
             box_hi_m=jnp.concatenate([b.col_hi[s], b.vis_hi[s]]),
             box_ids=self._box_ids,
@@ -442,7 +484,6 @@ class ConavEnv(Env):
             capsule_ids=self._cap_ids,
             floor_id=self.layout.floor,
         )
-        return caster_for(cfg.kind)(cfg, cam, yaw, geometry)
 
     def render_at(self, episode: jax.Array, robot_pose: jax.Array, t: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(rgbd (H, W, 4), geom ids (H, W)): the panorama the robot's camera sees from
@@ -453,8 +494,13 @@ class ConavEnv(Env):
         d = self._data0.replace(qpos=jnp.asarray(robot_pose, self._data0.qpos.dtype))
         d = d.replace(userdata=d.userdata.at[UD["t"]].set(t.astype(d.userdata.dtype)))
         d = self._pose_human(d, episode, t)  # mocap poses: what the mjx.ray reference sees
+        return self.render(d, episode)
+
+    def render(self, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(rgbd (H, W, 4), geom ids (H, W)) of the robot's camera in data `d`: `panorama`
+        coloured in the configured materials."""
         depth, ids = self.panorama(d, episode)
-        return colourise(depth, ids, self._geom_rgb(episode)), ids
+        return self._colour(d, episode, depth, ids), ids
 
     def _observe(self, d: mjx.Data, episode: jax.Array, keys: tuple[str, ...]) -> dict[str, jax.Array]:
         """The observation keys `keys` (envs.observations) of data `d`, computing only those."""
@@ -464,9 +510,15 @@ class ConavEnv(Env):
         now = jnp.minimum(t, b.max_steps - 1)
         start = b.robot_start[episode]
 
+        made = {}
+
+        def cast():  # (rgbd, geom ids), rendered once for the keys that read the panorama
+            if not made:
+                made["cast"] = self.render(d, episode)
+            return made["cast"]
+
         def rgbd():
-            depth, ids = self.panorama(d, episode)
-            return colourise(depth, ids, self._geom_rgb(episode))
+            return cast()[0]
 
         def steps(offsets):
             return jnp.clip(t + offsets, 0, b.max_steps - 1)
@@ -484,6 +536,8 @@ class ConavEnv(Env):
             "activity_probs": lambda: jax.nn.one_hot(b.activity_b[episode], NUM_ACTIVITIES),
             "object_probs": lambda: jax.nn.one_hot(b.object_b[episode], NUM_CATEGORIES),
             "future_traj": lambda: human_at(steps(1 + jnp.arange(cfg.future_steps))),
+            # Privileged: each pixel's object category, -1 for no object (ORACLE_SEGMENTATION).
+            "segmentation": lambda: self.segmentation(cast()[1], episode),
         }
         obs = {}
         for k in sorted(keys, key=lambda k: k != "rgbd"):  # the panorama first: `front` cuts it

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 SENSOR_KINDS = ("auto", "fast", "pallas", "reference")
 PHYSICS_IMPLS = ("auto", "jax", "warp")
+MATERIALS = ("instance", "flat")
 
 
 def resolve_sensor_kind(kind: str) -> str:
@@ -87,8 +88,23 @@ class SensorConfig:
     pallas_block_w: int = 16
     pallas_num_warps: int = 4
     pallas_interpret: bool = False
+    # What RGB shows. "instance": every object instance, the walls and the floor in their own
+    # material (conav_jax.data.materials: a colour from a palette shared by all categories and a
+    # procedural pattern), the humanoid in per-episode clothing, all Lambertian-shaded
+    # (envs.panorama.shade), so colour does not give away an object's category. "flat": each geom
+    # in its category's flat colour, unshaded (RGB is then a segmentation map; the images of
+    # runs trained before materials existed).
+    materials: str = "instance"
+    # Shading: direction towards the light (world frame, normalised when used) and the share of
+    # a surface's colour it shows unlit.
+    light_direction: tuple[float, float, float] = (0.35, 0.55, 0.76)
+    ambient: float = 0.45
 
     def __post_init__(self):
+        if self.materials not in MATERIALS:
+            raise ValueError(f"sensor materials must be one of {MATERIALS}, got {self.materials!r}")
+        if not 0.0 <= self.ambient <= 1.0:
+            raise ValueError(f"sensor ambient must be in [0, 1], got {self.ambient}")
         if self.kind not in SENSOR_KINDS:
             raise ValueError(f"sensor kind must be one of {SENSOR_KINDS}, got {self.kind!r}")
         if self.fast_min not in ("reduce", "unroll"):
@@ -97,6 +113,31 @@ class SensorConfig:
             raise ValueError(f"pallas_block_w must be a power of two, got {self.pallas_block_w}")
         if self.height < 4 or self.width < 8 or self.width % 8:
             raise ValueError(f"panorama must be at least 4x8 with width a multiple of 8, got {self.height}x{self.width}")
+
+
+def materials_of_run(config: dict) -> str:
+    """The SensorConfig.materials a run's checkpoint config records (key "materials", or in
+    its "data" for intention runs); "flat" for runs written before materials existed."""
+    return config.get("materials", config.get("data", {}).get("materials", "flat"))
+
+
+def run_materials(run_dir) -> str:
+    """The SensorConfig.materials the images of the run in `run_dir` were rendered with: what
+    an env that the run's agent or predictor acts in must render (the shipped pretrained runs:
+    "flat"). FileNotFoundError for a directory without a checkpoint."""
+    from conav_jax.checkpoints import latest_checkpoint, read_checkpoint_meta
+
+    found = latest_checkpoint(run_dir)
+    if found is None:
+        raise FileNotFoundError(f"no checkpoint in run {run_dir}")
+    return materials_of_run(read_checkpoint_meta(found)["config"])
+
+
+def check_materials(trained: str, sensor: SensorConfig, source_name: str) -> None:
+    """ValueError, naming both, unless `sensor` renders the materials `source_name` was trained on."""
+    if trained != sensor.materials:
+        raise ValueError(f"{source_name} was trained on materials={trained!r} images but the env renders "
+                         f"materials={sensor.materials!r}; build the env with SensorConfig(materials={trained!r})")
 
 
 @dataclass(frozen=True)

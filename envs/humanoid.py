@@ -28,19 +28,25 @@ CAPSULE_HALF_LENGTHS = np.maximum(np.linalg.norm(_P1 - _P0, axis=-1) / 2.0, 0.01
 NUM_CAPSULES = len(CAPSULE_BONES)
 
 
-def capsule_colours() -> np.ndarray:
-    """(C, 3) RGB in [0, 1]: skin for head and forearms, shirt for torso and upper arms,
-    trousers for the legs, so a person reads as a person in the RGB panorama."""
+def capsule_groups() -> np.ndarray:
+    """(C,) int: which clothing each capsule wears, 0 skin (head and forearms), 1 shirt (torso
+    and upper arms), 2 trousers (the legs)."""
     out = []
     for k, (i, j, _) in enumerate(CAPSULE_BONES):
         names = JOINT_NAMES[i] + JOINT_NAMES[j]
         if "hip" in names or "knee" in names or "ankle" in names:
-            out.append(_TROUSERS)
+            out.append(2)
         elif k == HEAD_CAPSULE or "wrist" in names:
-            out.append(_SKIN)
+            out.append(0)
         else:
-            out.append(_SHIRT)
-    return np.asarray(out, np.float32)
+            out.append(1)
+    return np.asarray(out, np.int32)
+
+
+def capsule_colours() -> np.ndarray:
+    """(C, 3) RGB in [0, 1] of the flat colours (capsule_groups: skin, shirt, trousers), so a
+    person reads as a person in the RGB panorama."""
+    return np.asarray((_SKIN, _SHIRT, _TROUSERS), np.float32)[capsule_groups()]
 
 
 def capsule_poses(joints: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

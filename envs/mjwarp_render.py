@@ -14,8 +14,11 @@ together the W columns of our H x W panorama (envs.panorama). Two ray layouts:
   (which no pixel samples) is common to both layouts; `pinhole_pixels_of_panorama` pairs each
   panorama ray with the nearest pinhole pixel (a resampling, half a pixel off at most).
 
-Colours are flat, as our `colourise`: no lights, and MuJoCo's headlight set to ambient 1, diffuse
-and specular 0, so a hit shows its geom's RGB (quantised to 8 bits); nothing hit (or hit beyond
+Colours are flat, as our `colourise` (SensorConfig.materials "flat"): no lights, and MuJoCo's
+headlight set to ambient 1, diffuse and specular 0, so a hit shows its geom's RGB (quantised to
+8 bits). It does not draw our instance materials: their patterns are functions of the hit point
+(envs.panorama.shade) that MuJoCo Warp's per-geom colours and textures cannot express, so
+compare it with an env rendering "flat". Nothing hit (or hit beyond
 SensorConfig.max_depth_m) shows the sky. The robot's capsule is left out of the render (the
 cameras sit on its top), as are the physics slots; geom ids are the env's.
 

@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 from conav_jax.data.activities import NUM_ACTIVITIES
 from conav_jax.data.categories import NUM_CATEGORIES
-from conav_jax.envs.agents.base import FUTURE_HUMAN_POSITIONS, GROUND_TRUTH_INTENTIONS
+from conav_jax.envs.agents.base import FUTURE_HUMAN_POSITIONS, GROUND_TRUTH_INTENTIONS, ORACLE_SEGMENTATION
 
 
 class Observation(NamedTuple):
@@ -39,6 +39,8 @@ OBSERVATIONS: tuple[Observation, ...] = (
                 None, "where the human is now"),
     Observation("human_history", ("history", 2), "float32", "metres", "robot (x forward, y left)",
                 None, "the human's last positions, oldest first, the current one last"),
+    Observation("segmentation", ("H", "W"), "int32", "object category id, -1 for none", "as rgbd",
+                ORACLE_SEGMENTATION, "each pixel's object category (sky, floor, walls and the humanoid: -1)"),
     Observation("activity_probs", (NUM_ACTIVITIES,), "float32", "probability", "none",
                 GROUND_TRUTH_INTENTIONS, "one-hot of the human's activity B"),
     Observation("object_probs", (NUM_CATEGORIES,), "float32", "probability", "none",

@@ -42,7 +42,8 @@ def agent_predictions(carry: Any) -> dict[str, Any]:
 def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Run one episode jitted to its end (t_end) and return (frames, sources).
 
-    frames: "pose" (T+1, 3), "rgbd" (T+1, H, W, 4), "done" (T+1,), "action" (T+1, 2) (the action
+    frames: "pose" (T+1, 3), "rgbd" (T+1, H, W, 4), "segmentation" (T+1, H, W), "done" (T+1,),
+    "action" (T+1, 2) (the action
     taken from that frame), and each intention key available, frame t being the state after t
     steps. sources: intention key -> "predicted" (from the agent's carry) or "ground_truth"."""
     import jax
@@ -54,7 +55,8 @@ def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, n
     steps = int(env.split.episodes["t_end"][episode])
     ep = jnp.int32(episode)
     agent = as_state_agent(agent)
-    keys = tuple(dict.fromkeys(("rgbd",) + env.default_observation_keys() + agent.reads))
+    # The frame's panorama and segmentation are for the viewer; the agent sees its own keys.
+    keys = tuple(dict.fromkeys(("rgbd", "segmentation") + env.default_observation_keys() + agent.reads))
 
     def seen(state):  # (the frame's observation, the agent's: the keys it reads only)
         full = env.observe(state, keys)
@@ -78,6 +80,7 @@ def record_episode(env, agent, episode: int, seed: int = 0) -> tuple[dict[str, n
             action, carry = agent.act(mine, carry, k)
             preds = agent_predictions(carry)
             frame = {"pose": state.pipeline_state.qpos, "rgbd": full.obs["rgbd"], "done": state.done, "action": action}
+            frame["segmentation"] = full.obs["segmentation"]
             for name, src in sources.items():
                 frame[name] = preds[name] if src == "predicted" else full.obs[name]
             return (apply_action(env, agent, state, action), carry), frame
@@ -176,10 +179,14 @@ def log_episode(rec, env, episode: int, frames: dict[str, np.ndarray], sources: 
     graph = load_activity_graph()
     activity_names = [a.name for a in graph.activities]
     saliency = None
-    if "object_probs" in sources:  # where the object intention points in the panorama (what the policy reads)
+    segmentation = frames.get("segmentation")
+    if segmentation is not None:  # class 0: no object; category k is class k + 1
+        rec.log("camera/segmentation", rr.AnnotationContext(
+            [(0, "no object", (0, 0, 0))] + [(k + 1, name) for k, name in enumerate(CATEGORY_NAMES)]), static=True)
+    if "object_probs" in sources and segmentation is not None:  # where the object intention points (what the policy reads)
         from conav_jax.models.policy import object_saliency
 
-        saliency = (np.asarray(object_saliency(frames["rgbd"][..., :3], frames["object_probs"])) * 255).astype(np.uint8)
+        saliency = (np.asarray(object_saliency(segmentation, frames["object_probs"])) * 255).astype(np.uint8)
     pose = frames["pose"]
     done = frames["done"] > 0.5
     ended = int(np.argmax(done)) if done.any() else len(done) - 1  # the frame the episode ended at
@@ -195,6 +202,8 @@ def log_episode(rec, env, episode: int, frames: dict[str, np.ndarray], sources: 
         rgbd = frames["rgbd"][t]
         rec.log("camera/rgb", rr.Image((np.clip(rgbd[..., :3], 0.0, 1.0) * 255).astype(np.uint8)))
         rec.log("camera/depth", rr.DepthImage(rgbd[..., 3].astype(np.float32), meter=1.0))
+        if segmentation is not None:
+            rec.log("camera/segmentation", rr.SegmentationImage((segmentation[t] + 1).astype(np.uint8)))
         if saliency is not None:
             rec.log(f"camera/object_saliency/{sources['object_probs']}", rr.Image(saliency[t]))
         rec.log("metrics/distance_to_goal_m", rr.Scalars(float(np.hypot(x - goal[0], y - goal[1]))))
@@ -222,11 +231,13 @@ def view_episode(
     resolution: tuple[int, int] | None = None,
     seed: int = 0,
     spawn: bool = False,
+    materials: str | None = None,
 ) -> str:
     """Record `episode` of `split` driven by `agent` into the rerun file `out` (and stream it to
     a spawned viewer with `spawn`); returns a one-line summary. Inputs are checked before
     anything is built: ValueError naming the first problem. `resolution` None: the trained
-    run's, else SensorConfig's default."""
+    run's, else SensorConfig's default; `materials` (SensorConfig.materials) None: the trained
+    run's (envs.config.run_materials), else SensorConfig's default."""
     from conav_jax.data.episodes import read_manifest
     from conav_jax.envs.agents.registry import run_resolution
 
@@ -251,7 +262,12 @@ def view_episode(
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
     from conav_jax.envs.agents.registry import make_agent
 
-    env = ConavEnv(data, split, EnvConfig(sensor=SensorConfig(height=h, width=w)), max_episodes=episode + 1)
+    from conav_jax.envs.config import run_materials
+
+    if materials is None:
+        materials = run_materials(checkpoint) if spec.needs_checkpoint and checkpoint else SensorConfig.materials
+    sensor = SensorConfig(height=h, width=w, materials=materials)
+    env = ConavEnv(data, split, EnvConfig(sensor=sensor), max_episodes=episode + 1)
     built = make_agent(agent, env, checkpoint, **predictors)
     frames, sources = record_episode(env, built, episode, seed)
 

@@ -210,7 +210,8 @@ def test_every_goal_agent_names_what_it_is_given(agents):
 
 def _fake_state(episode: int, t: int, category: int = FRIDGE):
     """A one-env state at step t of `episode` with a blank panorama and a wrong `object_probs`."""
-    obs = {"rgbd": jnp.zeros((8, 32, 4)), "gps_compass": jnp.zeros(3), "object_probs": jax.nn.one_hot(category, 51)}
+    obs = {"rgbd": jnp.zeros((8, 32, 4)), "segmentation": jnp.full((8, 32), -1, jnp.int32), "gps_compass": jnp.zeros(3),
+           "object_probs": jax.nn.one_hot(category, 51)}
     ud = jnp.zeros(len(UD)).at[UD["t"]].set(t)
     return SimpleNamespace(obs=obs, info={"episode": jnp.int32(episode)},
                            pipeline_state=SimpleNamespace(userdata=ud, qpos=jnp.array([4.0, 2.0, 0.0])))

@@ -112,11 +112,11 @@ def test_bfloat16_convolutions_keep_the_bc_loss_and_its_gradients(trained):
     grad = jax.jit(jax.value_and_grad(im.bc_loss, has_aux=True), static_argnums=(1, 3), compiler_options=FAST)
     bf16 = dataclasses.replace(PCFG, conv_dtype="bfloat16")
     # The fitted policy, whose actions depend on its CNN: measured on the CPU, the loss differs
-    # by 8.7e-4 of itself (with or without remat).
+    # by 5.6e-3 of itself on the shaded panoramas (8.7e-4 on flat colours).
     (exact, _), _ = grad(trained.params, PCFG, trained.windows, False)
     (mixed, _), _ = grad(trained.params, bf16, trained.windows, False)
     assert mixed.dtype == jnp.float32 and float(mixed) != float(exact)  # the convolutions rounded
-    np.testing.assert_allclose(mixed, exact, rtol=4e-3)
+    np.testing.assert_allclose(mixed, exact, rtol=1e-2)
     # Gradients away from the labels it was fitted to (negated): at its fitted minimum they are
     # as small as the rounding's effect on the features (cosine 0.984 there, measured); here the
     # cosine measured 0.99982 (0.99994 with remat), 0.9996 for the CNN's own.
@@ -148,7 +148,7 @@ def test_records_hold_compact_observations(bc):
     _, recs = bc
     assert recs.obs["rgb"].dtype == np.uint8 and recs.obs["rgb"].shape == (3, T_END + 1, 8, 32, 3)
     assert recs.obs["depth"].dtype == np.float16 and recs.obs["depth"].shape == (3, T_END + 1, 8, 32)
-    assert set(recs.obs) == {"rgb", "depth", *im.RECORDED_KEYS}
+    assert set(recs.obs) == {"rgb", "depth", "segmentation", *im.RECORDED_KEYS}
     np.testing.assert_array_equal(recs.obs["activity_probs"].argmax(-1), 4)  # the hall's activity B
 
 

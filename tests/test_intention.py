@@ -44,7 +44,8 @@ from conav_jax.train.loop import TrainConfig
 FAST = {"xla_backend_optimization_level": 0}
 # 16x16 crops of 32x128 panoramas: at this resolution a human 1.5-3 m away is 9-19 rows tall.
 # Two viewpoints: each episode's start pose and one drawn around the human.
-DATA = IntentionDataConfig(sensor_hw=(32, 128), frames=4, viewpoints=2)
+# Flat colours: the human's pixels are told by their colour.
+DATA = IntentionDataConfig(sensor_hw=(32, 128), materials="flat", frames=4, viewpoints=2)
 MODEL = PerceiverConfig(image_hw=(16, 16), dim=16, num_latents=4, num_heads=2, num_blocks=0)
 
 
@@ -217,11 +218,16 @@ def test_an_activity_of_the_true_activitys_object_counts_as_the_same_object():
 
 
 def _panoramas(env, d, episode):
-    """The env's observations `rgbd (F, H, W, 4)`, `human_pos (F, 2)` of `episode`'s training
-    frames from its start pose (its first viewpoint)."""
+    """The env's observations `rgbd (F, H, W, 4)`, `segmentation (F, H, W)`, `human_pos (F, 2)`
+    of `episode`'s training frames from its start pose (its first viewpoint)."""
     steps, _ = activity_a_steps(env.split.episodes["t_walk_start"], DATA.frames)
-    rgbd = jax.jit(jax.vmap(lambda t: env.render_at(episode, env.bank.robot_start[episode], t)[0]))(steps[episode])
-    return {"rgbd": rgbd, "human_pos": d["human_pos"][2 * episode]}
+
+    def one(t):
+        rgbd, ids = env.render_at(episode, env.bank.robot_start[episode], t)
+        return rgbd, env.segmentation(ids, episode)
+
+    rgbd, segmentation = jax.jit(jax.vmap(one))(steps[episode])
+    return {"rgbd": rgbd, "segmentation": segmentation, "human_pos": d["human_pos"][2 * episode]}
 
 
 def _run_predictor(predictor, obs):
@@ -279,11 +285,10 @@ def test_under_vmap_each_lane_gets_what_it_gets_alone(seen_objects):
                                          FrameSpec("front", (16, 64)), frame_stride=3, history=4, top_k=2)
     lanes, steps = 9, 7
     rgbd = jax.random.uniform(jax.random.key(1), (lanes, steps, 16, 64, 4), maxval=4.0)
-    # A few object colours in each panorama, different in each lane and step.
-    colours = jnp.asarray([c.rgb for c in CATEGORIES], jnp.float32) / 255.0
-    drawn = colours[jax.random.randint(jax.random.key(2), (lanes, steps, 16, 1), 0, len(CATEGORIES))]
-    rgbd = rgbd.at[..., :3].set(jnp.broadcast_to(drawn, (lanes, steps, 16, 64, 3)))
-    obs = {"rgbd": rgbd, "human_pos": jnp.ones((lanes, steps, 2))}
+    # A few object categories in each panorama, different in each lane and step.
+    drawn = jax.random.randint(jax.random.key(2), (lanes, steps, 16, 1), 0, len(CATEGORIES))
+    obs = {"rgbd": rgbd, "segmentation": jnp.broadcast_to(drawn, (lanes, steps, 16, 64)),
+           "human_pos": jnp.ones((lanes, steps, 2))}
     # Seven lanes record on the first step (two passes of chunks of six), the others later.
     starts = jnp.array([0] * 7 + [1, 2], jnp.int32)
 
@@ -310,7 +315,7 @@ def test_with_seen_objects_the_predictor_names_only_activities_of_objects_its_pa
     env, d = rendered
     obs = _panoramas(env, d, 0)
     # What the whole panoramas show, as the training samples record it.
-    in_view = np.asarray(jax.vmap(categories_in_view)(obs["rgbd"][..., :3]))
+    in_view = np.asarray(jax.vmap(categories_in_view)(obs["segmentation"]))
     np.testing.assert_array_equal(d["objects_seen"][0], in_view)
     assert in_view.any(axis=1).all()  # every frame shows some object
     config = dataclasses.replace(MODEL, seen_objects=True)

@@ -25,7 +25,8 @@ MISMATCH_SHARE = 1e-4
 
 @pytest.fixture(scope="module")
 def env(tiny_data):
-    return ConavEnv(str(tiny_data), "val", EnvConfig(sensor=SensorConfig(kind="fast")))  # 112x448
+    # Flat colours: MuJoCo Warp's renderer shows each geom's RGB, unshaded (envs.mjwarp_render).
+    return ConavEnv(str(tiny_data), "val", EnvConfig(sensor=SensorConfig(kind="fast", materials="flat")))  # 112x448
 
 
 def _frames(env):

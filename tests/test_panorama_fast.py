@@ -13,7 +13,8 @@ from worlds import make_split
 
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 from conav_jax.envs.mjcf import UD
-from conav_jax.envs.panorama import SceneGeometry, caster_for, fast_depth_ids, reference_depth_ids
+from conav_jax.data.materials import Material
+from conav_jax.envs.panorama import SceneGeometry, caster_for, fast_depth_ids, reference_depth_ids, shade
 from conav_jax.envs.panorama_pallas import pallas_depth_ids
 
 RES = dict(height=16, width=64)
@@ -45,15 +46,26 @@ def images():
         states.append(env._pose_human(d, ep, jnp.int32(T)))
     out = {}
     for k, e in envs.items():
-        f = jax.jit(lambda d, e=e: e.panorama(d, ep))
-        out[k] = [tuple(np.asarray(a) for a in f(d)) for d in states]
+        # The panorama in the instance materials: depth, ids, and the shaded RGB.
+        f = jax.jit(lambda d, e=e: e.render(d, ep))
+        out[k] = [(rgbd[..., 3], ids, rgbd[..., :3]) for rgbd, ids in (jax.tree.map(np.asarray, f(d)) for d in states)]
     return out, env.layout.human_start
 
 
 def _stack(images, kind):
-    depth = np.stack([d for d, _ in images[kind]])
-    ids = np.stack([i for _, i in images[kind]])
+    depth = np.stack([d for d, _, _ in images[kind]])
+    ids = np.stack([i for _, i, _ in images[kind]])
     return depth, ids
+
+
+@pytest.mark.parametrize("kind", ["reduce", "pallas", "reference"])
+def test_casters_agree_on_the_shaded_colours(images, kind):
+    imgs, _ = images
+    rgb = np.stack([c for _, _, c in imgs["unroll"]])
+    other = np.stack([c for _, _, c in imgs[kind]])
+    # Patterns and shading are smooth in the hit point: depths micrometres apart shade alike.
+    assert np.abs(rgb - other).max() < 1.0 / 255.0, np.abs(rgb - other).max()
+    assert len(np.unique(rgb.reshape(-1, 3), axis=0)) > 50  # patterned and shaded, not flat
 
 
 def test_humanoid_is_in_view(images):
@@ -101,6 +113,15 @@ CAPSULES_M = [((1.5, -0.8, 0.2), (1.5, -0.8, 1.4), 0.15), ((-0.8, 0.9, 0.5), (-0
 # (x, y, z, yaw): cameras looking at the boxes and capsules from several sides.
 CAMERAS = [(0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0, 2.4), (2.2, -0.5, 0.6, -1.0), (0.8, -1.6, 1.2, 1.9)]
 GEOMETRY_RES = dict(height=16, width=64)
+# Materials by geom id: the floor in value noise, the boxes striped, checked and noisy at the
+# shortest period drawn, the padding box and the capsules plain.
+MATERIALS = jnp.asarray(np.stack([
+    Material((150, 115, 80), (90, 60, 35), "noise", 0.3).row(),
+    Material((200, 60, 50), (40, 110, 100), "stripes", 0.3, 30.0).row(),
+    Material((235, 190, 60), (30, 30, 35), "checks", 0.3, 60.0).row(),
+    Material((60, 150, 190), (240, 235, 220), "noise", 0.3, 10.0).row(),
+    *[Material((220, 170, 135), (220, 170, 135)).row()] * 3,
+]))
 
 
 def _geometry(with_capsules: bool) -> SceneGeometry:
@@ -147,32 +168,38 @@ def geometry_images(request):
                                                   pallas_interpret=jax.default_backend() != "gpu")),
     }
     out = {}
+
+    def shaded(cfg, cam, yaw, depth_ids):
+        return (*depth_ids, shade(cfg, cam, yaw, *depth_ids, geometry, MATERIALS)[..., :3])
+
     for name, (caster, cfg) in casters.items():
-        f = jax.jit(lambda cam, yaw, caster=caster, cfg=cfg: caster(cfg, cam, yaw, geometry))
+        f = jax.jit(lambda cam, yaw, caster=caster, cfg=cfg: shaded(cfg, cam, yaw, caster(cfg, cam, yaw, geometry)))
         shots = [f(jnp.array(c[:3], jnp.float32), jnp.float32(c[3])) for c in CAMERAS]
-        out[name] = tuple(np.stack([np.asarray(x[i]) for x in shots]) for i in range(2))
+        out[name] = tuple(np.stack([np.asarray(x[i]) for x in shots]) for i in range(3))
     m = mjx.put_model(mujoco.MjModel.from_xml_string(_mjcf(with_capsules)))
     d = mjx.make_data(m)
     cfg = SensorConfig(**GEOMETRY_RES, kind="reference")
-    ref = jax.jit(lambda cam, yaw: reference_depth_ids(cfg, m, d, cam, yaw, -1))
+    ref = jax.jit(lambda cam, yaw: shaded(cfg, cam, yaw, reference_depth_ids(cfg, m, d, cam, yaw, -1)))
     shots = [ref(jnp.array(c[:3], jnp.float32), jnp.float32(c[3])) for c in CAMERAS]
-    out["reference"] = tuple(np.stack([np.asarray(x[i]) for x in shots]) for i in range(2))
+    out["reference"] = tuple(np.stack([np.asarray(x[i]) for x in shots]) for i in range(3))
     return out, with_capsules
 
 
 def test_scene_geometry_casters_agree_with_each_other_and_mjx_ray(geometry_images):
     imgs, with_capsules = geometry_images
-    depth, ids = imgs["unroll"]
+    depth, ids, rgb = imgs["unroll"]
     seen = set(np.unique(ids).tolist())
     assert {-1, 0, 1, 2, 3} <= seen and 6 not in seen, seen  # sky, floor, every box; no padding
     assert ({4, 5} <= seen) == with_capsules, seen
+    for kind in ("reduce", "pallas", "reference"):
+        assert np.abs(imgs[kind][2] - rgb).max() < 1.0 / 255.0, kind  # patterns and shading as the hits
     for kind in ("reduce", "pallas"):
-        d, i = imgs[kind]
+        d, i, _ = imgs[kind]
         np.testing.assert_array_equal(i, ids, err_msg=kind)
         # Same arithmetic: boxes and floor bit for bit, capsules up to FMA contraction.
         np.testing.assert_array_equal(d[i < 4], depth[ids < 4], err_msg=kind)
         assert np.abs(d - depth).max() < 1e-4, kind
-    d_ref, i_ref = imgs["reference"]
+    d_ref, i_ref, _ = imgs["reference"]
     np.testing.assert_array_equal(ids, i_ref)
     assert np.abs(depth - d_ref).max() < 1e-3, np.quantile(np.abs(depth - d_ref), [0.5, 0.99, 1.0])
 

@@ -87,6 +87,7 @@ def _policy_updates(mesh) -> dict:
     obs = {
         "rgb": rng.integers(0, 256, (n, w, 8, 32, 3), dtype=np.uint8),
         "depth": rng.uniform(0, 5, (n, w, 8, 32)).astype(np.float16),
+        "segmentation": rng.integers(-1, pcfg.num_objects, (n, w, 8, 32)).astype(np.int8),
         "gps_compass": rng.normal(size=(n, w, 3)).astype(np.float32),
         "human_pos": rng.normal(size=(n, w, 2)).astype(np.float32),
         "activity_probs": rng.dirichlet(np.ones(pcfg.num_activities), (n, w)).astype(np.float32),

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conav_jax.data.categories import CATEGORIES, FLOOR_RGB, WALL_RGB
+from conav_jax.data.categories import CATEGORIES
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig, ablation_config, encoder_config
 
@@ -32,11 +32,13 @@ def _obs(lead, seed=0):
     rng = np.random.default_rng(seed)
     f = lambda *shape: rng.uniform(size=(*lead, *shape)).astype(np.float32)
     rgbd = f(16, 64, 4) * np.array([1, 1, 1, 8], np.float32)
-    # Paint objects of a few categories, so the saliency channel sees some.
+    # Objects of a few categories in the segmentation, so the saliency channel sees some.
+    segmentation = np.full((*lead, 16, 64), -1, np.int32)
     for k, col in enumerate((3, 20, 41)):
-        rgbd[..., 4:12, col : col + 3, :3] = np.asarray(CATEGORIES[7 * k + 1].rgb, np.float32) / 255.0
+        segmentation[..., 4:12, col : col + 3] = 7 * k + 1
     return {
         "rgbd": rgbd,
+        "segmentation": segmentation,
         "gps_compass": (f(3) - 0.5) * np.array([10, 10, 6.28], np.float32),
         "human_pos": f(2) * 3,
         "activity_probs": f(107) / 53.5,
@@ -139,6 +141,7 @@ def test_default_config_builds_for_the_112x448_panorama():
     shapes = jax.eval_shape(lambda k: policy.init(k, config), jax.random.PRNGKey(0))
     obs = {k: jax.ShapeDtypeStruct((3, *v.shape[1:]), jnp.float32) for k, v in _obs((1,)).items()}
     obs["rgbd"] = jax.ShapeDtypeStruct((3, 112, 448, 4), jnp.float32)
+    obs["segmentation"] = jax.ShapeDtypeStruct((3, 112, 448), jnp.int32)
     action, value, _ = jax.eval_shape(
         lambda p, o, c: policy.apply(p, config, o, c), shapes, obs, policy.initial_carry(config, 3)
     )
@@ -212,49 +215,25 @@ def test_train_policy_flag_sets_the_encoder_of_the_runs_model(flag, encoder, mon
 # -- the object saliency channel ---------------------------------------------------------------
 
 
-def _colour(rgb):
-    return np.asarray(rgb, np.float32) / 255.0
-
-
-def test_pixel_categories_read_each_category_colour_and_nothing_else():
-    from conav_jax.envs.conav_env import ROBOT_RGB
-    from conav_jax.envs.humanoid import capsule_colours
-    from conav_jax.envs.panorama import SKY_RGB
-
-    others = [_colour(WALL_RGB), _colour(FLOOR_RGB), SKY_RGB, ROBOT_RGB, *capsule_colours()]
-    rgb = np.stack([_colour(c.rgb) for c in CATEGORIES] + [np.asarray(o, np.float32) for o in others])
-    cats = np.asarray(policy.pixel_categories(rgb[None]))[0]
-    np.testing.assert_array_equal(cats, [*range(len(CATEGORIES))] + [-1] * len(others))
-    # A colour one step away from a category's is not that category.
-    off = _colour(CATEGORIES[5].rgb) + np.float32(1 / 255)
-    assert int(policy.pixel_categories(off[None, None])[0, 0]) == -1
-    # Any other colour is no category, whatever it hashes to.
-    rng = np.random.default_rng(0)
-    q = rng.integers(0, 256, (4096, 3))
-    by_key = {(r * 256 + g) * 256 + b: i for i, (r, g, b) in enumerate(c.rgb for c in CATEGORIES)}
-    expected = [by_key.get((r * 256 + g) * 256 + b, -1) for r, g, b in q]
-    np.testing.assert_array_equal(np.asarray(policy.pixel_categories(_colour(q)[None]))[0], expected)
-
-
-def test_categories_in_view_are_those_with_a_pixel_of_their_colour():
-    rgb = np.zeros((4, 6, 3), np.float32)  # black: no category
-    rgb[0, 0], rgb[3, 5], rgb[2, 2] = _colour(CATEGORIES[3].rgb), _colour(CATEGORIES[40].rgb), _colour(WALL_RGB)
-    seen = np.asarray(policy.categories_in_view(jnp.asarray(rgb)))
+def test_categories_in_view_are_those_with_a_pixel_in_the_segmentation():
+    seg = np.full((4, 6), -1, np.int32)  # no object anywhere
+    seg[0, 0], seg[3, 5] = 3, 40
+    seen = np.asarray(policy.categories_in_view(jnp.asarray(seg)))
     assert seen.shape == (len(CATEGORIES),) and seen.dtype == bool
     assert np.flatnonzero(seen).tolist() == [3, 40]
-    assert not np.asarray(policy.categories_in_view(jnp.zeros((4, 6, 3)))).any()
-    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
-        policy.categories_in_view(jnp.zeros((2, 4, 6, 3)))
+    assert not np.asarray(policy.categories_in_view(jnp.full((4, 6), -1))).any()
+    with pytest.raises(ValueError, match=r"\(H, W\)"):
+        policy.categories_in_view(jnp.zeros((2, 4, 6), jnp.int32))
 
 
 def test_object_saliency_weights_pixels_by_their_category_probability():
-    rgb = np.zeros((2, 3, 3), np.float32)
-    rgb[0, 0], rgb[0, 1], rgb[1, 2] = _colour(CATEGORIES[4].rgb), _colour(CATEGORIES[9].rgb), _colour(WALL_RGB)
-    rgb[1, 0] = rgb[1, 1] = _colour(CATEGORIES[30].rgb)
+    seg = np.full((2, 3), -1, np.int32)
+    seg[0, 0], seg[0, 1] = 4, 9
+    seg[1, 0] = seg[1, 1] = 30
     probs = np.zeros(51, np.float32)
     probs[4], probs[9], probs[30] = 0.4, 0.1, 0.0
     probs[0] = 0.5  # the most likely category is not in view: saliencies are relative to it
-    sal = np.asarray(policy.object_saliency(rgb, probs))
+    sal = np.asarray(policy.object_saliency(seg, probs))
     np.testing.assert_allclose(sal, [[0.8, 0.2, 0.0], [0.0, 0.0, 0.0]], atol=1e-6)
 
 
@@ -272,7 +251,7 @@ def test_saliency_bearing_finds_the_sector_and_depth_of_the_salient_pixels():
 
 
 def test_the_policy_reads_where_the_predicted_object_is(params):
-    """One panorama with categories 1 and 8 painted in different columns; only `object_probs`
+    """One panorama with categories 1 and 8 in different columns; only `object_probs`
     changes, from category 1 to category 8. With the object vector's own weights zeroed, the
     saliency channel alone can tell the two apart, and the action changes; with the saliency
     channel's weights zeroed too, it cannot (so the difference is the channel's)."""

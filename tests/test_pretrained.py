@@ -36,15 +36,21 @@ def test_the_shipped_runs_load_fit_the_size_limit_and_say_where_they_come_from()
 def test_the_shipped_conav_agent_builds_for_its_panorama_and_refuses_another(tiny_data):
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
     from conav_jax.envs.agents.registry import make_agent
+    from conav_jax.envs.config import run_materials
 
     runs = pretrained.pretrained_runs()
-    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=32, width=128)))
+    # Trained before instance materials: it reads flat colours, and says so.
+    assert run_materials(runs["policy"]) == run_materials(runs["intention"]) == "flat"
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=32, width=128, materials="flat")))
     predictors = {"intention_run": runs["intention"], "trajectory_run": runs["trajectory"]}
     agent = make_agent("conav", env, runs["policy"], **predictors)
     assert agent.intention_source == "predicted"
     with pytest.raises(ValueError, match="trajectory"):  # it reads the trajectory input: never ground truth instead
         make_agent("conav", env, runs["policy"], intention_run=runs["intention"])
-    small = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64)))
+    shaded = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=32, width=128, materials="instance")))
+    with pytest.raises(ValueError, match="materials='flat'.*materials='instance'"):
+        make_agent("conav", shaded, runs["policy"], **predictors)
+    small = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64, materials="flat")))
     with pytest.raises(ValueError, match="32x128|\\(32, 128\\)"):
         make_agent("conav", small, runs["policy"], **predictors)
 

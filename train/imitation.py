@@ -41,7 +41,7 @@ from conav_jax.envs.rollout import episode_batches, map_episodes
 # What a rollout records per step (besides the panorama, kept as "rgb" uint8 and "depth" f16,
 # and a goal sensor's "goal_image", kept as uint8 where there is one).
 RECORDED_KEYS = ("gps_compass", "human_pos") + INTENTION_KEYS
-PANORAMA_BYTES_PER_PIXEL = 3 + 2  # a record's panorama: uint8 RGB + float16 depth (compact_obs)
+PANORAMA_BYTES_PER_PIXEL = 3 + 2 + 1  # a record's panorama: uint8 RGB, float16 depth, int8 segmentation (compact_obs)
 GOAL_IMAGE_BYTES_PER_PIXEL = 3  # a goal image, uint8 RGB
 
 
@@ -50,7 +50,8 @@ GOAL_IMAGE_BYTES_PER_PIXEL = 3  # a goal image, uint8 RGB
 
 class StepRecord(NamedTuple):
     """One recorded step, fields (B, T, ...) from a rollout. `obs` holds the policy's inputs in
-    compact form: "rgb" (H, W, 3) uint8, "depth" (H, W) float16 metres and RECORDED_KEYS."""
+    compact form: "rgb" (H, W, 3) uint8, "depth" (H, W) float16 metres, "segmentation" (H, W) int8
+    where the env observes it, and RECORDED_KEYS."""
 
     obs: dict
     label: jax.Array  # (2,) the expert's action in this state
@@ -61,12 +62,15 @@ class StepRecord(NamedTuple):
 
 def compact_obs(obs: dict) -> dict:
     """The env's observation -> what a record keeps (uint8 RGB, float16 depth: 2.5 of 16 bytes
-    a pixel). Colours are k/255 per geom, so the uint8 round trip is exact."""
+    a pixel; RGB to the nearest of 255 levels) and, where the observation has it, the int8
+    `segmentation` (categories fit)."""
     rgbd = obs["rgbd"]
     out = {
         "rgb": jnp.round(rgbd[..., :3] * 255.0).astype(jnp.uint8),
         "depth": rgbd[..., 3].astype(jnp.float16),
     }
+    if "segmentation" in obs:
+        out["segmentation"] = obs["segmentation"].astype(jnp.int8)
     out.update({k: obs[k].astype(jnp.float32) for k in RECORDED_KEYS})
     if GOAL_IMAGE in obs:  # rendered RGB like the panorama's, so as compact
         out[GOAL_IMAGE] = jnp.round(obs[GOAL_IMAGE] * 255.0).astype(jnp.uint8)
@@ -79,6 +83,8 @@ def expand_obs(compact: dict) -> dict:
         [compact["rgb"].astype(jnp.float32) / 255.0, compact["depth"].astype(jnp.float32)[..., None]], axis=-1
     )
     out = {"rgbd": rgbd, **{k: compact[k].astype(jnp.float32) for k in RECORDED_KEYS}}
+    if "segmentation" in compact:
+        out["segmentation"] = compact["segmentation"].astype(jnp.int32)
     if GOAL_IMAGE in compact:
         out[GOAL_IMAGE] = compact[GOAL_IMAGE].astype(jnp.float32) / 255.0
     return out

@@ -46,6 +46,8 @@ class IntentionDataConfig:
     # image_hw from it at this resolution, so the agents' env must render it too (the
     # predictor checks); "front" resizes the front quarter to image_hw (any resolution).
     sensor_hw: tuple[int, int] = (SensorConfig.height, SensorConfig.width)
+    # What the panoramas' RGB shows (SensorConfig.materials); the predictor's env must render it too.
+    materials: str = SensorConfig.materials
     frames: int = 16  # F: frames per episode, spread evenly over activity A
     # What a frame shows (envs.agents.predictors.VIEWS): "human", the panorama cropped around
     # the human; "front", the front quarter (the input before the crop, for comparison).
@@ -157,7 +159,7 @@ def make_renderer(env: ConavEnv, model: PerceiverConfig, spec: FrameSpec, chunk:
         # are counted before its resize).
         seen = front_view(human) if spec.view == "front" else human_crop(human, pos, (h, w), spec.camera_height_m)
         return (frame, jnp.sum(seen, dtype=jnp.int32), jnp.sum(human, dtype=jnp.int32),
-                categories_in_view(rgbd[..., :3]))
+                categories_in_view(env.segmentation(ids, episode)))
 
     def render(episodes, steps, poses, pos):
         return jax.lax.map(lambda x: one(*x), (episodes, steps, poses, pos), batch_size=chunk)
@@ -211,9 +213,9 @@ def render_split(
 
 
 def make_env(data_dir: str | Path, split: str, data: IntentionDataConfig) -> ConavEnv:
-    """The env of one split with the sensor resolution the frames are rendered at."""
+    """The env of one split with the sensor resolution and materials the frames are rendered at."""
     h, w = data.sensor_hw
-    return ConavEnv(data_dir, split, EnvConfig(sensor=SensorConfig(height=h, width=w)))
+    return ConavEnv(data_dir, split, EnvConfig(sensor=SensorConfig(height=h, width=w, materials=data.materials)))
 
 
 # -- baselines and metrics -----------------------------------------------------------------------

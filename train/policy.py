@@ -46,6 +46,7 @@ from conav_jax.nav.expert import ExpertConfig
 from conav_jax.parallel import check_divisible
 from conav_jax.runs import append_log
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.config import materials_of_run
 from conav_jax.envs.agents.base import NO_INTENTIONS
 from conav_jax.envs.agents.policy import intention_source, load_predictors, needed_predictors
 from conav_jax.envs.metrics import summarize
@@ -240,7 +241,8 @@ def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episod
         raise ValueError(f"{policy_run} trained on predicted intentions: pass its --intention and --trajectory runs")
     expert = ExpertConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config["expert"].items()})
     h, w = model.image_hw
-    env = ConavEnv(data_dir, "train", EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True),
+    sensor = SensorConfig(height=h, width=w, materials=materials_of_run(config))
+    env = ConavEnv(data_dir, "train", EnvConfig(sensor=sensor, end_at_reach=True),
                    max_episodes=episodes)
     rollout = jit_with_bank(env, im.make_rollout_fn(
         env, model, expert, record=True, record_predicted=predicted,
@@ -262,6 +264,7 @@ def run_config(model, imitation: ImitationConfig, expert, content_hash: str, int
     return {
         "kind": KIND,
         "model": config_dict(model),
+        "materials": SensorConfig.materials,  # what the training env renders (train_policy)
         "imitation": imitation_record(imitation),
         "expert": dataclasses.asdict(expert),
         "data_hash": content_hash,
@@ -287,6 +290,7 @@ def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, cont
     return {
         "kind": task.kind,
         "model": config_dict(model),
+        "materials": SensorConfig.materials,
         "imitation": imitation_record(imitation),
         "teacher": task.config,
         "data_hash": content_hash,

@@ -527,6 +527,7 @@ def train_ppo(
     run_config = {
         "kind": KIND,
         "model": policy.config_dict(policy_config),
+        "materials": env_config.sensor.materials,
         "ppo": dataclasses.asdict(config),
         "env": {"episode_length": episode_length, "data_dir": str(data_dir),
                 "init_from": None if init_from is None else str(init_from)},

@@ -17,8 +17,16 @@ Format (version 1), all lengths in metres, z up, the floor at z = 0:
                    "size_m": [width, depth, height],       # in the object's own frame
                    "yaw_deg": 90,                          # multiple of 90: where its front faces
                    "room": 1,                              # index into rooms, or -1
-                   "rgb": [r, g, b]}, ...]                 # optional, 0-255; default: category's
+                   "rgb": [r, g, b],                       # optional, 0-255; default: category's
+                   "material": MATERIAL}, ...],            # optional, see below
+      "materials": {"floor": MATERIAL, "walls": MATERIAL}  # optional
     }
+
+`rgb` is the category's flat colour (SensorConfig.materials "flat"); a MATERIAL is what the
+instance looks like otherwise (conav_jax.data.materials): {"rgb": [r, g, b], "rgb2": [r, g, b],
+"pattern": "plain" | "stripes" | "checks" | "noise", "period_m": 0.5, "angle_deg": 30}.
+Materials left out are drawn deterministically from the scene's name (`name_seed`); the
+generator stores the ones it drew from its own seed.
 
 An object's front faces `yaw_deg` (0 = +x, 90 = +y); a person uses it from its standing point,
 `standing_offset_m` in front of the front face (ceiling objects: straight below), facing it.
@@ -42,6 +50,7 @@ from conav_jax.data.categories import (
     WALL_RGB,
     category,
 )
+from conav_jax.data.materials import MATERIAL_WIDTH, PATTERNS, Material, SceneMaterials, draw_scene_materials, name_seed
 
 SCENE_FORMAT = "conav-scene"
 SCENE_VERSION = 1
@@ -121,6 +130,15 @@ class Scene:
     rooms: tuple[Room, ...]
     walls: tuple[Box, ...]
     objects: tuple[SceneObject, ...]
+    # None: drawn from the name (`default_materials`), so every Scene has them.
+    materials: SceneMaterials | None = None
+
+    def __post_init__(self):
+        if self.materials is None:
+            object.__setattr__(self, "materials", default_materials(self.name, self.objects))
+        elif len(self.materials.objects) != len(self.objects):
+            raise ValueError(f"scene {self.name}: {len(self.materials.objects)} object materials for "
+                             f"{len(self.objects)} objects")
 
     def category_counts(self) -> dict[str, int]:
         counts: dict[str, int] = {}
@@ -149,10 +167,17 @@ class Scene:
                     "yaw_deg": o.yaw_deg,
                     "room": o.room,
                     "rgb": list(o.rgb),
+                    "material": m.to_json_dict(),
                 }
-                for o in self.objects
+                for o, m in zip(self.objects, self.materials.objects)
             ],
+            "materials": {"floor": self.materials.floor.to_json_dict(), "walls": self.materials.walls.to_json_dict()},
         }
+
+
+def default_materials(name: str, objects) -> SceneMaterials:
+    """The materials of a scene stored without them: drawn from its name (name_seed)."""
+    return draw_scene_materials(np.random.default_rng(name_seed(name)), [o.category for o in objects])
 
 
 class SceneFormatError(ValueError):
@@ -199,6 +224,42 @@ def _list(d: dict, key: str, source: str) -> list:
     return v
 
 
+def _rgb(v: Any, source: str, field: str) -> tuple[int, int, int]:
+    if (
+        not isinstance(v, list)
+        or len(v) != 3
+        or not all(isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 255 for x in v)
+    ):
+        raise SceneFormatError(source, field, f"expected three integers 0-255, got {v!r}")
+    return tuple(v)
+
+
+def _material(d: Any, source: str, where: str) -> Material:
+    """A MATERIAL object of the format (see the module docstring)."""
+    rgb = _rgb(_field(d, "rgb", source, where), source, f"{where}.rgb")
+    rgb2 = _rgb(d.get("rgb2", list(rgb)), source, f"{where}.rgb2")
+    pattern = d.get("pattern", "plain")
+    if pattern not in PATTERNS:
+        raise SceneFormatError(source, f"{where}.pattern", f"must be one of {', '.join(PATTERNS)}, got {pattern!r}")
+    period = _numbers([d.get("period_m", 0.5)], 1, source, f"{where}.period_m")[0]
+    if period <= 0:
+        raise SceneFormatError(source, f"{where}.period_m", f"must be positive, got {period}")
+    angle = _numbers([d.get("angle_deg", 0.0)], 1, source, f"{where}.angle_deg")[0]
+    return Material(rgb, rgb2, pattern, period, angle)
+
+
+def _materials(d: dict, objects: list, given: list, source: str, name: str) -> SceneMaterials:
+    """The scene's materials: those the document gives (`given[i]` per object, None where left
+    out; its "materials" object for floor and walls), the rest drawn from the name."""
+    drawn = default_materials(name, objects)
+    top = d.get("materials", {})
+    if not isinstance(top, dict):
+        raise SceneFormatError(source, "materials", f"expected an object, got {type(top).__name__}")
+    floor = _material(top["floor"], source, "materials.floor") if "floor" in top else drawn.floor
+    walls = _material(top["walls"], source, "materials.walls") if "walls" in top else drawn.walls
+    return SceneMaterials(floor, walls, tuple(g or m for g, m in zip(given, drawn.objects)))
+
+
 def scene_from_json_dict(d: dict[str, Any], source: str = "scene") -> Scene:
     """Parse and validate a scene dict; raises SceneFormatError naming the source and the field."""
     fmt = _field(d, "format", source)
@@ -236,7 +297,7 @@ def scene_from_json_dict(d: dict[str, Any], source: str = "scene") -> Scene:
             raise SceneFormatError(source, f"{where}.half_extents_m", f"must be positive, got {h}")
         walls.append(Box(c, h))
 
-    objects = []
+    objects, given = [], []
     for i, o in enumerate(_list(d, "objects", source)):
         where = f"objects[{i}]"
         cat = _field(o, "category", source, where)
@@ -254,16 +315,12 @@ def scene_from_json_dict(d: dict[str, Any], source: str = "scene") -> Scene:
         room = o.get("room", -1)
         if isinstance(room, bool) or not isinstance(room, int) or not (-1 <= room < len(rooms)):
             raise SceneFormatError(source, f"{where}.room", f"must be -1 or an index into rooms, got {room!r}")
-        rgb = o.get("rgb", list(category(cat).rgb))
-        if (
-            not isinstance(rgb, list)
-            or len(rgb) != 3
-            or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in rgb)
-        ):
-            raise SceneFormatError(source, f"{where}.rgb", f"expected three integers 0-255, got {rgb!r}")
-        objects.append(SceneObject(cat, c, size, int(yaw) % 360, room, tuple(rgb)))
+        rgb = _rgb(o.get("rgb", list(category(cat).rgb)), source, f"{where}.rgb")
+        objects.append(SceneObject(cat, c, size, int(yaw) % 360, room, rgb))
+        given.append(_material(o["material"], source, f"{where}.material") if "material" in o else None)
 
-    scene = Scene(name, bounds, wall_height, tuple(rooms), tuple(walls), tuple(objects))
+    materials = _materials(d, objects, given, source, name)
+    scene = Scene(name, bounds, wall_height, tuple(rooms), tuple(walls), tuple(objects), materials)
     validate_geometry(scene, source)
     return scene
 
@@ -322,13 +379,15 @@ STRUCTURE_WALL = -1  # category id of wall boxes in the box arrays
 class SceneBoxes:
     """All boxes of a scene as arrays, walls first then objects.
 
-    center (N, 3), half_extents (N, 3) metres; rgb (N, 3) uint8; category (N,) int32 with
+    center (N, 3), half_extents (N, 3) metres; rgb (N, 3) uint8 (flat colours); material
+    (N, MATERIAL_WIDTH) float32 rows (conav_jax.data.materials); category (N,) int32 with
     STRUCTURE_WALL for walls; blocks_robot (N,) bool; object_index (N,) int32 (-1 for walls).
     """
 
     center: np.ndarray
     half_extents: np.ndarray
     rgb: np.ndarray
+    material: np.ndarray
     category: np.ndarray
     blocks_robot: np.ndarray
     object_index: np.ndarray
@@ -355,6 +414,8 @@ def scene_boxes(scene: Scene, robot_height_m: float) -> SceneBoxes:
         center=np.asarray(centers, np.float32).reshape(-1, 3),
         half_extents=np.asarray(halves, np.float32).reshape(-1, 3),
         rgb=np.asarray(rgbs, np.uint8).reshape(-1, 3),
+        material=np.asarray([scene.materials.walls.row()] * len(scene.walls)
+                            + [m.row() for m in scene.materials.objects], np.float32).reshape(-1, MATERIAL_WIDTH),
         category=np.asarray(cats, np.int32),
         blocks_robot=np.asarray(blocks, bool),
         object_index=np.asarray(obj_idx, np.int32),

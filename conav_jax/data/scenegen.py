@@ -22,6 +22,7 @@ from conav_jax.data.categories import (
     Category,
     category,
 )
+from conav_jax.data.materials import draw_scene_materials
 from conav_jax.data.scene import Box, Room, Scene, SceneObject, validate_geometry
 
 # Room types in the order a growing apartment adds them.
@@ -334,7 +335,9 @@ def generate_scene(rng: np.random.Generator, cfg: SceneGenConfig, name: str) -> 
     width, height = size
     bounds = (round(-t / 2, 4), round(-t / 2, 4), round(width + t / 2, 4), round(height + t / 2, 4))
     rooms = tuple(Room(r.type, tuple(round(v, 4) for v in r.rect)) for r in rooms)
-    scene = Scene(name, bounds, cfg.wall_height_m, rooms, tuple(walls), objects)
+    # Materials from a child of the generator's seed: drawing them leaves its own stream as it was.
+    materials = draw_scene_materials(rng.spawn(1)[0], [o.category for o in objects])
+    scene = Scene(name, bounds, cfg.wall_height_m, rooms, tuple(walls), objects, materials)
     validate_geometry(scene, name)
     return scene
 

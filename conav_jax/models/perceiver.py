@@ -64,7 +64,7 @@ class PerceiverConfig:
     graph_mix: float = 0.8
     # Weigh activities A and B by whether the robot's panoramas have shown their object category
     # so far (`intention_routes`' objects_seen and unseen_weights; envs.agents.predictors keeps
-    # the set from each recorded panorama's exact category colours: oracle segmentation). The
+    # the set from each recorded panorama's `segmentation` observation: oracle segmentation). The
     # generator puts B at an object of the scene, and a scene holds few of the 51 categories, so
     # a category seen is evidence for it. Inference only: the trained weights do not depend on
     # it. Runs written before it had none.

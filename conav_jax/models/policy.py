@@ -6,9 +6,9 @@ its own linear -> concat -> LSTM -> `action (B, 2)` in [-1, 1] (tanh) and `value
 Disabled intention inputs (the paper's Table 3 ablation) are never read and have no weights.
 
 With the object input and `object_saliency` (the default), the predicted object distribution
-is also read *where it is in the panorama*: each pixel's object category comes from its colour
-(our renderer draws every category in its own flat colour, so this lookup is exact: the stand-in
-for the semantic segmenter a real robot would run), and the pixel's saliency is the predicted
+is also read *where it is in the panorama*: each pixel's object category comes from the env's
+`segmentation` observation (privileged: the stand-in for the semantic segmenter a real robot
+would run; the RGB's instance materials do not give categories away), and the pixel's saliency is the predicted
 probability of that category relative to the most likely one. The saliency map is a fifth CNN
 channel, and per azimuth sector its peak and the nearest salient depth feed the LSTM directly.
 A probability vector alone says *what* the human will use; without a map the policy had to
@@ -24,7 +24,6 @@ image-goal agent).
 from __future__ import annotations
 
 import dataclasses
-import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -34,7 +33,7 @@ import numpy as np
 
 from conav_jax import nn
 from conav_jax.data.activities import NUM_ACTIVITIES
-from conav_jax.data.categories import CATEGORIES, NUM_CATEGORIES
+from conav_jax.data.categories import NUM_CATEGORIES
 from conav_jax.nn.lstm import LSTMState
 
 Params = dict
@@ -199,51 +198,24 @@ def _intention_inputs(config: PolicyConfig) -> dict[str, int]:
     return widths
 
 
-@functools.lru_cache(maxsize=1)
-def _category_colour_table() -> tuple[int, np.ndarray, np.ndarray]:
-    """(modulus M, the 24-bit colour key at each residue (M,), its category (M,); -1 at
-    residues of no category): a perfect hash of the object categories' flat colours, `key % M`
-    distinct for each, so a pixel's category takes one modulo and two gathers from tables of M
-    entries. (A binary search over the sorted keys cost nearly half of the 112x448 imitation
-    update on an H100: BENCHMARKS.md.) The categories' colours are distinct (>= 5/255 apart)."""
-    rgb = np.asarray([c.rgb for c in CATEGORIES], np.int64)
-    keys = (rgb[:, 0] * 256 + rgb[:, 1]) * 256 + rgb[:, 2]
-    if len(np.unique(keys)) != len(keys):
-        raise ValueError("object categories need distinct colours for the saliency lookup")
-    # The smallest modulus without collisions; any above the largest key has none.
-    modulus = next(m for m in range(len(keys), int(keys.max()) + 2) if len(np.unique(keys % m)) == len(keys))
-    key_at, category_at = np.full(modulus, -1, np.int32), np.full(modulus, -1, np.int32)
-    key_at[keys % modulus], category_at[keys % modulus] = keys, np.arange(len(keys))
-    return modulus, key_at, category_at
-
-
-def pixel_categories(rgb: jax.Array) -> jax.Array:
-    """Object category of each pixel `(..., H, W)` int32 from its colour `rgb (..., H, W, 3)`
-    in [0, 1] (k/255 per channel, as rendered): the category whose flat colour it is exactly,
-    -1 for anything else (walls, floor, sky, the human, the robot)."""
-    modulus, key_at, category_at = _category_colour_table()
-    q = jnp.round(jnp.clip(rgb, 0.0, 1.0) * 255.0).astype(jnp.int32)
-    key = (q[..., 0] * 256 + q[..., 1]) * 256 + q[..., 2]
-    residue = key % modulus
-    return jnp.where(jnp.asarray(key_at)[residue] == key, jnp.asarray(category_at)[residue], -1)
-
-
-def categories_in_view(rgb: jax.Array) -> jax.Array:
-    """The object categories an image shows: `(NUM_CATEGORIES,)` bool from `rgb (H, W, 3)` in
-    [0, 1], true for each category with at least one pixel of its flat colour (pixel_categories)."""
-    if rgb.ndim != 3 or rgb.shape[-1] != 3:
-        raise ValueError(f"rgb must be (H, W, 3), got {rgb.shape}")
-    cats = pixel_categories(rgb).reshape(-1)
+def categories_in_view(segmentation: jax.Array) -> jax.Array:
+    """The object categories an image shows: `(NUM_CATEGORIES,)` bool from its `segmentation
+    (H, W)` (the env's observation key: each pixel's category, -1 for none), true for each
+    category with at least one pixel."""
+    if segmentation.ndim != 2:
+        raise ValueError(f"segmentation must be (H, W), got {segmentation.shape}")
+    cats = segmentation.reshape(-1)
     # Pixels of no category index past the end and are dropped.
     n = NUM_CATEGORIES
     return jnp.zeros(n, bool).at[jnp.where(cats >= 0, cats, n)].set(True, mode="drop")
 
 
-def object_saliency(rgb: jax.Array, object_probs: jax.Array) -> jax.Array:
-    """Saliency `(..., H, W)` in [0, 1]: each pixel's category's probability under
-    `object_probs (..., C)`, divided by the largest probability (the most likely category's
-    pixels read 1, however unsure the prediction); 0 where the pixel shows no object."""
-    cats = pixel_categories(rgb)
+def object_saliency(segmentation: jax.Array, object_probs: jax.Array) -> jax.Array:
+    """Saliency `(..., H, W)` in [0, 1]: each pixel's category (`segmentation (..., H, W)`,
+    -1 for none) under `object_probs (..., C)`, divided by the largest probability (the most
+    likely category's pixels read 1, however unsure the prediction); 0 where the pixel shows no
+    object."""
+    cats = segmentation.astype(jnp.int32)
     probs = object_probs / jnp.maximum(jnp.max(object_probs, axis=-1, keepdims=True), 1e-6)
     flat = cats.reshape(*cats.shape[:-2], -1)
     picked = jnp.take_along_axis(probs, jnp.maximum(flat, 0), axis=-1)
@@ -327,13 +299,13 @@ def _init_goal_encoder(key: jax.Array, config: PolicyConfig) -> Params:
 def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
     """Per-step features fed to the LSTM: obs with leading dims `(...)` -> `(..., lstm_in)`.
     Reads `rgbd (..., H, W, 4)`, `gps_compass (..., 3)`, `human_pos (..., 2)` (with
-    use_human_pos), only the enabled intention keys and, with goal_image, `goal_image (...,
-    H, W/4, 3)`."""
+    use_human_pos), only the enabled intention keys, with the saliency channel `segmentation
+    (..., H, W)` and, with goal_image, `goal_image (..., H, W/4, 3)`."""
     rgbd = obs["rgbd"].astype(jnp.float32)  # float16 panoramas widen here, per call
     depth = jnp.clip(rgbd[..., 3:] / config.max_depth_m, 0.0, 1.0)
     channels = [rgbd[..., :3], depth]
     if config.uses_saliency:
-        saliency = object_saliency(rgbd[..., :3], obs["object_probs"].astype(jnp.float32))
+        saliency = object_saliency(obs["segmentation"], obs["object_probs"].astype(jnp.float32))
         channels.append(saliency[..., None])
     image = jnp.concatenate(channels, axis=-1)
     feat = _conv_stack(params["convs"], image, config.conv_compute_dtype, config.strides)

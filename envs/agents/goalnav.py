@@ -41,7 +41,13 @@ from conav_jax.envs.agents.base import (
     Agent,
     StateAgent,
 )
-from conav_jax.envs.agents.policy import check_policy_env, load_policy_run, make_policy_step, policy_reads
+from conav_jax.envs.agents.policy import (
+    check_policy_env,
+    check_run_materials,
+    load_policy_run,
+    make_policy_step,
+    policy_reads,
+)
 from conav_jax.envs.mjcf import UD
 from conav_jax.envs.panorama import front_view
 
@@ -141,7 +147,8 @@ def objectgoal_agent_from_params(params, cfg: PolicyConfig, env, intention=None)
             action, carry = pol.step(params, obs, carry)
             return carry, action
 
-        return Agent(OBJECTGOAL_TITLE, lambda key, obs: pol.init(), act_on_obs, reads=policy_reads(cfg, PREDICTED),
+        return Agent(OBJECTGOAL_TITLE, lambda key, obs: pol.init(), act_on_obs,
+                     reads=policy_reads(cfg, PREDICTED, intention),
                      privileged=segmentation + tuple(p for p in intention.privileged if p not in segmentation),
                      name="objectgoal-predicted", intention_source=PREDICTED).check()
     b = env.bank_view
@@ -176,7 +183,7 @@ def objectgoal_agent(env, run_dir: str | Path, oracle: bool, intention_run: str 
                              "intention_run (a `conav train intention` run)")
         if not Path(intention_run).is_dir():
             raise ValueError(f"intention predictor run {intention_run} not found (intention_run)")
-    params, cfg, _ = load_policy_run(run_dir, runs.OBJECTNAV)
+    params, cfg, config = load_policy_run(run_dir, runs.OBJECTNAV)
     check_objectgoal_config(cfg, name)
     check_policy_env(env, cfg, name, NO_INTENTIONS)
     intention = None
@@ -184,6 +191,7 @@ def objectgoal_agent(env, run_dir: str | Path, oracle: bool, intention_run: str 
         from conav_jax.envs.agents.predictors import load_intention_predictor
 
         intention = load_intention_predictor(intention_run)
+    check_run_materials(env, config, name, intention)
     return objectgoal_agent_from_params(params, cfg, env, intention)
 
 
@@ -216,7 +224,8 @@ def imagegoal_agent(env, run_dir: str | Path) -> StateAgent:
     """The latest policy of a `conav train imagenav` run as the agent `imagegoal`. Errors as
     `objectgoal_agent`, before anything compiles."""
     name = f"imagenav run {run_dir}"
-    params, cfg, _ = load_policy_run(run_dir, runs.IMAGENAV)
+    params, cfg, config = load_policy_run(run_dir, runs.IMAGENAV)
     check_imagegoal_config(cfg, name)
     check_policy_env(env, cfg, name, NO_INTENTIONS)
+    check_run_materials(env, config, name)
     return imagegoal_agent_from_params(params, cfg, env)

@@ -31,6 +31,7 @@ from conav_jax.envs.agents.base import (
     Agent,
 )
 from conav_jax.envs.agents.predictors import load_intention_predictor, load_trajectory_predictor
+from conav_jax.envs.config import check_materials, materials_of_run
 
 INTENTION_KEYS = ("activity_probs", "object_probs", "future_traj")
 # The arguments that give each predictor run, and ask for ground truth, for error messages
@@ -64,20 +65,25 @@ class PolicyStep(NamedTuple):
 
 def policy_inputs(cfg: PolicyConfig) -> tuple[str, ...]:
     """The observation keys the policy reads: the panorama, pose, human position (unless
-    switched off), the intention inputs its ablation keeps and the goal image if it has one."""
+    switched off), the intention inputs its ablation keeps, the segmentation its saliency
+    channel reads and the goal image if it has one."""
     on = (cfg.use_activity, cfg.use_object, cfg.use_trajectory)
     return (("rgbd", "gps_compass") + (("human_pos",) if cfg.use_human_pos else ())
-            + tuple(k for k, use in zip(INTENTION_KEYS, on) if use) + (("goal_image",) if cfg.goal_image else ()))
+            + tuple(k for k, use in zip(INTENTION_KEYS, on) if use) + (("segmentation",) if cfg.uses_saliency else ())
+            + (("goal_image",) if cfg.goal_image else ()))
 
 
-def policy_reads(cfg: PolicyConfig, source: str) -> tuple[str, ...]:
+def policy_reads(cfg: PolicyConfig, source: str, intention=None) -> tuple[str, ...]:
     """The observation keys the policy's stepping reads when its intentions come from `source`:
     its inputs (the intention ones only from the env's ground truth; no goal image, which its
-    agent supplies) and what its predictors read."""
+    agent supplies) and what its predictors read (the segmentation for an `intention` predictor
+    that keeps the objects seen)."""
     keys = [k for k in policy_inputs(cfg) if k != "goal_image" and (k not in INTENTION_KEYS or source == GROUND_TRUTH)]
     if source == PREDICTED:
         keys += (["rgbd", "human_pos"] if cfg.use_activity or cfg.use_object else []) + (
             ["human_history"] if cfg.use_trajectory else [])
+        if ORACLE_SEGMENTATION in getattr(intention, "privileged", ()):
+            keys.append("segmentation")
     return tuple(dict.fromkeys(keys))
 
 
@@ -162,6 +168,16 @@ def check_policy_env(env, cfg: PolicyConfig, source_name: str, intention_source_
         )
 
 
+def check_run_materials(env, config: dict, source_name: str, intention=None) -> None:
+    """ValueError, naming both, unless `env` renders the materials (SensorConfig.materials) the
+    run of checkpoint config `config` and its intention predictor, if any, were trained on (a
+    predictor that records no FrameSpec, such as one written by hand, is taken at its word)."""
+    check_materials(materials_of_run(config), env.config.sensor, source_name)
+    trained = getattr(getattr(intention, "spec", None), "materials", None)
+    if trained is not None:
+        check_materials(trained, env.config.sensor, f"the intention predictor of {source_name}")
+
+
 def privileged_inputs(cfg: PolicyConfig, source: str, intention=None) -> tuple[str, ...]:
     """The privileged inputs a policy with this config reads when its intentions come from
     `source`, with those of its intention predictor (`intention`) where it reads one."""
@@ -171,7 +187,7 @@ def privileged_inputs(cfg: PolicyConfig, source: str, intention=None) -> tuple[s
         if cfg.use_trajectory:
             out.append(FUTURE_HUMAN_POSITIONS)  # the true future trajectory is where the human will be
     if cfg.use_object and cfg.object_saliency:
-        out.append(ORACLE_SEGMENTATION)  # each pixel's category from its render colour
+        out.append(ORACLE_SEGMENTATION)  # each pixel's category: the observation's segmentation
     if intention is not None and source == PREDICTED and (cfg.use_activity or cfg.use_object):
         out += [p for p in intention.privileged if p not in out]
     return tuple(out)
@@ -191,7 +207,7 @@ def policy_agent_from_params(
         action, carry = pol.step(params, obs, carry)
         return carry, action
 
-    return Agent(title, lambda key, obs: pol.init(), act, reads=policy_reads(cfg, pol.source),
+    return Agent(title, lambda key, obs: pol.init(), act, reads=policy_reads(cfg, pol.source, intention),
                  privileged=privileged_inputs(cfg, pol.source, intention), name=name,
                  intention_source=pol.source).check()
 
@@ -270,4 +286,5 @@ def policy_agent(env, run_dir: str | Path, intention_run: str | Path | None = No
         *predictor_runs(cfg, name, config, intention_run, trajectory_run, ground_truth))
     agent = policy_agent_from_params(params, cfg, intention, trajectory, name="conav")
     check_policy_env(env, cfg, name, agent.intention_source)
+    check_run_materials(env, config, name, intention)
     return agent

@@ -28,6 +28,7 @@ from conav_jax.models.perceiver import PerceiverConfig
 from conav_jax.models.policy import categories_in_view
 from conav_jax.models.trajectory import TrajectoryConfig
 from conav_jax.envs.agents.base import ORACLE_SEGMENTATION
+from conav_jax.envs.config import materials_of_run
 from conav_jax.envs.human_crop import human_crop
 from conav_jax.envs.panorama import front_view
 
@@ -43,6 +44,7 @@ class FrameSpec(NamedTuple):
     view: str  # one of VIEWS
     sensor_hw: tuple[int, int]  # (H, W) of the panoramas the run was trained on
     camera_height_m: float = TaskConfig.camera_height_m  # where the crop's rows look
+    materials: str = "flat"  # SensorConfig.materials of the panoramas the run was trained on
 
 
 def intention_frame(spec: FrameSpec, config: PerceiverConfig, rgbd: jax.Array, human_pos: jax.Array) -> jax.Array:
@@ -114,10 +116,11 @@ def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Arr
 
 def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition, frame_stride: int,
                     unseen_weights: dict | None = None):
-    """`record_frame(record, rgbd, human_pos, frames, num_frames, objects_seen) -> (frames,
+    """`record_frame(record, rgbd, segmentation, human_pos, frames, num_frames, objects_seen) -> (frames,
     num_frames, objects_seen, activity_probs, object_probs)` for one env: where `record`, the
     observation's frame (`intention_frame`) pushed into the buffer, with
-    PerceiverConfig.seen_objects the categories the panorama shows added to `objects_seen`, and
+    PerceiverConfig.seen_objects the categories the panorama shows (its `segmentation`) added to
+    `objects_seen`, and
     the Perceiver's output on them; where not, the buffer and the set as they were and zeros
     (the caller keeps its history then). An env records one step in
     `frame_stride`, so most calls skip the crop, the push and the Perceiver: alone by `lax.cond`,
@@ -126,22 +129,22 @@ def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition
     Perceiver gives it in a full batch, to float rounding."""
     shapes = (config.num_activities, config.num_objects)
 
-    def record_lanes(rgbd, human_pos, frames, num_frames, objects_seen):  # (N, ...) each: N lanes that record
+    def record_lanes(rgbd, segmentation, human_pos, frames, num_frames, objects_seen):  # (N, ...): lanes that record
         new = jax.vmap(lambda r, p: intention_frame(spec, config, r, p))(rgbd, human_pos)
         frames, num_frames = jax.vmap(_push)(frames, num_frames, new)
         mask = jnp.arange(frames.shape[1]) < num_frames[:, None]
         restrict = None
         if config.seen_objects:
-            objects_seen = objects_seen | jax.vmap(categories_in_view)(rgbd[..., :3])
+            objects_seen = objects_seen | jax.vmap(categories_in_view)(segmentation)
             restrict = objects_seen
         probs = perceiver.intention_probs(config, perceiver.apply(params, config, frames, mask), transition, restrict,
                                           unseen_weights)
         return (frames, num_frames, objects_seen, *probs)
 
     @jax.custom_batching.custom_vmap
-    def record_frame(record, rgbd, human_pos, frames, num_frames, objects_seen):
+    def record_frame(record, rgbd, segmentation, human_pos, frames, num_frames, objects_seen):
         def recorded():
-            args = (rgbd, human_pos, frames, num_frames, objects_seen)
+            args = (rgbd, segmentation, human_pos, frames, num_frames, objects_seen)
             return tuple(x[0] for x in record_lanes(*(x[None] for x in args)))
         return jax.lax.cond(record, recorded,
                             lambda: (frames, num_frames, objects_seen, *(jnp.zeros(n, jnp.float32) for n in shapes)))
@@ -150,7 +153,7 @@ def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition
     def _batched(axis_size, in_batched, record, *args):
         record, *args = (x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
                          for x, batched in zip((record, *args), in_batched))
-        rgbd, human_pos, frames, num_frames, objects_seen = args
+        rgbd, segmentation, human_pos, frames, num_frames, objects_seen = args
         # Lanes drift apart in step once episodes refill, so a step records on about
         # axis_size / frame_stride lanes: chunks twice that size take one pass on most steps.
         chunk = min(axis_size, 2 * -(-axis_size // frame_stride))
@@ -162,7 +165,8 @@ def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition
             i, outs = carry
             idx = jax.lax.dynamic_slice(lanes, (i * chunk,), (chunk,))
             take = jnp.minimum(idx, axis_size - 1)
-            done = record_lanes(rgbd[take], human_pos[take], frames[take], num_frames[take], objects_seen[take])
+            done = record_lanes(rgbd[take], segmentation[take], human_pos[take], frames[take], num_frames[take],
+                                objects_seen[take])
             # Padding lanes point past the batch: their rows are dropped.
             return i + 1, tuple(out.at[idx].set(x, mode="drop") for out, x in zip(outs, done))
 
@@ -208,8 +212,13 @@ def make_intention_predictor(
             raise ValueError(f"human_pos must be finite, got {np.asarray(human_pos)}")
         record = carry.t % frame_stride == 0
         bad = carry.bad_input | (record & ~jnp.all(jnp.isfinite(human_pos)))
-        buf, n, seen, act_p, obj_p = record_frame(record, rgbd, human_pos, carry.frames, carry.num_frames,
-                                                  carry.objects_seen)
+        if config.seen_objects and "segmentation" not in obs:
+            raise ValueError("an intention predictor with seen_objects reads the observation's 'segmentation' "
+                             "(each pixel's object category)")
+        # Without seen_objects no category is read: a one-pixel stand-in keeps the signature.
+        segmentation = jnp.asarray(obs["segmentation"]) if config.seen_objects else jnp.full((1, 1), -1, jnp.int32)
+        buf, n, seen, act_p, obj_p = record_frame(record, rgbd, segmentation, human_pos, carry.frames,
+                                                  carry.num_frames, carry.objects_seen)
         # Only a new frame adds a prediction: repeated steps on the same buffer would
         # otherwise crowd the history with one prediction.
         act_h, m = _push(carry.activity_history, carry.num_predictions, act_p)
@@ -229,11 +238,12 @@ def make_intention_predictor(
 
 def frame_spec_from_config(data: dict) -> FrameSpec:
     """The FrameSpec of a run's "data" config; runs from before the crop have no "view" and
-    read front views."""
+    read front views, runs from before materials were rendered "flat"."""
     view = data.get("view", "front")
     if view not in VIEWS:
         raise ValueError(f"intention run with unknown view {view!r}; this version reads {VIEWS}")
-    return FrameSpec(view, tuple(data["sensor_hw"]), float(data.get("camera_height_m", TaskConfig.camera_height_m)))
+    return FrameSpec(view, tuple(data["sensor_hw"]), float(data.get("camera_height_m", TaskConfig.camera_height_m)),
+                     materials_of_run({"data": data}))
 
 
 def perceiver_config_from_run(model: dict) -> PerceiverConfig:
