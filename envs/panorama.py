@@ -374,36 +374,86 @@ def _hash_unit(i: jax.Array, j: jax.Array, k: jax.Array) -> jax.Array:
     return (h >> 8).astype(jnp.float32) / float(1 << 24)
 
 
-def _value_noise(p: jax.Array) -> jax.Array:
-    """Smooth value noise in [0, 1] at points p (..., 3) in lattice units: lattice values
-    blended with smoothstep weights (continuous across cells)."""
-    cell = jnp.floor(p)
-    f = p - cell
-    w = f * f * (3.0 - 2.0 * f)
-    c = cell.astype(jnp.int32)
+def _value_noise(x: jax.Array, y: jax.Array, z: jax.Array) -> jax.Array:
+    """Smooth value noise in [0, 1] at points (x, y, z) in lattice units (arrays of one shape):
+    lattice values blended with smoothstep weights (continuous across cells)."""
+    cells = [jnp.floor(v) for v in (x, y, z)]
+    w = [(v - c) * (v - c) * (3.0 - 2.0 * (v - c)) for v, c in zip((x, y, z), cells)]
+    c = [cell.astype(jnp.int32) for cell in cells]
     out = 0.0
     for dx in (0, 1):
         for dy in (0, 1):
             for dz in (0, 1):
-                weight = (jnp.where(dx, w[..., 0], 1 - w[..., 0]) * jnp.where(dy, w[..., 1], 1 - w[..., 1])
-                          * jnp.where(dz, w[..., 2], 1 - w[..., 2]))
-                out = out + weight * _hash_unit(c[..., 0] + dx, c[..., 1] + dy, c[..., 2] + dz)
+                weight = ((w[0] if dx else 1 - w[0]) * (w[1] if dy else 1 - w[1]) * (w[2] if dz else 1 - w[2]))
+                out = out + weight * _hash_unit(c[0] + dx, c[1] + dy, c[2] + dz)
     return out
 
 
-def pattern_mix(hit_m: jax.Array, pattern: jax.Array, period_m: jax.Array, angle_rad: jax.Array) -> jax.Array:
-    """How much of the second colour (..., ) in [0, 1] a material shows at world points hit_m
-    (..., 3): pattern index (conav_jax.data.materials.PATTERNS) 0 plain, 1 stripes, 2 checks,
-    3 noise, at `period_m`, turned by `angle_rad` about z."""
-    x, y, z = hit_m[..., 0], hit_m[..., 1], hit_m[..., 2]
+def pattern_mix(hit_m, pattern: jax.Array, period_m: jax.Array, angle_rad: jax.Array) -> jax.Array:
+    """How much of the second colour (..., ) in [0, 1] a material shows at world points `hit_m`
+    ((x, y, z) m, three arrays of one shape, or one array (..., 3)): pattern index
+    (conav_jax.data.materials.PATTERNS) 0 plain, 1 stripes, 2 checks, 3 noise, at `period_m`,
+    turned by `angle_rad` about z. Written per component, without reductions over a last axis,
+    so XLA fuses it with the gathers feeding it into one pass over the pixels."""
+    x, y, z = (hit_m[..., 0], hit_m[..., 1], hit_m[..., 2]) if not isinstance(hit_m, tuple) else hit_m
     c, s = jnp.cos(angle_rad), jnp.sin(angle_rad)
     a = (c * x + s * y + _TILT * z) / period_m
     b = (c * y - s * x - _TILT * z) / period_m
     soft = lambda wave: jnp.clip(0.5 + _PATTERN_GAIN * wave, 0.0, 1.0)
-    stripes = soft(jnp.sin(2.0 * np.pi * a))
-    checks = soft(jnp.sin(2.0 * np.pi * a) * jnp.sin(2.0 * np.pi * b) * 2.0)
-    noise = _value_noise(jnp.stack([a, b, z / period_m], axis=-1))
-    return jnp.select([pattern == 1, pattern == 2, pattern == 3], [stripes, checks, noise], 0.0)
+    sin_a = jnp.sin(2.0 * np.pi * a)
+    stripes = soft(sin_a)
+    checks = soft(sin_a * jnp.sin(2.0 * np.pi * b) * 2.0)
+    noise = _value_noise(a, b, z / period_m)
+    return jnp.where(pattern == 1, stripes, jnp.where(pattern == 2, checks, jnp.where(pattern == 3, noise, 0.0)))
+
+
+def _geom_table(n_geoms: int, ids: jax.Array, rows: jax.Array, fill: float = 0.0) -> jax.Array:
+    """(n_geoms, ...) with `rows` at `ids` and `fill` elsewhere."""
+    return jnp.full((n_geoms,) + rows.shape[1:], fill, rows.dtype).at[ids].set(rows)
+
+
+def _ray_components(cfg: SensorConfig, yaw_rad: jax.Array, elevation_rad: jax.Array):
+    """Unit ray directions of the rows at `elevation_rad` (R,) as three arrays broadcastable to
+    (R, W): x, y (R, W), z (R, 1)."""
+    az, _ = ray_angles(cfg)
+    a = yaw_rad + jnp.asarray(az)[None, :]
+    ce, se = jnp.cos(elevation_rad)[:, None], jnp.sin(elevation_rad)[:, None]
+    return ce * jnp.cos(a), ce * jnp.sin(a), se
+
+
+# Rows coloured together: the colouring runs over blocks of rows (lax.map), so its per-pixel
+# temporaries exist for one block of every env of a batch at a time, whatever XLA fuses.
+SHADE_BLOCK_ROWS = 16
+
+
+def _row_block(height: int) -> int:
+    """The largest divisor of `height` not above SHADE_BLOCK_ROWS."""
+    return max(r for r in range(1, min(height, SHADE_BLOCK_ROWS) + 1) if height % r == 0)
+
+
+def _normal_components(dirs, hit, safe, geometry: SceneGeometry, n_geoms: int):
+    """The outward unit normal (three (H, W) arrays) at hits `hit` of rays `dirs` on geoms
+    `safe` (H, W): a box's face the ray entered (of the three faces facing the ray, the one whose
+    plane is nearest the hit), a capsule's radial direction from its segment, up elsewhere."""
+    kind = _geom_table(n_geoms, geometry.box_ids, jnp.ones(geometry.box_ids.shape, jnp.int32))
+    kind = kind.at[geometry.capsule_ids].set(2)[safe]
+    lo = _geom_table(n_geoms, geometry.box_ids, geometry.box_lo_m)
+    hi = _geom_table(n_geoms, geometry.box_ids, geometry.box_hi_m)
+    p0 = _geom_table(n_geoms, geometry.capsule_ids, geometry.capsule_p0_m)
+    p1 = _geom_table(n_geoms, geometry.capsule_ids, geometry.capsule_p1_m)
+    gap = [jnp.abs(h - jnp.where(d > 0, lo[safe, k], hi[safe, k])) for k, (d, h) in enumerate(zip(dirs, hit))]
+    face_x = (gap[0] <= gap[1]) & (gap[0] <= gap[2])
+    face_y = ~face_x & (gap[1] <= gap[2])
+    face_z = ~face_x & ~face_y
+    box_n = [jnp.where(f, -jnp.sign(d), 0.0) for f, d in zip((face_x, face_y, face_z), dirs)]
+    a = [p0[safe, k] for k in range(3)]
+    ba = [p1[safe, k] - a[k] for k in range(3)]
+    ha = [h - a_ for h, a_ in zip(hit, a)]
+    t = jnp.clip(sum(u * v for u, v in zip(ha, ba)) / jnp.maximum(sum(v * v for v in ba), _EPS), 0.0, 1.0)
+    radial = [u - t * v for u, v in zip(ha, ba)]
+    inv = 1.0 / jnp.maximum(jnp.sqrt(sum(r * r for r in radial)), _EPS)
+    up = (0.0, 0.0, 1.0)
+    return [jnp.where(kind == 1, bn, jnp.where(kind == 2, r * inv, u)) for bn, r, u in zip(box_n, radial, up)]
 
 
 def surface_normals(dirs: jax.Array, hit_m: jax.Array, ids: jax.Array, geometry: SceneGeometry, n_geoms: int):
@@ -412,20 +462,8 @@ def surface_normals(dirs: jax.Array, hit_m: jax.Array, ids: jax.Array, geometry:
     facing the ray, the one whose plane is nearest the hit), a capsule's radial direction from its
     segment, up for the floor and anything else."""
     safe = jnp.clip(ids, 0, n_geoms - 1)
-    table = lambda ids_, rows: jnp.zeros((n_geoms,) + rows.shape[1:], rows.dtype).at[ids_].set(rows)
-    kind = table(geometry.box_ids, jnp.ones(geometry.box_ids.shape, jnp.int32))
-    kind = kind.at[geometry.capsule_ids].set(2)[safe]
-    lo, hi = table(geometry.box_ids, geometry.box_lo_m)[safe], table(geometry.box_ids, geometry.box_hi_m)[safe]
-    plane = jnp.where(dirs > 0, lo, hi)
-    face = jax.nn.one_hot(jnp.argmin(jnp.abs(hit_m - plane), axis=-1), 3, dtype=dirs.dtype)
-    box_n = -jnp.sign(dirs) * face
-    p0, p1 = table(geometry.capsule_ids, geometry.capsule_p0_m)[safe], table(geometry.capsule_ids, geometry.capsule_p1_m)[safe]
-    ba = p1 - p0
-    t = jnp.clip(jnp.sum((hit_m - p0) * ba, -1) / jnp.maximum(jnp.sum(ba * ba, -1), _EPS), 0.0, 1.0)
-    radial = hit_m - (p0 + t[..., None] * ba)
-    cap_n = radial / jnp.maximum(jnp.linalg.norm(radial, axis=-1, keepdims=True), _EPS)
-    up = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], dirs.dtype), dirs.shape)
-    return jnp.where((kind == 1)[..., None], box_n, jnp.where((kind == 2)[..., None], cap_n, up))
+    split = lambda v: tuple(v[..., k] for k in range(3))
+    return jnp.stack(_normal_components(split(dirs), split(hit_m), safe, geometry, n_geoms), axis=-1)
 
 
 def shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: jax.Array, ids: jax.Array,
@@ -434,20 +472,39 @@ def shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: ja
     at `cam_xyz_m` facing `yaw_rad`: each hit geom's material (`geom_material` (n_geoms,
     MATERIAL_WIDTH) rows by geom id, conav_jax.data.materials) with its pattern at the hit point,
     Lambertian-shaded by the surface normal (`surface_normals`) under SensorConfig's light plus
-    its ambient term; sky where nothing is hit; depth unchanged."""
-    dirs = ray_directions(cfg, yaw_rad)
-    hit = cam_xyz_m + depth[..., None] * dirs
+    its ambient term; sky where nothing is hit; depth unchanged. Computed per component from
+    gathers of small per-geom tables, a block of rows at a time (SHADE_BLOCK_ROWS): a batch of
+    thousands of panoramas never holds more than a block's temporaries."""
+    height, width = depth.shape
+    rows = _row_block(height)
+    _, el = ray_angles(cfg)
+    n = height // rows
+
+    def block(args):
+        d, i, e = args
+        return _shade_rows(cfg, cam_xyz_m, yaw_rad, d, i, e, geometry, geom_material)
+
+    out = jax.lax.map(block, (depth.reshape(n, rows, width), ids.reshape(n, rows, width),
+                              jnp.asarray(el).reshape(n, rows)))
+    return out.reshape(height, width, 4)
+
+
+def _shade_rows(cfg, cam_xyz_m, yaw_rad, depth, ids, elevation_rad, geometry, geom_material):
+    """`shade` of the rows at `elevation_rad` (R,): depth and ids (R, W) -> RGB-D (R, W, 4)."""
+    dirs = _ray_components(cfg, yaw_rad, elevation_rad)
+    hit = [cam_xyz_m[k] + depth * dirs[k] for k in range(3)]
     n_geoms = geom_material.shape[0]
-    mat = geom_material[jnp.clip(ids, 0, n_geoms - 1)]
-    mix = pattern_mix(hit, jnp.round(mat[..., 6]).astype(jnp.int32), mat[..., 7], mat[..., 8])
-    albedo = mat[..., 0:3] + mix[..., None] * (mat[..., 3:6] - mat[..., 0:3])
-    light = np.asarray(cfg.light_direction, np.float32)
-    light = light / np.linalg.norm(light)
-    normal = surface_normals(dirs, hit, ids, geometry, n_geoms)
-    lambert = jnp.maximum(jnp.sum(normal * jnp.asarray(light), axis=-1), 0.0)
-    rgb = albedo * (cfg.ambient + (1.0 - cfg.ambient) * lambert)[..., None]
-    rgb = jnp.where((ids >= 0)[..., None], rgb, jnp.asarray(SKY_RGB))
-    return jnp.concatenate([rgb, depth[..., None]], axis=-1)
+    safe = jnp.clip(ids, 0, n_geoms - 1)
+    mat = lambda k: geom_material[safe, k]
+    mix = pattern_mix(tuple(hit), jnp.round(mat(6)).astype(jnp.int32), mat(7), mat(8))
+    light = np.asarray(cfg.light_direction, np.float64)
+    light = (light / np.linalg.norm(light)).astype(np.float32)
+    normal = _normal_components(dirs, hit, safe, geometry, n_geoms)
+    lambert = jnp.maximum(sum(float(light[k]) * normal[k] for k in range(3)), 0.0)
+    gain = cfg.ambient + (1.0 - cfg.ambient) * lambert
+    hit_any = ids >= 0
+    rgb = [jnp.where(hit_any, (mat(c) + mix * (mat(3 + c) - mat(c))) * gain, SKY_RGB[c]) for c in range(3)]
+    return jnp.stack(rgb + [depth], axis=-1)
 
 
 def front_view(rgbd: jax.Array) -> jax.Array:
