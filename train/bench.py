@@ -1,4 +1,5 @@
-"""`conav bench train`: samples/s of one model's jitted training update on random data.
+"""`conav bench train`: samples/s of one model's jitted training update on random data; and the
+throughput of live imitation (train.live), its iteration timed part by part (`live_throughput`).
 
 Random data of the model's training shapes is put on the device -> train.loop's update
 (minibatch gather, value_and_grad, clipping, Adam) scanned `--steps` times in one jitted call
@@ -146,3 +147,56 @@ def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int,
         "updates_per_s": round(steps / med, 2),
         **({"timesteps_per_s": round(batch * steps * POLICY_SEQUENCE / med, 1)} if model == "policy" else {}),
     }
+
+
+def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int = 32, repeats: int = 5,
+                    intention=None, trajectory=None, beta: float = 0.5, seed: int = 0) -> dict:
+    """Env timesteps trained per second of train.live's iteration on `env` (its train split) at
+    `lanes` x `window_steps` steps per iteration, and its breakdown: each cumulative part of an
+    iteration compiled as its own program and timed alone (the simulator: refills, the
+    learner's panorama and the env step; + the expert's labels; + the predictors and the
+    learner acting; + the update, the whole iteration). Every program carries its lanes on from
+    call to call; after a compile-and-warm-up call, the median of `repeats` calls, each with
+    `block_until_ready`. `beta`: the expert's share of the actions (below 1 the learner acts
+    too). `policy_config` defaults to PolicyConfig at the env's resolution; `intention`,
+    `trajectory` as train.live.train_live takes predictor objects (none: ground truth)."""
+    from conav_jax.models import policy
+    from conav_jax.models.policy import PolicyConfig
+    from conav_jax.envs.rollout import jit_with_bank
+    from conav_jax.train import live as lv
+
+    if lanes <= 0 or window_steps <= 0 or repeats <= 0:
+        raise ValueError(f"lanes, window_steps and repeats must be > 0, got {lanes}, {window_steps}, {repeats}")
+    hw = (env.config.sensor.height, env.config.sensor.width)
+    policy_config = policy_config or PolicyConfig(image_hw=hw)
+    config = lv.LiveConfig(lanes=lanes, window_steps=window_steps, warmup_iterations=0, beta_start=beta,
+                           beta_end=beta, seed=seed)
+    fns = lv.make_live(env, policy_config, config, intention, trajectory)
+    state0 = fns.init(policy.init(jax.random.PRNGKey(seed), policy_config))
+
+    def rollout_part(stages):
+        def run(state, key):
+            lanes_, cursor, window = fns.rollout(state.params, state.lanes, state.cursor, key, jnp.float32(beta), stages)
+            return state._replace(lanes=lanes_, cursor=cursor), window
+        return run
+
+    parts = {name: rollout_part(i + 1) for i, name in enumerate(lv.ROLLOUT_STAGES)} | {"update": fns.iteration}
+    per_iter = lanes * window_steps
+    out = {"device": jax.devices()[0].device_kind, "lanes": lanes, "window_steps": window_steps,
+           "resolution": f"{hw[0]}x{hw[1]}", "physics": env.config.physics.impl, "sensor": env.config.sensor.kind,
+           "beta": beta, "intention_source": fns.source, "timesteps_per_iteration": per_iter}
+    for name, fn in parts.items():
+        jitted = jit_with_bank(env, fn)
+        state = state0
+        times = []
+        for i in range(repeats + 1):
+            t0 = time.perf_counter()
+            state, res = jitted(state, lv.iteration_key(seed, i))
+            jax.block_until_ready((state, res))
+            times.append(time.perf_counter() - t0)
+        med = statistics.median(times[1:])
+        out[f"{name}_compile_and_first_call_s"] = round(times[0], 2)
+        out[f"{name}_median_call_s"] = round(med, 4)
+        out[f"{name}_timesteps_per_s"] = round(per_iter / med, 1)
+    out["timesteps_trained_per_s"] = out["update_timesteps_per_s"]
+    return out

@@ -25,6 +25,7 @@ from jax.sharding import Mesh
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nav.expert import ExpertConfig, initial_carry
+from conav_jax.nn.lstm import LSTMState
 from conav_jax.parallel import replicate, shard_batch, to_host
 from conav_jax.envs.agents.base import Agent
 from conav_jax.envs.agents.expert import make_expert_step
@@ -71,7 +72,7 @@ def compact_obs(obs: dict) -> dict:
     }
     if "segmentation" in obs:
         out["segmentation"] = obs["segmentation"].astype(jnp.int8)
-    out.update({k: obs[k].astype(jnp.float32) for k in RECORDED_KEYS})
+    out.update({k: obs[k].astype(jnp.float32) for k in RECORDED_KEYS if k in obs})  # an ablation reads fewer
     if GOAL_IMAGE in obs:  # rendered RGB like the panorama's, so as compact
         out[GOAL_IMAGE] = jnp.round(obs[GOAL_IMAGE] * 255.0).astype(jnp.uint8)
     return out
@@ -82,7 +83,7 @@ def expand_obs(compact: dict) -> dict:
     rgbd = jnp.concatenate(
         [compact["rgb"].astype(jnp.float32) / 255.0, compact["depth"].astype(jnp.float32)[..., None]], axis=-1
     )
-    out = {"rgbd": rgbd, **{k: compact[k].astype(jnp.float32) for k in RECORDED_KEYS}}
+    out = {"rgbd": rgbd, **{k: compact[k].astype(jnp.float32) for k in RECORDED_KEYS if k in compact}}
     if "segmentation" in compact:
         out["segmentation"] = compact["segmentation"].astype(jnp.int32)
     if GOAL_IMAGE in compact:
@@ -485,12 +486,21 @@ def bc_loss(params, cfg: PolicyConfig, batch: dict, remat: bool = False) -> tupl
     step at a time and recompute it for the gradient (policy.apply_sequence), for windows of
     large panoramas that do not fit otherwise."""
     carry = policy.initial_carry(cfg, batch["label"].shape[0])
-    actions, _, _ = policy.apply_sequence(params, cfg, batch["obs"], carry, batch["reset"], remat=remat,
-                                          prepare=expand_obs)
+    loss, n, _ = sequence_loss(params, cfg, batch, carry, remat)
+    return loss, {"steps_in_loss": n}
+
+
+def sequence_loss(params, cfg: PolicyConfig, batch: dict, carry: LSTMState,
+                  remat: bool = False) -> tuple[jax.Array, jax.Array, LSTMState]:
+    """`bc_loss` with the LSTM starting each window from `carry` (B, hidden) -> (loss, steps in
+    the loss, the carry after the window's last step): truncated BPTT over consecutive windows
+    (train.live), the carry reset where `batch["reset"]` starts an episode."""
+    actions, _, end = policy.apply_sequence(params, cfg, batch["obs"], carry, batch["reset"], remat=remat,
+                                            prepare=expand_obs)
     err = jnp.sum(jnp.square(actions - batch["label"]), axis=-1)
     n = jnp.sum(batch["mask"])
     loss = jnp.sum(err * batch["mask"]) / jnp.maximum(n, 1.0)
-    return loss, {"steps_in_loss": n}
+    return loss, n, end
 
 
 def make_loss_fn(cfg: PolicyConfig):

@@ -1,0 +1,201 @@
+"""train.live in the hand-built hall (8x32 panoramas, a tiny policy): with beta = 1 the lanes
+drive as the expert's own rollout does, every label is the expert's action on the state it
+was taken in, a pass of the queue runs every train episode once, in an order fixed by the seed
+alone, a killed run resumes bit for bit, and its run directory loads as the CoNav agent."""
+
+import dataclasses
+import functools
+import json
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from worlds import make_split
+
+from conav_jax.checkpoints import checkpoint_path
+from conav_jax.models import policy
+from conav_jax.models.policy import PolicyConfig
+from conav_jax.nav.expert import initial_carry
+from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.agents.expert import expert_agent, make_expert_step
+from conav_jax.envs.agents.policy import load_policy_run, policy_agent
+from conav_jax.envs.mjcf import UD
+from conav_jax.envs.rollout import make_rollout
+from conav_jax.train import live as lv
+from conav_jax.train.live import LiveConfig
+
+SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)  # as training runs it
+TINY = PolicyConfig(image_hw=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
+                    intention_dim=4, hidden=8)
+BLIND = dataclasses.replace(TINY, use_activity=False, use_object=False, use_trajectory=False)
+STARTS = [(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 0.5), (3.0, 3.0, 0.0), (6.0, 2.5, -1.0)]
+# Iteration 0 is behaviour cloning (beta 1), iteration 1 mixes (beta 0.5), then the learner alone.
+LIVE = LiveConfig(lanes=3, window_steps=12, iterations=4, lr=1e-2, warmup_iterations=0, beta_start=1.0,
+                  beta_end=0.0, beta_decay_iterations=2, seed=3, ckpt_every=2, log_every=1)
+# On this 2-core CPU compile time dominates: without LLVM optimisation and XLA's fusion emitters
+# the env's graph compiles several times faster. train_live's own compile, shared by the tests.
+FAST = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+OPTIONS = tuple(sorted(FAST.items()))
+WINDOWS = 8  # iterations the queue tests run: more than one pass of the five episodes
+
+
+@pytest.fixture(scope="module")
+def hall():
+    env = ConavEnv(episodes=make_split(STARTS), config=SMALL)
+    return SimpleNamespace(env=env, num=len(STARTS))
+
+
+def _windows(env, config, iterations=WINDOWS):
+    """`iterations` iterations of `config` from the start, compiled as train_live compiles them
+    -> (their steps, host, each (T, N, ...) stacked over iterations on axis 0, the last state)."""
+    fns, iteration = lv.make_iteration(env, config, LIVE, compiler_options=OPTIONS)
+    state = fns.init(policy.init(jax.random.PRNGKey(LIVE.seed), config))
+    windows = []
+    for k in range(iterations):
+        state, metrics = iteration(state, lv.iteration_key(LIVE.seed, k))
+        windows.append(jax.device_get(metrics[lv.STEPS]))
+    return jax.tree.map(lambda *xs: np.stack(xs), *windows), state
+
+
+@pytest.fixture(scope="module")
+def tiny(hall):
+    return _windows(hall.env, TINY)
+
+
+def _started(window) -> tuple[np.ndarray, np.ndarray]:
+    """(queue positions, episodes) of the episodes the windows started, by position."""
+    first = window.first
+    pos, ep = window.position[first], window.episode[first]
+    order = np.argsort(pos, kind="stable")
+    return pos[order], ep[order]
+
+
+def test_behaviour_cloning_drives_as_the_expert_rollout(hall, tiny):
+    window, _ = tiny
+    w0 = jax.tree.map(lambda x: x[0], window)  # iteration 0: beta 1
+    assert w0.expert_acted.all() and w0.first[0].all()
+    steps = LIVE.window_steps
+    rollout = make_rollout(hall.env, expert_agent(hall.env), steps, record=True)
+    _, trace = rollout(jax.random.PRNGKey(0), jnp.asarray(w0.episode[0]))
+    for lane in range(LIVE.lanes):
+        # Each lane runs its first episode from step 0 until it ends or the window does.
+        n = int(np.argmax(w0.first[1:, lane])) + 1 if w0.first[1:, lane].any() else steps
+        assert n > 3 and (w0.episode[:n, lane] == w0.episode[0, lane]).all()
+        np.testing.assert_array_equal(w0.t[:n, lane], np.arange(n))
+        np.testing.assert_array_equal(w0.pose[0, lane], STARTS[w0.episode[0, lane]])
+        # The pose before step t + 1 is the expert rollout's pose after its step t.
+        np.testing.assert_allclose(w0.pose[1:n, lane], np.asarray(trace.robot_pose)[lane, : n - 1], atol=1e-5)
+        np.testing.assert_allclose(w0.label[: n - 1, lane], np.asarray(trace.action)[lane, : n - 1], atol=1e-6)
+
+
+def test_labels_are_the_expert_action_on_the_visited_states(hall, tiny):
+    window, _ = tiny
+    assert 0.2 < window.expert_acted[1].mean() < 0.8 and not window.expert_acted[2:].any()  # beta 0.5, then 0
+    expert = make_expert_step(hall.env)
+
+    @jax.jit
+    def label(episode, t, pose, carry):
+        ud = jnp.zeros(len(UD)).at[UD["t"]].set(t.astype(jnp.float32))
+        state = SimpleNamespace(info={"episode": episode}, pipeline_state=SimpleNamespace(qpos=pose, userdata=ud))
+        return expert(state, carry)
+
+    flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), window)  # (iterations * T, N, ...)
+    checked = 0
+    for lane in range(LIVE.lanes):
+        carry = initial_carry()
+        for s in range(flat.t.shape[0]):
+            if flat.first[s, lane]:
+                carry = initial_carry()
+            got, carry = label(flat.episode[s, lane], flat.t[s, lane], flat.pose[s, lane], carry)
+            np.testing.assert_allclose(flat.label[s, lane], got, atol=1e-6)
+            checked += not flat.expert_acted[s, lane]
+    assert checked > 20  # states the learner drove to
+
+
+def test_a_pass_runs_every_train_episode_once(hall, tiny):
+    window, state = tiny
+    pos, ep = _started(window)
+    np.testing.assert_array_equal(pos, np.arange(len(pos)))  # each position handed out once, in order
+    assert len(pos) > hall.num and int(state.cursor) == len(pos)
+    assert sorted(ep[: hall.num]) == list(range(hall.num))  # pass 0: every episode, none twice
+    np.testing.assert_array_equal(ep, np.asarray(lv.episodes_at(LIVE.seed, jnp.asarray(pos), hall.num)))
+    # More lanes than episodes: twelve positions from 3 span passes 0 to 3.
+    passes = np.concatenate([np.asarray(lv.pass_permutation(LIVE.seed, p, hall.num)) for p in range(4)])
+    np.testing.assert_array_equal(lv.episodes_at(LIVE.seed, jnp.arange(3, 15), hall.num), passes[3:15])
+
+
+def test_paired_seeds_share_the_episode_order_across_ablations(hall, tiny):
+    blind, _ = _windows(hall.env, BLIND, iterations=4)
+    pos, ep = _started(tiny[0])
+    bpos, bep = _started(blind)
+    np.testing.assert_array_equal(bep, ep[: len(bep)])
+    assert len(bpos) > hall.num  # into the second pass
+    orders = [np.asarray(lv.pass_permutation(seed, p, 20)) for seed in (LIVE.seed, LIVE.seed + 1) for p in (0, 1)]
+    assert all(sorted(o) == list(range(20)) for o in orders)
+    assert len({tuple(o) for o in orders}) == 4  # passes and seeds draw their own orders
+
+
+@pytest.fixture(scope="module")
+def run(hall, tmp_path_factory):
+    out = tmp_path_factory.mktemp("live") / "run"
+    result = lv.train_live(hall.env, TINY, LIVE, out, progress=False, compiler_options=FAST)
+    return SimpleNamespace(dir=out, result=result)
+
+
+def test_killed_run_resumes_bit_for_bit(hall, run):
+    full = jax.device_get(run.result.state)
+    log = [json.loads(line) for line in (run.dir / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log] == [1, 2, 3, 4]
+    assert log[0]["beta"] == 1.0 and log[0]["expert_share"] == 1.0 and log[2]["expert_share"] == 0.0
+    assert all(np.isfinite(r["loss"]) and r["env_steps"] == r["step"] * 36 for r in log)
+    # kill -9 after iteration 3, in the middle of writing the checkpoint of iteration 4: the
+    # last whole checkpoint is iteration 2's, a temp file lies beside it, the log runs on.
+    checkpoint_path(run.dir, 4).unlink()
+    (run.dir / ".ckpt_00000004.npz.tmp-1-deadbeef").write_bytes(b"PK\x03")
+    resumed = lv.train_live(hall.env, TINY, dataclasses.replace(LIVE, log_every=2), run.dir, progress=False,
+                            compiler_options=FAST)
+    for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(jax.device_get(resumed.state)), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert [json.loads(line)["step"] for line in (run.dir / "log.jsonl").read_text().splitlines()] == [1, 2, 4]
+    with pytest.raises(ValueError, match="cannot resume .* live.lr"):
+        lv.train_live(hall.env, TINY, dataclasses.replace(LIVE, lr=1e-3), run.dir, compiler_options=FAST)
+
+
+def test_run_loads_as_the_conav_agent_and_acts(hall, run):
+    params, config, run_config = load_policy_run(run.dir)
+    assert config == TINY and run_config["intention_source"] == "ground_truth"
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(run.result.state.params), strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="--ground-truth-intentions"):  # never reads ground truth unasked
+        policy_agent(hall.env, run.dir)
+    agent = policy_agent(hall.env, run.dir, ground_truth=True)
+    key = jax.random.PRNGKey(0)
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def act(agent, params):
+        state = hall.env.reset_to_episode(key, 1)
+        action, _ = agent.act(state, agent.init(key, 1), key)
+        obs = jax.tree.map(lambda x: x[None], state.obs)
+        ref, _, _ = policy.apply(params, TINY, obs, policy.initial_carry(TINY, 1))
+        return action, ref[0]
+
+    action, ref = act(agent, params)
+    assert action.shape == (2,) and np.isfinite(action).all() and np.abs(action).max() > 1e-4
+    np.testing.assert_allclose(action, ref, atol=1e-6)
+
+
+def test_config_errors_name_the_fields(hall):
+    with pytest.raises(ValueError, match="LiveConfig.lanes"):
+        LiveConfig(lanes=0)
+    with pytest.raises(ValueError, match="LiveConfig.beta_end"):
+        LiveConfig(beta_end=1.5)
+    with pytest.raises(ValueError, match="exponential"):
+        LiveConfig(beta_schedule="exponential", beta_end=0.0)
+    with pytest.raises(ValueError, match="SensorConfig\\(height=16, width=64\\)"):
+        lv.make_live(hall.env, dataclasses.replace(TINY, image_hw=(16, 64)), LIVE)
+    lin = LiveConfig(beta_start=1.0, beta_end=0.2, beta_decay_iterations=4)
+    exp = dataclasses.replace(lin, beta_schedule="exponential")
+    np.testing.assert_allclose([float(lin.beta(k)) for k in (0, 2, 4, 9)], [1.0, 0.6, 0.2, 0.2], rtol=1e-6)
+    np.testing.assert_allclose([float(exp.beta(k)) for k in (0, 2, 4, 9)], [1.0, 0.2**0.5, 0.2, 0.2], rtol=1e-6)

@@ -1,0 +1,472 @@
+"""Imitation from the live simulator: nothing stored, every train episode used (purejaxrl's shape).
+
+One jitted iteration, `(TrainState, key) -> (TrainState, metrics)`: `rollout` steps N lanes T
+control steps by lax.scan (at each step the expert labels the state and acts with probability
+beta_k, else the learner; the predictors run on the learner's own observations), then `update`
+takes one truncated-BPTT step of train.imitation's L2 loss on that window, the LSTM starting
+from the carry the lanes ended the previous window with (gradient stopped there). A lane whose
+episode has ended restarts on the next episode of the queue: pass p of the queue is a
+permutation of the whole train split drawn from (seed, p) alone (`pass_permutation`), so every
+train episode runs once per pass, in the same order for every ablation of a seed.
+`train_live` drives the iteration, logs to RUN/log.jsonl and checkpoints the whole TrainState
+atomically: keys come from (seed, iteration), so a killed run resumes bit for bit. RUN is a
+`policy` run that envs.agents.policy.load_policy_run and policy_agent load as train.policy's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.base import State
+from tqdm import tqdm
+
+from conav_jax import runs
+from conav_jax.checkpoints import checkpoint_path, save_checkpoint
+from conav_jax.models import policy
+from conav_jax.models.policy import PolicyConfig, config_dict
+from conav_jax.nav.expert import ExpertCarry, ExpertConfig, initial_carry
+from conav_jax.nn.lstm import LSTMState
+from conav_jax.optim import AdamState, adam, clip_by_global_norm, warmup_cosine
+from conav_jax.runs import append_log, finite_or_none
+from conav_jax.envs.agents.base import GROUND_TRUTH, PREDICTED
+from conav_jax.envs.agents.expert import make_expert_step
+from conav_jax.envs.agents.policy import (
+    PolicyCarry,
+    check_policy_env,
+    load_predictors,
+    make_policy_step,
+    policy_inputs,
+)
+from conav_jax.envs.conav_env import ConavEnv
+from conav_jax.envs.mjcf import UD
+from conav_jax.envs.rollout import jit_with_bank, select_lanes
+from conav_jax.train import imitation as im
+
+KIND = runs.POLICY  # loaded as any imitation policy run
+BETA_SCHEDULES = ("linear", "exponential")
+# Fields that change only how often things are written, not the trained weights: a resumed run
+# may change them.
+CADENCE_FIELDS = ("ckpt_every", "log_every")
+# Streams of the seed's key: the episode queue's permutations and the iterations' draws.
+_ORDER_STREAM, _ITERATION_STREAM = 0x0DE5, 0x57E9
+# The parts of a rollout step, cumulative (`make_live`'s rollout runs the first `stages`): the
+# simulator (refills, the learner's panorama, the env step), the expert's labels, the predictors
+# and the learner acting.
+ROLLOUT_STAGES = ("simulate", "expert", "learner")
+STEPS = "steps"  # the iteration's metrics entry holding its steps (a Window without observations)
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """One live imitation run. An iteration steps `lanes` episodes `window_steps` control steps
+    (0.1 s each) and applies one update; cadences count iterations."""
+
+    lanes: int = 256  # N: episodes stepped together
+    window_steps: int = 32  # T: control steps per iteration, the truncated-BPTT window
+    iterations: int = 10_000  # updates, one per window
+    lr: float = 3e-4  # peak Adam learning rate
+    warmup_iterations: int = 100  # linear warm-up, then cosine decay to 0 at `iterations`
+    weight_decay: float = 0.0  # > 0 makes Adam AdamW
+    grad_clip: float = 1.0  # global L2 norm limit of each gradient
+    # The expert acts at a step of a lane with probability beta_k at iteration k: from
+    # beta_start to beta_end over beta_decay_iterations, then constant; "linear" in k, or
+    # "exponential" (geometric, both ends > 0). beta = 1 throughout is behaviour cloning.
+    beta_start: float = 1.0
+    beta_end: float = 1.0
+    beta_decay_iterations: int = 1
+    beta_schedule: str = "linear"
+    remat: bool = False  # encode one window step at a time in the update (policy.apply_sequence)
+    seed: int = 0  # fixes the initial weights, the episode order and every draw
+    ckpt_every: int = 500  # iterations between checkpoints of the whole state (and one at the end)
+    log_every: int = 10  # iterations per log record (means over them)
+
+    def __post_init__(self):
+        for name in ("lanes", "window_steps", "iterations", "beta_decay_iterations", "ckpt_every", "log_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"LiveConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.warmup_iterations <= self.iterations:
+            raise ValueError(f"LiveConfig.warmup_iterations must be in [0, iterations={self.iterations}], "
+                             f"got {self.warmup_iterations}")
+        if self.lr <= 0 or self.grad_clip <= 0 or self.weight_decay < 0:
+            raise ValueError(f"LiveConfig needs lr > 0, grad_clip > 0, weight_decay >= 0; got {self.lr}, "
+                             f"{self.grad_clip}, {self.weight_decay}")
+        for name in ("beta_start", "beta_end"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"LiveConfig.{name} is a probability in [0, 1], got {getattr(self, name)}")
+        if self.beta_schedule not in BETA_SCHEDULES:
+            raise ValueError(f"LiveConfig.beta_schedule must be one of {BETA_SCHEDULES}, got {self.beta_schedule!r}")
+        if self.beta_schedule == "exponential" and min(self.beta_start, self.beta_end) <= 0.0:
+            raise ValueError("LiveConfig.beta_schedule 'exponential' needs beta_start and beta_end > 0")
+
+    @property
+    def timesteps_per_iteration(self) -> int:
+        return self.lanes * self.window_steps
+
+    def beta(self, iteration: jax.Array | int) -> jax.Array:
+        """beta_k, the expert's probability of acting at iteration `iteration` (traceable)."""
+        frac = jnp.minimum(jnp.asarray(iteration, jnp.float32) / self.beta_decay_iterations, 1.0)
+        if self.beta_schedule == "linear":
+            return jnp.float32(self.beta_start) + (self.beta_end - self.beta_start) * frac
+        return self.beta_start * (self.beta_end / self.beta_start) ** frac
+
+    def weights_fields(self) -> dict:
+        """The fields the trained weights depend on (stored in, and checked against, checkpoints)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in CADENCE_FIELDS}
+
+
+# -- the episode queue -------------------------------------------------------------------------
+
+
+def pass_permutation(seed: int, pass_index: jax.Array, num_episodes: int) -> jax.Array:
+    """The train episodes in the order pass `pass_index` of the queue runs them: a permutation
+    of `range(num_episodes)` drawn from (seed, pass) alone (traceable)."""
+    key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), _ORDER_STREAM), pass_index)
+    return jax.random.permutation(key, num_episodes).astype(jnp.int32)
+
+
+def episodes_at(seed: int, positions: jax.Array, num_episodes: int) -> jax.Array:
+    """The episodes at queue `positions` (N,), which lie within N of the smallest (traceable):
+    position q runs `pass_permutation(seed, q // E)[q % E]`. The passes they span are drawn
+    once each."""
+    first = jnp.min(positions) // num_episodes
+    spans = (positions.shape[0] - 1) // num_episodes + 2
+    orders = jax.vmap(lambda p: pass_permutation(seed, first + p, num_episodes))(jnp.arange(spans))
+    return orders[positions // num_episodes - first, positions % num_episodes]
+
+
+# -- state ---------------------------------------------------------------------------------------
+
+
+class Lanes(NamedTuple):
+    """The lanes, each field (N, ...): env states without their observation, the expert's and
+    the acting policy's carries (LSTM, intention predictor, latest predictions) and the queue
+    position of each lane's episode."""
+
+    env: State
+    expert: ExpertCarry
+    policy: PolicyCarry
+    position: jax.Array
+
+
+class TrainState(NamedTuple):
+    """Everything an iteration reads and writes: the weights, Adam's state, the lanes, `cursor`
+    () the next queue position to hand out and `iteration` () the updates applied."""
+
+    params: dict
+    opt_state: AdamState
+    lanes: Lanes
+    cursor: jax.Array
+    iteration: jax.Array
+
+
+class Window(NamedTuple):
+    """One iteration's steps, time-major (T, N, ...): the compact inputs the learner read
+    (train.imitation.compact_obs, predictions in place of the intentions they replace), the
+    expert's label, `first` (an episode starts at this step: the LSTM is reset), `expert_acted`,
+    the lane's episode, its queue position, the episode's step index and the robot's pose (x,
+    y, yaw) before the step, and whether the episode ended with this step and reached the goal
+    on it."""
+
+    obs: dict
+    label: jax.Array
+    first: jax.Array
+    expert_acted: jax.Array
+    episode: jax.Array
+    position: jax.Array
+    t: jax.Array
+    pose: jax.Array
+    ended: jax.Array
+    reached: jax.Array
+
+
+class Live(NamedTuple):
+    """`make_live`'s functions (pure; jit them with envs.rollout.jit_with_bank, which
+    `make_iteration` does)."""
+
+    init: Any  # (params) -> TrainState at iteration 0, its lanes waiting for their first episodes
+    # (params, lanes, cursor, key, beta, stages=3) -> (lanes, cursor, Window); fewer stages
+    # (ROLLOUT_STAGES) leave the later parts out (zero labels, the expert's "actions" then)
+    rollout: Any
+    update: Any  # (params, opt_state, start lstm, Window) -> (params, opt_state, end lstm, metrics)
+    # (TrainState, key) -> (TrainState, metrics): scalars, and under STEPS the Window trained on
+    # without its observations (T, N) (what each lane did: small beside the panoramas)
+    iteration: Any
+    source: str  # where the learner's intention inputs come from (envs.agents.base)
+
+
+def iteration_key(seed: int, iteration: int | jax.Array) -> jax.Array:
+    """The key of iteration `iteration`: from (seed, iteration) alone."""
+    return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), _ITERATION_STREAM), iteration)
+
+
+def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, intention=None, trajectory=None,
+              expert_config: ExpertConfig = ExpertConfig()) -> Live:
+    """The live imitation loop's pure functions for `env` (its train split), the learner
+    `policy_config` and the predictors (envs.agents.predictors; none: the env's ground-truth
+    intentions, privileged). ValueError for inputs that do not fit, in config-field names."""
+    if policy_config.goal_image:
+        raise ValueError("PolicyConfig.goal_image: live imitation trains the CoNav policy, which reads no goal image")
+    pol = make_policy_step(policy_config, intention, trajectory)  # ValueError for a predictor missing beside another
+    check_policy_env(env, policy_config, "the policy", pol.source)
+    expert = make_expert_step(env, expert_config)
+    keys = policy_inputs(policy_config)
+    n, num_episodes = live.lanes, env.num_episodes
+    schedule = warmup_cosine(live.lr, live.warmup_iterations, live.iterations)
+    optimizer = adam(schedule, weight_decay=live.weight_decay)
+
+    def start(positions):
+        """Lanes on the episodes at queue `positions`."""
+        episodes = episodes_at(live.seed, positions, num_episodes)
+        state = jax.vmap(lambda e: env.reset_to_episode(jax.random.PRNGKey(0), e, observe=False))(episodes)
+        carries = jax.vmap(lambda _: (initial_carry(), pol.init()))(positions)
+        return Lanes(state, *carries, positions)
+
+    def refill(lanes: Lanes, cursor):
+        """Lanes whose episode has ended take the next queued ones, in lane order -> (lanes,
+        cursor, first (N,))."""
+        ended = lanes.env.done > 0
+        # Lanes that keep their episode ask for `cursor`: the positions asked for then span at
+        # most two passes.
+        positions = jnp.where(ended, cursor + jnp.cumsum(ended) - 1, cursor)
+        lanes = jax.lax.cond(ended.any(), lambda l: select_lanes(ended, start(positions), l), lambda l: l, lanes)
+        return lanes, cursor + ended.sum(), ended
+
+    def init(params) -> TrainState:
+        # Lanes of zeros marked ended: the first step of iteration 0 starts them (one compiled reset).
+        shapes = jax.eval_shape(start, jnp.arange(n, dtype=jnp.int32))
+        lanes = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        lanes = lanes._replace(env=lanes.env.replace(done=jnp.ones((n,), jnp.float32)))
+        zero = jnp.zeros((), jnp.int32)
+        return TrainState(params, optimizer.init(params), lanes, zero, zero)
+
+    def rollout(params, lanes: Lanes, cursor, key, beta, stages: int = len(ROLLOUT_STAGES)):
+        def step(carry, k):
+            lanes, cursor = carry
+            lanes, cursor, first = refill(lanes, cursor)
+            obs = jax.vmap(env.observe)(lanes.env).obs
+            inputs, pcarry = {k: obs[k] for k in keys if k in obs}, lanes.policy
+            label, ecarry = jnp.zeros((n, 2)), lanes.expert
+            if stages > ROLLOUT_STAGES.index("expert"):
+                label, ecarry = jax.vmap(expert)(lanes.env, lanes.expert)
+            expert_acts = jax.random.uniform(k, (n,)) < beta
+            if stages <= ROLLOUT_STAGES.index("learner"):  # `live_throughput`'s parts of a step
+                return step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, label)
+            inputs, pcarry = jax.vmap(pol.predict)(obs, lanes.policy)  # the predictors follow every step
+
+            def mixed(pcarry):
+                action, _, lstm = policy.apply(params, policy_config, {k: inputs[k] for k in keys}, pcarry.lstm,
+                                               reset=first)
+                return jnp.where(expert_acts[:, None], label, action), pcarry._replace(lstm=lstm)
+
+            # beta is one scalar for all lanes: with beta >= 1 the learner does not run here.
+            action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
+            return step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, action)
+
+        def step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, action):
+            state = jax.vmap(functools.partial(env.step, observe=False))(lanes.env, action)
+            ended = state.done > 0
+            data = lanes.env.pipeline_state
+            rec = Window(im.compact_obs(inputs), label, first, expert_acts, lanes.env.info["episode"],
+                         lanes.position, data.userdata[:, UD["t"]].astype(jnp.int32), data.qpos, ended,
+                         ended & (state.metrics["reached"] > 0))
+            return (Lanes(state, ecarry, pcarry, lanes.position), cursor), rec
+
+        (lanes, cursor), window = jax.lax.scan(step, (lanes, cursor), jax.random.split(key, live.window_steps))
+        return lanes, cursor, window
+
+    def update(params, opt_state, lstm: LSTMState, window: Window):
+        batch = {"obs": jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), window.obs), "label": window.label.swapaxes(0, 1),
+                 "reset": window.first.T, "mask": jnp.ones(window.first.T.shape, jnp.float32)}
+
+        def loss_fn(p):
+            loss, _, end = im.sequence_loss(p, policy_config, batch, jax.lax.stop_gradient(lstm), live.remat)
+            return loss, end
+
+        (loss, end), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
+        grads, grad_norm = clip_by_global_norm(grads, live.grad_clip)
+        lr = schedule(opt_state.step)
+        params, opt_state = optimizer.update(grads, opt_state, params)
+        return params, opt_state, jax.lax.stop_gradient(end), {"loss": loss, "grad_norm": grad_norm, "lr": lr}
+
+    def iteration(state: TrainState, key):
+        beta = live.beta(state.iteration)
+        lanes, cursor, window = rollout(state.params, state.lanes, state.cursor, key, beta)
+        # The window's LSTM starts from the carry the lanes had before it (state.lanes), and the
+        # next one from where the update's pass (with the weights that acted) ended.
+        params, opt_state, end, metrics = update(state.params, state.opt_state, state.lanes.policy.lstm, window)
+        lanes = lanes._replace(policy=lanes.policy._replace(lstm=end))
+        metrics = {**metrics, "beta": beta, "expert_share": window.expert_acted.mean(),
+                   "episodes": window.ended.sum(), "reached": window.reached.sum(),
+                   "label_v_lin": window.label[..., 0].mean(), STEPS: window._replace(obs={})}
+        return TrainState(params, opt_state, lanes, cursor, state.iteration + 1), metrics
+
+    return Live(init, rollout, update, iteration, pol.source)
+
+
+def make_iteration(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, intention=None, trajectory=None,
+                   expert_config: ExpertConfig = ExpertConfig(), compiler_options: tuple = ()):
+    """(`Live`, the jitted iteration `(TrainState, key) -> (TrainState, metrics)`, the bank an
+    argument of the compiled program), shared by runs of one process with the same inputs but
+    for the cadences (a resumed run reuses the compiled code). `compiler_options`: `jax.jit`'s,
+    as sorted pairs."""
+    cadence_free = dataclasses.replace(live, **{k: 1 for k in CADENCE_FIELDS})
+    return _iteration(env, policy_config, cadence_free, intention, trajectory, expert_config, compiler_options)
+
+
+@functools.lru_cache(maxsize=8)
+def _iteration(env, policy_config, live, intention, trajectory, expert_config, compiler_options):
+    fns = make_live(env, policy_config, live, intention, trajectory, expert_config)
+    donate = () if jax.default_backend() == "cpu" else (1,)  # the bank is argument 0
+    return fns, jit_with_bank(env, fns.iteration, compiler_options=dict(compiler_options) or None,
+                              donate_argnums=donate)
+
+
+# -- checkpoints ---------------------------------------------------------------------------------
+
+
+def _state_tree(state: TrainState) -> tuple[dict, dict]:
+    """(params, the checkpoint's "opt_state" member): Adam's state and the rest of the
+    TrainState as a list of its leaves (the env state is a dataclass the checkpoint format does
+    not hold; a template TrainState rebuilds it, `_from_tree`)."""
+    rest = (state.lanes, state.cursor, state.iteration)
+    return state.params, {"adam": state.opt_state, "live": jax.tree.leaves(rest)}
+
+
+def _from_tree(template: TrainState, params, opt_state: dict) -> TrainState:
+    rest = jax.tree.unflatten(jax.tree.structure((template.lanes, template.cursor, template.iteration)),
+                              opt_state["live"])
+    return TrainState(params, opt_state["adam"], *rest)
+
+
+def run_config(policy_config: PolicyConfig, live: LiveConfig, expert_config: ExpertConfig, env: ConavEnv,
+               source: str, intention_run, trajectory_run) -> dict:
+    """The checkpoint's config: a "policy" run's keys (the PolicyConfig as "model", the
+    predictor runs the agent reads), and what the weights depend on."""
+    return {
+        "kind": KIND,
+        "model": config_dict(policy_config),
+        "live": live.weights_fields(),
+        "imitation": {"train_intentions": PREDICTED if source == PREDICTED else GROUND_TRUTH},
+        "expert": dataclasses.asdict(expert_config),
+        "env": {"split": env.split.name, "episodes": int(env.num_episodes), "end_at_reach": env.config.end_at_reach,
+                "sensor_hw": [env.config.sensor.height, env.config.sensor.width]},
+        "intention_source": source,
+        "intention_run": None if intention_run is None else str(intention_run),
+        "trajectory_run": None if trajectory_run is None else str(trajectory_run),
+    }
+
+
+# -- the run ---------------------------------------------------------------------------------------
+
+
+class LiveResult(NamedTuple):
+    state: TrainState
+    policy_config: PolicyConfig
+    env_steps: int  # control steps trained on, over the whole run
+    episodes_started: int  # queue positions handed out
+    run_dir: Path
+
+
+def _predictor(given, load):
+    """(predictor, its run dir or None): `given` is a run dir (loaded) or a predictor object."""
+    if given is None or not isinstance(given, (str, Path)):
+        return given, None
+    return load(given), str(given)
+
+
+def train_live(
+    env: ConavEnv,
+    policy_config: PolicyConfig,
+    live: LiveConfig,
+    out_dir: str | Path,
+    intention=None,
+    trajectory=None,
+    expert_config: ExpertConfig = ExpertConfig(),
+    progress: bool = True,
+    compiler_options: dict | None = None,
+) -> LiveResult:
+    """Train the CoNav policy by imitation from the live simulator `env` (its train split; build
+    it with `end_at_reach=True`, as the other trainers do) into the run directory `out_dir`,
+    resuming bit for bit from its latest checkpoint if it has one (of the same configs, else
+    ValueError naming the first difference; `LiveConfig.ckpt_every` and `log_every` may change).
+
+    `intention`, `trajectory`: the predictors whose outputs the learner reads, each a run
+    directory (recorded in the run: the CoNav agent loads them from there) or a predictor
+    object (envs.agents.predictors); none: the env's ground-truth intentions (privileged).
+    Logs every `live.log_every` iterations: loss, gradient norm, learning rate, beta, the
+    expert's share of the actions, episodes finished (and reached), env timesteps."""
+    intention, intention_run = _predictor(intention, lambda r: load_predictors(r, None)[0])
+    trajectory, trajectory_run = _predictor(trajectory, lambda r: load_predictors(None, r)[1])
+    fns, iteration = make_iteration(env, policy_config, live, intention, trajectory, expert_config,
+                                    tuple(sorted((compiler_options or {}).items())))
+    config = run_config(policy_config, live, expert_config, env, fns.source, intention_run, trajectory_run)
+    run_dir = Path(out_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    log_path = run_dir / runs.LOG_FILE
+
+    state = fns.init(policy.init(jax.random.PRNGKey(live.seed), policy_config))
+    params, opt_tree = _state_tree(state)
+    ckpt = runs.resume(run_dir, config, params, opt_tree)
+    if ckpt is not None:
+        state = _from_tree(state, ckpt.params, ckpt.opt_state)
+    start_it = int(state.iteration)
+    per_iter = live.timesteps_per_iteration
+
+    def save(it: int) -> None:
+        params, opt_tree = _state_tree(state)
+        save_checkpoint(checkpoint_path(run_dir, it), params=params, opt_state=opt_tree, config=config, step=it,
+                        extra={"env_steps": it * per_iter, "episodes_started": int(state.cursor)})
+
+    bar = tqdm(total=live.iterations * per_iter, initial=start_it * per_iter, disable=not progress, unit="step",
+               dynamic_ncols=True)
+    pending: list = []
+    t0 = time.perf_counter()
+    try:
+        for it in range(start_it + 1, live.iterations + 1):
+            state, metrics = iteration(state, iteration_key(live.seed, it - 1))
+            pending.append({k: v for k, v in metrics.items() if k != STEPS})
+            last = it == live.iterations
+            if it % live.log_every == 0 or last:
+                record = _log_record(pending, it, per_iter, time.perf_counter() - t0, int(state.cursor))
+                append_log(log_path, record)
+                if record["loss"] is None or record["grad_norm"] is None:  # not finite: nothing saved
+                    raise FloatingPointError(f"non-finite loss or gradient by iteration {it}; see {log_path}")
+                bar.set_postfix(loss=f"{record['loss']:.4g}", beta=f"{record['beta']:.3g}")
+                bar.update(len(pending) * per_iter)
+                pending, t0 = [], time.perf_counter()
+            if it % live.ckpt_every == 0 or last:
+                save(it)
+    finally:
+        bar.close()
+    return LiveResult(state, policy_config, int(state.iteration) * per_iter, int(state.cursor), run_dir)
+
+
+def _log_record(pending: list[dict], it: int, per_iter: int, seconds: float, cursor: int) -> dict:
+    """One log record: the means of the pending iterations' metrics, their episode counts summed."""
+    host = jax.tree.map(lambda *xs: np.asarray(xs, np.float64), *jax.device_get(pending))
+    episodes, reached = int(host.pop("episodes").sum()), int(host.pop("reached").sum())
+    record = {"step": it, "split": "train", "env_steps": it * per_iter,
+              **{k: finite_or_none(v.mean()) for k, v in host.items()},
+              "episodes": episodes, "reach_rate": reached / episodes if episodes else None,
+              "episodes_started": cursor, "steps_per_s": round(len(pending) * per_iter / seconds, 1)}
+    return record
+
+
+def train_live_from_data(data_dir: str | Path, out_dir: str | Path, policy_config: PolicyConfig = PolicyConfig(),
+                         live: LiveConfig = LiveConfig(), intention_run=None, trajectory_run=None,
+                         **kwargs) -> LiveResult:
+    """`train_live` on the train split of the dataset `data_dir`, its env rendering the policy's
+    resolution, episodes ending at the first reach (as every trainer runs them)."""
+    from conav_jax.envs import EnvConfig, SensorConfig
+
+    h, w = policy_config.image_hw
+    env = ConavEnv(str(data_dir), "train", EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True))
+    return train_live(env, policy_config, live, out_dir, intention_run, trajectory_run, **kwargs)
