@@ -413,8 +413,9 @@ def train_live(
     log_path = run_dir / runs.LOG_FILE
 
     state = fns.init(policy.init(jax.random.PRNGKey(live.seed), policy_config))
-    params, opt_tree = _state_tree(state)
-    ckpt = runs.resume(run_dir, config, params, opt_tree)
+    # Shapes alone as the template: the state loads as a fresh one is placed, and reuses its compile.
+    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), _state_tree(state))
+    ckpt = runs.resume(run_dir, config, *shapes)
     if ckpt is not None:
         state = _from_tree(state, ckpt.params, ckpt.opt_state)
     start_it = int(state.iteration)
