@@ -233,8 +233,8 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         """Lanes whose episode has ended take the next queued ones, in lane order -> (lanes,
         cursor, first (N,))."""
         ended = lanes.env.done > 0
-        # Lanes that keep their episode ask for `cursor`: the positions asked for then span at
-        # most two passes.
+        # Lanes that keep their episode ask for `cursor`: the positions asked for then lie within
+        # N of it (episodes_at draws the passes they span).
         positions = jnp.where(ended, cursor + jnp.cumsum(ended) - 1, cursor)
         lanes = jax.lax.cond(ended.any(), lambda l: select_lanes(ended, start(positions), l), lambda l: l, lanes)
         return lanes, cursor + ended.sum(), ended
@@ -248,7 +248,7 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         return TrainState(params, optimizer.init(params), lanes, zero, zero)
 
     def rollout(params, lanes: Lanes, cursor, key, beta, stages: int = len(ROLLOUT_STAGES)):
-        def step(carry, k):
+        def step(carry, step_key):
             lanes, cursor = carry
             lanes, cursor, first = refill(lanes, cursor)
             obs = jax.vmap(env.observe)(lanes.env).obs
@@ -256,7 +256,7 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
             label, ecarry = jnp.zeros((n, 2)), lanes.expert
             if stages > ROLLOUT_STAGES.index("expert"):
                 label, ecarry = jax.vmap(expert)(lanes.env, lanes.expert)
-            expert_acts = jax.random.uniform(k, (n,)) < beta
+            expert_acts = jax.random.uniform(step_key, (n,)) < beta
             if stages <= ROLLOUT_STAGES.index("learner"):  # `live_throughput`'s parts of a step
                 return step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, label)
             inputs, pcarry = jax.vmap(pol.predict)(obs, lanes.policy)  # the predictors follow every step
