@@ -168,7 +168,7 @@ def test_run_loads_as_the_conav_agent_and_acts(hall, run):
     assert config == TINY and run_config["intention_source"] == "ground_truth"
     for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(run.result.state.params), strict=True):
         np.testing.assert_array_equal(a, b)
-    with pytest.raises(ValueError, match="--ground-truth-intentions"):  # never reads ground truth unasked
+    with pytest.raises(ValueError, match="ground_truth=True"):  # never reads ground truth unasked
         policy_agent(hall.env, run.dir)
     agent = policy_agent(hall.env, run.dir, ground_truth=True)
     key = jax.random.PRNGKey(0)
@@ -176,7 +176,7 @@ def test_run_loads_as_the_conav_agent_and_acts(hall, run):
     @functools.partial(jax.jit, static_argnums=0)
     def act(agent, params):
         state = hall.env.reset_to_episode(key, 1)
-        action, _ = agent.act(state, agent.init(key, 1), key)
+        _, action = agent.act(agent.init(key, state.obs), state.obs, key)
         obs = jax.tree.map(lambda x: x[None], state.obs)
         ref, _, _ = policy.apply(params, TINY, obs, policy.initial_carry(TINY, 1))
         return action, ref[0]
