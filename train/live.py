@@ -358,6 +358,7 @@ def run_config(policy_config: PolicyConfig, live: LiveConfig, expert_config: Exp
         "expert": dataclasses.asdict(expert_config),
         "env": {"split": env.split.name, "episodes": int(env.num_episodes), "end_at_reach": env.config.end_at_reach,
                 "sensor_hw": [env.config.sensor.height, env.config.sensor.width]},
+        "materials": env.config.sensor.materials,  # what the training env renders (checked by the agent)
         "intention_source": source,
         "intention_run": None if intention_run is None else str(intention_run),
         "trajectory_run": None if trajectory_run is None else str(trajectory_run),
