@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from conav_jax.data.arrayio import fsync_dir
+from conav_jax.provenance import PROVENANCE_KEY
 
 FORMAT_VERSION = 1
 META_MEMBER = "meta.json"
@@ -283,7 +284,8 @@ def load_checkpoint(
         raise ValueError(f"corrupt checkpoint {path}: {type(e).__name__}: {e}") from e
 
     if config is not None:
-        mismatch = _first_config_mismatch(meta["config"], _config_dict(config), ignore=frozenset(ignore))
+        # A run's provenance (the code and device that wrote it) may differ when another commit resumes it.
+        mismatch = _first_config_mismatch(meta["config"], _config_dict(config), ignore=frozenset(ignore) | {PROVENANCE_KEY})
         if mismatch:
             raise ValueError(f"checkpoint {path} config mismatch at {mismatch}")
 

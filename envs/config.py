@@ -242,3 +242,10 @@ class EnvConfig:
     # keep their first-reach definitions. True: the episode ends at the first reach (the
     # imitation and PPO training rollouts, whose data and rewards stop there).
     end_at_reach: bool = False
+
+
+def env_settings(config: EnvConfig) -> dict:
+    """What an env's config changes about a figure, for a provenance block (conav_jax.provenance):
+    physics implementation, caster kind, materials and resolution [H, W], "auto" resolved here."""
+    return {"physics": resolve_physics_impl(config.physics.impl), "caster": resolve_sensor_kind(config.sensor.kind),
+            "materials": config.sensor.materials, "resolution": [config.sensor.height, config.sensor.width]}

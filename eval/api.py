@@ -19,7 +19,9 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
+from conav_jax.provenance import provenance
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+from conav_jax.envs.config import env_settings
 from conav_jax.envs.agents.base import Agent, StateAgent, describe
 from conav_jax.envs.rollout import make_evaluator
 from conav_jax.eval.report import summarize_with_ci, table2_markdown
@@ -95,8 +97,8 @@ def _write(out: Path, env: ConavEnv, given: dict, records: list[dict], summary: 
     write_csv(out / f"episodes_{key}.csv", records)
     hw = f"{env.config.sensor.height}x{env.config.sensor.width}"
     rounded = {m: {k: round(v, 4) for k, v in e.items()} for m, e in summary.items()}
-    doc = {"split": env.split.name, "episodes": len(records), "seed": seed,
-           "batch": batch, "resolution": hw, "agents": {key: {**given, "metrics": rounded}}}
+    doc = {"split": env.split.name, "episodes": len(records), "seed": seed, "batch": batch, "resolution": hw,
+           "provenance": provenance(**env_settings(env.config)), "agents": {key: {**given, "metrics": rounded}}}
     (out / "metrics.json").write_text(json.dumps(doc, indent=1) + "\n")
     privileged = ", ".join(given["privileged"]) or "none"
     (out / "report.md").write_text("\n".join([

@@ -34,31 +34,20 @@ def untrained_agent(name: str, env, config, key, frames: int):
     from conav_jax.envs.agents import goalnav
     from conav_jax.envs.agents.base import NO_INTENTIONS
     from conav_jax.envs.agents.policy import check_policy_env, policy_agent_from_params
-    from conav_jax.envs.agents.predictors import FrameSpec, make_intention_predictor, trajectory_predictor
-    from conav_jax.envs.human_crop import default_crop_hw
-    from conav_jax.models import perceiver, policy, trajectory
-    from conav_jax.models.perceiver import PerceiverConfig
-    from conav_jax.models.trajectory import TrajectoryConfig
+    from conav_jax.models import policy
 
     if name not in UNTRAINED_AGENTS:
         raise ValueError(f"no untrained variant of agent {name!r}; learned agents: {', '.join(UNTRAINED_AGENTS)}")
-    def init(model, k, cfg):  # one compiled program instead of one per leaf
-        return jax.jit(model.init, static_argnums=1)(k, cfg)
-
-    k_policy, k_intention, k_trajectory = jax.random.split(key, 3)
-    params = init(policy, k_policy, config)
-    hw = (env.config.sensor.height, env.config.sensor.width)
-    seen = PerceiverConfig(image_hw=default_crop_hw(hw))
+    k_policy, k_predictors = jax.random.split(key)
+    params = _init(policy, k_policy, config)
     reads_intention = name == "objectgoal-predicted" or name in ("conav", "ppo") and (config.use_activity or
                                                                                      config.use_object)
-    intention = (make_intention_predictor(init(perceiver, k_intention, seen), seen, frames, FrameSpec("human", hw))
-                 if reads_intention else None)
+    intention, trajectory_ = untrained_predictors(env, k_predictors, frames)
+    intention = intention if reads_intention else None
     source = f"untrained {name} policy"
     if name in ("conav", "ppo"):
-        traj = TrajectoryConfig()
         agent = policy_agent_from_params(
-            params, config, intention,
-            trajectory_predictor(init(trajectory, k_trajectory, traj), traj) if config.use_trajectory else None,
+            params, config, intention, trajectory_ if config.use_trajectory else None,
             name=name, title="CoNav Agent" if name == "conav" else "PPO Agent")
         check_policy_env(env, config, source, agent.intention_source)
     elif name == "imagegoal":
@@ -69,6 +58,32 @@ def untrained_agent(name: str, env, config, key, frames: int):
         agent = goalnav.objectgoal_agent_from_params(params, config, env, intention)
     title = f"{agent.title or agent.name} ({UNTRAINED})"
     return agent._replace(title=title) if hasattr(agent, "_replace") else dataclasses.replace(agent, title=title)
+
+
+def _init(model, key, config):
+    import jax
+
+    return jax.jit(model.init, static_argnums=1)(key, config)  # one compiled program, not one per leaf
+
+
+def untrained_predictors(env, key, frames: int = 8):
+    """(intention predictor, trajectory predictor) of freshly initialised parameters at the
+    env's panorama (the Perceiver over `frames` crops around the human): a trained pair's
+    computation, for timing without runs."""
+    import jax
+
+    from conav_jax.envs.agents.predictors import FrameSpec, make_intention_predictor, trajectory_predictor
+    from conav_jax.envs.human_crop import default_crop_hw
+    from conav_jax.models import perceiver, trajectory
+    from conav_jax.models.perceiver import PerceiverConfig
+    from conav_jax.models.trajectory import TrajectoryConfig
+
+    k_intention, k_trajectory = jax.random.split(key)
+    hw = (env.config.sensor.height, env.config.sensor.width)
+    seen = PerceiverConfig(image_hw=default_crop_hw(hw))
+    traj = TrajectoryConfig()
+    return (make_intention_predictor(_init(perceiver, k_intention, seen), seen, frames, FrameSpec("human", hw)),
+            trajectory_predictor(_init(trajectory, k_trajectory, traj), traj))
 
 
 def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:

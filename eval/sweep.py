@@ -21,7 +21,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from conav_jax.provenance import provenance
 from conav_jax.envs.agents.registry import AGENTS, check_agent
+from conav_jax.envs.config import env_settings
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")  # ablation names become file names
 
@@ -55,6 +57,7 @@ class EvalPlan:
     batch: int = 256  # parallel lanes (envs.rollout.make_evaluator)
     seed: int = 0
     resolution: tuple[int, int] = (112, 448)  # the env's panorama (H, W): the trained runs' or SensorConfig's
+    materials: str = "instance"  # SensorConfig.materials of the env: the trained runs' or SensorConfig's
     out: Path = Path("eval_out")
     devices: int | None = None  # devices the lanes are split over (None: all visible)
 
@@ -78,13 +81,16 @@ def plan_eval(
     seed: int = 0,
     resolution: tuple[int, int] | None = None,
     devices: int | None = None,
+    materials: str | None = None,
 ) -> EvalPlan:
     """Check every input of an evaluation (dataset, split, agents, checkpoints, sizes) without
     building an env or compiling anything; ValueError naming the first problem. `checkpoint`:
     the run of every learned agent, or a mapping agent name -> its run (the key None: the run of
     learned agents not named), so one sweep evaluates several trained runs. `resolution` None:
     the trained runs' (every learned agent's run must agree), else SensorConfig's default; given,
-    it must match every trained run's."""
+    it must match every trained run's. `materials` None: those the trained runs' images were
+    rendered with (every run must agree; envs.config.run_materials), else SensorConfig's default;
+    given, the agents' loaders refuse a run of other materials."""
     from conav_jax.data.episodes import read_manifest
     from conav_jax.envs.agents.registry import run_resolution
 
@@ -127,7 +133,7 @@ def plan_eval(
         raise ValueError(f"EvalPlan.out {out} exists and is not a directory")
     trained = [(name, own.get(name, default)) for name in agents if _learned(name)]
     trained += [("conav", run) for _, run in ablations]
-    return EvalPlan(
+    return EvalPlan(materials=_materials_of(trained, learned, materials),
         data=Path(data),
         split=split,
         content_hash=manifest["content_hash"],
@@ -145,6 +151,30 @@ def plan_eval(
     )
 
 
+def _materials_of(trained: list[tuple[str, str | None]], intention_kwargs: dict, given: str | None) -> str:
+    """The materials an evaluation's env renders: `given`, else the one the trained agents' and
+    predictors' runs were rendered with (ValueError when they differ), else SensorConfig's."""
+    from conav_jax.envs.config import MATERIALS, SensorConfig, run_materials
+
+    if given is not None:
+        if given not in MATERIALS:
+            raise ValueError(f"EvalPlan.materials must be one of {MATERIALS}, got {given!r}")
+        return given
+    runs = [run for _, run in trained if run is not None]
+    runs += [intention_kwargs[k] for k in ("intention_run", "trajectory_run") if intention_kwargs.get(k)]
+    found = {}
+    for run in runs:
+        try:
+            found[str(run)] = run_materials(run)
+        except FileNotFoundError:
+            continue  # the agent's own loader names the missing run
+    kinds = set(found.values()) - {None}
+    if len(kinds) > 1:
+        raise ValueError("EvalPlan.materials: the runs were trained on different materials "
+                         f"({', '.join(f'{r}: {m}' for r, m in found.items())}); evaluate them separately")
+    return kinds.pop() if kinds else SensorConfig.materials
+
+
 # -- running -------------------------------------------------------------------------------------
 
 # A process keeps its last env and each agent's compiled rollout: evaluating the same agents on
@@ -156,11 +186,12 @@ _EVALUATORS: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary(
 def load_env(plan: EvalPlan):
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 
-    key = (str(plan.data.resolve()), plan.split, plan.content_hash, plan.resolution, plan.episodes)
+    key = (str(plan.data.resolve()), plan.split, plan.content_hash, plan.resolution, plan.materials, plan.episodes)
     if key not in _ENV_CACHE:
         _ENV_CACHE.clear()
         h, w = plan.resolution
-        _ENV_CACHE[key] = ConavEnv(plan.data, plan.split, EnvConfig(sensor=SensorConfig(height=h, width=w)), max_episodes=plan.episodes)
+        sensor = SensorConfig(height=h, width=w, materials=plan.materials)
+        _ENV_CACHE[key] = ConavEnv(plan.data, plan.split, EnvConfig(sensor=sensor), max_episodes=plan.episodes)
     return _ENV_CACHE[key]
 
 
@@ -380,6 +411,8 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
         "seed": plan.seed,
         "batch": plan.batch,
         "resolution": f"{h}x{w}",
+        "materials": plan.materials,
+        "provenance": provenance(**env_settings(env.config)),
         "agents": {k: {**given[k], "metrics": _rounded(summaries[k])} for k in agent_keys},
         "ablations": {
             k: {**given[k], "run": run, "inputs": dict(zip(("activity", "object", "trajectory"), flags[k])),

@@ -123,3 +123,27 @@ def test_bench_eval_untrained_refuses_a_run_and_accepts_agents_outside_the_regis
     monkeypatch.setattr("conav_jax.envs.ConavEnv", lambda *a, **k: None)
     assert cli.main([*base, "--agent", "mypkg.agents:make", "--resolution", "8x32"]) == 2
     assert seen == ["mypkg.agents:make"] and "built here" in capsys.readouterr().err
+
+
+def test_train_live_builds_its_configs_from_flags_and_passes_the_predictors(tmp_path, monkeypatch, capsys):
+    from conav_jax.eval import cli
+    from conav_jax.train.live import LiveConfig
+
+    calls = []
+
+    def train_live_from_data(data, out, model, live, **kwargs):
+        calls.append((data, out, model, live, kwargs))
+        raise FloatingPointError("stopped here")
+
+    monkeypatch.setattr("conav_jax.train.live.train_live_from_data", train_live_from_data)
+    base = ["train", "live", "--data", "d", "--out", str(tmp_path / "run"), "--resolution", "8x32"]
+    assert cli.main([*base, "--ground-truth-intentions", "--lanes", "64", "--window-steps", "8", "--beta-end", "0.25",
+                     "--ablation", "object", "--no-progress"]) == 1
+    data, out, model, live, kwargs = calls[-1]
+    assert live == LiveConfig(lanes=64, window_steps=8, beta_end=0.25)
+    assert model.image_hw == (8, 32) and (model.use_activity, model.use_object, model.use_trajectory) == (False, True, False)
+    assert kwargs["intention_run"] is None and kwargs["trajectory_run"] is None
+    assert cli.main([*base, "--intention", "I", "--trajectory", "T"]) == 1
+    assert calls[-1][4]["intention_run"] == "I" and calls[-1][4]["trajectory_run"] == "T"
+    assert cli.main([*base, "--intention", "I"]) == 2  # all inputs read the trajectory predictor
+    assert "--trajectory RUN" in capsys.readouterr().err

@@ -31,7 +31,8 @@ from tqdm import tqdm
 from conav_jax import runs
 from conav_jax.checkpoints import checkpoint_path, save_checkpoint
 from conav_jax.models import policy
-from conav_jax.models.policy import PolicyConfig, config_dict
+from conav_jax.models.policy import PolicyConfig, config_dict, encoder_name
+from conav_jax.provenance import PROVENANCE_KEY, provenance
 from conav_jax.nav.expert import ExpertCarry, ExpertConfig, initial_carry
 from conav_jax.nn.lstm import LSTMState
 from conav_jax.optim import AdamState, adam, clip_by_global_norm, warmup_cosine
@@ -46,6 +47,7 @@ from conav_jax.envs.agents.policy import (
     policy_inputs,
 )
 from conav_jax.envs.conav_env import ConavEnv
+from conav_jax.envs.config import env_settings
 from conav_jax.envs.mjcf import UD
 from conav_jax.envs.rollout import jit_with_bank, select_lanes
 from conav_jax.train import imitation as im
@@ -362,6 +364,8 @@ def run_config(policy_config: PolicyConfig, live: LiveConfig, expert_config: Exp
         "intention_source": source,
         "intention_run": None if intention_run is None else str(intention_run),
         "trajectory_run": None if trajectory_run is None else str(trajectory_run),
+        PROVENANCE_KEY: provenance(**env_settings(env.config), encoder=encoder_name(policy_config),
+                                   conv_dtype=policy_config.conv_dtype),
     }
 
 

@@ -41,7 +41,8 @@ from conav_jax.checkpoints import (checkpoint_path, latest_checkpoint, load_chec
 from conav_jax.data.arrayio import save_json, sha256_file
 from conav_jax.data.episodes import read_manifest
 from conav_jax.models import policy
-from conav_jax.models.policy import config_dict
+from conav_jax.models.policy import config_dict, encoder_name
+from conav_jax.provenance import PROVENANCE_KEY, provenance
 from conav_jax.nav.expert import ExpertConfig
 from conav_jax.parallel import check_divisible
 from conav_jax.runs import append_log
@@ -272,6 +273,8 @@ def run_config(model, imitation: ImitationConfig, expert, content_hash: str, int
         "trajectory_run": None if trajectory_run is None else str(trajectory_run),
         "predictor_digests": {"intention": predictor_digest(intention_run),
                               "trajectory": predictor_digest(trajectory_run)},
+        PROVENANCE_KEY: provenance(materials=SensorConfig.materials, resolution=list(model.image_hw),
+                                   encoder=encoder_name(model), conv_dtype=model.conv_dtype),
     }
 
 

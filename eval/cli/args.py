@@ -181,6 +181,14 @@ def resolution_arg(p: argparse.ArgumentParser, what: str) -> None:
                    help=f"panorama HxW {what} (default: the paper's 112x448, envs.config.SensorConfig)")
 
 
+def materials_arg(p: argparse.ArgumentParser, what: str) -> None:
+    from conav_jax.envs.config import MATERIALS
+
+    p.add_argument("--materials", choices=MATERIALS, default=None,
+                   help=f"surfaces: per-instance materials with shading, or one flat colour per category {what} "
+                        "(envs.config.SensorConfig.materials)")
+
+
 def devices_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="devices each batch is split over (default: all visible, every host's in a multi-host run)")

@@ -91,6 +91,21 @@ def add(sub) -> None:
     devices_arg(p)
     p.set_defaults(func=_run_bench_train)
 
+    p = what.add_parser("live", help="live imitation throughput: env timesteps trained/s of train.live's iteration "
+                        "and its parts (simulate, + expert labels, + predictors and learner, + update)")
+    p.add_argument("--data", default=None, help="dataset dir (default: a tiny one generated on the fly)")
+    p.add_argument("--split", default="train")
+    p.add_argument("--resolution", type=parse_resolution, default=(112, 448), metavar="HxW")
+    p.add_argument("--lanes", type=int, nargs="+", default=[8192], help="lane counts N to time")
+    p.add_argument("--window-steps", type=int, default=4, help="T, control steps per iteration")
+    p.add_argument("--beta", type=float, default=0.5, help="the expert's share of the actions")
+    p.add_argument("--encoder", default="patch", help="the policy's panorama encoder (models.policy.ENCODERS)")
+    p.add_argument("--conv-dtype", default="bfloat16", help="dtype of the policy's convolutions")
+    p.add_argument("--ground-truth-intentions", action="store_true",
+                   help="no predictors: the learner reads ground truth (default: untrained predictors run)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.set_defaults(func=_run_bench_live)
+
     p = what.add_parser("eval", help="evaluation throughput: val episodes/min for one agent")
     _dataset_args(p)
     p.add_argument("--agent", default="pioneer", help=f"one of {', '.join(AGENTS)}")
@@ -135,6 +150,27 @@ def _dataset_args(p) -> None:
     """--data and --split of the benchmarks that build an env (without --data: the tiny preset)."""
     p.add_argument("--data", default=None, help="dataset dir (default: generate the tiny preset in a temp dir)")
     p.add_argument("--split", default="val")
+
+
+def _run_bench_live(args: argparse.Namespace) -> int:
+    import jax
+
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.eval.bench import untrained_predictors
+    from conav_jax.models.policy import PolicyConfig, encoder_config
+    from conav_jax.train.bench import live_throughput
+
+    h, w = args.resolution
+    tmp = None if args.data is not None else tiny_dataset()
+    env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True))
+    model = encoder_config(PolicyConfig(image_hw=(h, w), conv_dtype=args.conv_dtype), args.encoder)
+    predictors = (None, None) if args.ground_truth_intentions else untrained_predictors(env, jax.random.PRNGKey(0))
+    for lanes in args.lanes:
+        res = live_throughput(env, model, lanes=lanes, window_steps=args.window_steps, repeats=args.repeats,
+                              intention=predictors[0], trajectory=predictors[1], beta=args.beta)
+        print(json.dumps({**res, "encoder": args.encoder, "conv_dtype": args.conv_dtype,
+                          "materials": env.config.sensor.materials}), flush=True)
+    return 0
 
 
 def _run_bench_sim(args: argparse.Namespace) -> int:

@@ -13,6 +13,7 @@ from conav_jax.eval.cli.args import (
     mesh,
     parse_checkpoints,
     resolution_arg,
+    materials_arg,
     translate_errors,
     use_pretrained,
 )
@@ -35,6 +36,7 @@ def add(sub) -> None:
     p.add_argument("--batch", type=int, default=256, help="parallel lanes: episodes in flight at once")
     p.add_argument("--seed", type=int, default=0, help="rollout keys and bootstrap resampling")
     resolution_arg(p, "(default with a trained run: the run's)")
+    materials_arg(p, "(default with trained runs: those they were trained on, else instance)")
     p.add_argument("--out", required=True, help="output directory")
     devices_arg(p)
     translate_errors(p, agents="--agent", agent_checkpoints="--checkpoint", ablations="--ablation-checkpoints",
@@ -64,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         args.data, args.split, agents, args.out,
         checkpoint=parse_checkpoints(args.checkpoint), intention_kwargs=intention_kwargs(args),
         ablations=parse_ablations(args.ablation_checkpoints), episodes=args.episodes, batch=args.batch,
-        seed=args.seed, resolution=args.resolution, devices=args.devices,
+        seed=args.seed, resolution=args.resolution, devices=args.devices, materials=args.materials,
     )
     devices = mesh(args)
     env = sweep.load_env(plan)

@@ -80,6 +80,8 @@ def add(sub) -> None:
                    "there (the expert ignores the seed: the same bytes; default: on)")
     p.set_defaults(func=_run_train_policy)
 
+    _add_train_live(models)
+
     d = PPOConfig()
     p = models.add_parser("rl", help="train the policy with PPO in the simulator")
     p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
@@ -100,6 +102,46 @@ def add(sub) -> None:
     devices_arg(p)
     p.set_defaults(func=_run_train_rl)
     _add_train_goalnav(models)
+
+
+def _add_train_live(models) -> None:
+    from conav_jax.models.policy import ABLATIONS
+    from conav_jax.train.live import LiveConfig
+
+    p = models.add_parser("live", help="imitation-train the CoNav policy from the live simulator: N lanes step T "
+                          "control steps, the expert labels every visited state, one update per window, every "
+                          "train episode in turn, nothing stored")
+    p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
+    p.add_argument("--out", required=True, help="run dir (a policy run: `conav eval --agent conav --checkpoint RUN`)")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--intention", default=None, metavar="RUN", help="intention run the learner reads")
+    source.add_argument("--ground-truth-intentions", action="store_true",
+                        help="the learner reads the env's ground-truth intentions (a privileged run)")
+    p.add_argument("--trajectory", default=None, metavar="RUN", help="trajectory run (with --intention)")
+    p.add_argument("--ablation", choices=sorted(ABLATIONS), default="all", help="intention inputs kept (Table 3 row)")
+    resolution_arg(p, "of the policy's panorama")
+    _add_network_args(p)
+    add_fields(p, LiveConfig)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_run_train_live)
+
+
+def _run_train_live(args: argparse.Namespace) -> int:
+    from conav_jax.models.policy import ablation_config
+    from conav_jax.envs.agents.registry import run_resolution
+    from conav_jax.train.live import LiveConfig, train_live_from_data
+
+    if args.intention is not None and args.trajectory is None and args.ablation == "all":
+        raise ValueError("--ablation all reads the trajectory predictor: give --trajectory RUN")
+    model = ablation_config(network_base(args, run_resolution([], args.resolution)), args.ablation)
+    live = config_from_args(LiveConfig, args)
+    result = _trained(args, train_live_from_data, args.data, args.out, model, live, intention_run=args.intention,
+                      trajectory_run=args.trajectory, progress=not args.no_progress)
+    if result is None:
+        return 1
+    print(f"conav train live: {result.env_steps:,} env timesteps over {result.episodes_started:,} episodes -> "
+          f"{result.run_dir}")
+    return 0
 
 
 def _add_network_args(p) -> None:
