@@ -27,15 +27,16 @@ from conav_jax.data.presets import PRESETS, preset
 from conav_jax.data.scene import SceneFormatError, scene_from_json_dict
 
 # sha256 of the tiny preset's (seed 0) train and val files as generated before the minival split
-# existed: adding a split must not move them. Update only with a change meant to alter the data.
+# existed: adding a split must not move them (the scene JSONs as they record their materials).
+# Update only with a change meant to alter the data.
 TINY_SEED0_TRAIN_VAL_SHA256 = {
     "train/shard_00000.npz": "869a2915471b8388a4b1851707ecdd329a76801beab93d64fb4a76781156ac7d",
     "val/shard_00000.npz": "69451ed5b7877c30ac7f2c039ac29cae186b33eb0c593f8d2b3048e0062baf39",
-    "scenes/train_000.json": "46a9fc06481d874855c2dcae5c06fa1e072b8cf8f0430eb3717b3aebfbf32e28",
+    "scenes/train_000.json": "b32b5e92c88a8f5b9a8e1374562addb28cf78c882b4d2aae41a8d9ca39ac1eff",
     "scenes/train_000.nav.npz": "2c26b9e0b13cad1cdf25ad0c4c722f7396b8ee3ff37f59d37e29ec9d0e8104e6",
-    "scenes/train_001.json": "2bd7c8b0ebed81ac5e80c885dbf981ec35af80c68d7c240d098449aa2332cdf7",
+    "scenes/train_001.json": "b2ee15351472d36f57beb2fa8621fcd0c3564ce1372061893402eaa2fc11fe2a",
     "scenes/train_001.nav.npz": "6d57be3e8e31253ef1f8daf060de56e6302fb350f54eb1acfce38fdee3510489",
-    "scenes/val_000.json": "6e78bc1256d2e45c0fd9d55a29272a294a6843c620de7c7b51f0146173f495ac",
+    "scenes/val_000.json": "a48bf48f5636df1907646f6a351fcdf467c5d99de780eac152dbe35e52411622",
     "scenes/val_000.nav.npz": "44d0dc0f750ec83d7cb39b62f0e5a72a9e1bb44fc7f498d3da938e63f3b3a4a2",
 }
 # Procedural scenes routinely leave a carpet or a ceiling lamp unreachable: tests that generate

@@ -32,7 +32,10 @@ from conav_jax.train.policy import ImitationConfig, check_recordable, records_pr
 # For the small jits. The MJX rollout keeps XLA's default: at level 0 its run time costs more
 # than compiling saves.
 FAST = {"xla_backend_optimization_level": 0}
-SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)  # as training runs it
+# As training runs it, with flat colours: table lookups, so windows recorded by differently
+# compiled programs (chunked and whole) agree bit for bit; shading's float arithmetic may round
+# differently from one fusion to another.
+SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32, materials="flat"), end_at_reach=True)
 PCFG = PolicyConfig(
     image_hw=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16, intention_dim=8, hidden=32
 )

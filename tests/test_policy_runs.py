@@ -67,13 +67,14 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     from conav_jax.train import policy as tp
 
     # A lane holds a 32-step chunk, 16 steps of burn-in and twice the chunk's window (48 steps):
-    # 144 steps of 112x448 records, 36.1 MB (uint8 RGB + float16 depth), 57.8 MB with a goal image.
-    assert tp.recording_lanes(32, 32, 16, (112, 448), budget_bytes=2**34) == 2**34 // (144 * 50176 * 5) == 475
-    assert tp.recording_lanes(32, 32, 16, (112, 448), goal_image=True, budget_bytes=2**34) == 297
+    # 144 steps of 112x448 records, 43.4 MB (uint8 RGB + float16 depth + int8 segmentation), 65.0 MB
+    # with a goal image.
+    assert tp.recording_lanes(32, 32, 16, (112, 448), budget_bytes=2**34) == 2**34 // (144 * 50176 * 6) == 396
+    assert tp.recording_lanes(32, 32, 16, (112, 448), goal_image=True, budget_bytes=2**34) == 264
     assert tp.recording_lanes(32, 32, 16, (8, 32)) == tp.MAX_ROLLOUT_LANES
     assert tp.recording_lanes(10**6, 32, 16, (112, 448)) == 1
     if jax.default_backend() == "cpu":  # the host holds every recorded window too: a smaller budget
-        assert tp.recording_lanes(32, 32, 16, (112, 448)) == tp.RECORD_BUDGET_BYTES_CPU // (144 * 50176 * 5) == 59
+        assert tp.recording_lanes(32, 32, 16, (112, 448)) == tp.RECORD_BUDGET_BYTES_CPU // (144 * 50176 * 6) == 49
     with pytest.raises(ValueError, match="rollout_batch must be >= 1"):
         ImitationConfig(rollout_batch=0)
 

@@ -252,6 +252,10 @@ def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data, m
     import numpy as np
 
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    import jax.numpy as jnp
+
+    from conav_jax.envs.agents.base import as_state_agent
+    from conav_jax.envs.rollout import _start, agent_step
     from conav_jax.eval.bench import UNTRAINED_AGENTS, untrained_agent
     from conav_jax.models import perceiver, policy, trajectory
     from conav_jax.models.policy import PolicyConfig, ablation_config
@@ -272,12 +276,12 @@ def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data, m
         ablation_config(small, "none"), goal_image=True, use_human_pos=False)}
     goal = dataclasses.replace(ablation_config(small, "object"), use_human_pos=False)
     key = jax.random.PRNGKey(0)
-    state = jax.eval_shape(env.reset, key)  # shapes only: the agents are traced, not compiled
     for name in UNTRAINED_AGENTS:
         agent = untrained_agent(name, env, configs.get(name, goal), key, frames=2)
         assert agent.name == name and agent.title.endswith("(untrained)")
-        carry = jax.eval_shape(agent.init, key, state.info["episode"])
-        action, _ = jax.eval_shape(agent.act, state, carry, key)
+        acting = as_state_agent(agent)  # shapes only: the agents are traced, not compiled
+        state, carry, k = jax.eval_shape(lambda ep: _start(env, acting, key, ep), jnp.int32(0))
+        _, action, _ = jax.eval_shape(lambda s, c, k: agent_step(env, acting, s, c, k), state, carry, k)
         assert action.shape == (2,) and action.dtype == np.float32
     assert set(made) == {"PolicyConfig", "PerceiverConfig", "TrajectoryConfig"}  # the weights are init's
     assert untrained_agent("conav", env, small, key, 2).intention_source == "predicted"

@@ -59,6 +59,7 @@ from conav_jax.envs.agents.policy import (
     intention_source,
     load_policy_run,
     policy_agent_from_params,
+    policy_inputs,
 )
 from conav_jax.envs.metrics import summarize
 from conav_jax.envs.rollout import make_evaluator
@@ -146,12 +147,10 @@ def gaussian_entropy(log_std: jax.Array) -> jax.Array:
 
 
 def policy_obs(obs: dict, config: PolicyConfig) -> dict:
-    """The observations the policy reads (the rollout stores only these): rgbd, gps_compass,
-    human_pos and the enabled intention inputs."""
-    keys = ["rgbd", "gps_compass", "human_pos"]
-    keys += [k for k, on in (("activity_probs", config.use_activity), ("object_probs", config.use_object),
-                             ("future_traj", config.use_trajectory)) if on]
-    return {k: obs[k] for k in keys}
+    """The observations the policy reads (the rollout stores only these): envs.agents.policy's
+    policy_inputs (the panorama, pose, human position, the enabled intention inputs and the
+    segmentation its saliency channel reads)."""
+    return {k: obs[k] for k in policy_inputs(config)}
 
 
 def evaluate_actions(
