@@ -10,10 +10,14 @@ format compares configs without this block (`PROVENANCE_KEY`).
 from __future__ import annotations
 
 import functools
+import os
 import subprocess
 from pathlib import Path
 
 PROVENANCE_KEY = "provenance"
+# Names the commit of a copy of the tree whose git state is not its own (a copy made on another
+# machine): provenance records it, and "dirty" as unknown.
+COMMIT_ENV = "CONAV_COMMIT"
 UNKNOWN = "unknown"
 _REPO = Path(__file__).resolve().parents[1]
 
@@ -26,6 +30,8 @@ def git_state(repo: str | Path = _REPO) -> tuple[str, bool | None]:
         return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, check=True,
                               timeout=30).stdout.strip()
 
+    if os.environ.get(COMMIT_ENV):  # a copy of the tree that is not its git checkout
+        return os.environ[COMMIT_ENV], None
     try:
         commit = git("rev-parse", "HEAD")
         dirty = bool(git("status", "--porcelain", "--untracked-files=no"))

@@ -23,6 +23,13 @@ from conav_jax.models.policy import DEFAULT_ENCODER, ENCODERS
 
 STAGES = ("generate", "predictors", "baselines", "bc", "dagger", "eval", "tables", "pack")
 ABLATIONS = ("none", "activity", "object", "activity_object", "all")  # the paper's Table 3 rows 1-5
+# The ground-truth bound: Table 3 rows trained and evaluated reading the env's true intentions
+# (privileged), by row name -> the ablation whose inputs they read. Trained by the live trainer.
+GROUND_TRUTH_ROWS = {"gt_object": "object", "gt_all": "all"}
+# How the CoNav policy is trained: "offline", from recorded windows of a subset of the train
+# episodes (train.policy: BC, then DAgger rounds), or "live", from the live simulator over the
+# whole train split (train.live: BC is beta = 1, DAgger a decaying beta).
+TRAINERS = ("offline", "live")
 # Panoramas of at least this many pixels train the CoNav policy with `--remat`: at 112x448 it ran
 # 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
 # smaller panoramas keep the plain update (their runs' commands as made).
@@ -62,15 +69,30 @@ class Budget:
     # The CoNav policy's CNN dtype (`conav train policy --conv-dtype`): bfloat16 runs the 112x448
     # update 1.9x faster on an H100 (BENCHMARKS.md); float32 keeps the small runs' commands.
     policy_conv_dtype: str = "float32"
+    # The live trainer (train.live.LiveConfig): lanes, window steps and updates of every CoNav run,
+    # its peak learning rate and warm-up; its DAgger row's beta falls linearly from 1 to the
+    # run's `dagger_beta` over the first `live_dagger_decay` of the updates.
+    live_lanes: int = 256
+    live_window_steps: int = 16
+    live_iterations: int = 2000
+    live_lr: float = 1e-3
+    live_warmup_iterations: int = 100
+    live_dagger_decay: float = 0.5
 
 
 BUDGETS = {
     # Tiny: a smoke test of the pipeline on CPU; 100 updates is the least the default 100-step
     # learning-rate warm-up allows.
     "tiny": Budget(intention_steps=100, trajectory_steps=100, policy_steps=100, policy_batch=8, dagger_rounds=1,
-                   dagger_steps=50, baseline_steps=100, baseline_dagger_rounds=0, eval_batch=64),
-    "small": Budget(policy_episodes=500, eval_batch=512),
-    "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16", baseline_episodes=1000, val_every=1000),
+                   dagger_steps=50, baseline_steps=100, baseline_dagger_rounds=0, eval_batch=64,
+                   live_lanes=8, live_window_steps=8, live_iterations=4, live_warmup_iterations=0),
+    "small": Budget(policy_episodes=500, eval_batch=512, live_lanes=1024, live_iterations=600,
+                    live_warmup_iterations=30),
+    # Live: 2,048 lanes of 16 steps, 250 updates: 8.2M env timesteps, some 0.7 passes over the
+    # 20,293 train episodes (fixed before any run, to fit the first sitting's device time:
+    # results/paper_112x448_live/README.md).
+    "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16", baseline_episodes=1000, val_every=1000,
+                    live_lanes=2048, live_window_steps=16, live_iterations=250, live_warmup_iterations=25),
 }
 
 
@@ -102,8 +124,20 @@ class ReproduceConfig:
     # `--seen-objects`); off: the commands of the runs in results/.
     mirror: bool = False
     seen_objects: bool = False
+    # How the CoNav rows are trained (TRAINERS). "live" adds the ground-truth rows
+    # (GROUND_TRUTH_ROWS) to Table 3, and its DAgger row starts from scratch with a decaying beta.
+    trainer: str = "offline"
+    # The Table 3 rows to train and evaluate (empty: every one the trainer has, `all_rows`); the
+    # tables list the others as not run.
+    rows: tuple[str, ...] = ()
 
     def __post_init__(self):
+        if self.trainer not in TRAINERS:
+            raise ValueError(f"unknown ReproduceConfig.trainer {self.trainer!r}; choose from {', '.join(TRAINERS)}")
+        unknown = [r for r in self.rows if r not in self.all_rows]
+        if unknown or len(set(self.rows)) != len(self.rows):
+            raise ValueError(f"ReproduceConfig.rows {','.join(self.rows)}: each once, from {', '.join(self.all_rows)} "
+                             f"(the {self.trainer} trainer's Table 3 rows)")
         if self.preset not in BUDGETS:
             raise ValueError(f"unknown preset {self.preset!r}; choose from {', '.join(BUDGETS)}")
         if self.seeds < 1:
@@ -142,9 +176,22 @@ class ReproduceConfig:
         return self.default_dagger_episodes if self.dagger_episodes is None else self.dagger_episodes
 
     @property
+    def all_rows(self) -> tuple[str, ...]:
+        """The trainer's Table 3 rows: the five ablations, and with the live trainer the
+        ground-truth rows."""
+        return ABLATIONS + (tuple(GROUND_TRUTH_ROWS) if self.trainer == "live" else ())
+
+    @property
+    def table3_rows(self) -> tuple[str, ...]:
+        """The Table 3 rows this run trains (`rows`, in `all_rows` order; empty: all)."""
+        return tuple(r for r in self.all_rows if not self.rows or r in self.rows)
+
+    @property
     def dagger(self) -> str:
         """This run's DAgger row (`dagger_row`): the budget's round count and the resolution's
-        episode count name neither."""
+        episode count name neither; the live trainer's is `live_dagger_row`."""
+        if self.trainer == "live":
+            return live_dagger_row(self.dagger_beta)
         return dagger_row(self.dagger_beta, None if self.rounds == self.budget.dagger_rounds else self.rounds,
                           None if self.round_episodes == self.default_dagger_episodes else self.round_episodes)
 
@@ -156,6 +203,20 @@ def dagger_row(beta: float, rounds: int | None = None, episodes: int | None = No
     runs/NAME_s{seed}, their evaluations eval/conav_NAME_s{seed}."""
     return (("dagger" if beta == 0.0 else f"dagger_beta{beta:g}") + ("" if rounds is None else f"_rounds{rounds}")
             + ("" if episodes is None else f"_episodes{episodes}"))
+
+
+def live_dagger_row(beta_end: float) -> str:
+    """The live trainer's DAgger row: beta falls from 1 to `beta_end` (Budget.live_dagger_decay)."""
+    return f"dagger_live_beta{beta_end:g}"
+
+
+def live_dagger_variant(row: str) -> float | None:
+    """The final beta of a DAgger row named by `live_dagger_row`; None for any other name."""
+    m = re.fullmatch(r"dagger_live_beta([0-9.e+-]+)", row)
+    try:
+        return None if m is None else float(m.group(1))
+    except ValueError:
+        return None
 
 
 def dagger_variant(row: str) -> tuple[float, int | None, int | None] | None:
@@ -245,9 +306,9 @@ def upgrade_progress(progress: dict, plan: list["Stage"], out: Path) -> list[str
 
 # What one OUT directory holds one of: its runs and evaluations are of these (progress.json
 # keeps them from the first run on; directories made before it kept them are not checked).
-OUT_FIELDS = ("preset", "resolution", "encoder", "mirror", "seen_objects")
+OUT_FIELDS = ("preset", "resolution", "encoder", "mirror", "seen_objects", "trainer")  # not `rows`: added later
 # Fields a directory's record may lack, made before they existed: they were off then.
-_OUT_FIELDS_ADDED = {"mirror": False, "seen_objects": False}
+_OUT_FIELDS_ADDED = {"mirror": False, "seen_objects": False, "trainer": "offline"}
 
 
 def check_out(progress: dict, cfg: ReproduceConfig) -> None:
@@ -363,23 +424,44 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
 
     def evaluation(agent: str, target: Path, run: Path | None = None, seed: int | None = None,
-                   reads: tuple[Path, ...] = ()) -> Step:
+                   reads: tuple[Path, ...] = (), ground_truth: bool = False) -> Step:
         checkpoint = ("--checkpoint", str(run)) if run is not None else ()
         extra = ("--intention", str(intention)) if intention in reads else ()
+        extra += ("--ground-truth-intentions",) if ground_truth else ()
         return step(("eval", *common, "--agent", agent, *checkpoint, *extra, "--out", str(target)), target,
                     (data, *((run,) if run is not None else ()), *reads), seed)
 
+    if cfg.trainer == "live":
+        stages += _live_stages(cfg, step, evaluation, predictors)
+    else:
+        stages += _offline_stages(cfg, step, evaluation, policy, predictors)
+    evals_ = [evaluation("random,follower,pioneer,pioneer-drive,objectgoal-planner,expert", evals / "scripted"),
+              evaluation("objectgoal-oracle", evals / "objectgoal-oracle", runs / "objectnav"),
+              evaluation("objectgoal-predicted", evals / "objectgoal-predicted", runs / "objectnav", reads=(intention,)),
+              evaluation("imagegoal", evals / "imagegoal", runs / "imagenav")]
+    name = cfg.dagger
+    dagger_eval = CONAV_EVAL.format(row=name, seed="{}")
+    evals_ += [evaluation("conav", evals / dagger_eval.format(s), runs / f"{name}_s{s}", s) for s in range(cfg.seeds)]
+    names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [
+        dagger_eval.format(s) for s in range(cfg.seeds)]
+    stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
+    stages.append(Stage("tables", (), (out / "results.json", out / "tables.md")))
+    stages.append(Stage("pack", (), (out / "pack.tar",)))
+    return stages
+
+
+def _offline_stages(cfg: ReproduceConfig, step, evaluation, policy: tuple[str, ...], predictors) -> list[Stage]:
+    """The bc and dagger stages of the offline trainer (train.policy)."""
+    b, runs, evals = cfg.budget, Path(cfg.out) / "runs", Path(cfg.out) / "eval"
     # Each BC run, then its evaluation on val: an evaluated run needs no checkpoint to travel in a
     # pack (at 112x448 a policy's is 15 MB, the pack's limit four of them) but the one DAgger continues.
     bc = []
     for s in range(cfg.seeds):
-        for a in ABLATIONS:
+        for a in cfg.table3_rows:
             run = runs / f"bc_{a}_s{s}"
             bc.append(step(("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(run)), run,
                            predictors, s))
             bc.append(evaluation("conav", evals / BC_ROW_EVAL.format(row=a, seed=s), run, s))
-    stages.append(Stage("bc", tuple(bc), tuple(evals / BC_ROW_EVAL.format(row=a, seed=s) / "metrics.json"
-                                               for s in range(cfg.seeds) for a in ABLATIONS)))
     dagger, name = [], cfg.dagger
     mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
@@ -389,19 +471,46 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                             str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
                             *(("--dagger-episodes", str(cfg.round_episodes)) if cfg.round_episodes else ()),
                             "--out", str(run)), run, predictors, s))
-    stages.append(Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds))))
-    evals_ = [evaluation("random,follower,pioneer,pioneer-drive,objectgoal-planner,expert", evals / "scripted"),
-              evaluation("objectgoal-oracle", evals / "objectgoal-oracle", runs / "objectnav"),
-              evaluation("objectgoal-predicted", evals / "objectgoal-predicted", runs / "objectnav", reads=(intention,)),
-              evaluation("imagegoal", evals / "imagegoal", runs / "imagenav")]
-    dagger_eval = CONAV_EVAL.format(row=name, seed="{}")
-    evals_ += [evaluation("conav", evals / dagger_eval.format(s), runs / f"{name}_s{s}", s) for s in range(cfg.seeds)]
-    names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [
-        dagger_eval.format(s) for s in range(cfg.seeds)]
-    stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
-    stages.append(Stage("tables", (), (out / "results.json", out / "tables.md")))
-    stages.append(Stage("pack", (), (out / "pack.tar",)))
-    return stages
+    return [Stage("bc", tuple(bc), tuple(evals / BC_ROW_EVAL.format(row=a, seed=s) / "metrics.json"
+                                         for s in range(cfg.seeds) for a in cfg.table3_rows)),
+            Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds)))]
+
+
+def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors) -> list[Stage]:
+    """The bc and dagger stages of the live trainer (train.live): every Table 3 row, the
+    ground-truth rows among them, then its evaluation on val, seed by seed; the DAgger row
+    trains from scratch beside them (seed s of every row shares its episode order and initial
+    weights: train.live)."""
+    b, res = cfg.budget, _res(cfg)
+    data, runs, evals = Path(cfg.out) / "data", Path(cfg.out) / "runs", Path(cfg.out) / "eval"
+    intention, trajectory = runs / "intention", runs / "trajectory"
+    encoder = ("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()
+    conv_dtype = ("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()
+    live = ("--data", str(data), "--resolution", res, *conv_dtype, *encoder, *(("--remat",) if cfg.large else ()),
+            "--lanes", str(b.live_lanes), "--window-steps", str(b.live_window_steps), "--iterations",
+            str(b.live_iterations), "--lr", f"{b.live_lr:g}", "--warmup-iterations", str(b.live_warmup_iterations),
+            "--no-progress")
+    predicted = ("--intention", str(intention), "--trajectory", str(trajectory))
+    ground_truth = ("--ground-truth-intentions",)
+    bc, outputs = [], []
+    for s in range(cfg.seeds):
+        for row in cfg.table3_rows:
+            gt = row in GROUND_TRUTH_ROWS
+            run, target = runs / f"bc_{row}_s{s}", evals / BC_ROW_EVAL.format(row=row, seed=s)
+            bc.append(step(("train", "live", *live, *(ground_truth if gt else predicted), "--ablation",
+                            GROUND_TRUTH_ROWS.get(row, row), "--seed", str(s), "--out", str(run)), run,
+                           (data,) if gt else predictors, s))
+            bc.append(evaluation("conav", target, run, s, ground_truth=gt))
+            outputs.append(target / "metrics.json")
+    name, dagger = cfg.dagger, []
+    decay = max(1, round(b.live_dagger_decay * b.live_iterations))
+    for s in range(cfg.seeds):
+        run = runs / f"{name}_s{s}"
+        dagger.append(step(("train", "live", *live, *predicted, "--ablation", "all", "--beta-start", "1",
+                            "--beta-end", f"{cfg.dagger_beta:g}", "--beta-decay-iterations", str(decay),
+                            "--seed", str(s), "--out", str(run)), run, predictors, s))
+    return [Stage("bc", tuple(bc), tuple(outputs)),
+            Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds)))]
 
 
 def stage_seed(stage: Stage, seed: int | None) -> int | None:

@@ -17,7 +17,8 @@ from pathlib import Path
 
 from conav_jax.envs.metrics import METRIC_NAMES
 from conav_jax.eval.stats import paired_difference, resolved, seed_summary
-from conav_jax.eval.reproduce import ABLATIONS, BC_EVAL, BC_ROW_EVAL, CONAV_EVAL, dagger_variant
+from conav_jax.eval.reproduce import (ABLATIONS, BC_EVAL, BC_ROW_EVAL, CONAV_EVAL, GROUND_TRUTH_ROWS, dagger_variant,
+                                      live_dagger_variant)
 
 # The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
 PAPER_TABLE2 = {
@@ -48,15 +49,18 @@ _SEEDED_EVAL = re.compile(r"conav_(.+)_s[0-9]+")
 
 
 def dagger_rows(evals: Path, planned: str = "dagger") -> list[str]:
-    """The DAgger rows to tabulate: the run's own (`planned`, a `dagger_row` name) and every other
-    one evaluated under `evals`, by the expert's share, then round count, then episodes a round
-    (the defaults first)."""
+    """The DAgger rows to tabulate: the run's own (`planned`, a `dagger_row` or `live_dagger_row`
+    name) and every other one evaluated under `evals`: the offline trainer's by the expert's
+    share, then round count, then episodes a round (the defaults first), then the live
+    trainer's by their final beta."""
     found = {m.group(1) for m in map(_SEEDED_EVAL.fullmatch, (d.name for d in Path(evals).glob("conav_dagger*"))) if m}
     variants = {v: row for row in found | {planned} if (v := dagger_variant(row)) is not None}
-    return [variants[v] for v in sorted(variants, key=lambda v: (v[0], v[1] or 0, v[2] or 0))]
+    live = {v: row for row in found | {planned} if (v := live_dagger_variant(row)) is not None}
+    return ([variants[v] for v in sorted(variants, key=lambda v: (v[0], v[1] or 0, v[2] or 0))]
+            + [live[v] for v in sorted(live)])
 
 
-def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") -> dict:
+def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", rows: tuple[str, ...] = ABLATIONS) -> dict:
     """results.json's content from the evaluations under `out/eval`: per agent its title,
     intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
 
@@ -67,10 +71,11 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") 
     lists the seeds it was measured on. An evaluation of the BC rows or of the run's own DAgger
     row (`dagger`) not made yet is listed under "missing" and the tables say so; other DAgger rows
     appear where evaluated.
-    FileNotFoundError without the scripted agents' evaluation (nothing to tabulate)."""
+    FileNotFoundError without any evaluation (nothing to tabulate)."""
     evals = Path(out) / "eval"
-    if not (evals / "scripted" / "metrics.json").is_file():
-        raise FileNotFoundError(f"no evaluation of the scripted agents at {evals / 'scripted' / 'metrics.json'}")
+    made = sorted(evals.glob("*/metrics.json"))
+    if not made:
+        raise FileNotFoundError(f"no evaluation under {evals}: nothing to tabulate")
     agents: dict[str, dict] = {}
     missing: list[str] = []
     for name in ("scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"):
@@ -83,20 +88,24 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") 
             agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
     conav: dict[str, dict] = {}
 
-    def add(row: str, s: int, entry: dict, episodes: int) -> None:
+    def add(row: str, s: int, entry: dict, episodes: int, doc: dict | None = None) -> None:
         slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
         slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": episodes}
+        commit = ((doc or {}).get("provenance") or {}).get("commit")
+        if commit is not None:
+            slot.setdefault("commits", [])
+            slot["commits"] = sorted({*slot["commits"], commit})
 
     for s in range(seeds):
-        for row in ABLATIONS:
+        for row in ABLATIONS + tuple(GROUND_TRUTH_ROWS):
             path, combined = evals / BC_ROW_EVAL.format(row=row, seed=s) / "metrics.json", evals / BC_EVAL.format(s) / "metrics.json"
             if path.is_file():
                 doc = json.loads(path.read_text())
-                add(row, s, doc["agents"]["conav"], doc["episodes"])
-            elif combined.is_file():
+                add(row, s, doc["agents"]["conav"], doc["episodes"], doc)
+            elif combined.is_file() and row in ABLATIONS:
                 doc = json.loads(combined.read_text())
-                add(row, s, doc["ablations"][f"ablation_{row}"], doc["episodes"])
-            else:
+                add(row, s, doc["ablations"][f"ablation_{row}"], doc["episodes"], doc)
+            elif row in rows:
                 missing.append(f"eval/{path.parent.name}")
     for row in dagger_rows(evals, dagger):
         for s in range(seeds):
@@ -106,8 +115,10 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger") 
                     missing.append(f"eval/{path.parent.name}")
                 continue
             doc = json.loads(path.read_text())
-            add(row, s, doc["agents"]["conav"], doc["episodes"])
-    return {**extra, "agents": agents, "conav": conav, "missing": missing}
+            add(row, s, doc["agents"]["conav"], doc["episodes"], doc)
+    # The split's size, from any evaluation (each runs the whole split).
+    episodes = json.loads(made[0].read_text()).get("episodes")
+    return {**extra, "episodes": episodes, "agents": agents, "conav": conav, "missing": missing}
 
 
 def _cell(value: float) -> str:
@@ -154,12 +165,14 @@ def _paired_lines(results: dict, metrics: tuple[str, ...] = ("FASR", "RASR")) ->
     with all inputs), with the mean difference and its 95% t-interval over those seeds
     (eval.stats.paired_difference); "resolved" where the interval excludes zero."""
     conav = results["conav"]
-    pairs = [(name, "none") for name in ABLATIONS[1:]] + [(name, "all") for name in conav if name.startswith("dagger")]
+    pairs = ([(name, "none") for name in ABLATIONS[1:]] + [(gt, GROUND_TRUTH_ROWS[gt]) for gt in GROUND_TRUTH_ROWS]
+             + [(gt, "none") for gt in GROUND_TRUTH_ROWS] + [(name, "all") for name in conav if name.startswith("dagger")])
     pairs = [(a, b) for a, b in pairs if a in conav and b in conav]
     if not pairs:
         return []
     lines = ["", "## Seed by seed", "",
-             "Each row's value per training seed and its difference from the reference row on the seeds both hold; "
+             "Each row's value per training seed and its difference from the reference row on the seeds both hold "
+             "(seed s of every row shares its initial weights and, with the live trainer, its episode order); "
              "the mean difference ± sd [95% t-interval over those seeds] (n seeds). A contrast whose interval holds "
              "zero is not resolved.", "",
              "| row | reference | " + " | ".join(f"{m} by seed | {m} − reference by seed | paired difference"
@@ -206,19 +219,24 @@ def render_tables(results: dict) -> str:
     not_run = " | ".join("-" for _ in cols)
     for key, (paper_title, paper) in PAPER_TABLE2.items():
         if key == "conav":
-            row = results["conav"].get("all")
-            if row is not None:
-                title = row["title"].removeprefix("all: ")  # the evaluation names its ablation rows "NAME: title"
-                lines.append(f"| {title} (BC) | {', '.join(row['privileged']) or 'none'} | "
-                             f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
-            else:
-                lines.append(f"| CoNav Agent (BC) | | not run yet | {not_run} |")
+            for name, what in (("all", "BC"), ("none", "BC, no intention input")):
+                row = results["conav"].get(name)
+                if row is not None:
+                    title = row["title"].removeprefix(f"{name}: ")  # the evaluation names its ablation rows "NAME: title"
+                    lines.append(f"| {title} ({what}) | {', '.join(row['privileged']) or 'none'} | "
+                                 f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
+                elif name == "all":
+                    lines.append(f"| CoNav Agent (BC) | | not run yet | {not_run} |")
             daggers = [k for k in results["conav"] if k.startswith("dagger")]
             for name in daggers:
-                row, (share, rounds, episodes) = results["conav"][name], dagger_variant(name)
-                how = ("BC + DAgger" + ("" if share == 0.0 else f", the expert acting at {share:g}^r of round r's steps")
-                       + ("" if rounds is None else f", {rounds} round{'s' * (rounds > 1)}")
-                       + ("" if episodes is None else f", {episodes} train episodes a round"))
+                row, live_end = results["conav"][name], live_dagger_variant(name)
+                if live_end is not None:
+                    how = f"live DAgger, the expert's share falling from 1 to {live_end:g}"
+                else:
+                    share, rounds, episodes = dagger_variant(name)
+                    how = ("BC + DAgger" + ("" if share == 0.0 else f", the expert acting at {share:g}^r of round r's steps")
+                           + ("" if rounds is None else f", {rounds} round{'s' * (rounds > 1)}")
+                           + ("" if episodes is None else f", {episodes} train episodes a round"))
                 lines.append(f"| {row['title']} ({how}) | {', '.join(row['privileged']) or 'none'} | "
                              f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
             if not daggers:
@@ -235,18 +253,28 @@ def render_tables(results: dict) -> str:
         if key not in PAPER_TABLE2:  # ours without a paper row (e.g. the planner, the expert)
             lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
                          + _our_cells(entry["metrics"]) + " |")
-    lines += ["", "## Table 3: intention inputs (BC, predicted intentions)", "",
+    live = results.get("trainer") == "live"
+    lines += ["", "## Table 3: intention inputs (" + ("live imitation, beta 1" if live else "BC") + ", predicted "
+              "intentions; rows GT: ground-truth intentions, privileged)", "",
               "| # | activity | object | trajectory | source " + head, "|---|:---:|:---:|:---:|---" + "|---:" * len(cols) + "|"]
     flags = {"none": (0, 0, 0), "activity": (1, 0, 0), "object": (0, 1, 0), "activity_object": (1, 1, 0), "all": (1, 1, 1)}
-    for k, name in enumerate(ABLATIONS, start=1):
-        marks = " | ".join("✓" if f else "✗" for f in flags[name])
+    shown = list(ABLATIONS) + [gt for gt in GROUND_TRUTH_ROWS if gt in results["conav"] or live]
+    for k, name in enumerate(shown, start=1):
+        gt = name in GROUND_TRUTH_ROWS
+        marks = " | ".join(("GT" if gt else "✓") if f else "✗" for f in flags[GROUND_TRUTH_ROWS.get(name, name)])
         row = results["conav"].get(name)
         if row is not None:
             lines.append(f"| {k} | {marks} | {_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
         else:
             lines.append(f"| {k} | {marks} | not run yet | {not_run} |")
-        lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
+        if not gt:
+            lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
     lines += _paired_lines(results)
+    commits = [(name, row["commits"]) for name, row in results["conav"].items() if row.get("commits")]
+    if commits:
+        lines += ["", "## Commits", "", "The commit each learned row's evaluations ran at (their metrics.json "
+                  "provenance; the runs' own configs name the commit they trained at).", ""]
+        lines += [f"- `{name}`: {', '.join(c[:10] for c in found)}" for name, found in commits]
     if results.get("missing"):
         lines += ["", "## Not run yet", "",
                   "These evaluations are not made yet; the rows above that need them are marked so, and the learned "

@@ -137,6 +137,25 @@ def test_paired_seeds_share_the_episode_order_across_ablations(hall, tiny):
     assert len({tuple(o) for o in orders}) == 4  # passes and seeds draw their own orders
 
 
+def test_seeds_share_one_compiled_iteration_and_keep_their_own_queue(hall, tiny):
+    """Every seed of a configuration runs the one compiled program (the seed is in the state):
+    seed 3's lanes (LIVE.seed, `tiny`) still start seed 3's episodes, and another seed's init
+    starts its own."""
+    _, compiled = lv.make_iteration(hall.env, TINY, LIVE, compiler_options=OPTIONS)
+    other = dataclasses.replace(LIVE, seed=LIVE.seed + 1)
+    fns, same = lv.make_iteration(hall.env, TINY, other, compiler_options=OPTIONS)
+    assert same is compiled
+    state = fns.init(policy.init(jax.random.PRNGKey(other.seed), TINY))
+    assert int(state.seed) == other.seed
+    state, metrics = same(state, lv.iteration_key(other.seed, 0))
+    steps = jax.device_get(metrics[lv.STEPS])
+    first = steps.first[0]  # every lane starts at step 0, on queue positions 0..N-1
+    np.testing.assert_array_equal(steps.episode[0][first],
+                                  np.asarray(lv.episodes_at(other.seed, jnp.arange(LIVE.lanes), hall.num)))
+    assert not np.array_equal(lv.episodes_at(other.seed, jnp.arange(hall.num), hall.num),
+                              lv.episodes_at(LIVE.seed, jnp.arange(hall.num), hall.num))
+
+
 @pytest.fixture(scope="module")
 def run(hall, tmp_path_factory):
     out = tmp_path_factory.mktemp("live") / "run"

@@ -243,7 +243,10 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
     assert "| CoNav Agent (BC + DAgger) | | not run yet | - | - | - | - | - | - | - |" in lines
     assert "| 5 | ✓ | ✓ | ✓ | not run yet | - | - | - | - | - | - | - |" in lines
     (evals / "scripted" / "metrics.json").unlink()
-    with pytest.raises(FileNotFoundError, match="no evaluation of the scripted agents"):
+    assert "eval/scripted" in rt.collect_results(tmp_path, 2, {"seeds": 2})["missing"]
+    for made in evals.glob("*/metrics.json"):
+        made.unlink()
+    with pytest.raises(FileNotFoundError, match="no evaluation under"):
         rt.collect_results(tmp_path, 2, {"seeds": 2})
 
 
@@ -608,7 +611,7 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
     progress = rp.read_progress(tmp_path)  # a new directory (or one made before it kept them)
     rp.check_out(progress, cfg)
     assert progress["config"] == {"preset": "tiny", "resolution": "112x448", "encoder": "conv", "mirror": False,
-                                  "seen_objects": False}
+                                  "seen_objects": False, "trainer": "offline"}
     rp.check_out(progress, dataclasses.replace(cfg, seeds=5, dagger_beta=0.5))  # more seeds, other rows: the same OUT
     rp.write_progress(tmp_path, progress)
     with pytest.raises(ValueError, match=r"made with ReproduceConfig.resolution 112x448 \(given 32x128\), ReproduceConfig.encoder conv \(given patch\)"):
@@ -881,3 +884,67 @@ def test_a_gpu_process_runs_its_step_alone_by_name_with_the_runs_options(fake_co
     child.run_step = "train policy runs/nothing_s0"
     with pytest.raises(ValueError, match="the plan has no step 'train policy runs/nothing_s0'"):
         child.func(child)
+
+
+def test_the_live_trainer_plans_ground_truth_rows_paired_seeds_and_a_dagger_from_scratch(tmp_path):
+    cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=2, trainer="live")
+    stages = {st.name: st for st in rp.plan_stages(cfg)}
+    train = {s.name: s for s in stages["bc"].steps if s.argv[:2] == ("train", "live")}
+    assert set(train) == {f"train live runs/bc_{row}_s{s}" for row in cfg.all_rows for s in (0, 1)}
+    for name, step in train.items():
+        argv = step.argv
+        assert argv[argv.index("--seed") + 1] == str(step.seed)  # seed s of every row: one order, one init
+        assert argv[argv.index("--iterations") + 1] == str(cfg.budget.live_iterations)
+    gt, predicted = train["train live runs/bc_gt_all_s1"], train["train live runs/bc_all_s1"]
+    assert "--ground-truth-intentions" in gt.argv and "--intention" not in gt.argv and gt.reads == ("data",)
+    assert gt.argv[gt.argv.index("--ablation") + 1] == "all"
+    assert "--ground-truth-intentions" not in predicted.argv and "runs/intention" in predicted.reads
+    evals = {s.name: s for s in stages["bc"].steps if s.argv[0] == "eval"}
+    assert "--ground-truth-intentions" in evals["eval eval/conav_bc_gt_object_s0"].argv
+    assert "--ground-truth-intentions" not in evals["eval eval/conav_bc_object_s0"].argv
+    # DAgger: its own run from scratch (no copy of BC), beta falling from 1 to --dagger-beta.
+    (dagger, _) = stages["dagger"].steps
+    assert dagger.name == "train live runs/dagger_live_beta0_s0" and not any(s.is_copy for s in stages["dagger"].steps)
+    argv = dagger.argv
+    assert (argv[argv.index("--beta-start") + 1], argv[argv.index("--beta-end") + 1]) == ("1", "0")
+    assert argv[argv.index("--beta-decay-iterations") + 1] == str(cfg.budget.live_iterations // 2)
+    assert "eval eval/conav_dagger_live_beta0_s1" in {s.name for s in stages["eval"].steps}
+    # A subset of the rows; unknown rows and the offline trainer's lack of ground-truth rows refused.
+    some = rp.plan_stages(dataclasses.replace(cfg, rows=("none", "gt_all")))
+    assert {s.name for s in some[3].steps if s.argv[0] == "train"} == {
+        f"train live runs/bc_{r}_s{s}" for r in ("none", "gt_all") for s in (0, 1)}
+    with pytest.raises(ValueError, match="ReproduceConfig.rows gt_all"):
+        rp.ReproduceConfig(out=tmp_path, rows=("gt_all",))
+    with pytest.raises(ValueError, match="ReproduceConfig.trainer"):
+        rp.ReproduceConfig(out=tmp_path, trainer="online")
+
+
+def test_tables_show_the_ground_truth_bound_and_its_paired_contrasts(tmp_path):
+    evals = tmp_path / "eval"
+    fasr = {"none": (10, 12, 9), "object": (11, 12, 12), "all": (14, 13, 12), "gt_object": (20, 22, 19),
+            "gt_all": (30, 33, 27), "dagger_live_beta0": (16, 13, 12)}
+    for row, values in fasr.items():
+        for s, f in enumerate(values):
+            name = rp.CONAV_EVAL.format(row=row, seed=s) if row.startswith("dagger") else \
+                rp.BC_ROW_EVAL.format(row=row, seed=s)
+            doc = _eval_doc({"conav": (f, f, 0, 0, 0, 0)})
+            doc["provenance"] = {"commit": "abcdef0123456789"}
+            _write_eval(evals / name, doc)
+    results = rt.collect_results(tmp_path, 3, {"seeds": 3, "trainer": "live"}, "dagger_live_beta0",
+                                 ("none", "object", "all", "gt_object", "gt_all"))
+    # The baselines not evaluated: listed, the tables made all the same; no planned row missing.
+    assert results["missing"] == ["eval/scripted", "eval/objectgoal-oracle", "eval/objectgoal-predicted",
+                                  "eval/imagegoal"] and results["episodes"] == 100
+    assert results["conav"]["gt_all"]["commits"] == ["abcdef0123456789"]
+    lines = rt.render_tables(results).splitlines()
+    assert any(line.startswith("| 6 | ✗ | GT | ✗ | ours | 20.3 ± 1.5 [") for line in lines)
+    assert any(line.startswith("| 7 | GT | GT | GT | ours | 30.0 ± 3.0 [") for line in lines)
+    # gt_all - all: +16 +20 +15 (mean 17, sd 2.65, t(0.975, 2) = 4.303: 17 ± 6.6).
+    assert any(line.startswith("| gt_all | all | s0 30.0 / s1 33.0 / s2 27.0 | +16.0 / +20.0 / +15.0 | "
+                               "+17.0 ± 2.6 [+10.4, +23.6] (n=3) resolved |") for line in lines)
+    assert any(line.startswith("| gt_all | none |") for line in lines)
+    assert any(line.startswith("| dagger_live_beta0 | all | ") for line in lines)
+    assert any("live DAgger, the expert's share falling from 1 to 0" in line for line in lines)
+    assert any(line.startswith("| T conav (BC, no intention input) |") for line in lines)  # Table 2's none row
+    assert "- `gt_all`: abcdef0123" in lines
+    assert not any(line.startswith("| activity |") for line in lines)  # not planned: no contrast, nothing missing

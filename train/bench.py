@@ -176,7 +176,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
 
     def rollout_part(stages):
         def run(state, key):
-            lanes_, cursor, window = fns.rollout(state.params, state.lanes, state.cursor, key, jnp.float32(beta), stages)
+            lanes_, cursor, window = fns.rollout(state.params, state.lanes, state.cursor, state.seed, key, jnp.float32(beta), stages)
             return state._replace(lanes=lanes_, cursor=cursor), window
         return run
 

@@ -160,13 +160,16 @@ class Lanes(NamedTuple):
 
 class TrainState(NamedTuple):
     """Everything an iteration reads and writes: the weights, Adam's state, the lanes, `cursor`
-    () the next queue position to hand out and `iteration` () the updates applied."""
+    () the next queue position to hand out, `iteration` () the updates applied and `seed` () the
+    run's LiveConfig.seed (an input of the compiled iteration, not a constant of it: the seeds
+    of one configuration share one compiled program)."""
 
     params: dict
     opt_state: AdamState
     lanes: Lanes
     cursor: jax.Array
     iteration: jax.Array
+    seed: jax.Array
 
 
 class Window(NamedTuple):
@@ -194,7 +197,7 @@ class Live(NamedTuple):
     `make_iteration` does)."""
 
     init: Any  # (params) -> TrainState at iteration 0, its lanes waiting for their first episodes
-    # (params, lanes, cursor, key, beta, stages=3) -> (lanes, cursor, Window); fewer stages
+    # (params, lanes, cursor, seed, key, beta, stages=3) -> (lanes, cursor, Window); fewer stages
     # (ROLLOUT_STAGES) leave the later parts out (zero labels, the expert's "actions" then)
     rollout: Any
     update: Any  # (params, opt_state, start lstm, Window) -> (params, opt_state, end lstm, metrics)
@@ -224,35 +227,35 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
     schedule = warmup_cosine(live.lr, live.warmup_iterations, live.iterations)
     optimizer = adam(schedule, weight_decay=live.weight_decay)
 
-    def start(positions):
-        """Lanes on the episodes at queue `positions`."""
-        episodes = episodes_at(live.seed, positions, num_episodes)
+    def start(seed, positions):
+        """Lanes on the episodes at queue `positions` of seed `seed`'s queue."""
+        episodes = episodes_at(seed, positions, num_episodes)
         state = jax.vmap(lambda e: env.reset_to_episode(jax.random.PRNGKey(0), e, observe=False))(episodes)
         carries = jax.vmap(lambda _: (initial_carry(), pol.init()))(positions)
         return Lanes(state, *carries, positions)
 
-    def refill(lanes: Lanes, cursor):
+    def refill(lanes: Lanes, cursor, seed):
         """Lanes whose episode has ended take the next queued ones, in lane order -> (lanes,
         cursor, first (N,))."""
         ended = lanes.env.done > 0
         # Lanes that keep their episode ask for `cursor`: the positions asked for then lie within
         # N of it (episodes_at draws the passes they span).
         positions = jnp.where(ended, cursor + jnp.cumsum(ended) - 1, cursor)
-        lanes = jax.lax.cond(ended.any(), lambda l: select_lanes(ended, start(positions), l), lambda l: l, lanes)
+        lanes = jax.lax.cond(ended.any(), lambda l: select_lanes(ended, start(seed, positions), l), lambda l: l, lanes)
         return lanes, cursor + ended.sum(), ended
 
     def init(params) -> TrainState:
         # Lanes of zeros marked ended: the first step of iteration 0 starts them (one compiled reset).
-        shapes = jax.eval_shape(start, jnp.arange(n, dtype=jnp.int32))
+        shapes = jax.eval_shape(start, jnp.int32(0), jnp.arange(n, dtype=jnp.int32))
         lanes = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
         lanes = lanes._replace(env=lanes.env.replace(done=jnp.ones((n,), jnp.float32)))
         zero = jnp.zeros((), jnp.int32)
-        return TrainState(params, optimizer.init(params), lanes, zero, zero)
+        return TrainState(params, optimizer.init(params), lanes, zero, zero, jnp.int32(live.seed))
 
-    def rollout(params, lanes: Lanes, cursor, key, beta, stages: int = len(ROLLOUT_STAGES)):
+    def rollout(params, lanes: Lanes, cursor, seed, key, beta, stages: int = len(ROLLOUT_STAGES)):
         def step(carry, step_key):
             lanes, cursor = carry
-            lanes, cursor, first = refill(lanes, cursor)
+            lanes, cursor, first = refill(lanes, cursor, seed)
             obs = jax.vmap(env.observe)(lanes.env).obs
             inputs, pcarry = {k: obs[k] for k in keys if k in obs}, lanes.policy
             label, ecarry = jnp.zeros((n, 2)), lanes.expert
@@ -300,7 +303,7 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
 
     def iteration(state: TrainState, key):
         beta = live.beta(state.iteration)
-        lanes, cursor, window = rollout(state.params, state.lanes, state.cursor, key, beta)
+        lanes, cursor, window = rollout(state.params, state.lanes, state.cursor, state.seed, key, beta)
         # The window's LSTM starts from the carry the lanes had before it (state.lanes), and the
         # next one from where the update's pass (with the weights that acted) ended.
         params, opt_state, end, metrics = update(state.params, state.opt_state, state.lanes.policy.lstm, window)
@@ -308,7 +311,7 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         metrics = {**metrics, "beta": beta, "expert_share": window.expert_acted.mean(),
                    "episodes": window.ended.sum(), "reached": window.reached.sum(),
                    "label_v_lin": window.label[..., 0].mean(), STEPS: window._replace(obs={})}
-        return TrainState(params, opt_state, lanes, cursor, state.iteration + 1), metrics
+        return TrainState(params, opt_state, lanes, cursor, state.iteration + 1, state.seed), metrics
 
     return Live(init, rollout, update, iteration, pol.source)
 
@@ -317,9 +320,14 @@ def make_iteration(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig,
                    expert_config: ExpertConfig = ExpertConfig(), compiler_options: tuple = ()):
     """(`Live`, the jitted iteration `(TrainState, key) -> (TrainState, metrics)`, the bank an
     argument of the compiled program), shared by runs of one process with the same inputs but
-    for the cadences (a resumed run reuses the compiled code). `compiler_options`: `jax.jit`'s,
-    as sorted pairs."""
-    cadence_free = dataclasses.replace(live, **{k: 1 for k in CADENCE_FIELDS})
+    for the cadences and the seed (a resumed run, and every seed of one configuration, reuse the
+    compiled code: `init` takes the seed from `live`, the iteration from the TrainState).
+    `compiler_options`: `jax.jit`'s, as sorted pairs."""
+    shared = dataclasses.replace(live, seed=0, **{k: 1 for k in CADENCE_FIELDS})
+    if live.seed != 0:  # the same compiled iteration; an init of this seed
+        fns, iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, compiler_options)
+        return fns._replace(init=make_live(env, policy_config, live, intention, trajectory, expert_config).init), iteration
+    cadence_free = shared
     return _iteration(env, policy_config, cadence_free, intention, trajectory, expert_config, compiler_options)
 
 
@@ -343,9 +351,10 @@ def _state_tree(state: TrainState) -> tuple[dict, dict]:
 
 
 def _from_tree(template: TrainState, params, opt_state: dict) -> TrainState:
+    """The TrainState of a checkpoint's members; its seed is the template's (the run config's)."""
     rest = jax.tree.unflatten(jax.tree.structure((template.lanes, template.cursor, template.iteration)),
                               opt_state["live"])
-    return TrainState(params, opt_state["adam"], *rest)
+    return TrainState(params, opt_state["adam"], *rest, template.seed)
 
 
 def run_config(policy_config: PolicyConfig, live: LiveConfig, expert_config: ExpertConfig, env: ConavEnv,

@@ -18,7 +18,8 @@ from conav_jax.eval.cli.demo import run_stage
 
 def add(sub) -> None:
     from conav_jax.models.policy import ENCODERS
-    from conav_jax.eval.reproduce import BUDGETS, LARGE_PANORAMA_DAGGER_EPISODES, STAGES, ReproduceConfig
+    from conav_jax.eval.reproduce import (BUDGETS, GROUND_TRUTH_ROWS, LARGE_PANORAMA_DAGGER_EPISODES, STAGES,
+                                          TRAINERS, ReproduceConfig)
 
     d = {f.name: f.default for f in dataclasses.fields(ReproduceConfig)}
 
@@ -61,6 +62,14 @@ def add(sub) -> None:
     p.add_argument("--seen-objects", action="store_true",
                    help="the intention predictor weighs activities by whether the robot's panoramas have shown their "
                    "object (`conav train intention --seen-objects`: oracle segmentation, listed as privileged)")
+    p.add_argument("--trainer", choices=TRAINERS, default=d["trainer"],
+                   help="how the CoNav rows are trained: offline (default; `conav train policy`: recorded windows of a "
+                   "subset of the train episodes, BC then DAgger rounds) or live (`conav train live`: the live simulator "
+                   "over every train episode; adds the ground-truth rows " + ", ".join(GROUND_TRUTH_ROWS) + " to Table 3, "
+                   "and DAgger is beta falling from 1 to --dagger-beta); one OUT directory holds one trainer")
+    p.add_argument("--rows", default="", metavar="ROW,...",
+                   help="the Table 3 rows to train and evaluate (default: every one; the tables list the others as "
+                   "not run)")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="run only training seed S's commands of the bc, dagger and eval stages (each BC run is "
                         "evaluated as soon as it has trained; an evaluation of a run not trained yet waits): a machine "
@@ -104,7 +113,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
                              dagger_rounds=args.dagger_rounds, dagger_episodes=args.dagger_episodes,
-                             encoder=args.encoder, mirror=args.mirror, seen_objects=args.seen_objects)
+                             encoder=args.encoder, mirror=args.mirror, seen_objects=args.seen_objects,
+                             trainer=args.trainer, rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()))
     if args.gpus < 1:
         print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
         return 2
@@ -201,13 +211,12 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             continue
         if st.name == "tables":
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
-                     "encoder": cfg.encoder,
+                     "encoder": cfg.encoder, "trainer": cfg.trainer,
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
                      "stage_seconds": rp.stage_seconds(plan, progress), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}
-            # FileNotFoundError without the scripted agents' evaluation
-            results = rt.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger)
-            results["episodes"] = json.loads((cfg.out / "eval" / "scripted" / "metrics.json").read_text())["episodes"]
+            # FileNotFoundError without any evaluation
+            results = rt.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger, cfg.table3_rows)
             (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
             (cfg.out / "tables.md").write_text(rt.render_tables(results))
         if st.name == "pack":
@@ -241,7 +250,8 @@ def child_command(step, args: argparse.Namespace, cfg) -> list[str]:
     """The process `--gpus` runs a step in: this command with this run's options, for `step`
     alone (`--run-step`)."""
     options = ["--preset", cfg.preset, "--seeds", str(cfg.seeds), "--resolution", "x".join(map(str, cfg.resolution)),
-               "--workers", str(cfg.workers), "--dagger-beta", f"{cfg.dagger_beta:g}", "--encoder", cfg.encoder]
+               "--workers", str(cfg.workers), "--dagger-beta", f"{cfg.dagger_beta:g}", "--encoder", cfg.encoder,
+               "--trainer", cfg.trainer, *(("--rows", ",".join(cfg.rows)) if cfg.rows else ())]
     for name in ("dagger_rounds", "dagger_episodes"):
         if getattr(cfg, name) is not None:
             options += [flag(name), str(getattr(cfg, name))]
