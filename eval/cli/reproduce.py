@@ -34,9 +34,9 @@ def add(sub) -> None:
     p.add_argument("--out", required=True, help="output directory (data, runs, eval, results.json, tables.md)")
     p.add_argument("--seeds", type=int, default=d["seeds"],
                    help=f"training seeds of every learned CoNav row (default {d['seeds']})")
-    p.add_argument("--stage", choices=STAGES, default=None,
-                   help="run only this stage (default: every stage not done); a command whose runs are not trained "
-                   "yet waits, and the stage stays to run")
+    p.add_argument("--stage", choices=STAGES, default=None, action="append",
+                   help="run only this stage (repeat for several, run in the plan's order; default: every stage not "
+                   "done); a command whose runs are not trained yet waits, and the stage stays to run")
     p.add_argument("--resolution", type=parse_resolution, default=d["resolution"], metavar="HxW",
                    help=f"panorama HxW of every agent (default the paper's {h}x{w})")
     p.add_argument("--workers", type=int, default=min(d["workers"], os.cpu_count() or 1),
@@ -146,14 +146,16 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
               "variant's; its runs resume from their checkpoints when it is planned again)", flush=True)
     # Data are regenerated from their seed on a fresh machine (tables and pack read none: their
     # record of the data's making stays).
-    if args.stage not in ("tables", "pack") and not all(p.exists() for p in plan[0].outputs):
+    asked = set(args.stage or ())
+    reads_data = not asked or not asked <= {"tables", "pack"}
+    if reads_data and not all(p.exists() for p in plan[0].outputs):
         progress["stages"].pop(plan[0].name, None)
         for step in plan[0].steps:
             progress["commands"].pop(step.name, None)
-    stages = [st for st in plan if args.stage in (None, st.name)]
-    if args.stage not in (None, plan[0].name, "tables", "pack") and plan[0].name not in progress["stages"]:
-        # A stage asked for alone on a machine without the data (a fresh one, after --unpack) makes them first.
-        print(f"[{plan[0].name}] the data are missing: making them before [{args.stage}]")
+    stages = [st for st in plan if not asked or st.name in asked]
+    if asked and reads_data and plan[0].name not in asked and plan[0].name not in progress["stages"]:
+        # Stages asked for alone on a machine without the data (a fresh one, after --unpack) make them first.
+        print(f"[{plan[0].name}] the data are missing: making them before [{', '.join(sorted(asked))}]")
         stages.insert(0, plan[0])
     # CONAV_COMMIT names the commit of a copy of the tree that is not a git checkout.
     commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
