@@ -249,8 +249,9 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         shapes = jax.eval_shape(start, jnp.int32(0), jnp.arange(n, dtype=jnp.int32))
         lanes = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
         lanes = lanes._replace(env=lanes.env.replace(done=jnp.ones((n,), jnp.float32)))
-        zero = jnp.zeros((), jnp.int32)
-        return TrainState(params, optimizer.init(params), lanes, zero, zero, jnp.int32(live.seed))
+        # One buffer per leaf: the iteration donates its state, and a buffer given twice is refused.
+        cursor, iteration, seed = (jnp.full((), v, jnp.int32) for v in (0, 0, live.seed))
+        return TrainState(params, optimizer.init(params), lanes, cursor, iteration, seed)
 
     def rollout(params, lanes: Lanes, cursor, seed, key, beta, stages: int = len(ROLLOUT_STAGES)):
         def step(carry, step_key):
