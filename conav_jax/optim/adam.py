@@ -51,8 +51,9 @@ def adam(
     lr_fn = learning_rate if callable(learning_rate) else (lambda _: learning_rate)
 
     def init(params: PyTree) -> AdamState:
-        zeros = jax.tree_util.tree_map(jnp.zeros_like, params)
-        return AdamState(jnp.zeros((), jnp.int32), zeros, zeros)
+        # Two trees of their own: a program that donates its state may not be given one buffer twice.
+        mu, nu = (jax.tree_util.tree_map(jnp.zeros_like, params) for _ in range(2))
+        return AdamState(jnp.zeros((), jnp.int32), mu, nu)
 
     def update(grads: PyTree, state: AdamState, params: PyTree) -> tuple[PyTree, AdamState]:
         t = state.step + 1
