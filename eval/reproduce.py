@@ -562,9 +562,12 @@ def prerequisites(plan: list[Stage]) -> dict[str, set[str]]:
 
 
 def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
-    """`todo` in the order `run_parallel` starts what is ready: the most steps of `todo` waiting
-    on it (directly or not) first, then plan order. A BC run that a DAgger run and two
-    evaluations wait for starts before a run only its evaluation waits for."""
+    """`todo` in the order `run_parallel` starts what is ready: the steps every seed shares (data,
+    predictors, baselines) first, then seed by seed; within those, the most steps of `todo`
+    waiting on it (directly or not) first, then plan order. A BC run that a DAgger run and two
+    evaluations wait for starts before a run only its evaluation waits for, and a seed's
+    evaluations before the next seed's training: a sitting cut short leaves whole seeds,
+    evaluated, rather than trained runs and no evaluation."""
     keys = {st.name for st in todo}
     below = {k: set() for k in keys}  # the steps of todo waiting on k
     for k in keys:
@@ -575,7 +578,7 @@ def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
                 below[n].add(k)
                 stack += [m for m in needs[n] if m in keys]
     index = {st.name: i for i, st in enumerate(todo)}
-    return sorted(todo, key=lambda st: (-len(below[st.name]), index[st.name]))
+    return sorted(todo, key=lambda st: (-1 if st.seed is None else st.seed, -len(below[st.name]), index[st.name]))
 
 
 def copy_run(step: Step) -> None:

@@ -218,3 +218,11 @@ def test_config_errors_name_the_fields(hall):
     exp = dataclasses.replace(lin, beta_schedule="exponential")
     np.testing.assert_allclose([float(lin.beta(k)) for k in (0, 2, 4, 9)], [1.0, 0.6, 0.2, 0.2], rtol=1e-6)
     np.testing.assert_allclose([float(exp.beta(k)) for k in (0, 2, 4, 9)], [1.0, 0.2**0.5, 0.2, 0.2], rtol=1e-6)
+
+
+def test_the_initial_state_holds_no_buffer_twice(hall):
+    """The compiled iteration donates its state on a GPU, which refuses one buffer given twice:
+    every leaf of a fresh TrainState (Adam's two moments, the counters, the seed) is its own."""
+    fns = lv.make_live(hall.env, TINY, LIVE)
+    leaves = jax.tree.leaves(fns.init(policy.init(jax.random.PRNGKey(0), TINY)))
+    assert len({id(x) for x in leaves}) == len(leaves)
