@@ -219,11 +219,12 @@ def render_tables(results: dict) -> str:
     not_run = " | ".join("-" for _ in cols)
     for key, (paper_title, paper) in PAPER_TABLE2.items():
         if key == "conav":
-            for name, what in (("all", "BC"), ("none", "BC, no intention input")):
+            trained = "live imitation" if results.get("trainer") == "live" else "BC"
+            for name in ("all", "none"):
                 row = results["conav"].get(name)
                 if row is not None:
                     title = row["title"].removeprefix(f"{name}: ")  # the evaluation names its ablation rows "NAME: title"
-                    lines.append(f"| {title} ({what}) | {', '.join(row['privileged']) or 'none'} | "
+                    lines.append(f"| {title} ({trained}) | {', '.join(row['privileged']) or 'none'} | "
                                  f"{_learned_source(row, results.get('seeds'))} | " + _learned_cells(row) + " |")
                 elif name == "all":
                     lines.append(f"| CoNav Agent (BC) | | not run yet | {not_run} |")

@@ -178,6 +178,16 @@ def test_killed_run_resumes_bit_for_bit(hall, run):
     for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(jax.device_get(resumed.state)), strict=True):
         np.testing.assert_array_equal(a, b)
     assert [json.loads(line)["step"] for line in (run.dir / "log.jsonl").read_text().splitlines()] == [1, 2, 4]
+    # The last checkpoint keeps the weights and Adam's state, not the lanes: a finished run run
+    # again returns them, and trains no more.
+    with np.load(checkpoint_path(run.dir, 4)) as last, np.load(checkpoint_path(run.dir, 2)) as middle:
+        assert len(last.files) < len(middle.files) and last.files == [f for f in middle.files if f in last.files]
+    again = lv.train_live(hall.env, TINY, LIVE, run.dir, progress=False, compiler_options=FAST)
+    assert int(again.state.iteration) == LIVE.iterations and again.env_steps == resumed.env_steps
+    for a, b in zip(jax.tree.leaves((full.params, full.opt_state)), jax.tree.leaves((again.state.params, again.state.opt_state)),
+                    strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert len((run.dir / "log.jsonl").read_text().splitlines()) == 3
     with pytest.raises(ValueError, match="cannot resume .* live.lr"):
         lv.train_live(hall.env, TINY, dataclasses.replace(LIVE, lr=1e-3), run.dir, compiler_options=FAST)
 

@@ -946,6 +946,7 @@ def test_tables_show_the_ground_truth_bound_and_its_paired_contrasts(tmp_path):
     assert any(line.startswith("| gt_all | none |") for line in lines)
     assert any(line.startswith("| dagger_live_beta0 | all | ") for line in lines)
     assert any("live DAgger, the expert's share falling from 1 to 0" in line for line in lines)
-    assert any(line.startswith("| T conav (BC, no intention input) |") for line in lines)  # Table 2's none row
+    assert any(line.startswith("| T conav (live imitation) |") for line in lines)  # Table 2's none row beside all
+    assert sum(line.startswith("| T conav (live imitation) |") for line in lines) == 2
     assert "- `gt_all`: abcdef0123" in lines
     assert not any(line.startswith("| activity |") for line in lines)  # not planned: no contrast, nothing missing

@@ -29,7 +29,7 @@ from brax.envs.base import State
 from tqdm import tqdm
 
 from conav_jax import runs
-from conav_jax.checkpoints import checkpoint_path, save_checkpoint
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig, config_dict, encoder_name
 from conav_jax.provenance import PROVENANCE_KEY, provenance
@@ -417,7 +417,9 @@ def train_live(
     directory (recorded in the run: the CoNav agent loads them from there) or a predictor
     object (envs.agents.predictors); none: the env's ground-truth intentions (privileged).
     Logs every `live.log_every` iterations: loss, gradient norm, learning rate, beta, the
-    expert's share of the actions, episodes finished (and reached), env timesteps."""
+    expert's share of the actions, episodes finished (and reached), env timesteps. The last
+    checkpoint holds the weights and Adam's state alone: a finished run, run again, returns
+    them with its lanes as a fresh run's."""
     intention, intention_run = _predictor(intention, lambda r: load_predictors(r, None)[0])
     trajectory, trajectory_run = _predictor(trajectory, lambda r: load_predictors(None, r)[1])
     fns, iteration = make_iteration(env, policy_config, live, intention, trajectory, expert_config,
@@ -430,14 +432,26 @@ def train_live(
     state = fns.init(policy.init(jax.random.PRNGKey(live.seed), policy_config))
     # Shapes alone as the template: the state loads as a fresh one is placed, and reuses its compile.
     shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), _state_tree(state))
+    latest = latest_checkpoint(run_dir)
+    finished = latest is not None and latest == checkpoint_path(run_dir, live.iterations)
+    if finished:  # the last checkpoint keeps no lanes (`save`)
+        shapes = (shapes[0], {"adam": shapes[1]["adam"]})
     ckpt = runs.resume(run_dir, config, *shapes)
-    if ckpt is not None:
+    if ckpt is not None and finished:
+        state = state._replace(params=ckpt.params, opt_state=ckpt.opt_state["adam"],
+                               cursor=jnp.full((), ckpt.extra["episodes_started"], jnp.int32),
+                               iteration=jnp.full((), live.iterations, jnp.int32))
+    elif ckpt is not None:
         state = _from_tree(state, ckpt.params, ckpt.opt_state)
     start_it = int(state.iteration)
     per_iter = live.timesteps_per_iteration
 
     def save(it: int) -> None:
         params, opt_tree = _state_tree(state)
+        if it == live.iterations:
+            # A finished run keeps its weights and Adam's state, not the lanes' env states (most
+            # of a checkpoint's bytes at many lanes): nothing resumes from them.
+            opt_tree = {"adam": opt_tree["adam"]}
         save_checkpoint(checkpoint_path(run_dir, it), params=params, opt_state=opt_tree, config=config, step=it,
                         extra={"env_steps": it * per_iter, "episodes_started": int(state.cursor)})
 
