@@ -30,6 +30,7 @@ GROUND_TRUTH_ROWS = {"gt_object": "object", "gt_all": "all"}
 # episodes (train.policy: BC, then DAgger rounds), or "live", from the live simulator over the
 # whole train split (train.live: BC is beta = 1, DAgger a decaying beta).
 TRAINERS = ("offline", "live")
+EVAL_SPLITS = ("val", "minival")  # the reported split, and the one choices are made on
 # Panoramas of at least this many pixels train the CoNav policy with `--remat`: at 112x448 it ran
 # 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
 # smaller panoramas keep the plain update (their runs' commands as made).
@@ -88,11 +89,11 @@ BUDGETS = {
                    live_lanes=8, live_window_steps=8, live_iterations=4, live_warmup_iterations=0),
     "small": Budget(policy_episodes=500, eval_batch=512, live_lanes=1024, live_iterations=600,
                     live_warmup_iterations=30),
-    # Live: 2,048 lanes of 16 steps, 250 updates: 8.2M env timesteps, some 0.7 passes over the
-    # 20,293 train episodes (fixed before any run, to fit the first sitting's device time:
-    # results/paper_112x448_live/README.md).
+    # Live: 1,024 lanes of 16 steps, 1,000 updates: 16.4M env timesteps, some 1.3 passes over the
+    # 20,293 train episodes. 250 updates of 2,048 lanes left every policy at the mean action
+    # (results/paper_112x448_live/README.md); this budget is the candidate to try on minival.
     "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16", baseline_episodes=1000, val_every=1000,
-                    live_lanes=2048, live_window_steps=16, live_iterations=250, live_warmup_iterations=25),
+                    live_lanes=1024, live_window_steps=16, live_iterations=1000, live_warmup_iterations=50),
 }
 
 
@@ -130,8 +131,14 @@ class ReproduceConfig:
     # The Table 3 rows to train and evaluate (empty: every one the trainer has, `all_rows`); the
     # tables list the others as not run.
     rows: tuple[str, ...] = ()
+    # The split every evaluation runs on: "val", the reported numbers, or "minival", where
+    # budgets and variants are chosen (its evaluations, results and tables are files of their
+    # own: `eval_dir`, `results_file`, `tables_file`; the runs are shared).
+    eval_split: str = "val"
 
     def __post_init__(self):
+        if self.eval_split not in EVAL_SPLITS:
+            raise ValueError(f"ReproduceConfig.eval_split must be one of {', '.join(EVAL_SPLITS)}, got {self.eval_split!r}")
         if self.trainer not in TRAINERS:
             raise ValueError(f"unknown ReproduceConfig.trainer {self.trainer!r}; choose from {', '.join(TRAINERS)}")
         unknown = [r for r in self.rows if r not in self.all_rows]
@@ -174,6 +181,19 @@ class ReproduceConfig:
     def round_episodes(self) -> int | None:
         """The train episodes each of this run's DAgger rounds records (None: all the policy's)."""
         return self.default_dagger_episodes if self.dagger_episodes is None else self.dagger_episodes
+
+    @property
+    def eval_dir(self) -> str:
+        """OUT's directory of this run's evaluations: "eval" on val, "eval_minival" on minival."""
+        return "eval" if self.eval_split == "val" else f"eval_{self.eval_split}"
+
+    @property
+    def results_file(self) -> str:
+        return "results.json" if self.eval_split == "val" else f"results_{self.eval_split}.json"
+
+    @property
+    def tables_file(self) -> str:
+        return "tables.md" if self.eval_split == "val" else f"tables_{self.eval_split}.md"
 
     @property
     def all_rows(self) -> tuple[str, ...]:
@@ -376,7 +396,7 @@ def _res(cfg: ReproduceConfig) -> str:
 def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     """Every stage of the pipeline for `cfg`, in order."""
     b, out, res = cfg.budget, Path(cfg.out), _res(cfg)
-    data, runs, evals = out / "data", out / "runs", out / "eval"
+    data, runs, evals = out / "data", out / "runs", out / cfg.eval_dir
     quiet = ("--no-progress",)
     validated = quiet + (("--val-every", str(b.val_every)) if b.val_every else ())  # the imitation runs
     intention, trajectory = runs / "intention", runs / "trajectory"
@@ -421,7 +441,7 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
               "--train-intentions", "predicted", "--resolution", res, "--steps", str(b.policy_steps),
               "--batch", str(b.policy_batch), *(("--episodes", str(b.policy_episodes)) if b.policy_episodes else ()),
               *network, *validated)
-    common = ("--data", str(data), "--split", "val", "--batch", str(b.eval_batch), "--resolution", res)
+    common = ("--data", str(data), "--split", cfg.eval_split, "--batch", str(b.eval_batch), "--resolution", res)
 
     def evaluation(agent: str, target: Path, run: Path | None = None, seed: int | None = None,
                    reads: tuple[Path, ...] = (), ground_truth: bool = False) -> Step:
@@ -445,14 +465,14 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [
         dagger_eval.format(s) for s in range(cfg.seeds)]
     stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
-    stages.append(Stage("tables", (), (out / "results.json", out / "tables.md")))
+    stages.append(Stage("tables", (), (out / cfg.results_file, out / cfg.tables_file)))
     stages.append(Stage("pack", (), (out / "pack.tar",)))
     return stages
 
 
 def _offline_stages(cfg: ReproduceConfig, step, evaluation, policy: tuple[str, ...], predictors) -> list[Stage]:
     """The bc and dagger stages of the offline trainer (train.policy)."""
-    b, runs, evals = cfg.budget, Path(cfg.out) / "runs", Path(cfg.out) / "eval"
+    b, runs, evals = cfg.budget, Path(cfg.out) / "runs", Path(cfg.out) / cfg.eval_dir
     # Each BC run, then its evaluation on val: an evaluated run needs no checkpoint to travel in a
     # pack (at 112x448 a policy's is 15 MB, the pack's limit four of them) but the one DAgger continues.
     bc = []
@@ -482,7 +502,7 @@ def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors) -> list[Sta
     trains from scratch beside them (seed s of every row shares its episode order and initial
     weights: train.live)."""
     b, res = cfg.budget, _res(cfg)
-    data, runs, evals = Path(cfg.out) / "data", Path(cfg.out) / "runs", Path(cfg.out) / "eval"
+    data, runs, evals = Path(cfg.out) / "data", Path(cfg.out) / "runs", Path(cfg.out) / cfg.eval_dir
     intention, trajectory = runs / "intention", runs / "trajectory"
     encoder = ("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()
     conv_dtype = ("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()

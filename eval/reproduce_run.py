@@ -167,8 +167,9 @@ def pack_members(cfg: ReproduceConfig, progress: dict) -> list[Path]:
     from conav_jax.checkpoints import latest_checkpoint
 
     out = Path(cfg.out)
-    members = [out / PROGRESS_FILE] + sorted((out / "eval").rglob("*.json")) + sorted((out / "eval").rglob("*.md"))
-    members += [p for p in (out / "results.json", out / "tables.md") if p.exists()]
+    evals = sorted(d for d in out.glob("eval*") if d.is_dir())  # val's, and minival's where made
+    members = [out / PROGRESS_FILE] + [p for d in evals for p in sorted(d.rglob("*.json")) + sorted(d.rglob("*.md"))]
+    members += sorted(out.glob("results*.json")) + sorted(out.glob("tables*.md"))
     for run in sorted(set.union(*_pending_runs(cfg, progress))):
         found = latest_checkpoint(run)
         if found is not None:

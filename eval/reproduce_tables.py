@@ -60,7 +60,8 @@ def dagger_rows(evals: Path, planned: str = "dagger") -> list[str]:
             + [live[v] for v in sorted(live)])
 
 
-def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", rows: tuple[str, ...] = ABLATIONS) -> dict:
+def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", rows: tuple[str, ...] = ABLATIONS,
+                    eval_dir: str = "eval") -> dict:
     """results.json's content from the evaluations under `out/eval`: per agent its title,
     intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
 
@@ -72,7 +73,7 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", 
     row (`dagger`) not made yet is listed under "missing" and the tables say so; other DAgger rows
     appear where evaluated.
     FileNotFoundError without any evaluation (nothing to tabulate)."""
-    evals = Path(out) / "eval"
+    evals = Path(out) / eval_dir
     made = sorted(evals.glob("*/metrics.json"))
     if not made:
         raise FileNotFoundError(f"no evaluation under {evals}: nothing to tabulate")
@@ -81,7 +82,7 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", 
     for name in ("scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"):
         path = evals / name / "metrics.json"
         if not path.is_file():
-            missing.append(f"eval/{name}")
+            missing.append(f"{eval_dir}/{name}")
             continue
         doc = json.loads(path.read_text())
         for key, entry in doc["agents"].items():
@@ -106,13 +107,13 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", 
                 doc = json.loads(combined.read_text())
                 add(row, s, doc["ablations"][f"ablation_{row}"], doc["episodes"], doc)
             elif row in rows:
-                missing.append(f"eval/{path.parent.name}")
+                missing.append(f"{eval_dir}/{path.parent.name}")
     for row in dagger_rows(evals, dagger):
         for s in range(seeds):
             path = evals / CONAV_EVAL.format(row=row, seed=s) / "metrics.json"
             if not path.is_file():
                 if row == dagger:
-                    missing.append(f"eval/{path.parent.name}")
+                    missing.append(f"{eval_dir}/{path.parent.name}")
                 continue
             doc = json.loads(path.read_text())
             add(row, s, doc["agents"]["conav"], doc["episodes"], doc)
@@ -202,7 +203,7 @@ def render_tables(results: dict) -> str:
     lines = [
         "# CoNav: the paper's Tables 2 and 3, reproduced",
         "",
-        f"Data: preset `{results.get('preset', '?')}`, split val ({results.get('episodes', '?')} episodes), panorama "
+        f"Data: preset `{results.get('preset', '?')}`, split {results.get('split', 'val')} ({results.get('episodes', '?')} episodes), panorama "
         f"{results.get('resolution', '?')}"
         + (f" (the CoNav policy's panorama encoder: `{results['encoder']}`)" if "encoder" in results else "")
         + f"; {results.get('seeds', '?')} training seed(s) for every learned CoNav row; "

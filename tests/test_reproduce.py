@@ -950,3 +950,21 @@ def test_tables_show_the_ground_truth_bound_and_its_paired_contrasts(tmp_path):
     assert sum(line.startswith("| T conav (live imitation) |") for line in lines) == 2
     assert "- `gt_all`: abcdef0123" in lines
     assert not any(line.startswith("| activity |") for line in lines)  # not planned: no contrast, nothing missing
+
+
+def test_choices_are_made_on_minival_in_files_of_their_own(tmp_path):
+    cfg = rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=1, trainer="live", rows=("none",), eval_split="minival")
+    stages = {st.name: st for st in rp.plan_stages(cfg)}
+    (evaluation,) = [s for s in stages["bc"].steps if s.argv[0] == "eval"]
+    assert evaluation.name == "eval eval_minival/conav_bc_none_s0"
+    assert evaluation.argv[evaluation.argv.index("--split") + 1] == "minival"
+    assert stages["tables"].outputs == (tmp_path / "results_minival.json", tmp_path / "tables_minival.md")
+    # The runs are val's: the same step, the same directory.
+    val = rp.plan_stages(dataclasses.replace(cfg, eval_split="val"))
+    assert [s for s in val[3].steps if s.argv[0] == "train"] == [s for s in stages["bc"].steps if s.argv[0] == "train"]
+    _write_eval(tmp_path / "eval_minival" / rp.BC_ROW_EVAL.format(row="none", seed=0), _eval_doc({"conav": (5, 6, 0, 0, 0, 0)}))
+    results = rt.collect_results(tmp_path, 1, {"seeds": 1, "split": "minival"}, cfg.dagger, cfg.table3_rows, cfg.eval_dir)
+    assert set(results["conav"]["none"]["seeds"]) == {"0"} and "eval_minival/scripted" in results["missing"]
+    assert "split minival (100 episodes)" in rt.render_tables(results)
+    with pytest.raises(ValueError, match="ReproduceConfig.eval_split"):
+        rp.ReproduceConfig(out=tmp_path, eval_split="test")

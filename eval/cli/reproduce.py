@@ -18,8 +18,8 @@ from conav_jax.eval.cli.demo import run_stage
 
 def add(sub) -> None:
     from conav_jax.models.policy import ENCODERS
-    from conav_jax.eval.reproduce import (BUDGETS, GROUND_TRUTH_ROWS, LARGE_PANORAMA_DAGGER_EPISODES, STAGES,
-                                          TRAINERS, ReproduceConfig)
+    from conav_jax.eval.reproduce import (BUDGETS, EVAL_SPLITS, GROUND_TRUTH_ROWS, LARGE_PANORAMA_DAGGER_EPISODES,
+                                          STAGES, TRAINERS, ReproduceConfig)
 
     d = {f.name: f.default for f in dataclasses.fields(ReproduceConfig)}
 
@@ -67,6 +67,10 @@ def add(sub) -> None:
                    "subset of the train episodes, BC then DAgger rounds) or live (`conav train live`: the live simulator "
                    "over every train episode; adds the ground-truth rows " + ", ".join(GROUND_TRUTH_ROWS) + " to Table 3, "
                    "and DAgger is beta falling from 1 to --dagger-beta); one OUT directory holds one trainer")
+    p.add_argument("--eval-split", choices=EVAL_SPLITS, default=d["eval_split"],
+                   help="the split every evaluation runs on: val (default; the reported numbers) or minival, where "
+                   "budgets and variants are chosen (evaluations under OUT/eval_minival, results_minival.json, "
+                   "tables_minival.md; the runs are shared)")
     p.add_argument("--rows", default="", metavar="ROW,...",
                    help="the Table 3 rows to train and evaluate (default: every one; the tables list the others as "
                    "not run)")
@@ -114,7 +118,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
                              dagger_rounds=args.dagger_rounds, dagger_episodes=args.dagger_episodes,
                              encoder=args.encoder, mirror=args.mirror, seen_objects=args.seen_objects,
-                             trainer=args.trainer, rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()))
+                             trainer=args.trainer, rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()),
+                             eval_split=args.eval_split)
     if args.gpus < 1:
         print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
         return 2
@@ -213,14 +218,14 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             continue
         if st.name == "tables":
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
-                     "encoder": cfg.encoder, "trainer": cfg.trainer,
+                     "encoder": cfg.encoder, "trainer": cfg.trainer, "split": cfg.eval_split,
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
                      "stage_seconds": rp.stage_seconds(plan, progress), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}
             # FileNotFoundError without any evaluation
-            results = rt.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger, cfg.table3_rows)
-            (cfg.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-            (cfg.out / "tables.md").write_text(rt.render_tables(results))
+            results = rt.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger, cfg.table3_rows, cfg.eval_dir)
+            (cfg.out / cfg.results_file).write_text(json.dumps(results, indent=1) + "\n")
+            (cfg.out / cfg.tables_file).write_text(rt.render_tables(results))
         if st.name == "pack":
             path, size, left_out = rr.write_pack(cfg, progress)
             print(f"wrote {path} ({size / 2**20:.1f} MiB)")
@@ -230,8 +235,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         progress["stages"][st.name] = round(time.perf_counter() - t_stage, 1)
         rp.write_progress(cfg.out, progress)
         print(f"[{st.name}] done in {progress['stages'][st.name]:.0f} s", flush=True)
-    if (cfg.out / "tables.md").exists() and not args.dry_run:
-        print((cfg.out / "tables.md").read_text())
+    if (cfg.out / cfg.tables_file).exists() and not args.dry_run:
+        print((cfg.out / cfg.tables_file).read_text())
     return 0
 
 
@@ -253,7 +258,8 @@ def child_command(step, args: argparse.Namespace, cfg) -> list[str]:
     alone (`--run-step`)."""
     options = ["--preset", cfg.preset, "--seeds", str(cfg.seeds), "--resolution", "x".join(map(str, cfg.resolution)),
                "--workers", str(cfg.workers), "--dagger-beta", f"{cfg.dagger_beta:g}", "--encoder", cfg.encoder,
-               "--trainer", cfg.trainer, *(("--rows", ",".join(cfg.rows)) if cfg.rows else ())]
+               "--trainer", cfg.trainer, "--eval-split", cfg.eval_split,
+               *(("--rows", ",".join(cfg.rows)) if cfg.rows else ())]
     for name in ("dagger_rounds", "dagger_episodes"):
         if getattr(cfg, name) is not None:
             options += [flag(name), str(getattr(cfg, name))]
