@@ -36,3 +36,30 @@ def test_provenance_records_jax_device_and_settings():
     assert set(block) >= {"commit", "dirty"}
     with pytest.raises(ValueError, match="commit"):
         provenance(commit="made up")
+
+
+def test_a_copy_of_the_tree_names_its_commit_through_the_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv("CONAV_COMMIT", "abc1234")
+    assert git_state.__wrapped__(tmp_path) == ("abc1234", None)  # its own git state, if any, is not this code's
+
+
+def test_every_trainers_run_config_records_provenance():
+    from conav_jax.models.perceiver import PerceiverConfig
+    from conav_jax.models.policy import PolicyConfig
+    from conav_jax.models.trajectory import TrajectoryConfig
+    from conav_jax.nav.expert import ExpertConfig
+    from conav_jax.provenance import PROVENANCE_KEY
+    from conav_jax.train import intention, policy, trajectory
+    from conav_jax.train.policy import ImitationConfig
+    from conav_jax.train.trajectory import TrajectoryDataConfig
+
+    data = intention.IntentionDataConfig(sensor_hw=(16, 64))
+    configs = {"intention": intention.run_config(PerceiverConfig(), data, "hash", 1.0, 1.2),
+               "trajectory": trajectory.run_config(TrajectoryConfig(), TrajectoryDataConfig(), "hash"),
+               "policy": policy.run_config(PolicyConfig(image_hw=(16, 64)), ImitationConfig(), ExpertConfig(), "hash",
+                                           None, None)}
+    for kind, config in configs.items():
+        block = config[PROVENANCE_KEY]
+        assert {"commit", "dirty", "jax", "device"} <= set(block), kind
+    assert configs["intention"][PROVENANCE_KEY]["resolution"] == [16, 64]
+    assert configs["policy"][PROVENANCE_KEY]["encoder"] == "conv"

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
+from conav_jax.provenance import PROVENANCE_KEY, provenance
 from conav_jax import runs
 from conav_jax.data.episodes import read_manifest
 from conav_jax.geometry import to_frame, wrap_angle_np
@@ -365,6 +366,7 @@ def run_config(model: PerceiverConfig, data: IntentionDataConfig, content_hash: 
         "model": model_fields,
         "data": {**data_fields, "content_hash": content_hash, "frame_spacing_steps": spacing,
                  "camera_height_m": camera_height_m, **extra},
+        PROVENANCE_KEY: provenance(materials=data.materials, resolution=list(data.sensor_hw), view=data.view),
     }
 
 

@@ -297,6 +297,8 @@ def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, cont
         "imitation": imitation_record(imitation),
         "teacher": task.config,
         "data_hash": content_hash,
+        PROVENANCE_KEY: provenance(materials=SensorConfig.materials, resolution=list(model.image_hw),
+                                   encoder=encoder_name(model), conv_dtype=model.conv_dtype),
     }
 
 

@@ -51,6 +51,7 @@ from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.nn.lstm import LSTMState
 from conav_jax.optim import Optimizer, adam, clip_by_global_norm
+from conav_jax.provenance import PROVENANCE_KEY, provenance
 from conav_jax.parallel import batch_sharding, check_divisible, replicated
 from conav_jax.runs import append_log, finite_or_none
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
@@ -61,6 +62,7 @@ from conav_jax.envs.agents.policy import (
     policy_agent_from_params,
     policy_inputs,
 )
+from conav_jax.envs.config import env_settings
 from conav_jax.envs.metrics import summarize
 from conav_jax.envs.rollout import make_evaluator
 
@@ -530,6 +532,7 @@ def train_ppo(
         "ppo": dataclasses.asdict(config),
         "env": {"episode_length": episode_length, "data_dir": str(data_dir),
                 "init_from": None if init_from is None else str(init_from)},
+        PROVENANCE_KEY: provenance(**env_settings(env_config), encoder=policy.encoder_name(policy_config)),
     }
 
     init_runner, iteration = make_iteration(wrapped, policy_config, config, mesh)

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
+from conav_jax.provenance import PROVENANCE_KEY, provenance
 from conav_jax import runs
 from conav_jax.data.episodes import load_split, read_manifest
 from conav_jax.models import trajectory as traj_model
@@ -126,6 +127,7 @@ def run_config(model: TrajectoryConfig, data: TrajectoryDataConfig, content_hash
         "kind": KIND,
         "model": dataclasses.asdict(model),
         "data": {**dataclasses.asdict(data), "content_hash": content_hash},
+        PROVENANCE_KEY: provenance(),  # reads no panorama: the code and the machine
     }
 
 
