@@ -13,6 +13,7 @@ call is a `conav` command.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
@@ -31,6 +32,8 @@ GROUND_TRUTH_ROWS = {"gt_object": "object", "gt_all": "all"}
 # whole train split (train.live: BC is beta = 1, DAgger a decaying beta).
 TRAINERS = ("offline", "live")
 EVAL_SPLITS = ("val", "minival")  # the reported split, and the one choices are made on
+# ReproduceConfig fields that override the preset's live budget (Budget fields of the same name).
+LIVE_OVERRIDES = ("live_lanes", "live_window_steps", "live_iterations", "live_lr")
 # Panoramas of at least this many pixels train the CoNav policy with `--remat`: at 112x448 it ran
 # 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
 # smaller panoramas keep the plain update (their runs' commands as made).
@@ -131,12 +134,22 @@ class ReproduceConfig:
     # The Table 3 rows to train and evaluate (empty: every one the trainer has, `all_rows`); the
     # tables list the others as not run.
     rows: tuple[str, ...] = ()
+    # The live trainer's budget where it is not the preset's (None: Budget.live_*): one OUT
+    # directory holds one budget, so budgets compared on minival are OUT directories of their own.
+    live_lanes: int | None = None
+    live_window_steps: int | None = None
+    live_iterations: int | None = None
+    live_lr: float | None = None
     # The split every evaluation runs on: "val", the reported numbers, or "minival", where
     # budgets and variants are chosen (its evaluations, results and tables are files of their
     # own: `eval_dir`, `results_file`, `tables_file`; the runs are shared).
     eval_split: str = "val"
 
     def __post_init__(self):
+        for name in LIVE_OVERRIDES:
+            value = getattr(self, name)
+            if value is not None and value <= 0:
+                raise ValueError(f"ReproduceConfig.{name} must be positive, got {value}")
         if self.eval_split not in EVAL_SPLITS:
             raise ValueError(f"ReproduceConfig.eval_split must be one of {', '.join(EVAL_SPLITS)}, got {self.eval_split!r}")
         if self.trainer not in TRAINERS:
@@ -160,7 +173,9 @@ class ReproduceConfig:
 
     @property
     def budget(self) -> Budget:
-        return BUDGETS[self.preset]
+        """The preset's budget with this run's live overrides."""
+        given = {k: getattr(self, k) for k in LIVE_OVERRIDES if getattr(self, k) is not None}
+        return dataclasses.replace(BUDGETS[self.preset], **given)
 
     @property
     def rounds(self) -> int:
@@ -326,9 +341,10 @@ def upgrade_progress(progress: dict, plan: list["Stage"], out: Path) -> list[str
 
 # What one OUT directory holds one of: its runs and evaluations are of these (progress.json
 # keeps them from the first run on; directories made before it kept them are not checked).
-OUT_FIELDS = ("preset", "resolution", "encoder", "mirror", "seen_objects", "trainer")  # not `rows`: added later
+OUT_FIELDS = ("preset", "resolution", "encoder", "mirror", "seen_objects", "trainer") + LIVE_OVERRIDES  # not `rows`
 # Fields a directory's record may lack, made before they existed: they were off then.
-_OUT_FIELDS_ADDED = {"mirror": False, "seen_objects": False, "trainer": "offline"}
+_OUT_FIELDS_ADDED = {"mirror": False, "seen_objects": False, "trainer": "offline",
+                     **{name: None for name in LIVE_OVERRIDES}}
 
 
 def check_out(progress: dict, cfg: ReproduceConfig) -> None:

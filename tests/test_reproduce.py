@@ -611,7 +611,7 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
     progress = rp.read_progress(tmp_path)  # a new directory (or one made before it kept them)
     rp.check_out(progress, cfg)
     assert progress["config"] == {"preset": "tiny", "resolution": "112x448", "encoder": "conv", "mirror": False,
-                                  "seen_objects": False, "trainer": "offline"}
+                                  "seen_objects": False, "trainer": "offline", **{k: None for k in rp.LIVE_OVERRIDES}}
     rp.check_out(progress, dataclasses.replace(cfg, seeds=5, dagger_beta=0.5))  # more seeds, other rows: the same OUT
     rp.write_progress(tmp_path, progress)
     with pytest.raises(ValueError, match=r"made with ReproduceConfig.resolution 112x448 \(given 32x128\), ReproduceConfig.encoder conv \(given patch\)"):
@@ -968,3 +968,26 @@ def test_choices_are_made_on_minival_in_files_of_their_own(tmp_path):
     assert "split minival (100 episodes)" in rt.render_tables(results)
     with pytest.raises(ValueError, match="ReproduceConfig.eval_split"):
         rp.ReproduceConfig(out=tmp_path, eval_split="test")
+
+
+def test_a_live_budget_other_than_the_presets_is_an_out_directory_of_its_own(tmp_path, capsys):
+    cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=1, trainer="live", rows=("gt_all",),
+                             live_iterations=40, live_lr=3e-4)
+    (train,) = [s for s in rp.plan_stages(cfg)[3].steps if s.argv[0] == "train"]
+    argv = train.argv
+    assert (argv[argv.index("--iterations") + 1], argv[argv.index("--lr") + 1]) == ("40", "0.0003")
+    assert argv[argv.index("--lanes") + 1] == str(rp.BUDGETS["paper"].live_lanes)  # not overridden: the preset's
+    progress = rp.read_progress(tmp_path)
+    rp.check_out(progress, cfg)
+    with pytest.raises(ValueError, match=r"ReproduceConfig.live_iterations 40 \(given None\)"):
+        rp.check_out(progress, dataclasses.replace(cfg, live_iterations=None))
+    with pytest.raises(ValueError, match="ReproduceConfig.live_lanes must be positive"):
+        dataclasses.replace(cfg, live_lanes=0)
+    # The command line: flags to fields, and into each --gpus process's command.
+    args = cli.build_parser().parse_args(["reproduce", "--preset", "paper", "--trainer", "live", "--out", str(tmp_path),
+                                          "--live-iterations", "40", "--live-lr", "3e-4", "--dry-run"])
+    assert args.func(args) == 0
+    assert "--iterations 40 --lr 0.0003" in capsys.readouterr().out
+    from conav_jax.eval.cli.reproduce import child_command
+    child = child_command(train, args, cfg)
+    assert child[child.index("--live-iterations") + 1] == "40" and "--live-lanes" not in child

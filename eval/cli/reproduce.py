@@ -67,6 +67,12 @@ def add(sub) -> None:
                    "subset of the train episodes, BC then DAgger rounds) or live (`conav train live`: the live simulator "
                    "over every train episode; adds the ground-truth rows " + ", ".join(GROUND_TRUTH_ROWS) + " to Table 3, "
                    "and DAgger is beta falling from 1 to --dagger-beta); one OUT directory holds one trainer")
+    b = BUDGETS["paper"]
+    for name, kind, what in (("live_lanes", int, "lanes"), ("live_window_steps", int, "window steps"),
+                             ("live_iterations", int, "updates"), ("live_lr", float, "peak learning rate")):
+        p.add_argument(flag(name), type=kind, default=None, metavar="N" if kind is int else "LR",
+                       help=f"with --trainer live: the runs' {what} (default: the preset's; paper "
+                       f"{getattr(b, name):g}); one OUT directory holds one budget")
     p.add_argument("--eval-split", choices=EVAL_SPLITS, default=d["eval_split"],
                    help="the split every evaluation runs on: val (default; the reported numbers) or minival, where "
                    "budgets and variants are chosen (evaluations under OUT/eval_minival, results_minival.json, "
@@ -119,7 +125,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                              dagger_rounds=args.dagger_rounds, dagger_episodes=args.dagger_episodes,
                              encoder=args.encoder, mirror=args.mirror, seen_objects=args.seen_objects,
                              trainer=args.trainer, rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()),
-                             eval_split=args.eval_split)
+                             eval_split=args.eval_split,
+                             **{name: getattr(args, name) for name in rp.LIVE_OVERRIDES})
     if args.gpus < 1:
         print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
         return 2
@@ -256,11 +263,13 @@ def _run_step(plan: list, name: str) -> int:
 def child_command(step, args: argparse.Namespace, cfg) -> list[str]:
     """The process `--gpus` runs a step in: this command with this run's options, for `step`
     alone (`--run-step`)."""
+    from conav_jax.eval import reproduce as rp
+
     options = ["--preset", cfg.preset, "--seeds", str(cfg.seeds), "--resolution", "x".join(map(str, cfg.resolution)),
                "--workers", str(cfg.workers), "--dagger-beta", f"{cfg.dagger_beta:g}", "--encoder", cfg.encoder,
                "--trainer", cfg.trainer, "--eval-split", cfg.eval_split,
                *(("--rows", ",".join(cfg.rows)) if cfg.rows else ())]
-    for name in ("dagger_rounds", "dagger_episodes"):
+    for name in ("dagger_rounds", "dagger_episodes", *rp.LIVE_OVERRIDES):
         if getattr(cfg, name) is not None:
             options += [flag(name), str(getattr(cfg, name))]
     options += [option for option, on in (("--mirror", cfg.mirror), ("--seen-objects", cfg.seen_objects)) if on]
