@@ -4,9 +4,10 @@ tables.md.
 `collect_results` reads the evaluations under OUT/eval into results.json's content (per agent, per
 seed; the command line adds the commit, the command and the stage timings) -> `render_tables`
 writes tables.md: Table 2 (every agent beside the paper's figures, its privileged inputs named)
-and Table 3 (the five intention ablations), each learned cell the mean ± sd over training seeds
-with the 95% t-interval of the mean over seeds (eval.stats), and a seed-by-seed section of paired
-contrasts (each row minus its reference, seed by seed, with the t-interval of the mean difference).
+and Table 3 (the five intention ablations, and the ground-truth rows where trained), each learned
+cell the mean ± sd over training seeds with the 95% t-interval of the mean over seeds
+(eval.stats), and a seed-by-seed section of paired contrasts (each row minus its reference, seed
+by seed, with the t-interval of the mean difference), and the commits the rows were evaluated at.
 """
 
 from __future__ import annotations
@@ -62,7 +63,8 @@ def dagger_rows(evals: Path, planned: str = "dagger") -> list[str]:
 
 def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", rows: tuple[str, ...] = ABLATIONS,
                     eval_dir: str = "eval") -> dict:
-    """results.json's content from the evaluations under `out/eval`: per agent its title,
+    """results.json's content from the evaluations under `out/eval_dir` ("eval": val's;
+    "eval_minival": minival's): per agent its title,
     intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
 
     A seed's BC rows come from `eval/conav_bc_{row}_s{s}` (else, as made before, from

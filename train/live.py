@@ -325,11 +325,10 @@ def make_iteration(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig,
     compiled code: `init` takes the seed from `live`, the iteration from the TrainState).
     `compiler_options`: `jax.jit`'s, as sorted pairs."""
     shared = dataclasses.replace(live, seed=0, **{k: 1 for k in CADENCE_FIELDS})
-    if live.seed != 0:  # the same compiled iteration; an init of this seed
-        fns, iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, compiler_options)
-        return fns._replace(init=make_live(env, policy_config, live, intention, trajectory, expert_config).init), iteration
-    cadence_free = shared
-    return _iteration(env, policy_config, cadence_free, intention, trajectory, expert_config, compiler_options)
+    fns, iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, compiler_options)
+    if live.seed != shared.seed:  # the same compiled iteration; an init of this seed
+        fns = fns._replace(init=make_live(env, policy_config, live, intention, trajectory, expert_config).init)
+    return fns, iteration
 
 
 @functools.lru_cache(maxsize=8)
