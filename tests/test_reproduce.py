@@ -695,11 +695,20 @@ def note(**extra):
     with open(os.environ["FAKE_RECORD"], "a") as f:
         f.write(json.dumps({"out": str(out), "gpu": os.environ["CUDA_VISIBLE_DEVICES"], "start": t0, "end": time.time(),
                             **extra}) + "\n")
+# Each command marks itself running (FAKE_RECORD's folder) while it sleeps FAKE_SECONDS; the
+# failing one fails only once another command is running, so that one is still running when the
+# failure is seen, whatever the machine's load.
+running = Path(os.environ["FAKE_RECORD"]).parent / f"running_{os.getpid()}"
 if os.environ.get("FAKE_FAIL_ON") and any(os.environ["FAKE_FAIL_ON"] in a for a in argv):
+    deadline = time.time() + 60
+    while not list(running.parent.glob("running_*")) and time.time() < deadline:
+        time.sleep(0.01)
     print("a failure the log shows")
     note(failed=True)
     sys.exit(3)
+running.touch()
 time.sleep(float(os.environ.get("FAKE_SECONDS", "0.05")))
+running.unlink()
 out.mkdir(parents=True, exist_ok=True)
 if argv[0] == "eval":
     agents = argv[argv.index("--agent") + 1].split(",")
@@ -774,12 +783,13 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
                                                  and "dagger" not in k), 1)
 
 
-@pytest.mark.xfail(strict=False, reason="timing-based: on a loaded 2-core machine a command can start before the failed one is seen")
 def test_several_gpus_stop_starting_commands_after_a_failure_and_resume(fake_conav, fake_children, tmp_path,
                                                                        monkeypatch, capsys):
     out = tmp_path / "r"
     monkeypatch.setenv("FAKE_FAIL_ON", "bc_none_s0")
-    monkeypatch.setenv("FAKE_SECONDS", "0.3")  # the other GPU's command still runs when it fails
+    # It fails while the other GPU's command runs (FAKE_CHILD), which then runs on for 2 s: the
+    # runner sees the failure (it polls every 0.1 s) before that command ends.
+    monkeypatch.setenv("FAKE_SECONDS", "2")
     assert _reproduce(out, "--gpus", "2") == 3
     printed = capsys.readouterr()
     assert "bc_none_s0 failed (exit 3)" in printed.out and "a failure the log shows" in printed.out
