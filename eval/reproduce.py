@@ -8,7 +8,9 @@ declared reads and writes) orders them, for the command line's runner in this pr
 short resumes (every training run resumes exactly from its checkpoints) ->
 results and tables (eval.reproduce_tables); several steps at once and the pack that carries a
 run to another machine (eval.reproduce_run). Nothing here imports the training code: a step's
-call is a `conav` command.
+call is a `conav` command. The CoNav rows are trained offline (`conav train policy`, recorded
+windows) or live (`conav train live`, with the ground-truth rows; `ReproduceConfig.trainer`), and
+evaluated on val or, to choose budgets, on minival (`ReproduceConfig.eval_split`).
 """
 
 from __future__ import annotations
