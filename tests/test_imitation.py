@@ -190,6 +190,9 @@ def test_records_cut_into_windows_batch_by_batch_are_the_windows_of_all_of_them(
         np.testing.assert_allclose(a.astype(np.float64), b.astype(np.float64), rtol=1e-3, atol=1.0 if a.dtype == np.uint8 else 1e-2)
 
 
+_RECORDERS = {}  # chunk length -> (recorder, jitted start, jitted advance), shared by the cases below
+
+
 @pytest.mark.parametrize("beta, chunk", [(1.0, None), (0.0, 2 * SEQ), (0.5, None)])
 def test_chunked_recording_keeps_the_windows_of_the_whole_rollout_and_stops_when_every_episode_ends(
         hall, params0, beta, chunk):
@@ -200,9 +203,11 @@ def test_chunked_recording_keeps_the_windows_of_the_whole_rollout_and_stops_when
     # comes from that step's key.
     key, eps = jax.random.PRNGKey(3), np.arange(3)
     m_whole, whole = im.run_batched(hall.rollout, params0, key, eps, beta, batch=2, windows=(SEQ, BURN_IN))
-    rec = im.make_recorder(hall.env, PCFG, seq_len=SEQ, burn_in=BURN_IN, chunk_steps=chunk)
+    if chunk not in _RECORDERS:  # one compile per chunk length: beta is an argument
+        rec = im.make_recorder(hall.env, PCFG, seq_len=SEQ, burn_in=BURN_IN, chunk_steps=chunk)
+        _RECORDERS[chunk] = rec, jax.jit(rec.start), jax.jit(rec.advance)
+    rec, start, advance = _RECORDERS[chunk]
     assert rec.chunk_steps == (chunk or SEQ) and rec.steps == hall.env.bank.max_steps
-    start, advance = jax.jit(rec.start), jax.jit(rec.advance)
     m_cut, windows, steps_run = im.record_windows(rec, start, advance, params0, key, eps, beta, batch=2)
     assert jax.tree.structure(windows) == jax.tree.structure(whole)
     # Shading's float arithmetic may round differently in differently compiled programs (chunked
