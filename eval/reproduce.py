@@ -470,7 +470,7 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                     (data, *((run,) if run is not None else ()), *reads), seed)
 
     if cfg.trainer == "live":
-        stages += _live_stages(cfg, step, evaluation, predictors)
+        stages += _live_stages(cfg, step, evaluation, predictors, network)
     else:
         stages += _offline_stages(cfg, step, evaluation, policy, predictors)
     evals_ = [evaluation("random,follower,pioneer,pioneer-drive,objectgoal-planner,expert", evals / "scripted"),
@@ -514,17 +514,17 @@ def _offline_stages(cfg: ReproduceConfig, step, evaluation, policy: tuple[str, .
             Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds)))]
 
 
-def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors) -> list[Stage]:
+def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path, Path, Path],
+                 network: tuple[str, ...]) -> list[Stage]:
     """The bc and dagger stages of the live trainer (train.live): every Table 3 row, the
-    ground-truth rows among them, then its evaluation on val, seed by seed; the DAgger row
-    trains from scratch beside them (seed s of every row shares its episode order and initial
-    weights: train.live)."""
-    b, res = cfg.budget, _res(cfg)
-    data, runs, evals = Path(cfg.out) / "data", Path(cfg.out) / "runs", Path(cfg.out) / cfg.eval_dir
-    intention, trajectory = runs / "intention", runs / "trajectory"
-    encoder = ("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()
-    conv_dtype = ("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()
-    live = ("--data", str(data), "--resolution", res, *conv_dtype, *encoder, *(("--remat",) if cfg.large else ()),
+    ground-truth rows among them, then its evaluation (on `cfg.eval_split`), seed by seed; the
+    DAgger row trains from scratch beside them (seed s of every row shares its episode order and
+    initial weights: train.live). `predictors`: the data and predictor runs; `network`: the
+    policy CNN's flags, as the offline runs get them."""
+    b = cfg.budget
+    data, intention, trajectory = predictors
+    runs, evals = Path(cfg.out) / "runs", Path(cfg.out) / cfg.eval_dir
+    live = ("--data", str(data), "--resolution", _res(cfg), *network,
             "--lanes", str(b.live_lanes), "--window-steps", str(b.live_window_steps), "--iterations",
             str(b.live_iterations), "--lr", f"{b.live_lr:g}", "--warmup-iterations", str(b.live_warmup_iterations),
             "--no-progress")

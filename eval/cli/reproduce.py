@@ -114,10 +114,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _reproduce_stages(args: argparse.Namespace) -> int:
-    import subprocess
-
     from conav_jax.eval import reproduce as rp
     from conav_jax.eval import reproduce_run as rr
+    from conav_jax.provenance import git_state
     from conav_jax.eval import reproduce_tables as rt
 
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
@@ -169,10 +168,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         # Stages asked for alone on a machine without the data (a fresh one, after --unpack) make them first.
         print(f"[{plan[0].name}] the data are missing: making them before [{', '.join(sorted(asked))}]")
         stages.insert(0, plan[0])
-    # CONAV_COMMIT names the commit of a copy of the tree that is not a git checkout.
-    commit = os.environ.get("CONAV_COMMIT") or subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-        cwd=Path(__file__).resolve().parents[2]).stdout.strip() or "unknown"
+    commit = git_state()[0][:7]  # provenance's: CONAV_COMMIT names the commit of a copy of the tree
     gpus = rr.visible_gpus() if args.gpus == 1 and not args.dry_run else None
     if gpus is not None and len(gpus) > 1:
         print(f"{len(gpus)} GPUs visible: each command runs on all of them as one device mesh; --gpus {len(gpus)} "
