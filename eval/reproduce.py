@@ -95,8 +95,8 @@ BUDGETS = {
     "small": Budget(policy_episodes=500, eval_batch=512, live_lanes=1024, live_iterations=600,
                     live_warmup_iterations=30),
     # Live: 1,024 lanes of 16 steps, 1,000 updates: 16.4M env timesteps, some 1.3 passes over the
-    # 20,293 train episodes. 250 updates of 2,048 lanes left every policy at the mean action
-    # (results/paper_112x448_live/README.md); this budget is the candidate to try on minival.
+    # 20,293 train episodes; with the policy's visual norm (`conav train live`'s default) it
+    # trains (results/paper_112x448_live_visual_norm/README.md). Still to be chosen on minival.
     "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16", baseline_episodes=1000, val_every=1000,
                     live_lanes=1024, live_window_steps=16, live_iterations=1000, live_warmup_iterations=50),
 }

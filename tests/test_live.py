@@ -156,6 +156,24 @@ def test_seeds_share_one_compiled_iteration_and_keep_their_own_queue(hall, tiny)
                               lv.episodes_at(LIVE.seed, jnp.arange(hall.num), hall.num))
 
 
+def test_the_log_tells_a_policy_that_ignores_its_inputs_by_its_action_spread(hall):
+    """A policy whose action is one constant (its head's weights zero: the mean-action collapse)
+    logs an action spread of 0 (to rounding) beside the labels' spread; the freshly drawn policy's is above 0.
+    The spreads are of the window the update trained on, BC (beta 1: the expert drove)."""
+    fns, compiled = lv.make_iteration(hall.env, TINY, LIVE, compiler_options=OPTIONS)
+    params = policy.init(jax.random.PRNGKey(LIVE.seed), TINY)
+    head = params["action_head"]
+    constant = {**params, "action_head": {"w": jnp.zeros_like(head["w"]), "b": jnp.full_like(head["b"], 0.3)}}
+    spreads = []
+    for p in (params, constant):
+        _, metrics = compiled(fns.init(p), lv.iteration_key(LIVE.seed, 0))
+        spreads.append((float(metrics["action_spread"]), float(metrics["label_spread"])))
+    (fresh, label), (collapsed, same_label) = spreads
+    assert collapsed < 1e-6 < 1e-4 < fresh and label == same_label > 0.1
+    labels = jax.device_get(_windows(hall.env, TINY, iterations=1)[0].label[0])  # (T, N, 2)
+    np.testing.assert_allclose(label, labels.reshape(-1, 2).std(axis=0).mean(), rtol=1e-5)
+
+
 @pytest.fixture(scope="module")
 def run(hall, tmp_path_factory):
     out = tmp_path_factory.mktemp("live") / "run"

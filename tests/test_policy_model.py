@@ -402,3 +402,42 @@ def test_runs_store_conv_dtype_only_where_it_is_bfloat16_and_resume_only_with_th
     load_checkpoint(path, config={"model": policy.config_dict(CONFIG)})
     with pytest.raises(ValueError, match="model.conv_dtype"):
         load_checkpoint(path, config={"model": policy.config_dict(bf16)})
+
+
+# -- the visual embedding's normalisation ------------------------------------------------------
+
+
+def test_visual_norm_keeps_the_embedding_bounded_when_its_weights_grow(params):
+    """The live trainer's failure: Adam grew the flatten layer's weights until the LSTM saturated
+    and the action stopped depending on the panorama. Normalised, the embedding's scale is the
+    norm's, whatever the weights' (the same grown weights without it: 1000 times larger)."""
+    normed = dataclasses.replace(CONFIG, visual_norm=True)
+    p = jit(policy.init, static_argnums=1)(jax.random.PRNGKey(0), normed)
+    assert set(p) - set(params) == {"visual_norm"} and p["visual_norm"]["scale"].shape == (CONFIG.visual_dim,)
+    obs = _obs((B,))
+    grown = {**p, "visual": jax.tree.map(lambda w: 1000.0 * w, p["visual"])}
+    for cfg, weights, bound in ((normed, p, 16.0), (normed, grown, 16.0), (CONFIG, grown, None)):
+        visual = np.asarray(policy.encode(weights, cfg, obs))[:, :CONFIG.visual_dim]
+        if bound is None:
+            assert np.abs(visual).max() > 100.0
+        else:  # ReLU of a unit-variance vector of visual_dim entries
+            assert 0.0 < np.abs(visual).max() < bound and np.isfinite(visual).all()
+    # Every other parameter is drawn as without the norm: a run without it is unchanged.
+    jax.tree.map(np.testing.assert_array_equal, {k: v for k, v in p.items() if k != "visual_norm"}, params)
+
+
+def test_runs_store_visual_norm_only_where_it_is_on_and_live_runs_default_to_it():
+    import json
+
+    from conav_jax.envs.agents.policy import policy_config_from_dict
+    from conav_jax.eval.cli import build_parser, network_base
+
+    old = json.loads(json.dumps(policy.config_dict(CONFIG)))
+    assert "visual_norm" not in old and not policy_config_from_dict(old).visual_norm  # runs before the field
+    normed = dataclasses.replace(CONFIG, visual_norm=True)
+    assert policy_config_from_dict(json.loads(json.dumps(policy.config_dict(normed)))) == normed
+    common = ["--data", "D", "--out", "O"]
+    live = build_parser().parse_args(["train", "live", *common, "--ground-truth-intentions"])
+    offline = build_parser().parse_args(["train", "policy", *common])
+    off = build_parser().parse_args(["train", "live", *common, "--ground-truth-intentions", "--no-visual-norm"])
+    assert [network_base(a, (16, 64)).visual_norm for a in (live, offline, off)] == [True, False, False]

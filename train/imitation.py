@@ -486,21 +486,22 @@ def bc_loss(params, cfg: PolicyConfig, batch: dict, remat: bool = False) -> tupl
     step at a time and recompute it for the gradient (policy.apply_sequence), for windows of
     large panoramas that do not fit otherwise."""
     carry = policy.initial_carry(cfg, batch["label"].shape[0])
-    loss, n, _ = sequence_loss(params, cfg, batch, carry, remat)
+    loss, n, _, _ = sequence_loss(params, cfg, batch, carry, remat)
     return loss, {"steps_in_loss": n}
 
 
 def sequence_loss(params, cfg: PolicyConfig, batch: dict, carry: LSTMState,
-                  remat: bool = False) -> tuple[jax.Array, jax.Array, LSTMState]:
+                  remat: bool = False) -> tuple[jax.Array, jax.Array, LSTMState, jax.Array]:
     """`bc_loss` with the LSTM starting each window from `carry` (B, hidden) -> (loss, steps in
-    the loss, the carry after the window's last step): truncated BPTT over consecutive windows
-    (train.live), the carry reset where `batch["reset"]` starts an episode."""
+    the loss, the carry after the window's last step, the policy's actions (B, W, 2)): truncated
+    BPTT over consecutive windows (train.live), the carry reset where `batch["reset"]` starts an
+    episode."""
     actions, _, end = policy.apply_sequence(params, cfg, batch["obs"], carry, batch["reset"], remat=remat,
                                             prepare=expand_obs)
     err = jnp.sum(jnp.square(actions - batch["label"]), axis=-1)
     n = jnp.sum(batch["mask"])
     loss = jnp.sum(err * batch["mask"]) / jnp.maximum(n, 1.0)
-    return loss, n, end
+    return loss, n, end, actions
 
 
 def make_loss_fn(cfg: PolicyConfig):

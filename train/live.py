@@ -207,6 +207,12 @@ class Live(NamedTuple):
     source: str  # where the learner's intention inputs come from (envs.agents.base)
 
 
+def _spread(actions: jax.Array) -> jax.Array:
+    """The standard deviation of `actions (..., 2)` over every step, averaged over the two
+    velocities."""
+    return jnp.std(actions.reshape(-1, actions.shape[-1]), axis=0).mean()
+
+
 def iteration_key(seed: int, iteration: int | jax.Array) -> jax.Array:
     """The key of iteration `iteration`: from (seed, iteration) alone."""
     return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), _ITERATION_STREAM), iteration)
@@ -293,14 +299,18 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
                  "reset": window.first.T, "mask": jnp.ones(window.first.T.shape, jnp.float32)}
 
         def loss_fn(p):
-            loss, _, end = im.sequence_loss(p, policy_config, batch, jax.lax.stop_gradient(lstm), live.remat)
-            return loss, end
+            loss, _, end, actions = im.sequence_loss(p, policy_config, batch, jax.lax.stop_gradient(lstm), live.remat)
+            return loss, (end, actions)
 
-        (loss, end), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
+        (loss, (end, actions)), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         grads, grad_norm = clip_by_global_norm(grads, live.grad_clip)
         lr = schedule(opt_state.step)
         params, opt_state = optimizer.update(grads, opt_state, params)
-        return params, opt_state, jax.lax.stop_gradient(end), {"loss": loss, "grad_norm": grad_norm, "lr": lr}
+        # A policy whose action spread stays far below the labels' has stopped reading its
+        # inputs (the mean action), whatever its loss says.
+        metrics = {"loss": loss, "grad_norm": grad_norm, "lr": lr, "action_spread": _spread(actions),
+                   "label_spread": _spread(window.label)}
+        return params, opt_state, jax.lax.stop_gradient(end), metrics
 
     def iteration(state: TrainState, key):
         beta = live.beta(state.iteration)
@@ -408,7 +418,8 @@ def train_live(
     compiler_options: dict | None = None,
 ) -> LiveResult:
     """Train the CoNav policy by imitation from the live simulator `env` (its train split; build
-    it with `end_at_reach=True`, as the other trainers do) into the run directory `out_dir`,
+    it with `end_at_reach=True`, as the other trainers do) into the run directory `out_dir`
+    (give large panoramas a `policy_config` with `visual_norm=True`, as `train_live_from_data`),
     resuming bit for bit from its latest checkpoint if it has one (of the same configs, else
     ValueError naming the first difference; `LiveConfig.ckpt_every` and `log_every` may change).
 
@@ -416,7 +427,9 @@ def train_live(
     directory (recorded in the run: the CoNav agent loads them from there) or a predictor
     object (envs.agents.predictors); none: the env's ground-truth intentions (privileged).
     Logs every `live.log_every` iterations: loss, gradient norm, learning rate, beta, the
-    expert's share of the actions, episodes finished (and reached), env timesteps. The last
+    expert's share of the actions, episodes finished (and reached), env timesteps, and the
+    spread (standard deviation over the window's steps) of the learner's actions beside the
+    labels': a policy that ignores its inputs shows an action spread near 0. The last
     checkpoint holds the weights and Adam's state alone: a finished run, run again, returns
     them with its lanes as a fresh run's."""
     intention, intention_run = _predictor(intention, lambda r: load_predictors(r, None)[0])
@@ -489,11 +502,14 @@ def _log_record(pending: list[dict], it: int, per_iter: int, seconds: float, cur
     return record
 
 
-def train_live_from_data(data_dir: str | Path, out_dir: str | Path, policy_config: PolicyConfig = PolicyConfig(),
+def train_live_from_data(data_dir: str | Path, out_dir: str | Path,
+                         policy_config: PolicyConfig = PolicyConfig(visual_norm=True),
                          live: LiveConfig = LiveConfig(), intention_run=None, trajectory_run=None,
                          **kwargs) -> LiveResult:
     """`train_live` on the train split of the dataset `data_dir`, its env rendering the policy's
-    resolution, episodes ending at the first reach (as every trainer runs them)."""
+    resolution, episodes ending at the first reach (as every trainer runs them). The default
+    policy normalises its visual embedding (`PolicyConfig.visual_norm`, as `conav train live`):
+    without it the 112x448 policy stopped reading its inputs within a few dozen updates."""
     from conav_jax.envs import EnvConfig, SensorConfig
 
     h, w = policy_config.image_hw

@@ -76,6 +76,12 @@ class PolicyConfig:
     conv_kernels: tuple[int, ...] = ENCODERS[DEFAULT_ENCODER][1]
     conv_strides: tuple[int, ...] | None = ENCODERS[DEFAULT_ENCODER][2]
     visual_dim: int = 256  # flattened CNN features -> this width
+    # Layer-normalise the visual embedding before its ReLU. Without it, Adam at lr 1e-3 moves the
+    # flatten layer's many weights together (fan-in H/16 * W/16 * 64 at 112x448 with the patch
+    # encoder) until its outputs grow large, most units die and the LSTM saturates: the policy's
+    # action stops depending on its inputs (results/paper_112x448_live_visual_norm). Runs written
+    # before this field had none (False when absent).
+    visual_norm: bool = False
     state_dim: int = 32  # pose + human position embedding width
     intention_dim: int = 32  # embedding width of each enabled intention input
     hidden: int = 256  # LSTM width
@@ -145,7 +151,7 @@ class PolicyConfig:
 # their defaults (`config_dict`), so a run written before them still resumes (its stored config
 # compares equal), and `envs.agents.policy.policy_config_from_dict` fills in the defaults.
 LATER_FIELDS = ("use_human_pos", "goal_image", "goal_conv_channels", "goal_conv_kernels", "goal_dim", "conv_dtype",
-                "conv_strides")
+                "conv_strides", "visual_norm")
 # The goal encoder's keys come from this fold of init's key, so configs without a goal image
 # draw every other parameter exactly as before the goal input existed.
 _GOAL_KEY_FOLD = 0x60A1
@@ -280,6 +286,8 @@ def init(key: jax.Array, config: PolicyConfig) -> Params:
     }
     if config.uses_saliency:
         params["saliency"] = nn.linear.init(saliency_key, 2 * config.saliency_sectors, config.intention_dim)
+    if config.visual_norm:  # no key drawn: every other parameter as without it
+        params["visual_norm"] = nn.norm.init(None, config.visual_dim)
     if config.goal_image:
         params.update(_init_goal_encoder(jax.random.fold_in(key, _GOAL_KEY_FOLD), config))
     return params
@@ -310,7 +318,10 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
     image = jnp.concatenate(channels, axis=-1)
     feat = _conv_stack(params["convs"], image, config.conv_compute_dtype, config.strides)
     feat = feat.reshape(*feat.shape[:-3], -1)
-    visual = jax.nn.relu(nn.linear.apply(params["visual"], feat))
+    visual = nn.linear.apply(params["visual"], feat)
+    if config.visual_norm:
+        visual = nn.norm.apply(params["visual_norm"], visual)
+    visual = jax.nn.relu(visual)
 
     pose, scale = obs["gps_compass"], config.position_scale_m
     xy, yaw = pose[..., :2], pose[..., 2:]

@@ -120,7 +120,7 @@ def _add_train_live(models) -> None:
     p.add_argument("--trajectory", default=None, metavar="RUN", help="trajectory run (with --intention)")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="all", help="intention inputs kept (Table 3 row)")
     resolution_arg(p, "of the policy's panorama")
-    _add_network_args(p)
+    _add_network_args(p, visual_norm=True)
     add_fields(p, LiveConfig)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_run_train_live)
@@ -144,9 +144,12 @@ def _run_train_live(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_network_args(p) -> None:
-    """The panorama CNN's flags `conav train policy|objectnav|imagenav` share (read by `_network_base`)."""
+def _add_network_args(p, visual_norm: bool | None = None) -> None:
+    """The panorama CNN's flags `conav train policy|objectnav|imagenav|live` share (read by
+    `network_base`); `visual_norm` is the default of --visual-norm (None: PolicyConfig's)."""
     from conav_jax.models.policy import CONV_DTYPES, DEFAULT_ENCODER, ENCODERS, PolicyConfig
+
+    visual_norm = PolicyConfig.visual_norm if visual_norm is None else visual_norm
 
     p.add_argument("--conv-dtype", choices=sorted(CONV_DTYPES), default=PolicyConfig.conv_dtype,
                    help="dtype of the policy's convolutions and of the activations between them: bfloat16 halves the "
@@ -156,13 +159,18 @@ def _add_network_args(p) -> None:
                    help="the policy's panorama CNN: conv, stride-2 convolutions (every published run and the shipped "
                    "policy), or patch, whose first layer embeds 4x4 pixel blocks (1.9x the 112x448 update on a GPU; "
                    "part of the run's model, BENCHMARKS.md)")
+    p.add_argument("--visual-norm", action=argparse.BooleanOptionalAction, default=visual_norm,
+                   help="layer-normalise the panorama's embedding before the LSTM: without it, large panoramas and "
+                   "learning rates let the embedding grow until the policy ignores its inputs (default: "
+                   f"{'on' if visual_norm else 'off, as the published offline runs'}; part of the run's model)")
 
 
 def network_base(args: argparse.Namespace, image_hw: tuple[int, int]):
     """The PolicyConfig of `--encoder` and `--conv-dtype` at panoramas of `image_hw`."""
     from conav_jax.models.policy import PolicyConfig, encoder_config
 
-    return encoder_config(PolicyConfig(image_hw=tuple(image_hw), conv_dtype=args.conv_dtype), args.encoder)
+    return encoder_config(PolicyConfig(image_hw=tuple(image_hw), conv_dtype=args.conv_dtype,
+                                       visual_norm=args.visual_norm), args.encoder)
 
 
 def _add_train_goalnav(models) -> None:
