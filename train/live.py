@@ -64,6 +64,10 @@ _ORDER_STREAM, _ITERATION_STREAM = 0x0DE5, 0x57E9
 # and the learner acting.
 ROLLOUT_STAGES = ("simulate", "expert", "learner")
 STEPS = "steps"  # the iteration's metrics entry holding its steps (a Window without observations)
+# The policy live runs train unless given another (`conav train live`'s network flags default to
+# it): its visual embedding is layer-normalised (PolicyConfig.visual_norm), without which the
+# 112x448 policy stopped reading its inputs within a few dozen updates.
+DEFAULT_POLICY = PolicyConfig(visual_norm=True)
 
 
 @dataclass(frozen=True)
@@ -419,7 +423,7 @@ def train_live(
 ) -> LiveResult:
     """Train the CoNav policy by imitation from the live simulator `env` (its train split; build
     it with `end_at_reach=True`, as the other trainers do) into the run directory `out_dir`
-    (give large panoramas a `policy_config` with `visual_norm=True`, as `train_live_from_data`),
+    (give large panoramas a `policy_config` with `visual_norm=True`, as DEFAULT_POLICY),
     resuming bit for bit from its latest checkpoint if it has one (of the same configs, else
     ValueError naming the first difference; `LiveConfig.ckpt_every` and `log_every` may change).
 
@@ -503,13 +507,11 @@ def _log_record(pending: list[dict], it: int, per_iter: int, seconds: float, cur
 
 
 def train_live_from_data(data_dir: str | Path, out_dir: str | Path,
-                         policy_config: PolicyConfig = PolicyConfig(visual_norm=True),
+                         policy_config: PolicyConfig = DEFAULT_POLICY,
                          live: LiveConfig = LiveConfig(), intention_run=None, trajectory_run=None,
                          **kwargs) -> LiveResult:
     """`train_live` on the train split of the dataset `data_dir`, its env rendering the policy's
-    resolution, episodes ending at the first reach (as every trainer runs them). The default
-    policy normalises its visual embedding (`PolicyConfig.visual_norm`, as `conav train live`):
-    without it the 112x448 policy stopped reading its inputs within a few dozen updates."""
+    resolution, episodes ending at the first reach (as every trainer runs them)."""
     from conav_jax.envs import EnvConfig, SensorConfig
 
     h, w = policy_config.image_hw

@@ -6,6 +6,7 @@ prints the device, batch and resolution, one JSON line per configuration with --
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 from conav_jax.eval.cli.args import (
@@ -157,18 +158,20 @@ def _run_bench_live(args: argparse.Namespace) -> int:
 
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
     from conav_jax.eval.bench import untrained_predictors
-    from conav_jax.models.policy import PolicyConfig, encoder_config
+    from conav_jax.models.policy import encoder_config
     from conav_jax.train.bench import live_throughput
+    from conav_jax.train.live import DEFAULT_POLICY
 
     h, w = args.resolution
     tmp = None if args.data is not None else tiny_dataset()
     env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True))
-    model = encoder_config(PolicyConfig(image_hw=(h, w), conv_dtype=args.conv_dtype), args.encoder)
+    model = encoder_config(dataclasses.replace(DEFAULT_POLICY, image_hw=(h, w), conv_dtype=args.conv_dtype),
+                           args.encoder)  # the policy live runs train
     predictors = (None, None) if args.ground_truth_intentions else untrained_predictors(env, jax.random.PRNGKey(0))
     for lanes in args.lanes:
         res = live_throughput(env, model, lanes=lanes, window_steps=args.window_steps, repeats=args.repeats,
                               intention=predictors[0], trajectory=predictors[1], beta=args.beta)
-        print(json.dumps({**res, "encoder": args.encoder, "conv_dtype": args.conv_dtype,
+        print(json.dumps({**res, "encoder": args.encoder, "conv_dtype": args.conv_dtype, "visual_norm": model.visual_norm,
                           "materials": env.config.sensor.materials}), flush=True)
     return 0
 

@@ -106,7 +106,7 @@ def add(sub) -> None:
 
 def _add_train_live(models) -> None:
     from conav_jax.models.policy import ABLATIONS
-    from conav_jax.train.live import LiveConfig
+    from conav_jax.train.live import DEFAULT_POLICY, LiveConfig
 
     p = models.add_parser("live", help="imitation-train the CoNav policy from the live simulator: N lanes step T "
                           "control steps, the expert labels every visited state, one update per window, every "
@@ -120,7 +120,7 @@ def _add_train_live(models) -> None:
     p.add_argument("--trajectory", default=None, metavar="RUN", help="trajectory run (with --intention)")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="all", help="intention inputs kept (Table 3 row)")
     resolution_arg(p, "of the policy's panorama")
-    _add_network_args(p, visual_norm=True)
+    _add_network_args(p, visual_norm=DEFAULT_POLICY.visual_norm)
     add_fields(p, LiveConfig)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_run_train_live)
