@@ -18,7 +18,7 @@ import sys
 import uuid
 import zipfile
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -257,8 +257,12 @@ def load_checkpoint(
     params_like: PyTree = None,
     opt_state_like: PyTree = None,
     ignore: tuple[str, ...] = (),
+    upgrade: Callable[[dict], dict] | None = None,
 ) -> Checkpoint:
     """Read a checkpoint written by `save_checkpoint`.
+
+    - `upgrade`: maps the saved config to today's names (conav_jax.runs.upgrade_config) before
+      it is compared and returned.
 
     - `config`: if given, the saved config must equal it, else ValueError naming the first
       differing dotted key (`task.v_max_mps: saved 1.0 vs expected 2.0`); the dotted keys in
@@ -283,6 +287,8 @@ def load_checkpoint(
     except (zipfile.BadZipFile, KeyError, TypeError, ValueError, EOFError) as e:
         raise ValueError(f"corrupt checkpoint {path}: {type(e).__name__}: {e}") from e
 
+    if upgrade is not None:
+        meta["config"] = upgrade(meta["config"])
     if config is not None:
         # A run's provenance (the code and device that wrote it) may differ when another commit resumes it.
         mismatch = _first_config_mismatch(meta["config"], _config_dict(config), ignore=frozenset(ignore) | {PROVENANCE_KEY})

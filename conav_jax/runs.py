@@ -33,6 +33,42 @@ OBJECTNAV = "objectnav"  # conav train objectnav: the object-goal baseline by im
 IMAGENAV = "imagenav"  # conav train imagenav: the image-goal baseline by imitation of the goal planner
 RUN_KINDS = (INTENTION, TRAJECTORY, POLICY, PPO, OBJECTNAV, IMAGENAV)
 
+# Config keys renamed (to the new dotted key) or dropped (None) after runs were written, by the
+# run's kind: a stored config is read under today's names, so older runs load and resume as
+# they did. The panorama size is `resolution` everywhere; a live run's env no longer repeats it.
+_PANORAMA = {"model.image_hw": "model.resolution"}
+RENAMED_CONFIG_KEYS: dict[str, dict[str, str | None]] = {
+    POLICY: {**_PANORAMA, "env.sensor_hw": None}, PPO: _PANORAMA, OBJECTNAV: _PANORAMA, IMAGENAV: _PANORAMA,
+    INTENTION: {"data.sensor_hw": "data.resolution"},
+}
+
+
+def upgrade_config(config: dict) -> dict:
+    """`config` (a checkpoint's) with the keys RENAMED_CONFIG_KEYS lists for its kind renamed or
+    dropped; a copy, the input unchanged. ValueError where a renamed key meets its new name."""
+    renames = RENAMED_CONFIG_KEYS.get(config.get("kind"), {})
+    if not renames:
+        return config
+    out = json.loads(json.dumps(config))
+    for old, new in renames.items():
+        *parents, leaf = old.split(".")
+        node = out
+        for k in parents:
+            node = node.get(k) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or leaf not in node:
+            continue
+        value = node.pop(leaf)
+        if new is None:
+            continue
+        *parents, leaf = new.split(".")
+        target = out
+        for k in parents:
+            target = target.setdefault(k, {})
+        if leaf in target:
+            raise ValueError(f"checkpoint config holds both {old} and {new}")
+        target[leaf] = value
+    return out
+
 
 def append_log(path: str | Path, record: dict) -> None:
     """Append one JSON record (a line) to a run's log."""
@@ -75,7 +111,8 @@ def resume(run_dir: str | Path, config: dict, params: PyTree, opt_state: PyTree,
         log_path.unlink(missing_ok=True)
         return None
     try:
-        ckpt = load_checkpoint(found, config=config, params_like=params, opt_state_like=opt_state, ignore=ignore)
+        ckpt = load_checkpoint(found, config=config, params_like=params, opt_state_like=opt_state, ignore=ignore,
+                               upgrade=upgrade_config)
     except ValueError as e:
         raise ValueError(f"cannot resume {run_dir}: {e}") from None
     trim_log(log_path, ckpt.step)
@@ -106,7 +143,7 @@ def run_config(run_dir: str | Path, kind: str) -> dict:
     """The config of the latest checkpoint of a run of `kind`, read without its arrays (cheap:
     for checks before anything is built). Errors as `load_run`."""
     found = _latest(run_dir, kind)
-    config = read_checkpoint_meta(found)["config"]
+    config = upgrade_config(read_checkpoint_meta(found)["config"])
     _check_kind(found, config, kind)
     return config
 
@@ -116,8 +153,8 @@ def load_run(run_dir: str | Path, kind: str, params_like: PyTree = None) -> Chec
     given). FileNotFoundError for a missing directory or checkpoint, ValueError for a run of
     another kind, naming the kind found and the command that makes the one expected."""
     found = _latest(run_dir, kind)
-    ckpt = load_checkpoint(found)
+    ckpt = load_checkpoint(found, upgrade=upgrade_config)
     _check_kind(found, ckpt.config, kind)
     if params_like is not None:
-        ckpt = load_checkpoint(found, params_like=params_like)
+        ckpt = load_checkpoint(found, params_like=params_like, upgrade=upgrade_config)
     return ckpt

@@ -42,10 +42,10 @@ def default_crop_hw(
     return c, c
 
 
-def _check(image_hw: tuple[int, int], human_pos_xy: jax.Array, crop_hw: tuple[int, int]) -> None:
+def _check(panorama_hw: tuple[int, int], human_pos_xy: jax.Array, crop_hw: tuple[int, int]) -> None:
     """ValueError for shapes that cannot be cropped, and for a NaN position given as a value
     (a traced one cannot raise: `human_crop` fills its crop with NaN instead)."""
-    h, w = image_hw
+    h, w = panorama_hw
     ch, cw = crop_hw
     if not (isinstance(ch, (int, np.integer)) and isinstance(cw, (int, np.integer)) and ch >= 1 and cw >= 1):
         raise ValueError(f"crop_hw must be two positive integers, got {crop_hw}")
@@ -58,19 +58,19 @@ def _check(image_hw: tuple[int, int], human_pos_xy: jax.Array, crop_hw: tuple[in
 
 
 def crop_window(
-    image_hw: tuple[int, int],
+    panorama_hw: tuple[int, int],
     human_pos_xy: jax.Array,
     crop_hw: tuple[int, int],
     camera_height_m: float = TaskConfig.camera_height_m,
     body_z_m: tuple[float, float] = BODY_Z_M,
 ) -> tuple[jax.Array, jax.Array]:
-    """(first row () int32, columns (cw,) int32) of the crop of an `image_hw` panorama around a
+    """(first row () int32, columns (cw,) int32) of the crop of a `panorama_hw` panorama around a
     human at `human_pos_xy` (robot frame, m). The columns are centred on the human's azimuth,
     taken modulo W (a human behind the robot straddles the seam); the rows frame heights
     `body_z_m` at the human's horizontal distance: centred when they fit in `ch` rows, else
     from the top; clamped to the panorama. ValueError as `human_crop`."""
-    _check(image_hw, human_pos_xy, crop_hw)
-    h, w = image_hw
+    _check(panorama_hw, human_pos_xy, crop_hw)
+    h, w = panorama_hw
     ch, cw = crop_hw
     pos = jnp.asarray(human_pos_xy, jnp.float32)
     # Column j's centre looks at azimuth pi - 2 pi (j + 0.5) / W from the robot's heading.

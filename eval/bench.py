@@ -26,7 +26,7 @@ def untrained_agent(name: str, env, config, key, frames: int):
     (the Perceiver over `frames` crops around the human at the env's panorama, the trajectory
     model): the computation of a trained agent, at the env's resolution, for timing without a
     run directory. Its title says it is untrained. ValueError for another name or a `config`
-    the agent cannot read (`config.image_hw` must be the env's panorama)."""
+    the agent cannot read (`config.resolution` must be the env's panorama)."""
     import dataclasses
 
     import jax

@@ -150,3 +150,29 @@ def test_latest_checkpoint_picks_the_highest_step(tmp_path, trained):
     (tmp_path / "notes.txt").write_text("hi")
     assert latest_checkpoint(tmp_path) == tmp_path / "ckpt_00000012.npz"
     assert load_checkpoint(latest_checkpoint(tmp_path)).step == 12
+
+
+def test_runs_written_under_old_key_names_load_and_resume_under_todays(tmp_path, trained):
+    """The panorama size was `model.image_hw` (policy runs; a live run's env repeated it as
+    `env.sensor_hw`) and `data.sensor_hw` (intention runs); a run written then reads as
+    `resolution` and resumes against today's config. An intention run's `model.image_hw` is
+    the Perceiver's crop, another fact, and stays."""
+    from conav_jax import runs
+
+    params, state = trained
+    old = {"kind": "policy", "model": {"hidden": 8, "image_hw": [16, 64]}, "env": {"split": "train", "sensor_hw": [16, 64]}}
+    save_checkpoint(checkpoint_path(tmp_path / "policy", 5), params=params, opt_state=state, config=old, step=5)
+    today = {"kind": "policy", "model": {"hidden": 8, "resolution": [16, 64]}, "env": {"split": "train"}}
+    assert runs.run_config(tmp_path / "policy", runs.POLICY) == today
+    assert runs.load_run(tmp_path / "policy", runs.POLICY).config == today
+    assert runs.resume(tmp_path / "policy", today, params, state).step == 5
+    with pytest.raises(ValueError, match=r"model\.resolution"):
+        runs.resume(tmp_path / "policy", {**today, "model": {"hidden": 8, "resolution": [8, 32]}}, params, state)
+
+    crop = {"kind": "intention", "model": {"image_hw": [16, 16]}, "data": {"sensor_hw": [16, 64]}}
+    save_checkpoint(checkpoint_path(tmp_path / "intention", 1), params=params, opt_state=None, config=crop, step=1)
+    assert runs.run_config(tmp_path / "intention", runs.INTENTION) == {
+        "kind": "intention", "model": {"image_hw": [16, 16]}, "data": {"resolution": [16, 64]}}
+    assert old["model"] == {"hidden": 8, "image_hw": [16, 64]}  # the caller's dict untouched
+    with pytest.raises(ValueError, match="both model.image_hw and model.resolution"):
+        runs.upgrade_config({"kind": "ppo", "model": {"image_hw": [1, 2], "resolution": [1, 2]}})

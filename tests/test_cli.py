@@ -141,7 +141,7 @@ def test_train_live_builds_its_configs_from_flags_and_passes_the_predictors(tmp_
                      "--ablation", "object", "--no-progress"]) == 1
     data, out, model, live, kwargs = calls[-1]
     assert live == LiveConfig(lanes=64, window_steps=8, beta_end=0.25)
-    assert model.image_hw == (8, 32) and (model.use_activity, model.use_object, model.use_trajectory) == (False, True, False)
+    assert model.resolution == (8, 32) and (model.use_activity, model.use_object, model.use_trajectory) == (False, True, False)
     assert kwargs["intention_run"] is None and kwargs["trajectory_run"] is None
     assert cli.main([*base, "--intention", "I", "--trajectory", "T"]) == 1
     assert calls[-1][4]["intention_run"] == "I" and calls[-1][4]["trajectory_run"] == "T"

@@ -42,7 +42,7 @@ from conav_jax.train.goalnav import imagenav_model, imagenav_task, objectnav_mod
 from conav_jax.train.policy import ImitationConfig, task_run_config
 
 FAST = {"xla_backend_optimization_level": 0}  # the small jits (as tests/test_imitation.py)
-SMALL = PolicyConfig(image_hw=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16,
+SMALL = PolicyConfig(resolution=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16,
                      intention_dim=8, hidden=32, saliency_sectors=4, goal_conv_channels=(8, 8),
                      goal_conv_kernels=(3, 3), goal_dim=16)
 OBJ = objectnav_model((8, 32), base=SMALL)
@@ -317,7 +317,7 @@ def test_train_commands_build_the_baselines_networks(model, flags, monkeypatch, 
                                       *flags])
     assert args.func(args) == 0
     net = seen["net"]
-    assert net.image_hw == (16, 64) and not net.use_human_pos and not net.use_activity and not net.use_trajectory
+    assert net.resolution == (16, 64) and not net.use_human_pos and not net.use_activity and not net.use_trajectory
     assert (net.use_object, net.goal_image) == ((True, False) if model == "objectnav" else (False, True))
     assert net.uses_saliency is (model == "objectnav" and "--no-object-saliency" not in flags)
     # The CoNav policy's panorama CNN flags reach the baselines' networks.

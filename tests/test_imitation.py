@@ -34,7 +34,7 @@ from conav_jax.train.policy import ImitationConfig, check_recordable, records_pr
 FAST = {"xla_backend_optimization_level": 0}
 SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)  # as training runs it
 PCFG = PolicyConfig(
-    image_hw=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16, intention_dim=8, hidden=32
+    resolution=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16, intention_dim=8, hidden=32
 )
 T_ARRIVE, T_END = 140, 160  # the human walks from the fridge to the table in steps 70-140
 SEQ, BURN_IN = 16, 8

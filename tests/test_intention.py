@@ -45,7 +45,7 @@ FAST = {"xla_backend_optimization_level": 0}
 # 16x16 crops of 32x128 panoramas: at this resolution a human 1.5-3 m away is 9-19 rows tall.
 # Two viewpoints: each episode's start pose and one drawn around the human.
 # Flat colours: the human's pixels are told by their colour.
-DATA = IntentionDataConfig(sensor_hw=(32, 128), materials="flat", frames=4, viewpoints=2)
+DATA = IntentionDataConfig(resolution=(32, 128), materials="flat", frames=4, viewpoints=2)
 MODEL = PerceiverConfig(image_hw=(16, 16), dim=16, num_latents=4, num_heads=2, num_blocks=0)
 
 

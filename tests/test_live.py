@@ -27,7 +27,7 @@ from conav_jax.train import live as lv
 from conav_jax.train.live import LiveConfig
 
 SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)  # as training runs it
-TINY = PolicyConfig(image_hw=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
+TINY = PolicyConfig(resolution=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                     intention_dim=4, hidden=8)
 BLIND = dataclasses.replace(TINY, use_activity=False, use_object=False, use_trajectory=False)
 STARTS = [(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 0.5), (3.0, 3.0, 0.0), (6.0, 2.5, -1.0)]
@@ -241,7 +241,7 @@ def test_config_errors_name_the_fields(hall):
     with pytest.raises(ValueError, match="exponential"):
         LiveConfig(beta_schedule="exponential", beta_end=0.0)
     with pytest.raises(ValueError, match="SensorConfig\\(height=16, width=64\\)"):
-        lv.make_live(hall.env, dataclasses.replace(TINY, image_hw=(16, 64)), LIVE)
+        lv.make_live(hall.env, dataclasses.replace(TINY, resolution=(16, 64)), LIVE)
     lin = LiveConfig(beta_start=1.0, beta_end=0.2, beta_decay_iterations=4)
     exp = dataclasses.replace(lin, beta_schedule="exponential")
     np.testing.assert_allclose([float(lin.beta(k)) for k in (0, 2, 4, 9)], [1.0, 0.6, 0.2, 0.2], rtol=1e-6)

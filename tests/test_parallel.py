@@ -80,7 +80,7 @@ def _policy_updates(mesh) -> dict:
     from conav_jax.train.imitation import bc_loss
     from conav_jax.train.loop import TrainConfig, make_optimizer, make_single, make_update
 
-    pcfg = PolicyConfig(image_hw=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
+    pcfg = PolicyConfig(resolution=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                         intention_dim=4, hidden=8)
     n, w = 16, 4
     rng = np.random.default_rng(1)
@@ -127,7 +127,7 @@ def _recording(mesh) -> dict:
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
     from conav_jax.train import imitation as im
 
-    pcfg = PolicyConfig(image_hw=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
+    pcfg = PolicyConfig(resolution=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                         intention_dim=4, hidden=8)
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0)])
     env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True))

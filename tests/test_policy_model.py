@@ -19,7 +19,7 @@ from conav_jax.models.policy import PolicyConfig, ablation_config, encoder_confi
 jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
 
 CONFIG = PolicyConfig(
-    image_hw=(16, 64), conv_channels=(8, 8), conv_kernels=(3, 3),
+    resolution=(16, 64), conv_channels=(8, 8), conv_kernels=(3, 3),
     visual_dim=32, state_dim=8, intention_dim=8, hidden=32,
 )
 STEP = jit(policy.apply, static_argnums=1)
@@ -184,7 +184,7 @@ def test_the_patch_encoder_reaches_the_conv_encoders_grid_with_a_patch_product_f
     assert policy.encoder_name(conv) == "conv" and policy.encoder_name(patch) == "patch"
     assert policy.encoder_name(CONFIG) == "custom" and conv == PolicyConfig()
     # On a small panorama: the first layer runs as one product per 4x4 block, the rest convolve.
-    small = {c: dataclasses.replace(c, image_hw=(16, 64)) for c in (conv, patch)}
+    small = {c: dataclasses.replace(c, resolution=(16, 64)) for c in (conv, patch)}
     for c, expected in ((small[conv], 4), (small[patch], 2)):
         params = jit(policy.init, static_argnums=1)(jax.random.PRNGKey(0), c)
         assert len(_convolutions(c, params, _obs((B,)))) == expected
@@ -238,7 +238,7 @@ def test_object_saliency_weights_pixels_by_their_category_probability():
 
 
 def test_saliency_bearing_finds_the_sector_and_depth_of_the_salient_pixels():
-    config = PolicyConfig(image_hw=(4, 32), saliency_sectors=8)
+    config = PolicyConfig(resolution=(4, 32), saliency_sectors=8)
     sal = np.zeros((4, 32), np.float32)
     depth = np.full((4, 32), 9.0, np.float32)
     sal[1:3, 13] = 1.0  # sector 3 (columns 12-15)
@@ -275,7 +275,7 @@ def test_the_policy_reads_where_the_predicted_object_is(params):
 
 def test_saliency_sectors_must_divide_the_width():
     with pytest.raises(ValueError, match="saliency_sectors"):
-        policy.init(jax.random.PRNGKey(0), PolicyConfig(image_hw=(16, 64), conv_channels=(4,), conv_kernels=(3,), saliency_sectors=12))
+        policy.init(jax.random.PRNGKey(0), PolicyConfig(resolution=(16, 64), conv_channels=(4,), conv_kernels=(3,), saliency_sectors=12))
 
 
 def test_checkpoint_configs_from_before_the_saliency_channel_load_without_it():
@@ -292,7 +292,7 @@ def test_train_policy_flag_switches_the_saliency_channel_in_the_runs_model(flag,
     from conav_jax.train.policy import run_config
 
     model, imitation = _trained_policy_model(flag, monkeypatch, tmp_path)
-    assert model.image_hw == (16, 64) and model.object_saliency is saliency
+    assert model.resolution == (16, 64) and model.object_saliency is saliency
     assert (model.use_activity, model.use_object, model.use_trajectory) == (False, True, False)
     config = run_config(model, imitation, ExpertConfig(), "hash", None, None)
     assert config["model"]["object_saliency"] is saliency and "object_saliency" not in config["imitation"]

@@ -40,7 +40,7 @@ jit = functools.partial(jax.jit, compiler_options=FAST)
 ROOT = Path(__file__).resolve().parents[1]
 
 # A tiny network at 8x32 panoramas: compile time, not accuracy, is what matters here.
-TINY = PolicyConfig(image_hw=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8,
+TINY = PolicyConfig(resolution=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8,
                     state_dim=8, intention_dim=4, hidden=8)
 BLIND = dataclasses.replace(TINY, use_activity=False, use_object=False, use_trajectory=False)
 
@@ -178,7 +178,7 @@ def test_update_pass_replays_the_rollout_log_probs(recurrent):
 def _imitation_run(path, config=TINY):
     """A stand-in for a `conav train policy` run dir (train/policy.py's config layout)."""
     params = policy.init(jax.random.PRNGKey(5), config)
-    run_config = {"kind": "policy", "model": dataclasses.asdict(config), "sensor_hw": list(config.image_hw)}
+    run_config = {"kind": "policy", "model": dataclasses.asdict(config)}
     save_checkpoint(checkpoint_path(path, 10), params=params, opt_state=None, config=run_config, step=10)
     return params
 
@@ -189,7 +189,7 @@ def test_init_from_loads_the_imitation_policy_and_rejects_bad_runs(tmp_path):
     assert config == TINY
     jax.tree.map(np.testing.assert_array_equal, loaded, params)
     with pytest.raises(ValueError, match="has its own network config"):  # caught before any env is built
-        ppo.train_ppo(tmp_path / "no_data", tmp_path / "rl", PPOConfig(), PolicyConfig(image_hw=(16, 64)), init_from=tmp_path / "bc")
+        ppo.train_ppo(tmp_path / "no_data", tmp_path / "rl", PPOConfig(), PolicyConfig(resolution=(16, 64)), init_from=tmp_path / "bc")
     with pytest.raises(FileNotFoundError, match="not found"):
         ppo.load_policy_init(tmp_path / "missing")
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
@@ -229,7 +229,7 @@ def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, 
     assert last == checkpoint_path(tmp_path / "rl", 3)
     ckpt = load_checkpoint(last)
     assert ckpt.config["kind"] == "ppo" and ckpt.config["ppo"]["recurrent"] is True
-    assert ckpt.config["model"]["image_hw"] == [8, 32] and ckpt.extra["val"] == result.val
+    assert ckpt.config["model"]["resolution"] == [8, 32] and ckpt.extra["val"] == result.val
     jax.tree.map(np.testing.assert_array_equal, ckpt.params, result.params)
 
     # The validation above is ppo_agent(val env, this run dir, ground truth) run through

@@ -53,10 +53,10 @@ def test_every_trainers_run_config_records_provenance():
     from conav_jax.train.policy import ImitationConfig
     from conav_jax.train.trajectory import TrajectoryDataConfig
 
-    data = intention.IntentionDataConfig(sensor_hw=(16, 64))
+    data = intention.IntentionDataConfig(resolution=(16, 64))
     configs = {"intention": intention.run_config(PerceiverConfig(), data, "hash", 1.0, 1.2),
                "trajectory": trajectory.run_config(TrajectoryConfig(), TrajectoryDataConfig(), "hash"),
-               "policy": policy.run_config(PolicyConfig(image_hw=(16, 64)), ImitationConfig(), ExpertConfig(), "hash",
+               "policy": policy.run_config(PolicyConfig(resolution=(16, 64)), ImitationConfig(), ExpertConfig(), "hash",
                                            None, None)}
     for kind, config in configs.items():
         block = config[PROVENANCE_KEY]

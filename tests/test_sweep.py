@@ -270,7 +270,7 @@ def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data, m
         monkeypatch.setattr(model, "init", zeros)
 
     env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64)))
-    small = PolicyConfig(image_hw=(16, 64), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
+    small = PolicyConfig(resolution=(16, 64), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                          intention_dim=8, hidden=8)
     configs = {"conav": small, "ppo": small, "imagegoal": dataclasses.replace(
         ablation_config(small, "none"), goal_image=True, use_human_pos=False)}
@@ -288,4 +288,4 @@ def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data, m
     with pytest.raises(ValueError, match="no untrained variant of agent 'pioneer'"):
         untrained_agent("pioneer", env, small, key, 2)
     with pytest.raises(ValueError, match="16x64"):
-        untrained_agent("conav", env, dataclasses.replace(small, image_hw=(8, 32)), key, 2)
+        untrained_agent("conav", env, dataclasses.replace(small, resolution=(8, 32)), key, 2)

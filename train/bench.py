@@ -66,7 +66,7 @@ def _policy_setup(key, batch: int, resolution, remat: bool = False, conv_dtype: 
     from conav_jax.train.imitation import bc_loss
 
     encoder = encoder or policy.DEFAULT_ENCODER
-    config = policy.encoder_config(policy.PolicyConfig(image_hw=resolution, conv_dtype=conv_dtype), encoder)
+    config = policy.encoder_config(policy.PolicyConfig(resolution=resolution, conv_dtype=conv_dtype), encoder)
     t = POLICY_SEQUENCE
     ks = jax.random.split(key, 8)
     n = batch  # sequences of panoramas are large: (n, T, H, W, 3) uint8 + (n, T, H, W) float16
@@ -168,7 +168,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     if lanes <= 0 or window_steps <= 0 or repeats <= 0:
         raise ValueError(f"lanes, window_steps and repeats must be > 0, got {lanes}, {window_steps}, {repeats}")
     hw = (env.config.sensor.height, env.config.sensor.width)
-    policy_config = policy_config or PolicyConfig(image_hw=hw)
+    policy_config = policy_config or PolicyConfig(resolution=hw)
     config = lv.LiveConfig(lanes=lanes, window_steps=window_steps, warmup_iterations=0, beta_start=beta,
                            beta_end=beta, seed=seed)
     fns = lv.make_live(env, policy_config, config, intention, trajectory)

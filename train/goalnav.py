@@ -32,16 +32,16 @@ from conav_jax.train.loop import TrainConfig
 from conav_jax.train.policy import ImitationConfig, ImitationTask, PolicyResult, train_policy
 
 
-def objectnav_model(image_hw: tuple[int, int], object_saliency: bool = True, base: PolicyConfig = PolicyConfig()) -> PolicyConfig:
+def objectnav_model(resolution: tuple[int, int], object_saliency: bool = True, base: PolicyConfig = PolicyConfig()) -> PolicyConfig:
     """`base` as the object-goal policy: the goal category its only intention input, no human
-    position, panoramas of `image_hw`."""
-    return dataclasses.replace(ablation_config(base, "object"), image_hw=tuple(image_hw),
+    position, panoramas of `resolution`."""
+    return dataclasses.replace(ablation_config(base, "object"), resolution=tuple(resolution),
                                object_saliency=object_saliency, use_human_pos=False)
 
 
-def imagenav_model(image_hw: tuple[int, int], base: PolicyConfig = PolicyConfig()) -> PolicyConfig:
+def imagenav_model(resolution: tuple[int, int], base: PolicyConfig = PolicyConfig()) -> PolicyConfig:
     """`base` as the image-goal policy: a goal image, no intention input, no human position."""
-    return dataclasses.replace(ablation_config(base, "none"), image_hw=tuple(image_hw), use_human_pos=False,
+    return dataclasses.replace(ablation_config(base, "none"), resolution=tuple(resolution), use_human_pos=False,
                                goal_image=True)
 
 

@@ -46,7 +46,7 @@ class IntentionDataConfig:
     # Panorama (H, W) rendered, the sensor's default. The "human" view crops the model's
     # image_hw from it at this resolution, so the agents' env must render it too (the
     # predictor checks); "front" resizes the front quarter to image_hw (any resolution).
-    sensor_hw: tuple[int, int] = (SensorConfig.height, SensorConfig.width)
+    resolution: tuple[int, int] = (SensorConfig.height, SensorConfig.width)
     # What the panoramas' RGB shows (SensorConfig.materials); the predictor's env must render it too.
     materials: str = SensorConfig.materials
     frames: int = 16  # F: frames per episode, spread evenly over activity A
@@ -215,7 +215,7 @@ def render_split(
 
 def make_env(data_dir: str | Path, split: str, data: IntentionDataConfig) -> ConavEnv:
     """The env of one split with the sensor resolution and materials the frames are rendered at."""
-    h, w = data.sensor_hw
+    h, w = data.resolution
     return ConavEnv(data_dir, split, EnvConfig(sensor=SensorConfig(height=h, width=w, materials=data.materials)))
 
 
@@ -366,7 +366,7 @@ def run_config(model: PerceiverConfig, data: IntentionDataConfig, content_hash: 
         "model": model_fields,
         "data": {**data_fields, "content_hash": content_hash, "frame_spacing_steps": spacing,
                  "camera_height_m": camera_height_m, **extra},
-        PROVENANCE_KEY: provenance(materials=data.materials, resolution=list(data.sensor_hw), view=data.view),
+        PROVENANCE_KEY: provenance(materials=data.materials, resolution=list(data.resolution), view=data.view),
     }
 
 

@@ -381,8 +381,7 @@ def run_config(policy_config: PolicyConfig, live: LiveConfig, expert_config: Exp
         "live": live.weights_fields(),
         "imitation": {"train_intentions": PREDICTED if source == PREDICTED else GROUND_TRUTH},
         "expert": dataclasses.asdict(expert_config),
-        "env": {"split": env.split.name, "episodes": int(env.num_episodes), "end_at_reach": env.config.end_at_reach,
-                "sensor_hw": [env.config.sensor.height, env.config.sensor.width]},
+        "env": {"split": env.split.name, "episodes": int(env.num_episodes), "end_at_reach": env.config.end_at_reach},
         "materials": env.config.sensor.materials,  # what the training env renders (checked by the agent)
         "intention_source": source,
         "intention_run": None if intention_run is None else str(intention_run),
@@ -514,6 +513,6 @@ def train_live_from_data(data_dir: str | Path, out_dir: str | Path,
     resolution, episodes ending at the first reach (as every trainer runs them)."""
     from conav_jax.envs import EnvConfig, SensorConfig
 
-    h, w = policy_config.image_hw
+    h, w = policy_config.resolution
     env = ConavEnv(str(data_dir), "train", EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True))
     return train_live(env, policy_config, live, out_dir, intention_run, trajectory_run, **kwargs)

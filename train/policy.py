@@ -153,14 +153,14 @@ def round_actor(r: int, imitation: ImitationConfig, teacher_name: str) -> tuple[
     return ("policy" if beta == 0.0 else f"policy, {teacher_name} at beta {beta:g}"), beta
 
 
-def recording_lanes(chunk_steps: int, seq_len: int, burn_in: int, image_hw: tuple[int, int], goal_image: bool = False,
+def recording_lanes(chunk_steps: int, seq_len: int, burn_in: int, resolution: tuple[int, int], goal_image: bool = False,
                     budget_bytes: int | None = None) -> int:
     """Episodes one recording call runs (train.imitation.record_windows): what a lane holds on
     the device at once, a chunk of `chunk_steps` records, the burn-in kept for the next chunk,
     the chunk's windows and the copy of those kept (each step the compact panorama, and a goal
     image where the policy reads one), within `budget_bytes` (default: RECORD_BUDGET_BYTES, on
     the CPU RECORD_BUDGET_BYTES_CPU), at least 1, at most MAX_ROLLOUT_LANES."""
-    h, w = image_hw
+    h, w = resolution
     step_bytes = h * w * (im.PANORAMA_BYTES_PER_PIXEL + (im.GOAL_IMAGE_BYTES_PER_PIXEL if goal_image else 0))
     window_steps = chunk_steps // seq_len * (burn_in + seq_len)
     return lanes_within((chunk_steps + burn_in + 2 * window_steps) * step_bytes, budget_bytes)
@@ -241,7 +241,7 @@ def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episod
     if imitation.train_intentions == "predicted" and needed_predictors(model) and not predicted:
         raise ValueError(f"{policy_run} trained on predicted intentions: pass its --intention and --trajectory runs")
     expert = ExpertConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config["expert"].items()})
-    h, w = model.image_hw
+    h, w = model.resolution
     sensor = SensorConfig(height=h, width=w, materials=materials_of_run(config))
     env = ConavEnv(data_dir, "train", EnvConfig(sensor=sensor, end_at_reach=True),
                    max_episodes=episodes)
@@ -273,7 +273,7 @@ def run_config(model, imitation: ImitationConfig, expert, content_hash: str, int
         "trajectory_run": None if trajectory_run is None else str(trajectory_run),
         "predictor_digests": {"intention": predictor_digest(intention_run),
                               "trajectory": predictor_digest(trajectory_run)},
-        PROVENANCE_KEY: provenance(materials=SensorConfig.materials, resolution=list(model.image_hw),
+        PROVENANCE_KEY: provenance(materials=SensorConfig.materials, resolution=list(model.resolution),
                                    encoder=encoder_name(model), conv_dtype=model.conv_dtype),
     }
 
@@ -297,7 +297,7 @@ def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, cont
         "imitation": imitation_record(imitation),
         "teacher": task.config,
         "data_hash": content_hash,
-        PROVENANCE_KEY: provenance(materials=SensorConfig.materials, resolution=list(model.image_hw),
+        PROVENANCE_KEY: provenance(materials=SensorConfig.materials, resolution=list(model.resolution),
                                    encoder=encoder_name(model), conv_dtype=model.conv_dtype),
     }
 
@@ -316,7 +316,7 @@ def expert_cache_entries(cache: Path, content_hash: str, model, imitation: Imita
     train episodes, the policy's config (the inputs it records), the windowing and, when it
     records the predictors' outputs, their checkpoints. Not the seed nor the weights: the expert
     ignores the rollout key (reset too: the episode fixes it) and, acting alone, the policy."""
-    same = {"data_hash": content_hash, "expert": dataclasses.asdict(expert), "image_hw": list(model.image_hw),
+    same = {"data_hash": content_hash, "expert": dataclasses.asdict(expert), "resolution": list(model.resolution),
             "devices": devices}
     ceiling = expert_cache_key({**same, "split": imitation.val_split, "episodes": imitation.val_episodes,
                                 "batch": imitation.val_batch})
@@ -469,7 +469,7 @@ def train_policy(
     if found is not None:
         try:
             ckpt = load_checkpoint(found, config=config, params_like=params,
-                                   ignore=RESUME_CHANGEABLE + predictor_resume_ignore(found))
+                                   ignore=RESUME_CHANGEABLE + predictor_resume_ignore(found), upgrade=runs.upgrade_config)
         except ValueError as e:
             raise ValueError(f"cannot resume {run_dir}: {e}") from None
         params, done = ckpt.params, int(ckpt.extra["round"])
@@ -479,7 +479,7 @@ def train_policy(
     log_path = run_dir / runs.LOG_FILE
 
     # Imitation data and validation stop at the first reach (the expert's demonstrations end there).
-    h, w = model.image_hw
+    h, w = model.resolution
     env_cfg = EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True)
     train_env = ConavEnv(data_dir, "train", env_cfg, max_episodes=imitation.episodes)
     val_env = ConavEnv(data_dir, imitation.val_split, env_cfg, max_episodes=imitation.val_episodes)

@@ -507,7 +507,7 @@ def train_ppo(
     else:
         policy_config = policy_config or PolicyConfig()
         params = policy.init(jax.random.PRNGKey(config.seed), policy_config)
-    hw = tuple(policy_config.image_hw)  # the env renders what the network reads
+    hw = tuple(policy_config.resolution)  # the env renders what the network reads
     # Training and validation episodes end at the first reach: the reach bonus ends an episode.
     env_config = EnvConfig(sensor=SensorConfig(height=hw[0], width=hw[1]), end_at_reach=True)
     env = brax.envs.get_environment("conav", data_dir=str(data_dir), split="train", config=env_config)

@@ -68,7 +68,7 @@ ABLATIONS = {
 class PolicyConfig:
     """Sizes and input switches of the CoNav policy."""
 
-    image_hw: tuple[int, int] = (112, 448)  # panorama (H, W) in pixels
+    resolution: tuple[int, int] = (112, 448)  # panorama (H, W) in pixels
     # The panorama CNN, one SAME conv per entry (ENCODERS); a layer whose kernel equals its
     # stride embeds non-overlapping patches (conav_jax.nn.conv). Strides None: 2 for each
     # layer, as every run had before strides could be set.
@@ -120,11 +120,11 @@ class PolicyConfig:
                              f"got {self.conv_channels}, {self.conv_kernels}, {self.conv_strides}")
         if self.conv_dtype not in CONV_DTYPES:
             raise ValueError(f"unknown conv_dtype {self.conv_dtype!r}; expected one of {sorted(CONV_DTYPES)}")
-        if self.uses_saliency and (self.saliency_sectors < 1 or self.image_hw[1] % self.saliency_sectors):
-            raise ValueError(f"saliency_sectors ({self.saliency_sectors}) must divide the panorama width {self.image_hw[1]}")
-        if self.goal_image and (len(self.goal_conv_channels) != len(self.goal_conv_kernels) or self.image_hw[1] % 4):
+        if self.uses_saliency and (self.saliency_sectors < 1 or self.resolution[1] % self.saliency_sectors):
+            raise ValueError(f"saliency_sectors ({self.saliency_sectors}) must divide the panorama width {self.resolution[1]}")
+        if self.goal_image and (len(self.goal_conv_channels) != len(self.goal_conv_kernels) or self.resolution[1] % 4):
             raise ValueError("goal_conv_channels and goal_conv_kernels need one entry per conv layer, and the goal "
-                             f"image (a quarter of the panorama) a width divisible by 4, got {self.image_hw[1]}")
+                             f"image (a quarter of the panorama) a width divisible by 4, got {self.resolution[1]}")
 
     @property
     def strides(self) -> tuple[int, ...]:
@@ -142,9 +142,9 @@ class PolicyConfig:
 
     @property
     def goal_image_hw(self) -> tuple[int, int]:
-        """(H, W) of the goal image: the forward quarter of a panorama of image_hw
+        """(H, W) of the goal image: the forward quarter of a panorama of resolution
         (envs.panorama.front_view)."""
-        return self.image_hw[0], self.image_hw[1] // 4
+        return self.resolution[0], self.resolution[1] // 4
 
 
 # Fields added after runs were written: a run's config stores them only where they differ from
@@ -265,7 +265,7 @@ def init(key: jax.Array, config: PolicyConfig) -> Params:
         nn.conv.init(next(keys), i, o, k)
         for i, o, k in zip(in_ch, config.conv_channels, config.conv_kernels)
     ]
-    image = jax.ShapeDtypeStruct((1, *config.image_hw, in_ch[0]), jnp.float32)
+    image = jax.ShapeDtypeStruct((1, *config.resolution, in_ch[0]), jnp.float32)
     _, fh, fw, fc = jax.eval_shape(lambda p, x: _conv_stack(p, x, strides=config.strides), convs, image).shape
     lstm_in = config.visual_dim + config.state_dim + config.intention_dim * (len(intentions) + config.uses_saliency)
     lstm_in += config.goal_dim if config.goal_image else 0

@@ -160,8 +160,8 @@ def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None, recurre
 def check_policy_env(env, cfg: PolicyConfig, source_name: str, intention_source_: str) -> None:
     """ValueError unless `env` renders the policy's resolution."""
     hw = (env.config.sensor.height, env.config.sensor.width)
-    if hw != tuple(cfg.image_hw):
-        h, w = cfg.image_hw
+    if hw != tuple(cfg.resolution):
+        h, w = cfg.resolution
         raise ValueError(
             f"{source_name} was trained on {h}x{w} panoramas but the env renders {hw[0]}x{hw[1]}; "
             f"build the env with SensorConfig(height={h}, width={w})"
@@ -216,8 +216,10 @@ def policy_agent_from_params(
 
 
 def policy_config_from_dict(d: dict) -> PolicyConfig:
-    """PolicyConfig from a checkpoint's JSON "model" (lists back to tuples)."""
+    """PolicyConfig from a checkpoint's JSON "model" (lists back to tuples; keys renamed since
+    the run was written read under today's names, runs.upgrade_config)."""
     names = {f.name for f in dataclasses.fields(PolicyConfig)}
+    d = runs.upgrade_config({"kind": runs.POLICY, "model": d})["model"]
     d = {"object_saliency": False, **d}  # checkpoints from before the saliency channel had none
     if set(d) - names:
         raise ValueError(f"checkpoint model config has unknown PolicyConfig fields {sorted(set(d) - names)}")

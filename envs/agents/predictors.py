@@ -42,7 +42,7 @@ class FrameSpec(NamedTuple):
     """How a run's frames were made from the panorama, which the predictor repeats."""
 
     view: str  # one of VIEWS
-    sensor_hw: tuple[int, int]  # (H, W) of the panoramas the run was trained on
+    resolution: tuple[int, int]  # (H, W) of the panoramas the run was trained on
     camera_height_m: float = TaskConfig.camera_height_m  # where the crop's rows look
     materials: str = "flat"  # SensorConfig.materials of the panoramas the run was trained on
 
@@ -63,8 +63,8 @@ def intention_frame(spec: FrameSpec, config: PerceiverConfig, rgbd: jax.Array, h
         if frame.shape[:2] != (h, w):
             frame = jax.image.resize(frame, (h, w, config.channels), "linear")
     else:
-        if tuple(rgbd.shape[:2]) != tuple(spec.sensor_hw):
-            sh, sw = spec.sensor_hw
+        if tuple(rgbd.shape[:2]) != tuple(spec.resolution):
+            sh, sw = spec.resolution
             raise ValueError(
                 f"the intention predictor crops {h}x{w} frames from {sh}x{sw} panoramas (its training "
                 f"resolution) but got {rgbd.shape[0]}x{rgbd.shape[1]}; render the env with "
@@ -242,7 +242,7 @@ def frame_spec_from_config(data: dict) -> FrameSpec:
     view = data.get("view", "front")
     if view not in VIEWS:
         raise ValueError(f"intention run with unknown view {view!r}; this version reads {VIEWS}")
-    return FrameSpec(view, tuple(data["sensor_hw"]), float(data.get("camera_height_m", TaskConfig.camera_height_m)),
+    return FrameSpec(view, tuple(data["resolution"]), float(data.get("camera_height_m", TaskConfig.camera_height_m)),
                      materials_of_run({"data": data}))
 
 

@@ -174,7 +174,7 @@ def run_resolution(trained: list[tuple[str, str | Path]], resolution: tuple[int,
     found: dict[tuple[int, int], str] = {}
     for name, run in trained:
         spec = check_agent(name, run)
-        hw = tuple(runs.run_config(run, spec.run_kind)["model"]["image_hw"])
+        hw = tuple(runs.run_config(run, spec.run_kind)["model"]["resolution"])
         found.setdefault(hw, str(run))
     if len(found) > 1:
         raise ValueError("the trained runs read different panoramas: " +

@@ -165,7 +165,7 @@ def _run_bench_live(args: argparse.Namespace) -> int:
     h, w = args.resolution
     tmp = None if args.data is not None else tiny_dataset()
     env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True))
-    model = encoder_config(dataclasses.replace(DEFAULT_POLICY, image_hw=(h, w), conv_dtype=args.conv_dtype),
+    model = encoder_config(dataclasses.replace(DEFAULT_POLICY, resolution=(h, w), conv_dtype=args.conv_dtype),
                            args.encoder)  # the policy live runs train
     predictors = (None, None) if args.ground_truth_intentions else untrained_predictors(env, jax.random.PRNGKey(0))
     for lanes in args.lanes:
@@ -303,7 +303,7 @@ def _bench_eval_agent(args: argparse.Namespace, env):
 
     hw = (env.config.sensor.height, env.config.sensor.width)
     config = {"objectgoal-oracle": goalnav.objectnav_model(hw), "objectgoal-predicted": goalnav.objectnav_model(hw),
-              "imagegoal": goalnav.imagenav_model(hw)}.get(args.agent, PolicyConfig(image_hw=hw))
+              "imagegoal": goalnav.imagenav_model(hw)}.get(args.agent, PolicyConfig(resolution=hw))
     return untrained_agent(args.agent, env, config, jax.random.PRNGKey(0), IntentionDataConfig().frames)
 
 

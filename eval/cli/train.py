@@ -165,11 +165,11 @@ def _add_network_args(p, visual_norm: bool | None = None) -> None:
                    f"{'on' if visual_norm else 'off, as the published offline runs'}; part of the run's model)")
 
 
-def network_base(args: argparse.Namespace, image_hw: tuple[int, int]):
-    """The PolicyConfig of `--encoder` and `--conv-dtype` at panoramas of `image_hw`."""
+def network_base(args: argparse.Namespace, resolution: tuple[int, int]):
+    """The PolicyConfig of `--encoder` and `--conv-dtype` at panoramas of `resolution`."""
     from conav_jax.models.policy import PolicyConfig, encoder_config
 
-    return encoder_config(PolicyConfig(image_hw=tuple(image_hw), conv_dtype=args.conv_dtype,
+    return encoder_config(PolicyConfig(resolution=tuple(resolution), conv_dtype=args.conv_dtype,
                                        visual_norm=args.visual_norm), args.encoder)
 
 
@@ -213,9 +213,9 @@ def _run_train_intention(args: argparse.Namespace) -> int:
     from conav_jax.envs.human_crop import default_crop_hw
     from conav_jax.train.intention import IntentionDataConfig, train_intention
 
-    sensor_hw = args.resolution or IntentionDataConfig.sensor_hw
-    data = config_from_args(IntentionDataConfig, args, sensor_hw=sensor_hw)
-    model = config_from_args(PerceiverConfig, args, image_hw=args.image or default_crop_hw(sensor_hw))
+    resolution = args.resolution or IntentionDataConfig.resolution
+    data = config_from_args(IntentionDataConfig, args, resolution=resolution)
+    model = config_from_args(PerceiverConfig, args, image_hw=args.image or default_crop_hw(resolution))
     result = _trained(args, train_intention, args.data, args.out, train_config(args), model, data,
                       progress=not args.no_progress, mesh=mesh(args), val_split=args.val_split)
     if result is None:
@@ -322,7 +322,7 @@ def _run_train_rl(args: argparse.Namespace) -> int:
         if args.hidden is not None or args.resolution is not None:
             raise ValueError("--hidden and --resolution size a new network; with --init-from the network is the imitation run's")
     else:
-        policy_config = PolicyConfig(image_hw=run_resolution([], args.resolution), hidden=args.hidden or PolicyConfig.hidden)
+        policy_config = PolicyConfig(resolution=run_resolution([], args.resolution), hidden=args.hidden or PolicyConfig.hidden)
     result = _trained(args, train_ppo, args.data, args.out, config, policy_config, args.init_from,
                       progress=not args.no_progress, mesh=mesh(args))
     if result is None:
