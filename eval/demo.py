@@ -2,10 +2,10 @@
 activities and walks in a few scenes: conav_jax.data.presets), as the `conav` command lines a
 user would type (the command line runs them one after another and prints each).
 
-generate -> train intention -> train trajectory -> train policy (BC + one DAgger round) ->
+generate -> train intention -> train trajectory -> train the policy (live imitation) ->
 evaluate every agent (report, plots) -> one rerun recording.
 
-A few hundred updates on 16 episodes show the training pipeline but make no policy that
+A hundred updates (25,600 env timesteps) show the training pipeline but make no policy that
 reaches the goal, so by default the evaluation and the recording drive the CoNav agent with the
 policy and predictor shipped with the package (`--pretrained`, trained on the paper preset at
 32x128: the evaluation renders that panorama); `pretrained=False` evaluates the demo's own.
@@ -29,10 +29,10 @@ def demo_commands(out: Path, seed: int, resolution: str, pretrained: bool = True
          "--batch", "16", "--val-every", "100", "--ckpt-every", "100", "--seed", str(seed), *quick],
         ["train", "trajectory", "--data", str(data), "--out", str(runs / "trajectory"), "--steps", "200",
          "--batch", "64", "--val-every", "200", "--ckpt-every", "200", "--seed", str(seed), *quick],
-        ["train", "policy", "--data", str(data), "--out", str(runs / "policy"), "--intention", str(runs / "intention"),
-         "--trajectory", str(runs / "trajectory"), "--resolution", resolution, "--steps", "100", "--batch", "8",
-         "--dagger-rounds", "1", "--dagger-steps", "50", "--val-every", "100", "--ckpt-every", "100",
-         "--seed", str(seed), *quick],
+        # Live imitation: one compiled iteration, so more updates cost seconds, not compiles.
+        ["train", "live", "--data", str(data), "--out", str(runs / "policy"), "--intention", str(runs / "intention"),
+         "--trajectory", str(runs / "trajectory"), "--resolution", resolution, "--lanes", "16", "--window-steps", "16",
+         "--iterations", "100", "--warmup-iterations", "10", "--ckpt-every", "100", "--seed", str(seed), *quick],
         ["eval", "--data", str(data), "--split", "val", "--agent", "random,follower,objectgoal-planner,pioneer,expert,conav",
          *conav, "--seed", str(seed), "--out", str(out / "eval")],
         ["view", "--data", str(data), "--split", "val", "--episode", "0", "--agent", "conav", *conav,

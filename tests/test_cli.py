@@ -36,7 +36,7 @@ def test_the_demos_commands_parse_and_its_predictor_crops_the_policys_panorama(t
 
     commands = demo_commands(tmp_path, seed=0, resolution="16x64")
     parsed = {tuple(argv[:2]): build_parser().parse_args(argv) for argv in commands}
-    assert tuple(parsed[("train", "intention")].resolution) == tuple(parsed[("train", "policy")].resolution) == (16, 64)
+    assert tuple(parsed[("train", "intention")].resolution) == tuple(parsed[("train", "live")].resolution) == (16, 64)
 
 
 def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, monkeypatch):

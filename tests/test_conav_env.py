@@ -23,6 +23,12 @@ def hall():
     return _hall_env(SMALL)
 
 
+@pytest.fixture(scope="module")
+def to_pose(hall):
+    """The hall's step_to_pose, jitted once for the tests that put the robot at a pose."""
+    return jax.jit(hall[0].step_to_pose)
+
+
 def _hall_env(config):
     split = make_split(
         [(8.0, 0.9, -np.pi / 2), (2.0, 2.0, np.pi), (6.5, 2.0, 0.0), (1.6, 3.3, 0.0)],
@@ -184,24 +190,23 @@ def test_bad_action_shape_is_rejected(hall):
         env.step(s, jnp.zeros(4))
 
 
-def test_a_pose_action_puts_the_robot_there_and_counts_the_move(hall):
+def test_a_pose_action_puts_the_robot_there_and_counts_the_move(hall, to_pose):
     # Episode 3 starts far from the goal; an oracle mover puts it 0.8 m short of the goal.
     env, reset, step = hall
     target = np.append(np.asarray(goal_of(env.split)) - np.array([0.8, 0.0]), 0.5).astype(np.float32)
     s0 = reset(jax.random.PRNGKey(0), 3)
-    s1 = jax.jit(env.step_to_pose)(s0, jnp.asarray(target))
+    s1 = to_pose(s0, jnp.asarray(target))
     np.testing.assert_allclose(np.asarray(s1.pipeline_state.qpos), target, atol=1e-3)
     assert float(s1.metrics["t_reach"]) == 1.0
     moved = float(np.linalg.norm(target[:2] - np.asarray(s0.pipeline_state.qpos[:2])))
     assert float(s1.metrics["path_length_m"]) == pytest.approx(moved, abs=1e-3)
 
 
-def test_a_pose_step_given_velocities_steps_as_the_one_it_is_told(hall):
+def test_a_pose_step_given_velocities_steps_as_the_one_it_is_told(hall, to_pose):
     """step_to_pose(pose, action=velocities, use_pose): the pose step where use_pose, else the
     velocity step; a NaN counts only in the part used."""
-    env, reset, _ = hall
+    env, reset, step = hall  # the plain steps, compiled once for the module
     either = jax.jit(lambda s, v, p, use: env.step_to_pose(s, p, action=v, use_pose=use))
-    step, to_pose = jax.jit(env.step), jax.jit(env.step_to_pose)
     s0 = reset(jax.random.PRNGKey(0), 3)
     target = np.append(np.asarray(goal_of(env.split)) - np.array([0.8, 0.0]), 0.5).astype(np.float32)
     velocity = np.array([0.7, -0.3], np.float32)

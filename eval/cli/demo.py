@@ -1,4 +1,4 @@
-"""`conav demo`: the whole pipeline on the tiny preset, each stage (conav_jax.eval.demo) run in
+"""`conav demo`: the whole pipeline on the demo preset, each stage (conav_jax.eval.demo) run in
 this process as a fresh `conav` process would run it."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 from conav_jax.eval.cli.args import parse_resolution
 
 def add(sub) -> None:
-    p = sub.add_parser("demo", help="the whole pipeline on the tiny preset (CPU, minutes)")
+    p = sub.add_parser("demo", help="the whole pipeline on the demo preset (CPU, minutes)")
     p.add_argument("--out", required=True, help="output directory (data, runs, eval, episode.rrd)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", default="16x64", type=parse_resolution, metavar="HxW",
