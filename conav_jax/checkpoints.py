@@ -263,7 +263,6 @@ def load_checkpoint(
 
     - `upgrade`: maps the saved config to today's names (conav_jax.runs.upgrade_config) before
       it is compared and returned.
-
     - `config`: if given, the saved config must equal it, else ValueError naming the first
       differing dotted key (`task.v_max_mps: saved 1.0 vs expected 2.0`); the dotted keys in
       `ignore` may differ (or be absent on either side).
