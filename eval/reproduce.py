@@ -34,8 +34,11 @@ GROUND_TRUTH_ROWS = {"gt_object": "object", "gt_all": "all"}
 # whole train split (train.live: BC is beta = 1, DAgger a decaying beta).
 TRAINERS = ("offline", "live")
 EVAL_SPLITS = ("val", "minival")  # the reported split, and the one choices are made on
-# ReproduceConfig fields that override the preset's live budget (Budget fields of the same name).
+# ReproduceConfig fields that override the preset's budget (Budget fields of the same name): the
+# intention predictor's schedule and the live trainer's.
+INTENTION_OVERRIDES = ("intention_steps", "intention_batch", "intention_lr")
 LIVE_OVERRIDES = ("live_lanes", "live_window_steps", "live_iterations", "live_lr")
+BUDGET_OVERRIDES = INTENTION_OVERRIDES + LIVE_OVERRIDES
 # Panoramas of at least this many pixels train the CoNav policy with `--remat`: at 112x448 it ran
 # 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
 # smaller panoramas keep the plain update (their runs' commands as made).
@@ -54,6 +57,10 @@ class Budget:
     """Training budgets of one preset (updates, batches, rounds), chosen on minival."""
 
     intention_steps: int = 6000
+    # The intention predictor's samples per update and peak learning rate (None: `conav train
+    # intention`'s defaults, the published runs' commands).
+    intention_batch: int | None = None
+    intention_lr: float | None = None
     trajectory_steps: int = 3000
     policy_steps: int = 2000  # BC updates
     policy_batch: int = 256  # windows per update
@@ -136,8 +143,12 @@ class ReproduceConfig:
     # The Table 3 rows to train and evaluate (empty: every one the trainer has, `all_rows`); the
     # tables list the others as not run.
     rows: tuple[str, ...] = ()
-    # The live trainer's budget where it is not the preset's (None: Budget.live_*): one OUT
-    # directory holds one budget, so budgets compared on minival are OUT directories of their own.
+    # The intention predictor's schedule and the live trainer's budget where they are not the
+    # preset's (None: Budget.intention_*, Budget.live_*): one OUT directory holds one budget, so
+    # budgets compared on minival are OUT directories of their own.
+    intention_steps: int | None = None
+    intention_batch: int | None = None
+    intention_lr: float | None = None
     live_lanes: int | None = None
     live_window_steps: int | None = None
     live_iterations: int | None = None
@@ -148,7 +159,7 @@ class ReproduceConfig:
     eval_split: str = "val"
 
     def __post_init__(self):
-        for name in LIVE_OVERRIDES:
+        for name in BUDGET_OVERRIDES:
             value = getattr(self, name)
             if value is not None and value <= 0:
                 raise ValueError(f"ReproduceConfig.{name} must be positive, got {value}")
@@ -175,8 +186,8 @@ class ReproduceConfig:
 
     @property
     def budget(self) -> Budget:
-        """The preset's budget with this run's live overrides."""
-        given = {k: getattr(self, k) for k in LIVE_OVERRIDES if getattr(self, k) is not None}
+        """The preset's budget with this run's overrides (BUDGET_OVERRIDES)."""
+        given = {k: getattr(self, k) for k in BUDGET_OVERRIDES if getattr(self, k) is not None}
         return dataclasses.replace(BUDGETS[self.preset], **given)
 
     @property
@@ -343,10 +354,10 @@ def upgrade_progress(progress: dict, plan: list["Stage"], out: Path) -> list[str
 
 # What one OUT directory holds one of: its runs and evaluations are of these (progress.json
 # keeps them from the first run on; directories made before it kept them are not checked).
-OUT_FIELDS = ("preset", "resolution", "encoder", "mirror", "seen_objects", "trainer") + LIVE_OVERRIDES  # not `rows`
+OUT_FIELDS = ("preset", "resolution", "encoder", "mirror", "seen_objects", "trainer") + BUDGET_OVERRIDES  # not `rows`
 # Fields a directory's record may lack, made before they existed: they were off then.
 _OUT_FIELDS_ADDED = {"mirror": False, "seen_objects": False, "trainer": "offline",
-                     **{name: None for name in LIVE_OVERRIDES}}
+                     **{name: None for name in BUDGET_OVERRIDES}}
 
 
 def check_out(progress: dict, cfg: ReproduceConfig) -> None:
@@ -441,6 +452,8 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                                  "--workers", str(cfg.workers)), data, reads=()),), (data / "manifest.json",)),
         Stage("predictors", (
             step(("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
+                  *(("--batch", str(b.intention_batch)) if b.intention_batch is not None else ()),
+                  *(("--lr", f"{b.intention_lr:g}") if b.intention_lr is not None else ()),
                   "--resolution", res, *(("--mirror",) if cfg.mirror else ()),
                   *(("--seen-objects",) if cfg.seen_objects else ()), *quiet),
                  intention),  # crops of the panorama the agents render (envs.human_crop)

@@ -611,7 +611,7 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
     progress = rp.read_progress(tmp_path)  # a new directory (or one made before it kept them)
     rp.check_out(progress, cfg)
     assert progress["config"] == {"preset": "tiny", "resolution": "112x448", "encoder": "conv", "mirror": False,
-                                  "seen_objects": False, "trainer": "offline", **{k: None for k in rp.LIVE_OVERRIDES}}
+                                  "seen_objects": False, "trainer": "offline", **{k: None for k in rp.BUDGET_OVERRIDES}}
     rp.check_out(progress, dataclasses.replace(cfg, seeds=5, dagger_beta=0.5))  # more seeds, other rows: the same OUT
     rp.write_progress(tmp_path, progress)
     with pytest.raises(ValueError, match=r"made with ReproduceConfig.resolution 112x448 \(given 32x128\), ReproduceConfig.encoder conv \(given patch\)"):
@@ -1001,3 +1001,30 @@ def test_a_live_budget_other_than_the_presets_is_an_out_directory_of_its_own(tmp
     from conav_jax.eval.cli.reproduce import child_command
     child = child_command(train, args, cfg)
     assert child[child.index("--live-iterations") + 1] == "40" and "--live-lanes" not in child
+
+
+def test_an_intention_schedule_other_than_the_presets_reaches_its_command_and_the_out_record(tmp_path, capsys):
+    cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", trainer="live", intention_steps=24000,
+                             intention_batch=256, intention_lr=6e-4)
+    (intention,) = [s for s in rp.plan_stages(cfg)[1].steps if s.argv[1] == "intention"]
+    argv = intention.argv
+    assert (argv[argv.index("--steps") + 1], argv[argv.index("--batch") + 1], argv[argv.index("--lr") + 1]) == (
+        "24000", "256", "0.0006")
+    assert rp.plan_stages(cfg)[1].outputs[0].name == "ckpt_00024000.npz"
+    # The preset's own schedule keeps the published command: no --batch, no --lr.
+    (default,) = [s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path))[1].steps if s.argv[1] == "intention"]
+    assert "--batch" not in default.argv and "--lr" not in default.argv
+    progress = rp.read_progress(tmp_path)
+    rp.check_out(progress, cfg)
+    with pytest.raises(ValueError, match=r"ReproduceConfig.intention_batch 256 \(given None\)"):
+        rp.check_out(progress, dataclasses.replace(cfg, intention_batch=None))
+    with pytest.raises(ValueError, match="ReproduceConfig.intention_lr must be positive"):
+        dataclasses.replace(cfg, intention_lr=0.0)
+    args = cli.build_parser().parse_args(["reproduce", "--preset", "paper", "--trainer", "live", "--out", str(tmp_path),
+                                          "--intention-steps", "24000", "--intention-batch", "256",
+                                          "--intention-lr", "6e-4", "--dry-run"])
+    assert args.func(args) == 0
+    assert "--steps 24000 --batch 256 --lr 0.0006" in capsys.readouterr().out
+    from conav_jax.eval.cli.reproduce import child_command
+    child = child_command(intention, args, cfg)
+    assert child[child.index("--intention-batch") + 1] == "256" and "--live-lanes" not in child

@@ -68,6 +68,12 @@ def add(sub) -> None:
                    "over every train episode; adds the ground-truth rows " + ", ".join(GROUND_TRUTH_ROWS) + " to Table 3, "
                    "and DAgger is beta falling from 1 to --dagger-beta); one OUT directory holds one trainer")
     b = BUDGETS["paper"]
+    for name, kind, what, default in (("intention_steps", int, "updates", f"paper {b.intention_steps}"),
+                                      ("intention_batch", int, "samples per update", "`conav train intention`'s"),
+                                      ("intention_lr", float, "peak learning rate", "`conav train intention`'s")):
+        p.add_argument(flag(name), type=kind, default=None, metavar="N" if kind is int else "LR",
+                       help=f"the intention predictor's {what} (default: the preset's; {default}); one OUT "
+                       "directory holds one budget")
     for name, kind, what in (("live_lanes", int, "lanes"), ("live_window_steps", int, "window steps"),
                              ("live_iterations", int, "updates"), ("live_lr", float, "peak learning rate")):
         p.add_argument(flag(name), type=kind, default=None, metavar="N" if kind is int else "LR",
@@ -125,7 +131,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                              encoder=args.encoder, mirror=args.mirror, seen_objects=args.seen_objects,
                              trainer=args.trainer, rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()),
                              eval_split=args.eval_split,
-                             **{name: getattr(args, name) for name in rp.LIVE_OVERRIDES})
+                             **{name: getattr(args, name) for name in rp.BUDGET_OVERRIDES})
     if args.gpus < 1:
         print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
         return 2
@@ -265,7 +271,7 @@ def child_command(step, args: argparse.Namespace, cfg) -> list[str]:
                "--workers", str(cfg.workers), "--dagger-beta", f"{cfg.dagger_beta:g}", "--encoder", cfg.encoder,
                "--trainer", cfg.trainer, "--eval-split", cfg.eval_split,
                *(("--rows", ",".join(cfg.rows)) if cfg.rows else ())]
-    for name in ("dagger_rounds", "dagger_episodes", *rp.LIVE_OVERRIDES):
+    for name in ("dagger_rounds", "dagger_episodes", *rp.BUDGET_OVERRIDES):
         if getattr(cfg, name) is not None:
             options += [flag(name), str(getattr(cfg, name))]
     options += [option for option, on in (("--mirror", cfg.mirror), ("--seen-objects", cfg.seen_objects)) if on]
