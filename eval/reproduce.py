@@ -2,10 +2,10 @@
 
 config -> `plan_stages` (each stage: its steps, each declared as data: a name, the training seed
 it belongs to, the directories it reads and writes under OUT, and the `conav` command it runs;
-and the files that show the stage is done) -> one dependency graph (`prerequisites`, from the
-declared reads and writes) orders them, for the command line's runner in this process and for
-`run_parallel`'s processes alike; progress.json records each step by name, so a stage cut
-short resumes (every training run resumes exactly from its checkpoints) ->
+and the files that show the stage is done) -> one dependency graph (eval.reproduce_progress
+`prerequisites`, from the declared reads and writes) orders them, for the command line's runner
+in this process and for `run_parallel`'s processes alike; progress.json records each step by
+name (eval.reproduce_progress), so a stage cut short resumes (every training run resumes exactly from its checkpoints) ->
 results and tables (eval.reproduce_tables); several steps at once and the pack that carries a
 run to another machine (eval.reproduce_run). Nothing here imports the training code: a step's
 call is a `conav` command. The CoNav rows are trained offline (`conav train policy`, recorded
@@ -16,9 +16,7 @@ evaluated on val or, to choose budgets, on minival (`ReproduceConfig.eval_split`
 from __future__ import annotations
 
 import dataclasses
-import json
 import re
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -314,117 +312,14 @@ class Stage:
         return tuple(s.argv for s in self.steps)
 
 
-# The steps (by name, under "commands") and stages done, with their wall times (s), and under
-# "cut" the time of attempts cut short (a step's summed over its attempts; it counts in its
-# stage's time).
-PROGRESS_FILE = "progress.json"
-# The layout of progress.json. 1 (unmarked): records keyed by the command line, OUT written as
-# "OUT"; 2: keyed by step name (`upgrade_progress` maps the one onto the other).
-RUN_FORMAT = 2
-
-
-def read_progress(out: Path) -> dict:
-    path = Path(out) / PROGRESS_FILE
-    if path.is_file():
-        return json.loads(path.read_text())
-    return {"run_format": RUN_FORMAT, "commands": {}, "stages": {}}
-
-
-def upgrade_progress(progress: dict, plan: list["Stage"], out: Path) -> list[str]:
-    """Bring `progress` of an OUT made before RUN_FORMAT 2 (records keyed by command lines) to
-    step names, in place: each record of a planned step's command line moves to the step's
-    name. Returns the old records no planned step matches (dropped: a variant not planned now;
-    its runs resume from their checkpoints when it is planned again). ValueError for a
-    directory written by a newer format."""
-    made = progress.get("run_format", 1)
-    if made > RUN_FORMAT:
-        raise ValueError(f"{out}: progress.json has run format {made}, newer than this version's {RUN_FORMAT}: "
-                         "continue it with the version that made it, or use another output directory")
-    if made == RUN_FORMAT:
-        return []
-    old = {" ".join(s.argv).replace(str(Path(out).resolve()), "OUT"): s.name for st in plan for s in st.steps}
-    dropped = []
-    for record in ("commands", "cut"):
-        entries = progress.get(record, {})
-        dropped += [k for k in entries if k not in old]
-        progress[record] = {old[k]: v for k, v in entries.items() if k in old}
-    progress["run_format"] = RUN_FORMAT
-    return dropped
-
-
-# What one OUT directory holds one of: its runs and evaluations are of these (progress.json
-# keeps them from the first run on; directories made before it kept them are not checked).
-OUT_FIELDS = ("preset", "resolution", "encoder", "mirror", "seen_objects", "trainer") + BUDGET_OVERRIDES  # not `rows`
-# Fields a directory's record may lack, made before they existed: they were off then.
-_OUT_FIELDS_ADDED = {"mirror": False, "seen_objects": False, "trainer": "offline",
-                     **{name: None for name in BUDGET_OVERRIDES}}
-
-
-def check_out(progress: dict, cfg: ReproduceConfig) -> None:
-    """Record `cfg`'s OUT_FIELDS in `progress`, or ValueError naming each that differs from what
-    the directory was made with (a run of another resolution or encoder would fail later, at
-    its first resumed run, or mix two configurations in one table)."""
-    mine = {k: _res(cfg) if k == "resolution" else getattr(cfg, k) for k in OUT_FIELDS}
-    made = progress.setdefault("config", mine)
-    for k, before in _OUT_FIELDS_ADDED.items():
-        made.setdefault(k, before)
-    shown = lambda v: {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v  # noqa: E731
-    differ = [f"ReproduceConfig.{k} {shown(made[k])} (given {shown(mine[k])})"
-              for k in OUT_FIELDS if k in made and made[k] != mine[k]]
-    if differ:
-        raise ValueError(f"{cfg.out} was made with {', '.join(differ)}: give those, or another --out")
-
-
-# What write_progress merges: each process's own records laid over the file's.
-PROGRESS_RECORDS = ("commands", "cut", "stages")
-
-
-def write_progress(out: Path, progress: dict) -> None:
-    """Save `progress` as OUT/progress.json, merged with what the file holds now: several
-    `conav reproduce` processes on one OUT (another DAgger variant beside a run, say) each keep
-    the others' records. `progress` takes the merged records (the file is read and written under
-    a lock; an entry this process recorded wins)."""
-    import fcntl
-
-    from conav_jax.data.arrayio import save_json
-
-    out = Path(out)
-    with open(out / ".progress.lock", "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            now = read_progress(out)
-            if now.get("run_format", 1) != RUN_FORMAT:  # records `upgrade_progress` has moved
-                now = {}
-            for record in PROGRESS_RECORDS:
-                progress[record] = {**now.get(record, {}), **progress.get(record, {})}
-            progress["run_format"] = RUN_FORMAT
-            save_json(out / PROGRESS_FILE, progress)
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
-
-
-def stage_seconds(plan: list["Stage"], progress: dict) -> dict[str, float]:
-    """Each stage's time: the sum of its steps' recorded wall times, with the time of their
-    attempts cut short ("cut": failed, interrupted; a stage run over several calls or machines
-    counts every part once); a stage without steps, its own record."""
-    seconds = {}
-    for st in plan:
-        keys = [s.name for s in st.steps]
-        done = [log[k] for log in (progress["commands"], progress.get("cut", {})) for k in keys if k in log]
-        if done:
-            seconds[st.name] = round(sum(done), 1)
-        elif st.name in progress["stages"]:
-            seconds[st.name] = progress["stages"][st.name]
-    return seconds
-
-
-def _res(cfg: ReproduceConfig) -> str:
+def resolution_name(cfg: ReproduceConfig) -> str:
+    """The run's panorama as the command line writes it: "112x448"."""
     return "x".join(map(str, cfg.resolution))
 
 
 def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     """Every stage of the pipeline for `cfg`, in order."""
-    b, out, res = cfg.budget, Path(cfg.out), _res(cfg)
+    b, out, res = cfg.budget, Path(cfg.out), resolution_name(cfg)
     data, runs, evals = out / "data", out / "runs", out / cfg.eval_dir
     quiet = ("--no-progress",)
     validated = quiet + (("--val-every", str(b.val_every)) if b.val_every else ())  # the imitation runs
@@ -537,7 +432,7 @@ def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path,
     b = cfg.budget
     data, intention, trajectory = predictors
     runs, evals = Path(cfg.out) / "runs", Path(cfg.out) / cfg.eval_dir
-    live = ("--data", str(data), "--resolution", _res(cfg), *network,
+    live = ("--data", str(data), "--resolution", resolution_name(cfg), *network,
             "--lanes", str(b.live_lanes), "--window-steps", str(b.live_window_steps), "--iterations",
             str(b.live_iterations), "--lr", f"{b.live_lr:g}", "--warmup-iterations", str(b.live_warmup_iterations),
             "--no-progress")
@@ -564,75 +459,8 @@ def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path,
             Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds)))]
 
 
-def stage_seed(stage: Stage, seed: int | None) -> int | None:
-    """The training seed whose steps `--seed` selects in `stage`: None (every step) in a stage
-    without seeded steps (data, predictors, baselines)."""
-    return seed if seed is not None and any(s.seed is not None for s in stage.steps) else None
-
-
-def ready_steps(plan: list[Stage], stage: Stage, seed: int | None, done: set[str]) -> tuple[list[Step], list[Step]]:
-    """`stage`'s steps of training seed `seed` (every step for None) not in `done` (step names),
-    split into those ready to run in order and those waiting: a step waits while one of its
-    `prerequisites` is neither done nor ready before it (a DAgger run's evaluation before the
-    DAgger run, a baseline's before its training)."""
-    needs = prerequisites(plan)
-    ready, waiting, coming = [], [], set(done)
-    for st in stage.steps:
-        if (seed is not None and st.seed != seed) or st.name in done:
-            continue
-        if needs[st.name] <= coming:
-            ready.append(st)
-            coming.add(st.name)
-        else:
-            waiting.append(st)
-    return ready, waiting
-
-
-
-
 # A seed's evaluations under OUT/eval: each BC run (Table 3's rows), a DAgger row's run. Runs made
 # before the BC runs were evaluated one by one hold a seed's five in one evaluation, its ablations.
 CONAV_EVAL = "conav_{row}_s{seed}"
 BC_ROW_EVAL = CONAV_EVAL.format(row="bc_{row}", seed="{seed}")
 BC_EVAL, DAGGER_EVAL = (CONAV_EVAL.format(row=row, seed="{}") for row in ("bc", "dagger"))
-
-
-# -- the dependency graph ------------------------------------------------------------------------
-
-
-def prerequisites(plan: list[Stage]) -> dict[str, set[str]]:
-    """The one dependency graph of the plan: each step's (by name) prerequisites, the steps before
-    it in the plan that write a directory it reads or the directory it writes itself (a DAgger run
-    trains in the copy of its BC run; a run cut short and its copy never run at once)."""
-    found, made = {}, []  # made: (directory, name) of the steps so far, in plan order
-    for st in (x for stage in plan for x in stage.steps):
-        needs = {*st.reads, st.writes}
-        found[st.name] = {name for d, name in made if d in needs}
-        made.append((st.writes, st.name))
-    return found
-
-
-def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
-    """`todo` in the order `run_parallel` starts what is ready: the steps every seed shares (data,
-    predictors, baselines) first, then seed by seed; within those, the most steps of `todo`
-    waiting on it (directly or not) first, then plan order. A BC run that a DAgger run and two
-    evaluations wait for starts before a run only its evaluation waits for, and a seed's
-    evaluations before the next seed's training: a sitting cut short leaves whole seeds,
-    evaluated, rather than trained runs and no evaluation."""
-    keys = {st.name for st in todo}
-    below = {k: set() for k in keys}  # the steps of todo waiting on k
-    for k in keys:
-        stack = [n for n in needs[k] if n in keys]
-        while stack:
-            n = stack.pop()
-            if k not in below[n]:
-                below[n].add(k)
-                stack += [m for m in needs[n] if m in keys]
-    index = {st.name: i for i, st in enumerate(todo)}
-    return sorted(todo, key=lambda st: (-1 if st.seed is None else st.seed, -len(below[st.name]), index[st.name]))
-
-
-def copy_run(step: Step) -> None:
-    """Run a copy step: its source run directory to its target, unless the target exists."""
-    if not Path(step.argv[2]).exists():
-        shutil.copytree(step.argv[1], step.argv[2])

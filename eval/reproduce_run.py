@@ -1,5 +1,5 @@
 """`conav reproduce` on several GPUs and across machines: steps run at once, each in a process
-of its own on one GPU, in the order of the plan's one dependency graph (eval.reproduce
+of its own on one GPU, in the order of the plan's one dependency graph (eval.reproduce_progress
 prerequisites); the pack that carries a run's progress and the checkpoints still needed to a
 fresh machine.
 """
@@ -13,17 +13,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from conav_jax.eval.reproduce import (
-    PROGRESS_FILE,
-    ReproduceConfig,
-    Stage,
-    Step,
-    by_dependents,
-    copy_run,
-    plan_stages,
-    prerequisites,
-    write_progress,
-)
+from conav_jax.eval.reproduce import ReproduceConfig, Stage, Step, plan_stages
+from conav_jax.eval.reproduce_progress import PROGRESS_FILE, by_dependents, copy_run, prerequisites, write_progress
 
 PACK_LIMIT_BYTES = 60 * 2**20
 

@@ -14,6 +14,7 @@ import pytest
 
 from conav_jax.eval import cli
 from conav_jax.eval import reproduce as rp
+from conav_jax.eval import reproduce_progress as rpp
 from conav_jax.eval import reproduce_run as rr
 from conav_jax.eval import reproduce_tables as rt
 
@@ -420,17 +421,17 @@ def test_a_command_cut_short_counts_its_time_in_its_stage(fake_conav, tmp_path, 
     plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
     cut_key = {s.name: s for s in plan}["bc"].steps[0].name
     assert "bc_none_s0" in cut_key
-    progress = rp.read_progress(out)
+    progress = rpp.read_progress(out)
     assert progress["cut"][cut_key] >= 0.0 and cut_key not in progress["commands"]
     progress["cut"][cut_key] = 300.0  # what the cut attempt took
-    rp.write_progress(out, progress)
+    rpp.write_progress(out, progress)
     state["fail_on"] = "bc_none_s0"  # a second attempt fails: its time adds up
     assert _reproduce(out) == 1
-    assert 300.0 <= rp.read_progress(out)["cut"][cut_key] < 310.0
+    assert 300.0 <= rpp.read_progress(out)["cut"][cut_key] < 310.0
     assert _reproduce(out) == 0
     results = json.loads((out / "results.json").read_text())
     bc = [step.name for step in {s.name: s for s in plan}["bc"].steps]
-    assert results["cut_seconds"] == rp.read_progress(out)["cut"]
+    assert results["cut_seconds"] == rpp.read_progress(out)["cut"]
     assert results["stage_seconds"]["bc"] == pytest.approx(
         sum(results["command_seconds"][k] for k in bc) + results["cut_seconds"][cut_key], abs=0.2)
 
@@ -463,7 +464,7 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
         rr.unpack(tmp_path / "missing.tar", tmp_path / "junk")
     # Packing there reads no data: the record of their making stays.
     gen_key = rp.plan_stages(rp.ReproduceConfig(out=fresh, preset="tiny", seeds=2))[0].steps[0].name
-    assert _reproduce(fresh, "--stage", "pack") == 0 and gen_key in rp.read_progress(fresh)["commands"]
+    assert _reproduce(fresh, "--stage", "pack") == 0 and gen_key in rpp.read_progress(fresh)["commands"]
     # On the fresh machine the data are made again, then the run goes on where it was cut, also
     # when one stage is asked for alone.
     calls.clear()
@@ -503,7 +504,7 @@ def test_the_pack_carries_a_run_cut_in_its_first_round_while_it_fits(fake_conav,
     assert not any("round_1" in n or "bc_object_s0/round_0" in n for n in names)
     # Without room for it the pack is still written, without it, and the command says so.
     required = sum(p.stat().st_size for p in rr.pack_members(rp.ReproduceConfig(out=out, preset="tiny", seeds=2),
-                                                             rp.read_progress(out)))
+                                                             rpp.read_progress(out)))
     monkeypatch.setattr(rr, "PACK_LIMIT_BYTES", required + 10)
     capsys.readouterr()
     assert _reproduce(out, "--stage", "pack") == 0
@@ -535,9 +536,9 @@ def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fak
     args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--seeds", "1", "--out", str(out)])
     assert args.func(args) == 0  # seed 0 first, to the tables
     assert set(json.loads((out / "results.json").read_text())["conav"]["all"]["seeds"]) == {"0"}
-    progress = rp.read_progress(out)  # seed 0's BC runs took 100 s each
+    progress = rpp.read_progress(out)  # seed 0's BC runs took 100 s each
     progress["commands"].update({k: 100.0 for k in progress["commands"] if " policy " in k and "bc_" in k})
-    rp.write_progress(out, progress)
+    rpp.write_progress(out, progress)
     calls.clear()
     assert _reproduce(out) == 0  # the same run with two seeds: only seed 1's commands run
     assert calls and all("_s0" not in " ".join(argv) for argv in calls)
@@ -574,9 +575,9 @@ def test_a_relative_out_directory_names_steps_relative_to_out(fake_conav, tmp_pa
     calls, _ = fake_conav
     monkeypatch.chdir(tmp_path)
     assert _reproduce(".") == 0
-    progress = rp.read_progress(tmp_path)
+    progress = rpp.read_progress(tmp_path)
     keys = progress["commands"]
-    assert progress["run_format"] == rp.RUN_FORMAT and "generate data" in keys and "train policy runs/bc_all_s1" in keys
+    assert progress["run_format"] == rpp.RUN_FORMAT and "generate data" in keys and "train policy runs/bc_all_s1" in keys
     results = json.loads((tmp_path / "results.json").read_text())
     assert results["stage_seconds"]["generate"] == keys["generate data"]
     calls.clear()
@@ -587,35 +588,35 @@ def test_an_out_directory_keyed_by_command_lines_resumes_under_step_names(fake_c
     calls, _ = fake_conav
     out = tmp_path / "r"
     assert _reproduce(out, "--stage", "predictors") == 0
-    progress = rp.read_progress(out)
+    progress = rpp.read_progress(out)
     plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
     steps = {s.name: s for st in plan for s in st.steps}
     # As the previous format wrote it: each command line, OUT written as "OUT", and no run_format.
     old = {" ".join(steps[k].argv).replace(str(out), "OUT"): v for k, v in progress["commands"].items()}
     old["train policy --out OUT/runs/a_variant_not_planned_s0"] = 5.0
-    (out / rp.PROGRESS_FILE).write_text(json.dumps({"commands": old, "stages": progress["stages"],
+    (out / rpp.PROGRESS_FILE).write_text(json.dumps({"commands": old, "stages": progress["stages"],
                                                     "config": progress["config"]}))
     calls.clear()
     assert _reproduce(out, "--stage", "predictors") == 0
     assert calls == []  # the predictors are done: their records moved to their step names
     assert "1 record(s) of commands this plan does not hold were dropped" in capsys.readouterr().out
-    again = rp.read_progress(out)
-    assert again["run_format"] == rp.RUN_FORMAT and set(again["commands"]) == set(progress["commands"])
-    (out / rp.PROGRESS_FILE).write_text(json.dumps({**again, "run_format": rp.RUN_FORMAT + 1}))
+    again = rpp.read_progress(out)
+    assert again["run_format"] == rpp.RUN_FORMAT and set(again["commands"]) == set(progress["commands"])
+    (out / rpp.PROGRESS_FILE).write_text(json.dumps({**again, "run_format": rpp.RUN_FORMAT + 1}))
     assert _reproduce(out) == 2 and calls == []
     assert "newer than this version's" in capsys.readouterr().err
 
 
 def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
     cfg = rp.ReproduceConfig(out=tmp_path, preset="tiny")
-    progress = rp.read_progress(tmp_path)  # a new directory (or one made before it kept them)
-    rp.check_out(progress, cfg)
+    progress = rpp.read_progress(tmp_path)  # a new directory (or one made before it kept them)
+    rpp.check_out(progress, cfg)
     assert progress["config"] == {"preset": "tiny", "resolution": "112x448", "encoder": "conv", "mirror": False,
                                   "seen_objects": False, "trainer": "offline", **{k: None for k in rp.BUDGET_OVERRIDES}}
-    rp.check_out(progress, dataclasses.replace(cfg, seeds=5, dagger_beta=0.5))  # more seeds, other rows: the same OUT
-    rp.write_progress(tmp_path, progress)
+    rpp.check_out(progress, dataclasses.replace(cfg, seeds=5, dagger_beta=0.5))  # more seeds, other rows: the same OUT
+    rpp.write_progress(tmp_path, progress)
     with pytest.raises(ValueError, match=r"made with ReproduceConfig.resolution 112x448 \(given 32x128\), ReproduceConfig.encoder conv \(given patch\)"):
-        rp.check_out(progress, dataclasses.replace(cfg, resolution=(32, 128), encoder="patch"))
+        rpp.check_out(progress, dataclasses.replace(cfg, resolution=(32, 128), encoder="patch"))
     # The command line refuses before it plans or runs anything.
     args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--out", str(tmp_path), "--encoder", "patch",
                                           "--dry-run"])
@@ -624,8 +625,8 @@ def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
     # The predictor's options too; a directory recorded before they existed was made without them.
     older = {"config": {"preset": "tiny", "resolution": "112x448", "encoder": "conv"}}
     with pytest.raises(ValueError, match=r"made with ReproduceConfig.seen_objects off \(given on\)"):
-        rp.check_out(older, dataclasses.replace(cfg, seen_objects=True))
-    rp.check_out(older, cfg)
+        rpp.check_out(older, dataclasses.replace(cfg, seen_objects=True))
+    rpp.check_out(older, cfg)
     assert older["config"]["mirror"] is False
 
 
@@ -655,7 +656,7 @@ def test_one_seed_at_a_time_trains_and_evaluates_it_and_packs_only_what_others_n
     assert _reproduce(out, "--stage", "bc", "--seed", "0") == 0
     names = [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls]
     assert names == [n for a in rp.ABLATIONS[2:] for n in (f"bc_{a}_s0", f"conav_bc_{a}_s0")]
-    assert "bc" not in rp.read_progress(out)["stages"]  # seed 1's runs are still to come
+    assert "bc" not in rpp.read_progress(out)["stages"]  # seed 1's runs are still to come
     calls.clear()
     assert _reproduce(out, "--stage", "eval", "--seed", "0") == 0 and calls == []
     assert "waits for the runs it reads: conav eval" in capsys.readouterr().out  # its DAgger run's evaluation
@@ -676,7 +677,7 @@ def test_a_stage_asked_for_alone_runs_what_it_can_and_waits_for_runs_not_trained
     assert [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls] == ["scripted"]
     printed = capsys.readouterr().out
     assert "waits for the runs it reads: conav eval" in printed and "objectgoal-oracle" in printed
-    assert "eval" not in rp.read_progress(out)["stages"]
+    assert "eval" not in rpp.read_progress(out)["stages"]
     calls.clear()
     assert _reproduce(out) == 0  # the rest; the scripted agents are not evaluated again
     assert sum(argv[argv.index("--out") + 1].endswith("/scripted") for argv in calls) == 0
@@ -751,7 +752,7 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
     steps = {s.argv: s for st in plan for s in st.steps}
     assert sorted(r["out"] for r in runs) == sorted(str(out / steps[a].writes) for a in made)  # each once, in a process
     # Each started after every command it waits for had ended: the data, the runs it reads.
-    needs = rp.prerequisites(plan)
+    needs = rpp.prerequisites(plan)
     ended = {r["out"]: r["end"] for r in runs}
     by_name = {s.name: s for s in steps.values()}
     for argv in made:
@@ -777,7 +778,7 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
         for key in ("command", "stage_seconds", "command_seconds", "cut_seconds"):
             doc.pop(key)
     assert json.dumps(two, sort_keys=True).replace("/two/", "/one/") == json.dumps(one, sort_keys=True)
-    progress = rp.read_progress(out)
+    progress = rpp.read_progress(out)
     assert set(progress["stages"]) >= {"generate", "predictors", "baselines", "bc", "dagger", "eval"}
     assert progress["stages"]["bc"] == round(sum(v for k, v in progress["commands"].items() if "bc_" in k
                                                  and "dagger" not in k), 1)
@@ -799,7 +800,7 @@ def test_several_gpus_stop_starting_commands_after_a_failure_and_resume(fake_con
     first = _runs(fake_children)
     (failure,) = [r for r in first if r.get("failed")]
     failed_at = max(r["end"] for r in first)
-    progress = rp.read_progress(out)
+    progress = rpp.read_progress(out)
     assert any("bc_none_s0" in k for k in progress["cut"]) and not any("bc_none_s0" in k for k in progress["commands"])
     assert "bc" not in progress["stages"] and "predictors" in progress["stages"]
     monkeypatch.delenv("FAKE_FAIL_ON")
@@ -826,7 +827,7 @@ def test_several_gpus_stopped_stop_every_command_and_count_their_time_as_cut(fak
     timer.join()
     assert time.perf_counter() - t0 < 20  # the command was stopped, not waited for
     assert _runs(fake_children) == []
-    progress = rp.read_progress(out)
+    progress = rpp.read_progress(out)
     assert progress["commands"] == {} and [k.split()[0] for k in progress["cut"]] == ["generate"]
     assert progress["cut"][next(iter(progress["cut"]))] >= 1.0
 
@@ -865,15 +866,15 @@ def test_more_gpus_than_visible_is_an_error(fake_conav, fake_children, tmp_path,
 def test_two_processes_on_one_out_keep_each_others_records(fake_conav, tmp_path):
     out = tmp_path / "r"
     assert _reproduce(out, "--stage", "predictors") == 0
-    mine, theirs = rp.read_progress(out), rp.read_progress(out)  # two processes read the file
+    mine, theirs = rpp.read_progress(out), rpp.read_progress(out)  # two processes read the file
     theirs["commands"]["train policy ... OUT/runs/other_s0"] = 12.0
     theirs["cut"] = {"eval ... OUT/eval/other_s0": 3.0, "eval ... OUT/eval/both_s0": 2.0}
-    rp.write_progress(out, theirs)
+    rpp.write_progress(out, theirs)
     mine["commands"]["train policy ... OUT/runs/mine_s0"] = 7.0
     mine["stages"]["mine"] = 7.0
     mine["cut"] = {"eval ... OUT/eval/both_s0": 5.0}  # a record both hold: the writer's wins
-    rp.write_progress(out, mine)
-    on_disk = rp.read_progress(out)
+    rpp.write_progress(out, mine)
+    on_disk = rpp.read_progress(out)
     assert on_disk["commands"]["train policy ... OUT/runs/other_s0"] == 12.0
     assert on_disk["commands"]["train policy ... OUT/runs/mine_s0"] == 7.0
     assert on_disk["cut"] == {"eval ... OUT/eval/other_s0": 3.0, "eval ... OUT/eval/both_s0": 5.0}
@@ -891,7 +892,7 @@ def test_a_gpu_process_runs_its_step_alone_by_name_with_the_runs_options(fake_co
     child = cli.build_parser().parse_args(argv[3:])
     assert child.func(child) == 0
     assert calls == [step.argv]  # that step's call alone
-    assert not (out / rp.PROGRESS_FILE).exists()  # the parent records it
+    assert not (out / rpp.PROGRESS_FILE).exists()  # the parent records it
     child.run_step = "train policy runs/nothing_s0"
     with pytest.raises(ValueError, match="the plan has no step 'train policy runs/nothing_s0'"):
         child.func(child)
@@ -987,10 +988,10 @@ def test_a_live_budget_other_than_the_presets_is_an_out_directory_of_its_own(tmp
     argv = train.argv
     assert (argv[argv.index("--iterations") + 1], argv[argv.index("--lr") + 1]) == ("40", "0.0003")
     assert argv[argv.index("--lanes") + 1] == str(rp.BUDGETS["paper"].live_lanes)  # not overridden: the preset's
-    progress = rp.read_progress(tmp_path)
-    rp.check_out(progress, cfg)
+    progress = rpp.read_progress(tmp_path)
+    rpp.check_out(progress, cfg)
     with pytest.raises(ValueError, match=r"ReproduceConfig.live_iterations 40 \(given None\)"):
-        rp.check_out(progress, dataclasses.replace(cfg, live_iterations=None))
+        rpp.check_out(progress, dataclasses.replace(cfg, live_iterations=None))
     with pytest.raises(ValueError, match="ReproduceConfig.live_lanes must be positive"):
         dataclasses.replace(cfg, live_lanes=0)
     # The command line: flags to fields, and into each --gpus process's command.
@@ -1014,10 +1015,10 @@ def test_an_intention_schedule_other_than_the_presets_reaches_its_command_and_th
     # The preset's own schedule keeps the published command: no --batch, no --lr.
     (default,) = [s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path))[1].steps if s.argv[1] == "intention"]
     assert "--batch" not in default.argv and "--lr" not in default.argv
-    progress = rp.read_progress(tmp_path)
-    rp.check_out(progress, cfg)
+    progress = rpp.read_progress(tmp_path)
+    rpp.check_out(progress, cfg)
     with pytest.raises(ValueError, match=r"ReproduceConfig.intention_batch 256 \(given None\)"):
-        rp.check_out(progress, dataclasses.replace(cfg, intention_batch=None))
+        rpp.check_out(progress, dataclasses.replace(cfg, intention_batch=None))
     with pytest.raises(ValueError, match="ReproduceConfig.intention_lr must be positive"):
         dataclasses.replace(cfg, intention_lr=0.0)
     args = cli.build_parser().parse_args(["reproduce", "--preset", "paper", "--trainer", "live", "--out", str(tmp_path),

@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _reproduce_stages(args: argparse.Namespace) -> int:
     from conav_jax.eval import reproduce as rp
+    from conav_jax.eval import reproduce_progress as rpp
     from conav_jax.eval import reproduce_run as rr
     from conav_jax.provenance import git_state
     from conav_jax.eval import reproduce_tables as rt
@@ -141,23 +142,23 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     cfg.out.mkdir(parents=True, exist_ok=True)
     if args.unpack:
         print(f"unpacked {len(rr.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
-    progress = rp.read_progress(cfg.out)
+    progress = rpp.read_progress(cfg.out)
     try:
-        rp.check_out(progress, cfg)
+        rpp.check_out(progress, cfg)
     except ValueError as e:
         print(f"conav reproduce: {as_flags(str(e), args.field_flags)}", file=sys.stderr)
         return 2
     plan = rp.plan_stages(cfg)
     if args.run_step is not None:
         return _run_step(plan, args.run_step)
-    older = progress.get("run_format", 1) < rp.RUN_FORMAT
+    older = progress.get("run_format", 1) < rpp.RUN_FORMAT
     try:  # an OUT made before steps had names: its records move to them
-        dropped = rp.upgrade_progress(progress, plan, cfg.out)
+        dropped = rpp.upgrade_progress(progress, plan, cfg.out)
     except ValueError as e:
         print(f"conav reproduce: {e}", file=sys.stderr)
         return 2
     if older and not args.dry_run:
-        rp.write_progress(cfg.out, progress)
+        rpp.write_progress(cfg.out, progress)
     if dropped:
         print(f"progress.json: {len(dropped)} record(s) of commands this plan does not hold were dropped (another "
               "variant's; its runs resume from their checkpoints when it is planned again)", flush=True)
@@ -189,7 +190,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             continue
         # A stage asked for alone runs what it can: a step whose runs are not made yet waits (the
         # learned baselines' evaluations before their training, say) instead of failing.
-        todo, waiting = rp.ready_steps(plan, st, rp.stage_seed(st, args.seed), set(progress["commands"]))
+        todo, waiting = rpp.ready_steps(plan, st, rpp.stage_seed(st, args.seed), set(progress["commands"]))
         for step in waiting:
             print(f"[{st.name}] waits for the runs it reads: {_shown(step)}")
         if st.name in progress["stages"] and not todo and st.name not in ("tables", "pack"):  # those two are of now
@@ -201,7 +202,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             t0, rc = time.perf_counter(), 0
             try:
                 if step.is_copy:
-                    rp.copy_run(step)
+                    rpp.copy_run(step)
                 else:
                     rc = run_stage(step.argv)
             finally:  # a step cut short (failed, interrupted, SIGTERM) still counts its time
@@ -211,7 +212,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                     cut[step.name] = round(cut.get(step.name, 0.0) + seconds, 1)
                 else:
                     progress["commands"][step.name] = seconds
-                rp.write_progress(cfg.out, progress)
+                rpp.write_progress(cfg.out, progress)
             if rc:
                 print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: {_shown(step)}")
                 return rc
@@ -229,7 +230,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
                      "encoder": cfg.encoder, "trainer": cfg.trainer, "split": cfg.eval_split,
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
-                     "stage_seconds": rp.stage_seconds(plan, progress), "command_seconds": progress["commands"],
+                     "stage_seconds": rpp.stage_seconds(plan, progress), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}
             # FileNotFoundError without any evaluation
             results = rt.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger, cfg.table3_rows, cfg.eval_dir)
@@ -242,7 +243,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                 print(f"left out of the pack for want of room: {ckpt.relative_to(cfg.out)} (continued from this "
                       "pack, that run starts its first round again)")
         progress["stages"][st.name] = round(time.perf_counter() - t_stage, 1)
-        rp.write_progress(cfg.out, progress)
+        rpp.write_progress(cfg.out, progress)
         print(f"[{st.name}] done in {progress['stages'][st.name]:.0f} s", flush=True)
     if (cfg.out / cfg.tables_file).exists() and not args.dry_run:
         print((cfg.out / cfg.tables_file).read_text())
@@ -251,13 +252,13 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
 
 def _run_step(plan: list, name: str) -> int:
     """--run-step: the step of `plan` named `name`, run here; its exit code."""
-    from conav_jax.eval import reproduce as rp
+    from conav_jax.eval import reproduce_progress as rpp
 
     steps = {step.name: step for st in plan for step in st.steps}
     if name not in steps:
         raise ValueError(f"the plan has no step {name!r}; --dry-run lists them (e.g. {next(iter(steps))!r})")
     if steps[name].is_copy:
-        rp.copy_run(steps[name])
+        rpp.copy_run(steps[name])
         return 0
     return run_stage(steps[name].argv)
 
@@ -298,7 +299,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     stages) runs through `reproduce.run_parallel`; stages whose steps are all done are marked so,
     with their steps' summed time. Returns the stages left to run here (tables, pack), or an
     exit code."""
-    from conav_jax.eval import reproduce as rp
+    from conav_jax.eval import reproduce_progress as rpp
     from conav_jax.eval import reproduce_run as rr
 
     work = [st for st in stages if st.name not in ("tables", "pack")]
@@ -314,7 +315,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     jax.config.update("jax_platforms", "cpu")  # this process runs no program: its GPUs are the commands'
     todo = []
     for st in work:
-        seed = rp.stage_seed(st, args.seed)
+        seed = rpp.stage_seed(st, args.seed)
         todo += [step for step in st.steps if step.name not in progress["commands"] and seed in (None, step.seed)]
     print(f"{len(todo)} command(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
     t0 = time.perf_counter()
@@ -325,7 +326,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
         keys = [step.name for step in st.steps]
         if all(k in progress["commands"] for k in keys):
             progress["stages"][st.name] = round(sum(progress["commands"][k] for k in keys), 1)
-    rp.write_progress(cfg.out, progress)
+    rpp.write_progress(cfg.out, progress)
     print(f"{len(todo) - len(waiting)} command(s) ended in {time.perf_counter() - t0:.0f} s", flush=True)
     if rc:
         print(f"conav reproduce: a command failed (exit {rc}); its log is named above", file=sys.stderr)
