@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from conav_jax.eval import cli
+from conav_jax.eval.cli.args import flag
 from conav_jax.eval import reproduce as rp
 from conav_jax.eval import reproduce_progress as rpp
 from conav_jax.eval import reproduce_run as rr
@@ -981,51 +982,54 @@ def test_choices_are_made_on_minival_in_files_of_their_own(tmp_path):
         rp.ReproduceConfig(out=tmp_path, eval_split="test")
 
 
-def test_a_live_budget_other_than_the_presets_is_an_out_directory_of_its_own(tmp_path, capsys):
-    cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=1, trainer="live", rows=("gt_all",),
-                             live_iterations=40, live_lr=3e-4)
-    (train,) = [s for s in rp.plan_stages(cfg)[3].steps if s.argv[0] == "train"]
-    argv = train.argv
-    assert (argv[argv.index("--iterations") + 1], argv[argv.index("--lr") + 1]) == ("40", "0.0003")
-    assert argv[argv.index("--lanes") + 1] == str(rp.BUDGETS["paper"].live_lanes)  # not overridden: the preset's
+BUDGET_OVERRIDE_CASES = {
+    # the overridden fields, the flags that give them, what the step's command then holds, and
+    # the field the refused OUT names
+    "live": (dict(live_iterations=40, live_lr=3e-4), ["--live-iterations", "40", "--live-lr", "3e-4"],
+             {"--iterations": "40", "--lr": "0.0003"}, "live_iterations 40"),
+    "intention": (dict(intention_steps=24000, intention_batch=256, intention_lr=6e-4),
+                  ["--intention-steps", "24000", "--intention-batch", "256", "--intention-lr", "6e-4"],
+                  {"--steps": "24000", "--batch": "256", "--lr": "0.0006"}, "intention_steps 24000"),
+}
+
+
+def _budget_step(cfg, kind):
+    """The step a budget override of `kind` reaches: a live run, or the intention predictor's."""
+    if kind == "live":
+        (step,) = [s for s in rp.plan_stages(cfg)[3].steps if s.argv[0] == "train"]
+    else:
+        (step,) = [s for s in rp.plan_stages(cfg)[1].steps if s.argv[1] == "intention"]
+    return step
+
+
+@pytest.mark.parametrize("kind", sorted(BUDGET_OVERRIDE_CASES))
+def test_a_budget_other_than_the_presets_is_an_out_directory_of_its_own(tmp_path, capsys, kind):
+    fields, flags, expected, refused = BUDGET_OVERRIDE_CASES[kind]
+    cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=1, trainer="live", rows=("gt_all",), **fields)
+    step = _budget_step(cfg, kind)
+    argv = step.argv
+    assert {k: argv[argv.index(k) + 1] for k in expected} == expected
+    if kind == "live":
+        assert argv[argv.index("--lanes") + 1] == str(rp.BUDGETS["paper"].live_lanes)  # not overridden: the preset's
+    else:
+        assert rp.plan_stages(cfg)[1].outputs[0].name == "ckpt_00024000.npz"
+        # The preset's own schedule keeps the published command: no --batch, no --lr.
+        default = _budget_step(rp.ReproduceConfig(out=tmp_path), kind)
+        assert "--batch" not in default.argv and "--lr" not in default.argv
     progress = rpp.read_progress(tmp_path)
     rpp.check_out(progress, cfg)
-    with pytest.raises(ValueError, match=r"ReproduceConfig.live_iterations 40 \(given None\)"):
-        rpp.check_out(progress, dataclasses.replace(cfg, live_iterations=None))
-    with pytest.raises(ValueError, match="ReproduceConfig.live_lanes must be positive"):
-        dataclasses.replace(cfg, live_lanes=0)
+    name = refused.split()[0]
+    with pytest.raises(ValueError, match=rf"ReproduceConfig.{refused} \(given None\)"):
+        rpp.check_out(progress, dataclasses.replace(cfg, **{name: None}))
+    for field in fields:
+        with pytest.raises(ValueError, match=f"ReproduceConfig.{field} must be positive"):
+            dataclasses.replace(cfg, **{field: 0})
     # The command line: flags to fields, and into each --gpus process's command.
     args = cli.build_parser().parse_args(["reproduce", "--preset", "paper", "--trainer", "live", "--out", str(tmp_path),
-                                          "--live-iterations", "40", "--live-lr", "3e-4", "--dry-run"])
+                                          *flags, "--dry-run"])
     assert args.func(args) == 0
-    assert "--iterations 40 --lr 0.0003" in capsys.readouterr().out
+    assert " ".join(f"{k} {v}" for k, v in expected.items()) in capsys.readouterr().out
     from conav_jax.eval.cli.reproduce import child_command
-    child = child_command(train, args, cfg)
-    assert child[child.index("--live-iterations") + 1] == "40" and "--live-lanes" not in child
-
-
-def test_an_intention_schedule_other_than_the_presets_reaches_its_command_and_the_out_record(tmp_path, capsys):
-    cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", trainer="live", intention_steps=24000,
-                             intention_batch=256, intention_lr=6e-4)
-    (intention,) = [s for s in rp.plan_stages(cfg)[1].steps if s.argv[1] == "intention"]
-    argv = intention.argv
-    assert (argv[argv.index("--steps") + 1], argv[argv.index("--batch") + 1], argv[argv.index("--lr") + 1]) == (
-        "24000", "256", "0.0006")
-    assert rp.plan_stages(cfg)[1].outputs[0].name == "ckpt_00024000.npz"
-    # The preset's own schedule keeps the published command: no --batch, no --lr.
-    (default,) = [s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path))[1].steps if s.argv[1] == "intention"]
-    assert "--batch" not in default.argv and "--lr" not in default.argv
-    progress = rpp.read_progress(tmp_path)
-    rpp.check_out(progress, cfg)
-    with pytest.raises(ValueError, match=r"ReproduceConfig.intention_batch 256 \(given None\)"):
-        rpp.check_out(progress, dataclasses.replace(cfg, intention_batch=None))
-    with pytest.raises(ValueError, match="ReproduceConfig.intention_lr must be positive"):
-        dataclasses.replace(cfg, intention_lr=0.0)
-    args = cli.build_parser().parse_args(["reproduce", "--preset", "paper", "--trainer", "live", "--out", str(tmp_path),
-                                          "--intention-steps", "24000", "--intention-batch", "256",
-                                          "--intention-lr", "6e-4", "--dry-run"])
-    assert args.func(args) == 0
-    assert "--steps 24000 --batch 256 --lr 0.0006" in capsys.readouterr().out
-    from conav_jax.eval.cli.reproduce import child_command
-    child = child_command(intention, args, cfg)
-    assert child[child.index("--intention-batch") + 1] == "256" and "--live-lanes" not in child
+    child = child_command(step, args, cfg)
+    assert [float(child[child.index(f) + 1]) for f in flags[::2]] == [float(v) for v in flags[1::2]]
+    assert all(flag(f) not in child for f in rp.BUDGET_OVERRIDES if f not in fields)
