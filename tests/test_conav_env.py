@@ -1,6 +1,7 @@
 """The MJX environment: physics, contacts, metrics, sensors' parity, batching, brax wrappers."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +15,10 @@ from conav_jax.envs.metrics import summarize
 from conav_jax.envs.mjcf import UD
 
 SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32))
+# The env's steps compile much faster without XLA's fusion emitters (slower to run, which a few
+# steps do not notice); every jit here takes them, so the programs compared round alike.
+jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0,
+                                                   "xla_cpu_use_fusion_emitters": False})
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +31,7 @@ def hall():
 @pytest.fixture(scope="module")
 def to_pose(hall):
     """The hall's step_to_pose, jitted once for the tests that put the robot at a pose."""
-    return jax.jit(hall[0].step_to_pose)
+    return jit(hall[0].step_to_pose)
 
 
 def _hall_env(config):
@@ -36,7 +41,7 @@ def _hall_env(config):
         t_end=40,
     )
     env = ConavEnv(episodes=split, config=config)
-    return env, jax.jit(env.reset_to_episode), jax.jit(env.step)
+    return env, jit(env.reset_to_episode), jit(env.step)
 
 
 def _run(env_fns, episode, actions, teleport=None):
@@ -206,7 +211,7 @@ def test_a_pose_step_given_velocities_steps_as_the_one_it_is_told(hall, to_pose)
     """step_to_pose(pose, action=velocities, use_pose): the pose step where use_pose, else the
     velocity step; a NaN counts only in the part used."""
     env, reset, step = hall  # the plain steps, compiled once for the module
-    either = jax.jit(lambda s, v, p, use: env.step_to_pose(s, p, action=v, use_pose=use))
+    either = jit(lambda s, v, p, use: env.step_to_pose(s, p, action=v, use_pose=use))
     s0 = reset(jax.random.PRNGKey(0), 3)
     target = np.append(np.asarray(goal_of(env.split)) - np.array([0.8, 0.0]), 0.5).astype(np.float32)
     velocity = np.array([0.7, -0.3], np.float32)

@@ -42,6 +42,7 @@ from conav_jax.train.goalnav import imagenav_model, imagenav_task, objectnav_mod
 from conav_jax.train.policy import ImitationConfig, task_run_config
 
 FAST = {"xla_backend_optimization_level": 0}  # the small jits (as tests/test_imitation.py)
+ENV_FAST = {**FAST, "xla_cpu_use_fusion_emitters": False}  # the teacher's rollout (as tests/test_imitation.py)
 SMALL = PolicyConfig(resolution=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16,
                      intention_dim=8, hidden=32, saliency_sectors=4, goal_conv_channels=(8, 8),
                      goal_conv_kernels=(3, 3), goal_dim=16)
@@ -70,7 +71,7 @@ def hall():
                        t_arrive=T_ARRIVE, t_end=T_END)
     env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True))
     rollout = jax.jit(im.make_rollout_fn(env, OBJ, teacher=objectnav_task().teacher(env),
-                                         goal_obs=imagenav_task().goal_obs(env)))
+                                         goal_obs=imagenav_task().goal_obs(env)), compiler_options=ENV_FAST)
     params = policy.init(jax.random.PRNGKey(0), OBJ)
     metrics, recs = jax.tree.map(np.asarray, rollout(params, jax.random.PRNGKey(0), jnp.arange(3, dtype=jnp.int32), 1.0))
     return SimpleNamespace(env=env, metrics=metrics, recs=recs, windows=im.sequences(recs, SEQ, BURN_IN))

@@ -29,9 +29,12 @@ from conav_jax.train import imitation as im
 from conav_jax.train.loop import TrainConfig
 from conav_jax.train.policy import ImitationConfig, check_recordable, records_predictions, run_config, train_policy
 
-# For the small jits. The MJX rollout keeps XLA's default: at level 0 its run time costs more
-# than compiling saves.
+# For the small jits (tests/conftest.py sets level 0 for every other jit too).
 FAST = {"xla_backend_optimization_level": 0}
+# For the programs that step or render the env, whose compiles dominate this file on a CPU:
+# without XLA's fusion emitters they compile much faster (slower to run; float rounding may
+# differ from the default's).
+ENV_FAST = {**FAST, "xla_cpu_use_fusion_emitters": False}
 SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)  # as training runs it
 PCFG = PolicyConfig(
     resolution=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16, intention_dim=8, hidden=32
@@ -49,12 +52,15 @@ def _head_on_track() -> np.ndarray:
 @pytest.fixture(scope="module")
 def hall():
     """Episodes: 0 east of the human at the fridge; 1 at the east end, facing back west; 2 with
-    the human walking head-on at the robot. One compiled rollout serves every test."""
-    starts = [(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (2.2, 2.0, 0.0)]
+    the human walking head-on at the robot (`episodes`, what most tests run); 3 and 4 two more
+    starts, the human at the fridge, for the recordings in batches (5 episodes in batches of 3,
+    the second padded). One compiled rollout, of 3 lanes, serves every test."""
+    starts = [(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (2.2, 2.0, 0.0), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0)]
     default = make_split(starts[:1], t_arrive=T_ARRIVE, t_end=T_END).episodes["root_xy"][0]
-    split = make_split(starts, human_xy=[default, default, _head_on_track()], t_arrive=T_ARRIVE, t_end=T_END)
+    human_xy = [default, default, _head_on_track(), default, default]
+    split = make_split(starts, human_xy=human_xy, t_arrive=T_ARRIVE, t_end=T_END)
     env = ConavEnv(episodes=split, config=SMALL)
-    rollout = jax.jit(im.make_rollout_fn(env, PCFG))
+    rollout = jax.jit(im.make_rollout_fn(env, PCFG), compiler_options=ENV_FAST)
     return SimpleNamespace(split=split, env=env, rollout=rollout, episodes=jnp.arange(3, dtype=jnp.int32))
 
 
@@ -111,15 +117,14 @@ def test_rematerialised_bc_loss_gives_the_same_loss_and_gradients(trained, param
 def test_bfloat16_convolutions_keep_the_bc_loss_and_its_gradients(trained):
     grad = jax.jit(jax.value_and_grad(im.bc_loss, has_aux=True), static_argnums=(1, 3), compiler_options=FAST)
     bf16 = dataclasses.replace(PCFG, conv_dtype="bfloat16")
-    # The fitted policy, whose actions depend on its CNN: measured on the CPU, the loss differs
-    # by 5.6e-3 of itself on the shaded panoramas (8.7e-4 on flat colours).
+    # The fitted policy, whose actions depend on its CNN: rounding its convolutions to bfloat16
+    # moves the loss by well under 1% of itself.
     (exact, _), _ = grad(trained.params, PCFG, trained.windows, False)
     (mixed, _), _ = grad(trained.params, bf16, trained.windows, False)
     assert mixed.dtype == jnp.float32 and float(mixed) != float(exact)  # the convolutions rounded
     np.testing.assert_allclose(mixed, exact, rtol=1e-2)
     # Gradients away from the labels it was fitted to (negated): at its fitted minimum they are
-    # as small as the rounding's effect on the features (cosine 0.984 there, measured); here the
-    # cosine measured 0.99982 (0.99994 with remat), 0.9996 for the CNN's own.
+    # as small as the rounding's effect on the features, so their direction would say nothing.
     away = {**trained.windows, "label": -trained.windows["label"]}
     _, g_exact = grad(trained.params, PCFG, away, False)
     flat = lambda tree: np.concatenate([np.ravel(x) for x in jax.tree.leaves(tree)])
@@ -177,9 +182,9 @@ def test_expert_round_data_do_not_depend_on_the_policy_so_a_run_can_record_them_
 def test_records_cut_into_windows_batch_by_batch_are_the_windows_of_all_of_them(hall, params0):
     # Recording keeps only each batch's windows (the padded records of every episode at once
     # would not fit a host at paper scale): the same windows, in the same order.
-    key, eps = jax.random.PRNGKey(0), np.arange(3)
-    m_whole, recs = im.run_batched(hall.rollout, params0, key, eps, 1.0, batch=2)
-    m_cut, windows = im.run_batched(hall.rollout, params0, key, eps, 1.0, batch=2, windows=(SEQ, BURN_IN))
+    key, eps = jax.random.PRNGKey(0), np.arange(5)  # 2 batches of 3 lanes (the fixtures' compile)
+    m_whole, recs = im.run_batched(hall.rollout, params0, key, eps, 1.0, batch=3)
+    m_cut, windows = im.run_batched(hall.rollout, params0, key, eps, 1.0, batch=3, windows=(SEQ, BURN_IN))
     whole = im.sequences(recs, SEQ, BURN_IN)
     assert jax.tree.structure(windows) == jax.tree.structure(whole)
     # Shading's float arithmetic may round differently in differently compiled programs (chunked
@@ -201,14 +206,14 @@ def test_chunked_recording_keeps_the_windows_of_the_whole_rollout_and_stops_when
     # order, as cutting the whole rollout's records; the expert's episodes end at the goal, so
     # its recording stops early, the policy's run to the human's end; mixed, each step's draw
     # comes from that step's key.
-    key, eps = jax.random.PRNGKey(3), np.arange(3)
-    m_whole, whole = im.run_batched(hall.rollout, params0, key, eps, beta, batch=2, windows=(SEQ, BURN_IN))
+    key, eps = jax.random.PRNGKey(3), np.arange(5)  # 2 batches of 3 lanes (the fixtures' compile)
+    m_whole, whole = im.run_batched(hall.rollout, params0, key, eps, beta, batch=3, windows=(SEQ, BURN_IN))
     if chunk not in _RECORDERS:  # one compile per chunk length: beta is an argument
         rec = im.make_recorder(hall.env, PCFG, seq_len=SEQ, burn_in=BURN_IN, chunk_steps=chunk)
-        _RECORDERS[chunk] = rec, jax.jit(rec.start), jax.jit(rec.advance)
+        _RECORDERS[chunk] = rec, jax.jit(rec.start), jax.jit(rec.advance, compiler_options=ENV_FAST)
     rec, start, advance = _RECORDERS[chunk]
     assert rec.chunk_steps == (chunk or SEQ) and rec.steps == hall.env.bank.max_steps
-    m_cut, windows, steps_run = im.record_windows(rec, start, advance, params0, key, eps, beta, batch=2)
+    m_cut, windows, steps_run = im.record_windows(rec, start, advance, params0, key, eps, beta, batch=3)
     assert jax.tree.structure(windows) == jax.tree.structure(whole)
     # Shading's float arithmetic may round differently in differently compiled programs (chunked
     # and whole): a colour may move by one level, and the learner's actions by rounding.
@@ -351,7 +356,7 @@ FAKE_TRAJECTORY = SimpleNamespace(predict=lambda history: jnp.full(history.shape
 
 def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0, tmp_path, tiny_data):
     rollout = jax.jit(im.make_rollout_fn(hall.env, PCFG, intention=_fake_intention(9, 11), trajectory=FAKE_TRAJECTORY,
-                                         record_predicted=True, num_steps=24))
+                                         record_predicted=True, num_steps=24), compiler_options=ENV_FAST)
     for beta in (1.0, 0.0):  # the predictors follow the expert's steps and the policy's alike
         _, recs = jax.tree.map(np.asarray, rollout(params0, jax.random.PRNGKey(0), hall.episodes, beta))
         np.testing.assert_array_equal(recs.obs["future_traj"], 7.0)
@@ -394,7 +399,7 @@ def test_policy_agent_runs_in_evaluate_with_ground_truth_only_when_asked(hall, t
     agent = policy_agent(hall.env, trained.run, ground_truth=True)
     assert agent.name == "conav" and agent.intention_source == "ground_truth"
     assert agent.privileged == ("ground-truth intentions", "future human positions", "oracle segmentation")
-    m = evaluate(hall.env, agent, batch=3)
+    m = evaluate(hall.env, agent, np.asarray(hall.episodes), batch=3)
     assert {"FASR", "RASR", "FASPL", "RASPL", "CR", "AS"} <= set(summarize(m))
     assert (m["nan_actions"] == 0).all()
     # The same policy through imitation's own rollout (how training validates) acts alike.
@@ -418,10 +423,10 @@ def test_at_evaluation_the_policy_reads_the_predictors_outputs_not_the_truth(hal
     monkeypatch.setattr(agent_policy, "load_predictors", lambda i, t: fakes if (i, t) == tuple(map(str, runs)) else None)
     agent = policy_agent(hall.env, trained.run, intention_run=runs[0], trajectory_run=runs[1])
     assert agent.intention_source == "predicted" and agent.privileged == ("oracle segmentation",)
-    state = jax.jit(hall.env.reset_to_episode, compiler_options=FAST)(jax.random.PRNGKey(0), 0)
+    state = jax.jit(hall.env.reset_to_episode, compiler_options=ENV_FAST)(jax.random.PRNGKey(0), 0)
     pol, truth_pol = make_policy_step(PCFG, *fakes), make_policy_step(PCFG)
 
-    @functools.partial(jax.jit, compiler_options=FAST)
+    @functools.partial(jax.jit, compiler_options=ENV_FAST)
     def act(state):
         obs = {k: state.obs[k] for k in agent.reads}
         carry, action = agent.act(agent.init(jax.random.PRNGKey(0), obs), obs, jax.random.PRNGKey(1))

@@ -19,6 +19,12 @@ from conav_jax.train import imitation as im
 from conav_jax.train.loop import TrainConfig
 from conav_jax.train.policy import ImitationConfig, train_policy
 
+# Compile time dominates these runs on a CPU: without LLVM optimisation and XLA's fusion
+# emitters the env's rollouts compile much faster (slower to run; nothing here depends on their
+# float rounding).
+FAST = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+RUN = {"scan_updates": False, "compiler_options": FAST}  # every train_policy call here
+
 
 def _hand_weights_back(monkeypatch) -> None:
     """Each round of train_policy "trains" by handing its weights back, with a validation of zeros
@@ -55,8 +61,7 @@ def test_a_broken_expert_cache_entry_is_named_with_the_way_out(tiny_data, tmp_pa
     ceiling.parent.mkdir()
     ceiling.write_text('{"FASR": 1')  # cut short
     with pytest.raises(ValueError, match=r"expert cache entry .*ceiling_.*unreadable.*--no-share-expert"):
-        train_policy(data, tmp_path / "run", TrainConfig(steps=2, batch=2, warmup_steps=0), PCFG, imitation,
-                     scan_updates=False)
+        train_policy(data, tmp_path / "run", TrainConfig(steps=2, batch=2, warmup_steps=0), PCFG, imitation, **RUN)
     (round0.with_suffix(".json")).write_text("{}")
     round0.write_bytes(b"not a zip")
     with pytest.raises(ValueError, match=r"expert cache entry .*round0_.*\.npz is unreadable"):
@@ -93,7 +98,7 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     monkeypatch.setattr(im, "record_windows", record)
     cfg, imitation = TrainConfig(steps=2, batch=2, warmup_steps=0), ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ,
                                                                                       burn_in=BURN_IN, val_batch=5)
-    train_policy(data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False)
+    train_policy(data, tmp_path / "run", cfg, PCFG, imitation, **RUN)
     # The expert's ceiling, round 0's recording (every lane at once), the final validation.
     assert calls == [5, tp.MAX_ROLLOUT_LANES, 5]
     # The ceiling, round 0's windows and log line, and the lock files of the two entries.
@@ -102,12 +107,12 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     # A finished run resumed records nothing again and keeps its validation.
     (tmp_path / "run" / "data" / "round_0.npz").unlink()
     calls.clear()
-    assert train_policy(data, tmp_path / "run", cfg, PCFG, imitation, scan_updates=False).val and calls == []
+    assert train_policy(data, tmp_path / "run", cfg, PCFG, imitation, **RUN).val and calls == []
     # Another seed shares the expert's ceiling and round 0 (the expert ignores the seed:
     # test_expert_round_data_...): it runs neither again (its updates are not under test here:
     # they hand the weights back), and it trains on the same windows and log lines.
     _hand_weights_back(monkeypatch)
-    train_policy(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, imitation, scan_updates=False)
+    train_policy(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, imitation, **RUN)
     assert calls == []
     [entry] = (data / tp.EXPERT_CACHE_DIR).glob("round0_*.npz")  # the first run's recording (its own file is gone)
     recorded, shared = im.load_sequences(entry), im.load_sequences(tmp_path / "s1" / "data" / "round_0.npz")
@@ -120,7 +125,7 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     seen = []
     monkeypatch.setattr(im, "record_windows", lambda *a, **k: seen.append(np.asarray(a[5])) or recordings[0])
     dagger = dataclasses.replace(imitation, dagger_rounds=1, dagger_episodes=2)
-    train_policy(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, dagger, scan_updates=False)
+    train_policy(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, dagger, **RUN)
     [episodes] = seen
     assert len(episodes) == 2 and (episodes == tp.round_episodes(np.arange(3), 1, dagger, seed=1)).all()
     assert json.loads((tmp_path / "s1" / "log.jsonl").read_text().splitlines()[-1])["episodes"] == 2
@@ -186,7 +191,7 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
         if name == "object":
             other = _another_run_recording(data / tp.EXPERT_CACHE_DIR, tmp_path / "aside")
         train_policy(data, tmp_path / name, cfg, policy.ablation_config(PCFG, name), imitation, intention_run="I",
-                     trajectory_run="T", scan_updates=False, log=log)
+                     trajectory_run="T", **RUN, log=log)
     other[0].join()
     assert len(recorded) == 1  # the second row reads the first's recording
     # It started while another run was recording that entry (`conav reproduce --gpus`): it waited.
@@ -197,11 +202,11 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
     monkeypatch.setattr(tp, "predictor_digest", lambda run: {"there/I": "I", "there/T": "T"}.get(run, run))
     logs.clear()
     train_policy(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,
-                 intention_run="there/I", trajectory_run="there/T", scan_updates=False, log=log)
+                 intention_run="there/I", trajectory_run="there/T", **RUN, log=log)
     assert any(line.startswith(f"resuming {tmp_path / 'object'}") for line in logs)
     with pytest.raises(ValueError, match=r"cannot resume .*predictor_digests\.intention: saved 'I' vs expected 'X'"):
         train_policy(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,
-                     intention_run="X", trajectory_run="there/T", scan_updates=False)
+                     intention_run="X", trajectory_run="there/T", **RUN)
     # A run saved before runs recorded their predictors' digests is still checked by their paths.
     from conav_jax.checkpoints import save_checkpoint
 
