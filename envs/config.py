@@ -71,8 +71,7 @@ class SensorConfig:
     of 2 pi H / W (square pixels; 90 degrees at 112x448), row 0 at the top.
     """
 
-    height: int = 112
-    width: int = 448
+    resolution: tuple[int, int] = (112, 448)  # (H, W) pixels: the paper's panorama
     max_depth_m: float = 10.0  # farther hits and no hit read as max_depth and sky colour
     # "fast": our column caster, one fused min over all geoms (nothing of size geoms x H x W
     # reaches memory); "pallas": the same math as a Pallas (Triton) GPU kernel; "reference":
@@ -101,6 +100,10 @@ class SensorConfig:
     ambient: float = 0.45
 
     def __post_init__(self):
+        if len(self.resolution) != 2:
+            raise ValueError(f"sensor resolution is (height, width) in pixels, got {self.resolution!r}")
+        # A hashable (H, W) of ints, however given (a list read from JSON, numpy ints).
+        object.__setattr__(self, "resolution", (int(self.resolution[0]), int(self.resolution[1])))
         if self.materials not in MATERIALS:
             raise ValueError(f"sensor materials must be one of {MATERIALS}, got {self.materials!r}")
         if not 0.0 <= self.ambient <= 1.0:
@@ -113,6 +116,16 @@ class SensorConfig:
             raise ValueError(f"pallas_block_w must be a power of two, got {self.pallas_block_w}")
         if self.height < 4 or self.width < 8 or self.width % 8:
             raise ValueError(f"panorama must be at least 4x8 with width a multiple of 8, got {self.height}x{self.width}")
+
+    @property
+    def height(self) -> int:
+        """Panorama rows (pixels): resolution[0]."""
+        return self.resolution[0]
+
+    @property
+    def width(self) -> int:
+        """Panorama columns (pixels): resolution[1]."""
+        return self.resolution[1]
 
 
 def materials_of_run(config: dict) -> str:
@@ -248,4 +261,4 @@ def env_settings(config: EnvConfig) -> dict:
     """What an env's config changes about a figure, for a provenance block (conav_jax.provenance):
     physics implementation, caster kind, materials and resolution [H, W], "auto" resolved here."""
     return {"physics": resolve_physics_impl(config.physics.impl), "caster": resolve_sensor_kind(config.sensor.kind),
-            "materials": config.sensor.materials, "resolution": [config.sensor.height, config.sensor.width]}
+            "materials": config.sensor.materials, "resolution": list(config.sensor.resolution)}

@@ -328,7 +328,7 @@ def compare_with_caster(r: MjwarpRenderer, episodes: jax.Array, robot_poses: jax
     if r.rays == "panorama":
         cam, col = camera_strip_columns(cfg)
         take = lambda x: np.moveaxis(x[:, cam, :, col], 0, 2)
-        inside = np.ones((cfg.height, cfg.width), bool)
+        inside = np.ones(cfg.resolution, bool)
         method = "identical rays: every pixel"
     else:
         cam, row, col, inside = pinhole_pixels_of_panorama(cfg)

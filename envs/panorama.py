@@ -113,7 +113,7 @@ def ray_directions(cfg: SensorConfig, yaw: jax.Array) -> jax.Array:
     e = jnp.asarray(el)
     ce = jnp.cos(e)[:, None]
     return jnp.stack(
-        [ce * jnp.cos(a)[None, :], ce * jnp.sin(a)[None, :], jnp.broadcast_to(jnp.sin(e)[:, None], (cfg.height, cfg.width))],
+        [ce * jnp.cos(a)[None, :], ce * jnp.sin(a)[None, :], jnp.broadcast_to(jnp.sin(e)[:, None], cfg.resolution)],
         axis=-1,
     )
 
@@ -273,7 +273,7 @@ def fast_depth_ids(
     see the section comment above."""
     maxd = float(cfg.max_depth_m)
     inv_cos, ce, se = elevation_terms(cfg)
-    keys = jnp.broadcast_to(floor_row_keys(cfg, cam_xyz_m, geometry.floor_id)[:, None], (cfg.height, cfg.width))
+    keys = jnp.broadcast_to(floor_row_keys(cfg, cam_xyz_m, geometry.floor_id)[:, None], cfg.resolution)
     col_in, col_out, row_in, row_out = box_terms(cfg, cam_xyz_m, yaw_rad, geometry)
     box_ids = geometry.box_ids.astype(jnp.uint32)
     n_cap = geometry.capsule_p0_m.shape[0]
@@ -341,8 +341,8 @@ def reference_depth_ids(
         dist, geom = jax.vmap(
             lambda v: mjx.ray(m, d, cam_xyz_m, v, geomgroup=RAY_GEOMGROUP, bodyexclude=exclude_body))(dirs)
     hit = (geom >= 0) & (dist >= 0) & (dist < cfg.max_depth_m)
-    depth = jnp.where(hit, dist, cfg.max_depth_m).reshape(cfg.height, cfg.width)
-    ids = jnp.where(hit, geom, -1).reshape(cfg.height, cfg.width)
+    depth = jnp.where(hit, dist, cfg.max_depth_m).reshape(cfg.resolution)
+    ids = jnp.where(hit, geom, -1).reshape(cfg.resolution)
     return depth, ids
 
 

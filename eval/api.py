@@ -40,7 +40,7 @@ def make_env(data_dir: str | Path, split: str = "val", resolution: tuple[int, in
     if unknown:
         raise ValueError(f"unknown EnvConfig fields {unknown}; known: {sorted(fields)}")
     h, w = resolution
-    sensor = dataclasses.replace(config_overrides.pop("sensor", SensorConfig()), height=int(h), width=int(w))
+    sensor = dataclasses.replace(config_overrides.pop("sensor", SensorConfig()), resolution=(int(h), int(w)))
     return ConavEnv(data_dir, split, EnvConfig(sensor=sensor, **config_overrides), max_episodes=max_episodes)
 
 

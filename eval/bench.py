@@ -79,7 +79,7 @@ def untrained_predictors(env, key, frames: int = 8):
     from conav_jax.models.trajectory import TrajectoryConfig
 
     k_intention, k_trajectory = jax.random.split(key)
-    hw = (env.config.sensor.height, env.config.sensor.width)
+    hw = env.config.sensor.resolution
     seen = PerceiverConfig(image_hw=default_crop_hw(hw))
     traj = TrajectoryConfig()
     return (make_intention_predictor(_init(perceiver, k_intention, seen), seen, frames, FrameSpec("human", hw)),

@@ -190,7 +190,7 @@ def load_env(plan: EvalPlan):
     if key not in _ENV_CACHE:
         _ENV_CACHE.clear()
         h, w = plan.resolution
-        sensor = SensorConfig(height=h, width=w, materials=plan.materials)
+        sensor = SensorConfig(resolution=(h, w), materials=plan.materials)
         _ENV_CACHE[key] = ConavEnv(plan.data, plan.split, EnvConfig(sensor=sensor), max_episodes=plan.episodes)
     return _ENV_CACHE[key]
 

@@ -266,7 +266,7 @@ def view_episode(
 
     if materials is None:
         materials = run_materials(checkpoint) if spec.needs_checkpoint and checkpoint else SensorConfig.materials
-    sensor = SensorConfig(height=h, width=w, materials=materials)
+    sensor = SensorConfig(resolution=(h, w), materials=materials)
     env = ConavEnv(data, split, EnvConfig(sensor=sensor), max_episodes=episode + 1)
     built = make_agent(agent, env, checkpoint, **predictors)
     frames, sources = record_episode(env, built, episode, seed)

@@ -30,7 +30,7 @@ KEY = jax.random.PRNGKey(0)
 @pytest.fixture(scope="module")
 def hall():
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi)])
-    return ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
+    return ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(resolution=(8, 32))))
 
 
 def _snippet() -> str:

@@ -52,7 +52,7 @@ def runs():
 
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 
-    env = ConavEnv(episodes=_two_scene_split(), config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
+    env = ConavEnv(episodes=_two_scene_split(), config=EnvConfig(sensor=SensorConfig(resolution=(8, 32))))
     agents = [as_state_agent(make_agent(name, env)) for name in BASELINES]
 
     def one(episode, which, key):

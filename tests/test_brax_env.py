@@ -11,7 +11,7 @@ import conav_jax.envs  # noqa: F401  (registers 'conav')
 from conav_jax.envs import EnvConfig, SensorConfig
 from conav_jax.envs.mjcf import UD
 
-CFG = EnvConfig(sensor=SensorConfig(height=8, width=32))
+CFG = EnvConfig(sensor=SensorConfig(resolution=(8, 32)))
 
 
 @pytest.fixture(scope="module")

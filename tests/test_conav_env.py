@@ -14,7 +14,7 @@ from conav_jax.envs.config import PhysicsConfig
 from conav_jax.envs.metrics import summarize
 from conav_jax.envs.mjcf import UD
 
-SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32))
+SMALL = EnvConfig(sensor=SensorConfig(resolution=(8, 32)))
 # The env's steps compile much faster without XLA's fusion emitters (slower to run, which a few
 # steps do not notice); every jit here takes them, so the programs compared round alike.
 jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0,

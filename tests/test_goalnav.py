@@ -69,7 +69,7 @@ def hall():
     goal, so both teachers agree) and the BC windows."""
     split = make_split([(3.5, 2.0, 0.0), (4.0, 2.9, 0.3), (3.0, 1.2, -0.3)], human_xy=[_human_track()] * 3,
                        t_arrive=T_ARRIVE, t_end=T_END)
-    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True))
+    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(resolution=(8, 32)), end_at_reach=True))
     rollout = jax.jit(im.make_rollout_fn(env, OBJ, teacher=objectnav_task().teacher(env),
                                          goal_obs=imagenav_task().goal_obs(env)), compiler_options=ENV_FAST)
     params = policy.init(jax.random.PRNGKey(0), OBJ)

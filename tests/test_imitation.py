@@ -35,7 +35,7 @@ FAST = {"xla_backend_optimization_level": 0}
 # without XLA's fusion emitters they compile much faster (slower to run; float rounding may
 # differ from the default's).
 ENV_FAST = {**FAST, "xla_cpu_use_fusion_emitters": False}
-SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)  # as training runs it
+SMALL = EnvConfig(sensor=SensorConfig(resolution=(8, 32)), end_at_reach=True)  # as training runs it
 PCFG = PolicyConfig(
     resolution=(8, 32), conv_channels=(8, 8), conv_kernels=(3, 3), visual_dim=32, state_dim=16, intention_dim=8, hidden=32
 )
@@ -454,7 +454,7 @@ def test_policy_agent_rejects_wrong_runs_before_compiling(hall, trained, tmp_pat
                     config={"kind": "trajectory", "model": {}}, step=1)
     with pytest.raises(ValueError, match="'trajectory' run"):
         policy_agent(hall.env, other)
-    wide = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=SensorConfig(height=16, width=64)))
+    wide = ConavEnv(episodes=hall.split, config=EnvConfig(sensor=SensorConfig(resolution=(16, 64))))
     with pytest.raises(ValueError, match="8x32 panoramas but the env renders 16x64"):
         policy_agent(wide, trained.run, ground_truth=True)
     # The ground truth is read only by declaring it, whatever the env's brax observation holds.

@@ -375,7 +375,7 @@ def test_the_predictor_refuses_bad_observations(intention_run, rendered):
     one = jax.tree.map(lambda x: x[0], obs)
     with pytest.raises(ValueError, match="finite"):
         predictor.step(predictor.init(), {**one, "human_pos": jnp.array([np.nan, 1.0])})
-    with pytest.raises(ValueError, match=r"render the env with SensorConfig\(height=32, width=128\)"):
+    with pytest.raises(ValueError, match=r"render the env with SensorConfig\(resolution=\(32, 128\)\)"):
         predictor.step(predictor.init(), {**one, "rgbd": jnp.zeros((16, 64, 4))})
     with pytest.raises(ValueError, match="mapping with 'rgbd'"):
         predictor.step(predictor.init(), one["rgbd"])

@@ -26,7 +26,7 @@ from conav_jax.envs.rollout import make_rollout
 from conav_jax.train import live as lv
 from conav_jax.train.live import LiveConfig
 
-SMALL = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)  # as training runs it
+SMALL = EnvConfig(sensor=SensorConfig(resolution=(8, 32)), end_at_reach=True)  # as training runs it
 TINY = PolicyConfig(resolution=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                     intention_dim=4, hidden=8)
 BLIND = dataclasses.replace(TINY, use_activity=False, use_object=False, use_trajectory=False)
@@ -240,7 +240,7 @@ def test_config_errors_name_the_fields(hall):
         LiveConfig(beta_end=1.5)
     with pytest.raises(ValueError, match="exponential"):
         LiveConfig(beta_schedule="exponential", beta_end=0.0)
-    with pytest.raises(ValueError, match="SensorConfig\\(height=16, width=64\\)"):
+    with pytest.raises(ValueError, match="SensorConfig\\(resolution=\\(16, 64\\)\\)"):
         lv.make_live(hall.env, dataclasses.replace(TINY, resolution=(16, 64)), LIVE)
     lin = LiveConfig(beta_start=1.0, beta_end=0.2, beta_decay_iterations=4)
     exp = dataclasses.replace(lin, beta_schedule="exponential")

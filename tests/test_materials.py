@@ -71,7 +71,7 @@ def test_clothing_is_a_function_of_the_episode():
 
 
 # -- shading ----------------------------------------------------------------------------------
-RES = SensorConfig(height=8, width=32, kind="fast")
+RES = SensorConfig(resolution=(8, 32), kind="fast")
 PLAIN = Material((200, 100, 50), (200, 100, 50)).row()
 
 
@@ -111,7 +111,7 @@ def test_shading_follows_the_surface_normal_not_the_distance():
 def observed():
     """(env, {materials: (observation, geom ids)}) of one hall episode's first step."""
     split = make_split([(7.5, 2.0, 0.0)], t_arrive=20, t_end=40)  # the table ahead, the fridge behind
-    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=16, width=64)))
+    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(resolution=(16, 64))))
     # The episode's start, without the physics' forward pass (the sensor reads positions only).
     state = State(env._data0.replace(qpos=env.bank.robot_start[0]), {}, jnp.zeros(()), jnp.zeros(()), {},
                   {"episode": jnp.int32(0)})

@@ -83,7 +83,7 @@ def test_render_cameras_leave_the_env_model_alone(env):
 def test_bench_render_reports_both_renderers(tiny_data):
     from conav_jax.envs.bench import bench_render
 
-    small = ConavEnv(str(tiny_data), "val", EnvConfig(sensor=SensorConfig(height=16, width=64, kind="fast")))
+    small = ConavEnv(str(tiny_data), "val", EnvConfig(sensor=SensorConfig(resolution=(16, 64), kind="fast")))
     res = bench_render(small, batch=4, repeats=1, steps=1, rays=("panorama",), check_batch=4)
     for key in ("panoramas_per_s", "compile_and_first_call_s", "median_call_s", "xla_temp_bytes", "peak_bytes_in_use"):
         assert key in res["ours"] and key in res["mjwarp_panorama"], key

@@ -16,13 +16,13 @@ from conav_jax.envs.panorama import (
     unpack_depth_id,
 )
 
-RES = SensorConfig(height=12, width=48)
+RES = SensorConfig(resolution=(12, 48))
 
 
 @pytest.fixture(scope="module")
 def envs_pair(tiny_data):
     fast = ConavEnv(tiny_data, "train", EnvConfig(sensor=RES))
-    ref = ConavEnv(tiny_data, "train", EnvConfig(sensor=SensorConfig(height=12, width=48, kind="reference")))
+    ref = ConavEnv(tiny_data, "train", EnvConfig(sensor=SensorConfig(resolution=(12, 48), kind="reference")))
     return fast, ref
 
 
@@ -93,7 +93,7 @@ def test_fast_caster_matches_mjx_ray(envs_pair):
 
 
 def test_panorama_layout_centre_column_faces_forward():
-    az, el = ray_angles(SensorConfig(height=8, width=32))
+    az, el = ray_angles(SensorConfig(resolution=(8, 32)))
     assert abs(az[15] + az[16]) < 1e-6 and abs(az[15]) < 2 * np.pi / 32
     assert el[0] > 0 > el[-1] and abs(el[0] - np.pi / 4 + np.pi / 32) < 1e-6  # 90 deg fov
     x = jnp.zeros((8, 32, 4)).at[:, 12:20].set(1.0)

@@ -17,7 +17,7 @@ from conav_jax.data.materials import Material
 from conav_jax.envs.panorama import SceneGeometry, caster_for, fast_depth_ids, reference_depth_ids, shade
 from conav_jax.envs.panorama_pallas import pallas_depth_ids
 
-RES = dict(height=16, width=64)
+RES = dict(resolution=(16, 64))
 T = 15  # the human walks along y = 2 through the middle of the hall
 # (x, y, yaw): facing the human from 1-2 m, beside it, from behind, a corner, and the camera
 # beside the torso, inside the arms' bounding circles (their culling cannot skip any column).
@@ -112,7 +112,7 @@ PADDING_BOX_M = ((0.3, -0.5, 0.0), (0.5, 0.5, 2.0))
 CAPSULES_M = [((1.5, -0.8, 0.2), (1.5, -0.8, 1.4), 0.15), ((-0.8, 0.9, 0.5), (-0.3, 1.3, 1.2), 0.08)]
 # (x, y, z, yaw): cameras looking at the boxes and capsules from several sides.
 CAMERAS = [(0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0, 2.4), (2.2, -0.5, 0.6, -1.0), (0.8, -1.6, 1.2, 1.9)]
-GEOMETRY_RES = dict(height=16, width=64)
+GEOMETRY_RES = dict(resolution=(16, 64))
 # Materials by geom id: the floor in value noise, the boxes striped, checked and noisy at the
 # shortest period drawn, the padding box and the capsules plain.
 MATERIALS = jnp.asarray(np.stack([

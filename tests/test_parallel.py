@@ -64,7 +64,7 @@ def _evaluate_metrics(mesh) -> dict:
     from conav_jax.envs.rollout import evaluate
 
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0)])
-    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32)))
+    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(resolution=(8, 32))))
     m = evaluate(env, make_agent("random", env), batch=3, seed=1, mesh=mesh)
     return {k: np.asarray(v).tolist() for k, v in m.items()}
 
@@ -130,7 +130,7 @@ def _recording(mesh) -> dict:
     pcfg = PolicyConfig(resolution=(8, 32), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                         intention_dim=4, hidden=8)
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0)])
-    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True))
+    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(resolution=(8, 32)), end_at_reach=True))
     rec = im.make_recorder(env, pcfg, seq_len=16, burn_in=8)
     m, windows, steps = im.record_windows(rec, jax.jit(rec.start), jax.jit(rec.advance),
                                           policy.init(jax.random.PRNGKey(0), pcfg), jax.random.PRNGKey(2),
@@ -150,7 +150,7 @@ def _env_steps(mesh) -> dict:
     from conav_jax.envs.bench import step_lanes
 
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0)])
-    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(height=8, width=32, kind="pallas",
+    env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(resolution=(8, 32), kind="pallas",
                                                                         pallas_interpret=True)))
     run = jax.jit(step_lanes(env, 3, mesh))
     out = run(jax.random.split(jax.random.PRNGKey(3), 8), jnp.arange(8) % 4)

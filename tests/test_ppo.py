@@ -199,7 +199,7 @@ def test_init_from_loads_the_imitation_policy_and_rejects_bad_runs(tmp_path):
     # A PPO run's checkpoint (same layout) against an env rendering another resolution.
     save_checkpoint(checkpoint_path(tmp_path / "rl8x32", 1), params=params, opt_state=None, step=1,
                     config={"kind": "ppo", "model": dataclasses.asdict(TINY), "ppo": dataclasses.asdict(PPOConfig())})
-    wide = SimpleNamespace(config=EnvConfig(sensor=SensorConfig(height=8, width=64)))
+    wide = SimpleNamespace(config=EnvConfig(sensor=SensorConfig(resolution=(8, 64))))
     with pytest.raises(ValueError, match="trained on 8x32 panoramas but the env renders 8x64"):
         ppo_agent(wide, tmp_path / "rl8x32", ground_truth=True)
     # PPO trains on ground-truth intentions; evaluated, it reads predictors or says it was given the truth.
@@ -234,7 +234,7 @@ def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, 
 
     # The validation above is ppo_agent(val env, this run dir, ground truth) run through
     # envs.rollout.evaluate (one compile of the val rollout; a second would double this test's time).
-    val_env = ConavEnv(str(tiny_data), "val", EnvConfig(sensor=SensorConfig(height=8, width=32)))
+    val_env = ConavEnv(str(tiny_data), "val", EnvConfig(sensor=SensorConfig(resolution=(8, 32))))
     agent = ppo_agent(val_env, tmp_path / "rl", ground_truth=True)
     assert agent.name == "ppo" and agent.intention_source == "ground_truth" and "ground-truth intentions" in agent.privileged
 

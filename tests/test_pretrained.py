@@ -41,16 +41,16 @@ def test_the_shipped_conav_agent_builds_for_its_panorama_and_refuses_another(tin
     runs = pretrained.pretrained_runs()
     # Trained before instance materials: it reads flat colours, and says so.
     assert run_materials(runs["policy"]) == run_materials(runs["intention"]) == "flat"
-    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=32, width=128, materials="flat")))
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(32, 128), materials="flat")))
     predictors = {"intention_run": runs["intention"], "trajectory_run": runs["trajectory"]}
     agent = make_agent("conav", env, runs["policy"], **predictors)
     assert agent.intention_source == "predicted"
     with pytest.raises(ValueError, match="trajectory"):  # it reads the trajectory input: never ground truth instead
         make_agent("conav", env, runs["policy"], intention_run=runs["intention"])
-    shaded = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=32, width=128, materials="instance")))
+    shaded = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(32, 128), materials="instance")))
     with pytest.raises(ValueError, match="materials='flat'.*materials='instance'"):
         make_agent("conav", shaded, runs["policy"], **predictors)
-    small = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64, materials="flat")))
+    small = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(16, 64), materials="flat")))
     with pytest.raises(ValueError, match="32x128|\\(32, 128\\)"):
         make_agent("conav", small, runs["policy"], **predictors)
 

@@ -20,7 +20,7 @@ T_ARRIVE, T_END = 140, 160  # the human walks from the fridge to the table in st
 def env():
     starts = [(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0), (6.0, 2.5, 0.5)]
     # Episodes end at the first reach here, so they end at different steps and lanes refill.
-    config = EnvConfig(sensor=SensorConfig(height=8, width=32), end_at_reach=True)
+    config = EnvConfig(sensor=SensorConfig(resolution=(8, 32)), end_at_reach=True)
     return ConavEnv(episodes=make_split(starts, t_arrive=T_ARRIVE, t_end=T_END), config=config)
 
 

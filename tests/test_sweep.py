@@ -269,7 +269,7 @@ def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data, m
 
         monkeypatch.setattr(model, "init", zeros)
 
-    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(height=16, width=64)))
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(16, 64))))
     small = PolicyConfig(resolution=(16, 64), conv_channels=(4,), conv_kernels=(3,), visual_dim=8, state_dim=8,
                          intention_dim=8, hidden=8)
     configs = {"conav": small, "ppo": small, "imagegoal": dataclasses.replace(

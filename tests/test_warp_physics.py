@@ -21,7 +21,7 @@ from conav_jax.envs.config import resolve_physics_impl  # noqa: E402
 from conav_jax.envs.mjcf import UD  # noqa: E402
 from conav_jax.envs.rollout import Agent, make_pool_rollout  # noqa: E402
 
-SMALL = SensorConfig(height=8, width=32)
+SMALL = SensorConfig(resolution=(8, 32))
 STEPS = 60
 
 

@@ -167,7 +167,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
 
     if lanes <= 0 or window_steps <= 0 or repeats <= 0:
         raise ValueError(f"lanes, window_steps and repeats must be > 0, got {lanes}, {window_steps}, {repeats}")
-    hw = (env.config.sensor.height, env.config.sensor.width)
+    hw = env.config.sensor.resolution
     policy_config = policy_config or PolicyConfig(resolution=hw)
     config = lv.LiveConfig(lanes=lanes, window_steps=window_steps, warmup_iterations=0, beta_start=beta,
                            beta_end=beta, seed=seed)

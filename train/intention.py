@@ -46,7 +46,7 @@ class IntentionDataConfig:
     # Panorama (H, W) rendered, the sensor's default. The "human" view crops the model's
     # image_hw from it at this resolution, so the agents' env must render it too (the
     # predictor checks); "front" resizes the front quarter to image_hw (any resolution).
-    resolution: tuple[int, int] = (SensorConfig.height, SensorConfig.width)
+    resolution: tuple[int, int] = SensorConfig.resolution
     # What the panoramas' RGB shows (SensorConfig.materials); the predictor's env must render it too.
     materials: str = SensorConfig.materials
     frames: int = 16  # F: frames per episode, spread evenly over activity A
@@ -92,7 +92,7 @@ def frame_spec(env: ConavEnv, data: IntentionDataConfig) -> FrameSpec:
     """How `env`'s panoramas become frames: the view, the sensor's resolution and its camera
     height (the predictor repeats it from the run's config)."""
     sensor = env.config.sensor
-    return FrameSpec(data.view, (sensor.height, sensor.width), float(env.task.camera_height_m))
+    return FrameSpec(data.view, sensor.resolution, float(env.task.camera_height_m))
 
 
 # Keeps the viewpoints' draws apart from every other seeded draw.
@@ -216,7 +216,7 @@ def render_split(
 def make_env(data_dir: str | Path, split: str, data: IntentionDataConfig) -> ConavEnv:
     """The env of one split with the sensor resolution and materials the frames are rendered at."""
     h, w = data.resolution
-    return ConavEnv(data_dir, split, EnvConfig(sensor=SensorConfig(height=h, width=w, materials=data.materials)))
+    return ConavEnv(data_dir, split, EnvConfig(sensor=SensorConfig(resolution=(h, w), materials=data.materials)))
 
 
 # -- baselines and metrics -----------------------------------------------------------------------

@@ -514,5 +514,5 @@ def train_live_from_data(data_dir: str | Path, out_dir: str | Path,
     from conav_jax.envs import EnvConfig, SensorConfig
 
     h, w = policy_config.resolution
-    env = ConavEnv(str(data_dir), "train", EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True))
+    env = ConavEnv(str(data_dir), "train", EnvConfig(sensor=SensorConfig(resolution=(h, w)), end_at_reach=True))
     return train_live(env, policy_config, live, out_dir, intention_run, trajectory_run, **kwargs)

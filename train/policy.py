@@ -242,7 +242,7 @@ def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episod
         raise ValueError(f"{policy_run} trained on predicted intentions: pass its --intention and --trajectory runs")
     expert = ExpertConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config["expert"].items()})
     h, w = model.resolution
-    sensor = SensorConfig(height=h, width=w, materials=materials_of_run(config))
+    sensor = SensorConfig(resolution=(h, w), materials=materials_of_run(config))
     env = ConavEnv(data_dir, "train", EnvConfig(sensor=sensor, end_at_reach=True),
                    max_episodes=episodes)
     rollout = jit_with_bank(env, im.make_rollout_fn(
@@ -480,7 +480,7 @@ def train_policy(
 
     # Imitation data and validation stop at the first reach (the expert's demonstrations end there).
     h, w = model.resolution
-    env_cfg = EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True)
+    env_cfg = EnvConfig(sensor=SensorConfig(resolution=(h, w)), end_at_reach=True)
     train_env = ConavEnv(data_dir, "train", env_cfg, max_episodes=imitation.episodes)
     val_env = ConavEnv(data_dir, imitation.val_split, env_cfg, max_episodes=imitation.val_episodes)
     intention, trajectory = load_predictors(intention_run, trajectory_run)

@@ -509,7 +509,7 @@ def train_ppo(
         params = policy.init(jax.random.PRNGKey(config.seed), policy_config)
     hw = tuple(policy_config.resolution)  # the env renders what the network reads
     # Training and validation episodes end at the first reach: the reach bonus ends an episode.
-    env_config = EnvConfig(sensor=SensorConfig(height=hw[0], width=hw[1]), end_at_reach=True)
+    env_config = EnvConfig(sensor=SensorConfig(resolution=(hw[0], hw[1])), end_at_reach=True)
     env = brax.envs.get_environment("conav", data_dir=str(data_dir), split="train", config=env_config)
     # PPO trains on the env's ground-truth intention observations (privileged), as imitation does.
     check_policy_env(env, policy_config, "the policy", intention_source(policy_config))

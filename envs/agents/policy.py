@@ -159,12 +159,12 @@ def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None, recurre
 
 def check_policy_env(env, cfg: PolicyConfig, source_name: str, intention_source_: str) -> None:
     """ValueError unless `env` renders the policy's resolution."""
-    hw = (env.config.sensor.height, env.config.sensor.width)
+    hw = env.config.sensor.resolution
     if hw != tuple(cfg.resolution):
         h, w = cfg.resolution
         raise ValueError(
             f"{source_name} was trained on {h}x{w} panoramas but the env renders {hw[0]}x{hw[1]}; "
-            f"build the env with SensorConfig(height={h}, width={w})"
+            f"build the env with SensorConfig(resolution=({h}, {w}))"
         )
 
 

@@ -68,7 +68,7 @@ def intention_frame(spec: FrameSpec, config: PerceiverConfig, rgbd: jax.Array, h
             raise ValueError(
                 f"the intention predictor crops {h}x{w} frames from {sh}x{sw} panoramas (its training "
                 f"resolution) but got {rgbd.shape[0]}x{rgbd.shape[1]}; render the env with "
-                f"SensorConfig(height={sh}, width={sw})")
+                f"SensorConfig(resolution=({sh}, {sw}))")
         frame = human_crop(rgbd.astype(jnp.float32), human_pos, (h, w), spec.camera_height_m)
     return perceiver.encode_frames(frame, config.max_depth_m)
 

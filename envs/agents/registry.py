@@ -187,4 +187,4 @@ def run_resolution(trained: list[tuple[str, str | Path]], resolution: tuple[int,
     if resolution is not None:
         return tuple(resolution)
     default = SensorConfig()
-    return default.height, default.width
+    return default.resolution

@@ -164,7 +164,7 @@ def _run_bench_live(args: argparse.Namespace) -> int:
 
     h, w = args.resolution
     tmp = None if args.data is not None else tiny_dataset()
-    env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w), end_at_reach=True))
+    env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(resolution=(h, w)), end_at_reach=True))
     model = encoder_config(dataclasses.replace(DEFAULT_POLICY, resolution=(h, w), conv_dtype=args.conv_dtype),
                            args.encoder)  # the policy live runs train
     predictors = (None, None) if args.ground_truth_intentions else untrained_predictors(env, jax.random.PRNGKey(0))
@@ -202,7 +202,7 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
             # the Pallas caster serves any number of GPUs here.
             if kind == "auto" and jax.default_backend() == "gpu":
                 kind = "pallas"
-            cfg = EnvConfig(sensor=SensorConfig(height=h, width=w, kind=kind, **extra), physics=physics)
+            cfg = EnvConfig(sensor=SensorConfig(resolution=(h, w), kind=kind, **extra), physics=physics)
             env = ConavEnv(data, args.split, cfg)
             kind = env.config.sensor.kind  # what "auto" became here
             for batch in args.batch:
@@ -301,7 +301,7 @@ def _bench_eval_agent(args: argparse.Namespace, env):
     from conav_jax.train import goalnav
     from conav_jax.train.intention import IntentionDataConfig
 
-    hw = (env.config.sensor.height, env.config.sensor.width)
+    hw = env.config.sensor.resolution
     config = {"objectgoal-oracle": goalnav.objectnav_model(hw), "objectgoal-predicted": goalnav.objectnav_model(hw),
               "imagegoal": goalnav.imagenav_model(hw)}.get(args.agent, PolicyConfig(resolution=hw))
     return untrained_agent(args.agent, env, config, jax.random.PRNGKey(0), IntentionDataConfig().frames)
@@ -325,7 +325,7 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
     devices = mesh(args)
     check_divisible(args.batch, devices, "--batch")
     tmp = None if args.data is not None else tiny_dataset()
-    env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w, kind=args.sensor)))
+    env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(resolution=(h, w), kind=args.sensor)))
     agent = _bench_eval_agent(args, env)
     res = {"agent": args.agent, "weights": UNTRAINED if args.untrained else "trained" if trained else "none",
            "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind,
@@ -363,7 +363,7 @@ def _run_bench_render(args: argparse.Namespace) -> int:
     tmp = None if args.data is not None else tiny_dataset()
     data = args.data or tmp.name
     for (h, w) in args.resolution:
-        env = ConavEnv(data, args.split, EnvConfig(sensor=SensorConfig(height=h, width=w, kind=args.sensor)))
+        env = ConavEnv(data, args.split, EnvConfig(sensor=SensorConfig(resolution=(h, w), kind=args.sensor)))
         for batch in args.batch:
             res = bench_render(env, batch, args.repeats, args.steps, rays, args.check_batch,
                                None if args.bvh_episode < 0 else args.bvh_episode)
