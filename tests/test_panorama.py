@@ -147,3 +147,13 @@ def test_depths_at_or_beyond_max_depth_pack_to_no_hit(max_depth_m):
     d, i = unpack_depth_id(jnp.asarray(key), max_depth_m)
     np.testing.assert_array_equal(np.asarray(i), [255, -1, -1, -1, -1])
     np.testing.assert_array_equal(np.asarray(d)[1:], max_depth_m)
+
+
+def test_the_panorama_size_is_one_field_read_as_height_and_width():
+    cfg = SensorConfig(resolution=[16, 64])  # as read back from JSON
+    assert cfg.resolution == (16, 64) and (cfg.height, cfg.width) == (16, 64)
+    assert hash(cfg) == hash(SensorConfig(resolution=(16, 64)))  # a static argument of jit
+    with pytest.raises(ValueError, match=r"resolution is \(height, width\)"):
+        SensorConfig(resolution=(16, 64, 3))
+    with pytest.raises(ValueError, match="width a multiple of 8"):
+        SensorConfig(resolution=(16, 60))

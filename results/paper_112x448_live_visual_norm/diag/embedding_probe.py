@@ -10,7 +10,7 @@ lr, hw, lanes, K = float(sys.argv[1]), tuple(map(int, sys.argv[2].split("x"))), 
 data = sys.argv[5] if len(sys.argv) > 5 else "/tmp/demo-out/data"
 cfg = ablation_config(encoder_config(PolicyConfig(image_hw=hw, conv_dtype="bfloat16", visual_norm=len(sys.argv) > 6 and sys.argv[6] == "norm"), "patch"), "all")
 live = LiveConfig(lanes=lanes, window_steps=16, iterations=1000, lr=lr, warmup_iterations=50, remat=True)
-env = ConavEnv(data, "train", EnvConfig(sensor=SensorConfig(height=hw[0], width=hw[1]), end_at_reach=True))
+env = ConavEnv(data, "train", EnvConfig(sensor=SensorConfig(resolution=hw), end_at_reach=True))
 fns, it_fn = make_iteration(env, cfg, live)
 state = fns.init(policy.init(jax.random.PRNGKey(0), cfg))
 # probe observations: first steps of 16 train episodes
