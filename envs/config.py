@@ -100,7 +100,7 @@ class SensorConfig:
     ambient: float = 0.45
 
     def __post_init__(self):
-        if len(self.resolution) != 2:
+        if not isinstance(self.resolution, (tuple, list)) or len(self.resolution) != 2:
             raise ValueError(f"sensor resolution is (height, width) in pixels, got {self.resolution!r}")
         # A hashable (H, W) of ints, however given (a list read from JSON, numpy ints).
         object.__setattr__(self, "resolution", (int(self.resolution[0]), int(self.resolution[1])))

@@ -28,7 +28,7 @@ LEGS = np.array([any(k in JOINT_NAMES[i] + JOINT_NAMES[j] for k in ("hip", "knee
 
 @pytest.fixture(scope="module")
 def hall():
-    return ConavEnv(episodes=make_split([(5.0, 2.0, 0.0)]), config=EnvConfig(sensor=SensorConfig(*HW)))
+    return ConavEnv(episodes=make_split([(5.0, 2.0, 0.0)]), config=EnvConfig(sensor=SensorConfig(resolution=HW)))
 
 
 def _poses(distance_m: float) -> np.ndarray:

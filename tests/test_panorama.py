@@ -153,7 +153,8 @@ def test_the_panorama_size_is_one_field_read_as_height_and_width():
     cfg = SensorConfig(resolution=[16, 64])  # as read back from JSON
     assert cfg.resolution == (16, 64) and (cfg.height, cfg.width) == (16, 64)
     assert hash(cfg) == hash(SensorConfig(resolution=(16, 64)))  # a static argument of jit
-    with pytest.raises(ValueError, match=r"resolution is \(height, width\)"):
-        SensorConfig(resolution=(16, 64, 3))
+    for wrong in ((16, 64, 3), 16):  # SensorConfig(16, 64) reads 16 as the resolution: refused
+        with pytest.raises(ValueError, match=r"resolution is \(height, width\)"):
+            SensorConfig(resolution=wrong)
     with pytest.raises(ValueError, match="width a multiple of 8"):
         SensorConfig(resolution=(16, 60))
