@@ -227,7 +227,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                   "its steps done") + f"; {len(left)} of the stage's {len(st.steps)} to run", flush=True)
             continue
         if st.name == "tables":
-            extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": "x".join(map(str, cfg.resolution)),
+            extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": rp.resolution_name(cfg),
                      "encoder": cfg.encoder, "trainer": cfg.trainer, "split": cfg.eval_split,
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
                      "stage_seconds": rpp.stage_seconds(plan, progress), "command_seconds": progress["commands"],
@@ -268,7 +268,7 @@ def child_command(step, args: argparse.Namespace, cfg) -> list[str]:
     alone (`--run-step`)."""
     from conav_jax.eval import reproduce as rp
 
-    options = ["--preset", cfg.preset, "--seeds", str(cfg.seeds), "--resolution", "x".join(map(str, cfg.resolution)),
+    options = ["--preset", cfg.preset, "--seeds", str(cfg.seeds), "--resolution", rp.resolution_name(cfg),
                "--workers", str(cfg.workers), "--dagger-beta", f"{cfg.dagger_beta:g}", "--encoder", cfg.encoder,
                "--trainer", cfg.trainer, "--eval-split", cfg.eval_split,
                *(("--rows", ",".join(cfg.rows)) if cfg.rows else ())]
