@@ -87,6 +87,9 @@ class SensorConfig:
     pallas_block_w: int = 16
     pallas_num_warps: int = 4
     pallas_interpret: bool = False
+    # With the Pallas caster, colour "instance" materials in a Pallas kernel as well
+    # (envs.panorama_pallas.pallas_shade) rather than in XLA (same colours within float error).
+    pallas_shade: bool = True
     # What RGB shows. "instance": every object instance, the walls and the floor in their own
     # material (conav_jax.data.materials: a colour from a palette shared by all categories and a
     # procedural pattern), the humanoid in per-episode clothing, all Lambertian-shaded

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
+from conav_jax.data.materials import MATERIAL_WIDTH
 from conav_jax.envs.config import SensorConfig, resolve_sensor_kind
 from conav_jax.envs.mjcf import RAY_GEOMGROUP
 
@@ -431,39 +432,83 @@ def _row_block(height: int) -> int:
     return max(r for r in range(1, min(height, SHADE_BLOCK_ROWS) + 1) if height % r == 0)
 
 
-def _normal_components(dirs, hit, safe, geometry: SceneGeometry, n_geoms: int):
-    """The outward unit normal (three (H, W) arrays) at hits `hit` of rays `dirs` on geoms
-    `safe` (H, W): a box's face the ray entered (of the three faces facing the ray, the one whose
-    plane is nearest the hit), a capsule's radial direction from its segment, up elsewhere."""
-    kind = _geom_table(n_geoms, geometry.box_ids, jnp.ones(geometry.box_ids.shape, jnp.int32))
-    kind = kind.at[geometry.capsule_ids].set(2)[safe]
-    lo = _geom_table(n_geoms, geometry.box_ids, geometry.box_lo_m)
-    hi = _geom_table(n_geoms, geometry.box_ids, geometry.box_hi_m)
-    p0 = _geom_table(n_geoms, geometry.capsule_ids, geometry.capsule_p0_m)
-    p1 = _geom_table(n_geoms, geometry.capsule_ids, geometry.capsule_p1_m)
-    gap = [jnp.abs(h - jnp.where(d > 0, lo[safe, k], hi[safe, k])) for k, (d, h) in enumerate(zip(dirs, hit))]
+# Columns of the per-geom shading table (`shading_table`): the material row (MATERIAL_WIDTH
+# values, conav_jax.data.materials), then what the surface normal needs: the geom's kind
+# (SHADE_KIND_*), a box's corners and a capsule's segment. One table, so the XLA colouring and
+# the Pallas kernel read a hit geom's row the same way (a gather by geom id).
+SHADE_KIND_OTHER, SHADE_KIND_BOX, SHADE_KIND_CAPSULE = 0.0, 1.0, 2.0
+_KIND_COL = MATERIAL_WIDTH
+_LO_COL, _HI_COL, _P0_COL, _P1_COL = _KIND_COL + 1, _KIND_COL + 4, _KIND_COL + 7, _KIND_COL + 10
+SHADING_WIDTH = _KIND_COL + 13
+
+
+def shading_table(geometry: SceneGeometry, geom_material: jax.Array) -> jax.Array:
+    """(n_geoms, SHADING_WIDTH) float32 rows by geom id: `geom_material` (n_geoms,
+    MATERIAL_WIDTH), the kind (box, capsule, other: the floor and anything else), the box
+    corners and the capsule segment of `geometry` (zeros where they do not apply)."""
+    n_geoms = geom_material.shape[0]
+    kind = _geom_table(n_geoms, geometry.box_ids, jnp.full(geometry.box_ids.shape, SHADE_KIND_BOX, jnp.float32))
+    kind = kind.at[geometry.capsule_ids].set(SHADE_KIND_CAPSULE)
+    parts = [geom_material.astype(jnp.float32), kind[:, None],
+             _geom_table(n_geoms, geometry.box_ids, geometry.box_lo_m),
+             _geom_table(n_geoms, geometry.box_ids, geometry.box_hi_m),
+             _geom_table(n_geoms, geometry.capsule_ids, geometry.capsule_p0_m),
+             _geom_table(n_geoms, geometry.capsule_ids, geometry.capsule_p1_m)]
+    return jnp.concatenate([x.astype(jnp.float32) for x in parts], axis=-1)
+
+
+def _normal_components(dirs, hit, column):
+    """The outward unit normal (three arrays like `hit`'s) at hits `hit` of rays `dirs` (three
+    arrays each, broadcastable) on the geoms whose shading-table columns `column(k)` returns per
+    pixel: a box's face the ray entered (of the three faces facing the ray, the one whose plane
+    is nearest the hit), a capsule's radial direction from its segment, up elsewhere."""
+    kind = column(_KIND_COL)
+    gap = [jnp.abs(h - jnp.where(d > 0, column(_LO_COL + k), column(_HI_COL + k)))
+           for k, (d, h) in enumerate(zip(dirs, hit))]
     face_x = (gap[0] <= gap[1]) & (gap[0] <= gap[2])
     face_y = ~face_x & (gap[1] <= gap[2])
     face_z = ~face_x & ~face_y
     box_n = [jnp.where(f, -jnp.sign(d), 0.0) for f, d in zip((face_x, face_y, face_z), dirs)]
-    a = [p0[safe, k] for k in range(3)]
-    ba = [p1[safe, k] - a[k] for k in range(3)]
+    a = [column(_P0_COL + k) for k in range(3)]
+    ba = [column(_P1_COL + k) - a[k] for k in range(3)]
     ha = [h - a_ for h, a_ in zip(hit, a)]
     t = jnp.clip(sum(u * v for u, v in zip(ha, ba)) / jnp.maximum(sum(v * v for v in ba), _EPS), 0.0, 1.0)
     radial = [u - t * v for u, v in zip(ha, ba)]
     inv = 1.0 / jnp.maximum(jnp.sqrt(sum(r * r for r in radial)), _EPS)
     up = (0.0, 0.0, 1.0)
-    return [jnp.where(kind == 1, bn, jnp.where(kind == 2, r * inv, u)) for bn, r, u in zip(box_n, radial, up)]
+    return [jnp.where(kind == SHADE_KIND_BOX, bn, jnp.where(kind == SHADE_KIND_CAPSULE, r * inv, u))
+            for bn, r, u in zip(box_n, radial, up)]
 
 
-def surface_normals(dirs: jax.Array, hit_m: jax.Array, ids: jax.Array, geometry: SceneGeometry, n_geoms: int):
-    """Unit outward normals (H, W, 3) at the hits `hit_m` (H, W, 3) of rays `dirs` on geoms `ids`
-    (H, W) of `geometry` (ids below `n_geoms`): a box's face the ray entered (of the three faces
-    facing the ray, the one whose plane is nearest the hit), a capsule's radial direction from its
-    segment, up for the floor and anything else."""
-    safe = jnp.clip(ids, 0, n_geoms - 1)
-    split = lambda v: tuple(v[..., k] for k in range(3))
-    return jnp.stack(_normal_components(split(dirs), split(hit_m), safe, geometry, n_geoms), axis=-1)
+def _table_columns(table: jax.Array, ids: jax.Array):
+    """`column(k)`: column k of `table`'s rows at geom ids `ids` (clipped into the table)."""
+    safe = jnp.clip(ids, 0, table.shape[0] - 1)
+    return lambda k: table[safe, k]
+
+
+def light_unit(cfg: SensorConfig) -> np.ndarray:
+    """SensorConfig's light direction normalised (3,) float32."""
+    light = np.asarray(cfg.light_direction, np.float64)
+    return (light / np.linalg.norm(light)).astype(np.float32)
+
+
+def shade_pixels(cfg: SensorConfig, cam_xyz_m, dirs, depth, ids, column):
+    """RGB (three arrays like `depth`) of hits at `depth` (m) along rays `dirs` (three
+    broadcastable arrays, world frame) from `cam_xyz_m` on geoms `ids` (-1: sky), whose
+    shading-table columns (`shading_table`) `column(k)` returns per pixel: the material's
+    pattern at the hit point, Lambertian-shaded by the surface normal plus the ambient term.
+    The XLA colouring and the Pallas kernel both call it (their `column` differs: an array
+    gather, a load from the kernel's table), so their colours agree."""
+    hit = [cam_xyz_m[k] + depth * dirs[k] for k in range(3)]
+    pattern = jnp.floor(column(6) + 0.5).astype(jnp.int32)  # stored as a float index
+    mix = pattern_mix(tuple(hit), pattern, column(7), column(8))
+    light = light_unit(cfg)
+    normal = _normal_components(dirs, hit, column)
+    lambert = jnp.maximum(sum(float(light[k]) * normal[k] for k in range(3)), 0.0)
+    gain = cfg.ambient + (1.0 - cfg.ambient) * lambert
+    hit_any = ids >= 0
+    return [jnp.where(hit_any, (column(c) + mix * (column(3 + c) - column(c))) * gain, float(SKY_RGB[c]))
+            for c in range(3)]
 
 
 def shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: jax.Array, ids: jax.Array,
@@ -471,10 +516,20 @@ def shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: ja
     """RGB-D (H, W, 4) of a cast (depth (H, W) m, geom ids (H, W), from any caster) from a camera
     at `cam_xyz_m` facing `yaw_rad`: each hit geom's material (`geom_material` (n_geoms,
     MATERIAL_WIDTH) rows by geom id, conav_jax.data.materials) with its pattern at the hit point,
-    Lambertian-shaded by the surface normal (`surface_normals`) under SensorConfig's light plus
-    its ambient term; sky where nothing is hit; depth unchanged. Computed per component from
-    gathers of small per-geom tables, a block of rows at a time (SHADE_BLOCK_ROWS): a batch of
-    thousands of panoramas never holds more than a block's temporaries."""
+    Lambertian-shaded by the surface normal under SensorConfig's light plus its ambient term;
+    sky where nothing is hit; depth unchanged (`shade_pixels`).
+
+    With the Pallas caster (SensorConfig.kind "pallas", or "auto" where it resolves so) and
+    SensorConfig.pallas_shade the colouring runs in a Pallas kernel too (envs.panorama_pallas.pallas_shade): XLA writes the
+    per-pixel gathers of the material and geometry tables to memory rather than fusing them,
+    and the kernel keeps them in registers. Otherwise XLA computes it from gathers of the
+    shading table, a block of rows at a time (SHADE_BLOCK_ROWS): a batch of thousands of
+    panoramas never holds more than a block's temporaries."""
+    table = shading_table(geometry, geom_material)
+    if cfg.pallas_shade and cfg.kind != "reference" and resolve_sensor_kind(cfg.kind) == "pallas":
+        from conav_jax.envs.panorama_pallas import pallas_shade
+
+        return pallas_shade(cfg, cam_xyz_m, yaw_rad, depth, ids, table)
     height, width = depth.shape
     rows = _row_block(height)
     _, el = ray_angles(cfg)
@@ -482,29 +537,12 @@ def shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: ja
 
     def block(args):
         d, i, e = args
-        return _shade_rows(cfg, cam_xyz_m, yaw_rad, d, i, e, geometry, geom_material)
+        rgb = shade_pixels(cfg, cam_xyz_m, _ray_components(cfg, yaw_rad, e), d, i, _table_columns(table, i))
+        return jnp.stack(rgb + [d], axis=-1)
 
     out = jax.lax.map(block, (depth.reshape(n, rows, width), ids.reshape(n, rows, width),
                               jnp.asarray(el).reshape(n, rows)))
     return out.reshape(height, width, 4)
-
-
-def _shade_rows(cfg, cam_xyz_m, yaw_rad, depth, ids, elevation_rad, geometry, geom_material):
-    """`shade` of the rows at `elevation_rad` (R,): depth and ids (R, W) -> RGB-D (R, W, 4)."""
-    dirs = _ray_components(cfg, yaw_rad, elevation_rad)
-    hit = [cam_xyz_m[k] + depth * dirs[k] for k in range(3)]
-    n_geoms = geom_material.shape[0]
-    safe = jnp.clip(ids, 0, n_geoms - 1)
-    mat = lambda k: geom_material[safe, k]
-    mix = pattern_mix(tuple(hit), jnp.round(mat(6)).astype(jnp.int32), mat(7), mat(8))
-    light = np.asarray(cfg.light_direction, np.float64)
-    light = (light / np.linalg.norm(light)).astype(np.float32)
-    normal = _normal_components(dirs, hit, safe, geometry, n_geoms)
-    lambert = jnp.maximum(sum(float(light[k]) * normal[k] for k in range(3)), 0.0)
-    gain = cfg.ambient + (1.0 - cfg.ambient) * lambert
-    hit_any = ids >= 0
-    rgb = [jnp.where(hit_any, (mat(c) + mix * (mat(3 + c) - mat(c))) * gain, SKY_RGB[c]) for c in range(3)]
-    return jnp.stack(rgb + [depth], axis=-1)
 
 
 def front_view(rgbd: jax.Array) -> jax.Array:

@@ -41,6 +41,7 @@ from conav_jax.envs.panorama import (
     floor_row_keys,
     footprint_terms,
     ray_angles,
+    shade_pixels,
     unpack_depth_id,
 )
 
@@ -75,6 +76,17 @@ def capsule_column_mask(cfg: SensorConfig, cam_xyz_m, yaw_rad, geometry: SceneGe
     x = a[None, :] - phi[:, None]
     diff = jnp.abs(jnp.arctan2(jnp.sin(x), jnp.cos(x)))  # wrapped to [0, pi]
     return (inside[:, None] | (diff <= half[:, None])).astype(jnp.float32)
+
+
+def _how_to_run(cfg: SensorConfig):
+    """(interpret, compiler_params) of a pallas_call: Triton needs a GPU, so elsewhere (the CPU
+    tests and benches) the kernel is interpreted."""
+    interpret = cfg.pallas_interpret or jax.default_backend() not in ("gpu", "cuda", "rocm")
+    if interpret:
+        return True, None
+    from jax.experimental.pallas import triton as plgpu
+
+    return False, plgpu.CompilerParams(num_warps=cfg.pallas_num_warps, num_stages=1)
 
 
 def _kernel(n_box: int, n_cap: int, max_depth_m: float,
@@ -162,13 +174,7 @@ def pallas_depth_ids(
     in_specs = [whole(a) for a in args[:4]] + [block, block, whole(args[6]), whole(args[7]), whole(args[8]),
                                                   whole(args[9]), cols(args[10]), cols(args[11]), cols(args[12]),
                                                   whole(args[13]), whole(args[14])]
-    # Triton needs a GPU: elsewhere (the CPU tests and benches) the kernel is interpreted.
-    interpret = cfg.pallas_interpret or jax.default_backend() not in ("gpu", "cuda", "rocm")
-    compiler_params = None
-    if not interpret:
-        from jax.experimental.pallas import triton as plgpu
-
-        compiler_params = plgpu.CompilerParams(num_warps=cfg.pallas_num_warps, num_stages=1)
+    interpret, compiler_params = _how_to_run(cfg)
     keys = pl.pallas_call(
         functools.partial(_kernel, n_box, n_cap, maxd),
         out_shape=jax.ShapeDtypeStruct((hp, wp), jnp.uint32),
@@ -180,3 +186,65 @@ def pallas_depth_ids(
         name="panorama_caster",
     )(*args)
     return unpack_depth_id(keys[:h, :w], maxd)
+
+
+# -- shading (SensorConfig.materials "instance") ------------------------------------------------
+# Pixels per shading program: rows x columns, each the largest power of two dividing the image's
+# size up to these caps, so blocks tile the image exactly (no padding pass in XLA).
+SHADE_BLOCK_ROWS, SHADE_BLOCK_COLS = 16, 64
+
+
+def _pow2_divisor(n: int, cap: int) -> int:
+    """The largest power of two dividing `n`, at most `cap`."""
+    p = 1
+    while p * 2 <= cap and n % (p * 2) == 0:
+        p *= 2
+    return p
+
+
+def _shade_kernel(cfg: SensorConfig, cam_ref, ce_ref, se_ref, ca_ref, sa_ref, table_ref, depth_ref, ids_ref,
+                  out_ref):
+    depth, ids = depth_ref[...], ids_ref[...]
+    ce, se = ce_ref[...][:, None], se_ref[...][:, None]
+    dirs = (ce * ca_ref[...][None, :], ce * sa_ref[...][None, :], se)
+    n_geoms = table_ref.shape[0]
+    safe = jnp.clip(ids, 0, n_geoms - 1)
+    rgb = shade_pixels(cfg, [cam_ref[k] for k in range(3)], dirs, depth, ids, lambda k: table_ref[safe, k])
+    for c in range(3):
+        out_ref[:, :, c] = rgb[c]
+    out_ref[:, :, 3] = depth
+
+
+def pallas_shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: jax.Array, ids: jax.Array,
+                 table: jax.Array) -> jax.Array:
+    """`envs.panorama.shade` as a Pallas kernel: RGB-D (H, W, 4) of a cast (depth (H, W) m, geom
+    ids (H, W)) from a camera at `cam_xyz_m` facing `yaw_rad`, coloured from the shading table
+    `table` (n_geoms, SHADING_WIDTH; envs.panorama.shading_table). Each program colours one
+    block of pixels, loading its geoms' rows from the table (a gather the kernel keeps in
+    registers), with `shade_pixels`, the XLA colouring's own per-pixel function."""
+    h, w = depth.shape
+    rb, cb = _pow2_divisor(h, SHADE_BLOCK_ROWS), _pow2_divisor(w, SHADE_BLOCK_COLS)
+    az, el = ray_angles(cfg)
+    a = yaw_rad + jnp.asarray(az)
+    e = jnp.asarray(el)
+    # Whole-array blocks need power-of-two sizes: the table padded with zero rows and columns
+    # (a hit's id is always a real geom's; the sky's -1 is clipped to row 0, as in XLA).
+    n_geoms, width = table.shape
+    table = _pad(table, (_pow2(n_geoms), _pow2(width)), 0.0)
+    cam = _pad(jnp.asarray(cam_xyz_m, jnp.float32), (4,), 0.0)
+    args = [cam, jnp.cos(e), jnp.sin(e), jnp.cos(a), jnp.sin(a), table, depth, ids.astype(jnp.int32)]
+    whole = lambda x: pl.BlockSpec(x.shape, lambda i, j: (0,) * x.ndim)
+    rows = pl.BlockSpec((rb,), lambda i, j: (i,))
+    cols = pl.BlockSpec((cb,), lambda i, j: (j,))
+    pixels = pl.BlockSpec((rb, cb), lambda i, j: (i, j))
+    interpret, compiler_params = _how_to_run(cfg)
+    return pl.pallas_call(
+        functools.partial(_shade_kernel, cfg),
+        out_shape=jax.ShapeDtypeStruct((h, w, 4), jnp.float32),
+        grid=(h // rb, w // cb),
+        in_specs=[whole(cam), rows, rows, cols, cols, whole(table), pixels, pixels],
+        out_specs=pl.BlockSpec((rb, cb, 4), lambda i, j: (i, j, 0)),
+        interpret=interpret,
+        compiler_params=compiler_params,
+        name="panorama_shade",
+    )(*args)

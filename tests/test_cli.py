@@ -125,6 +125,30 @@ def test_bench_eval_untrained_refuses_a_run_and_accepts_agents_outside_the_regis
     assert seen == ["mypkg.agents:make"] and "built here" in capsys.readouterr().err
 
 
+def test_bench_sim_times_each_material_and_passes_the_shading_switch(monkeypatch, capsys):
+    from conav_jax.eval import cli
+
+    seen = []
+
+    class Env:
+        def __init__(self, data, split, config):
+            self.config = config
+
+    def bench_sim(env, batch, steps, repeats, what, mesh, materials):
+        seen.append((materials, env.config.sensor.pallas_shade, env.config.sensor.kind))
+        return {"materials": materials}
+
+    monkeypatch.setattr("conav_jax.envs.ConavEnv", Env)
+    monkeypatch.setattr("conav_jax.envs.bench.bench_sim", bench_sim)
+    base = ["bench", "sim", "--data", "d", "--devices", "1", "--sensor", "pallas", "--json"]
+    assert cli.main([*base, "--materials", "flat", "instance"]) == 0
+    assert cli.main([*base, "--no-pallas-shade"]) == 0
+    assert seen == [("flat", True, "pallas"), ("instance", True, "pallas"), ("instance", False, "pallas")]
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [x["materials"] for x in lines] == ["flat", "instance", "instance"]
+    assert [x["pallas"]["shade"] for x in lines] == [True, True, False]
+
+
 def test_train_live_builds_its_configs_from_flags_and_passes_the_predictors(tmp_path, monkeypatch, capsys):
     from conav_jax.eval import cli
     from conav_jax.train.live import LiveConfig

@@ -3,6 +3,8 @@ compiled on a GPU) against each other and against mujoco.mjx.ray: through ConavE
 hand-built hall with the humanoid close to the camera, around it and inside it, and on a
 SceneGeometry built by hand, with and without capsules, next to an MJCF model of the same shapes."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -210,3 +212,19 @@ def test_caster_for_picks_the_kind_and_refuses_the_reference():
     assert caster_for("auto") in (fast_depth_ids, pallas_depth_ids)
     with pytest.raises(ValueError, match="mjx.ray"):
         caster_for("reference")
+
+
+def test_pallas_colours_in_a_kernel_of_its_own_with_the_xla_colours():
+    geometry = _geometry(True)
+    cfg = SensorConfig(**GEOMETRY_RES, kind="pallas", pallas_block_w=8,
+                       pallas_interpret=jax.default_backend() != "gpu")
+    xla = dataclasses.replace(cfg, pallas_shade=False)
+    for x, y, z, yaw in CAMERAS[:2]:
+        cam = jnp.array([x, y, z], jnp.float32)
+        depth, ids = pallas_depth_ids(cfg, cam, jnp.float32(yaw), geometry)
+        colour = lambda c: shade(c, cam, jnp.float32(yaw), depth, ids, geometry, MATERIALS)
+        assert "panorama_shade" in str(jax.make_jaxpr(lambda: colour(cfg))())
+        assert "panorama_shade" not in str(jax.make_jaxpr(lambda: colour(xla))())
+        kernel, reference = np.asarray(jax.jit(lambda: colour(cfg))()), np.asarray(jax.jit(lambda: colour(xla))())
+        np.testing.assert_array_equal(kernel[..., 3], np.asarray(depth))
+        assert np.abs(kernel - reference).max() < 1e-5

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 
 from conav_jax.eval.cli.args import (
@@ -25,7 +26,7 @@ from conav_jax.eval.cli.args import (
 def add(sub) -> None:
     from conav_jax.models.policy import CONV_DTYPES, DEFAULT_ENCODER, ENCODERS
     from conav_jax.envs.agents.registry import AGENTS
-    from conav_jax.envs.config import SENSOR_KINDS
+    from conav_jax.envs.config import MATERIALS, SENSOR_KINDS
     from conav_jax.eval.bench import UNTRAINED_AGENTS
     from conav_jax.train.bench import DEFAULT_BATCH, SETUPS
 
@@ -49,6 +50,10 @@ def add(sub) -> None:
                    "--compile-cache off)")
     p.add_argument("--pallas-block-w", type=int, default=None, help="pallas caster: columns per program")
     p.add_argument("--pallas-num-warps", type=int, default=None, help="pallas caster: warps per program")
+    p.add_argument("--no-pallas-shade", dest="pallas_shade", action="store_false",
+                   help="pallas caster: colour instance materials in XLA instead of a Pallas kernel")
+    p.add_argument("--materials", nargs="+", choices=MATERIALS, default=["instance"],
+                   help="surfaces to time: per-instance materials with shading, or one flat colour per category")
     p.add_argument("--physics", type=parse_physics_override, nargs="+", default=[], metavar="NAME=VALUE",
                    help="PhysicsConfig fields to override, e.g. timestep_s=0.02 solver_iterations=2 substep_unroll=10")
     p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
@@ -198,6 +203,7 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
         for kind in kinds:
             extra = {name: getattr(args, name) for name in ("fast_min", "pallas_block_w", "pallas_num_warps")
                      if getattr(args, name) is not None}
+            extra["pallas_shade"] = args.pallas_shade
             # The benchmark steps each device's lanes on that device (envs.bench.step_lanes), so
             # the Pallas caster serves any number of GPUs here.
             if kind == "auto" and jax.default_backend() == "gpu":
@@ -205,21 +211,23 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
             cfg = EnvConfig(sensor=SensorConfig(resolution=(h, w), kind=kind, **extra), physics=physics)
             env = ConavEnv(data, args.split, cfg)
             kind = env.config.sensor.kind  # what "auto" became here
-            for batch in args.batch:
+            for batch, materials in itertools.product(args.batch, args.materials):
                 res = {"sensor": kind, "resolution": f"{h}x{w}", "physics_impl": env.config.physics.impl,
-                       **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh)}
+                       **bench_sim(env, batch, args.steps, args.repeats, args.what, mesh, materials)}
                 if args.physics:
                     res["physics_overrides"] = dict(args.physics)
                 if kind == "fast":
                     res["fast_min"] = env.config.sensor.fast_min
                 if kind == "pallas":
-                    res["pallas"] = {"block_w": cfg.sensor.pallas_block_w, "num_warps": cfg.sensor.pallas_num_warps}
+                    res["pallas"] = {"block_w": cfg.sensor.pallas_block_w, "num_warps": cfg.sensor.pallas_num_warps,
+                                     "shade": cfg.sensor.pallas_shade}
                 if args.json or args.what in ("breakdown", "compile"):
                     print(json.dumps(res), flush=True)
                 else:
                     rate = res.get("env_steps_per_s", res.get("frames_per_s"))
                     unit = "env steps/s" if args.what == "step" else "panoramas/s"
-                    print(f"{res['device']} sensor={kind} physics={res['physics_impl']} res={h}x{w} batch={batch}: "
+                    print(f"{res['device']} sensor={kind} physics={res['physics_impl']} res={h}x{w} batch={batch} "
+                          f"materials={res['materials']}: "
                           f"{rate:,.0f} {unit} (median of "
                           f"{args.repeats}), compile {res['compile_and_first_call_s']} s, peak mem {res['peak_bytes_in_use']}",
                           flush=True)
