@@ -190,8 +190,9 @@ def pallas_depth_ids(
 
 # -- shading (SensorConfig.materials "instance") ------------------------------------------------
 # Pixels per shading program: rows x columns, each the largest power of two dividing the image's
-# size up to these caps, so blocks tile the image exactly (no padding pass in XLA).
-SHADE_BLOCK_ROWS, SHADE_BLOCK_COLS = 16, 64
+# size up to these caps, so blocks tile the image exactly (no padding pass in XLA). Short, wide
+# blocks ran fastest of those timed (BENCHMARKS.md).
+SHADE_BLOCK_ROWS, SHADE_BLOCK_COLS = 2, 64
 
 
 def _pow2_divisor(n: int, cap: int) -> int:
