@@ -1,25 +1,27 @@
 """`conav reproduce`'s plan: the paper's Tables 2 and 3 as resumable stages of declared steps.
 
-config -> `plan_stages` (each stage: its steps, each declared as data: a name, the training seed
-it belongs to, the directories it reads and writes under OUT, and the `conav` command it runs;
-and the files that show the stage is done) -> one dependency graph (eval.reproduce_progress
-`prerequisites`, from the declared reads and writes) orders them, for the command line's runner
-in this process and for `run_parallel`'s processes alike; progress.json records each step by
-name (eval.reproduce_progress), so a stage cut short resumes (every training run resumes exactly from its checkpoints) ->
-results and tables (eval.reproduce_tables); several steps at once and the pack that carries a
-run to another machine (eval.reproduce_run). Nothing here imports the training code: a step's
-call is a `conav` command. The CoNav rows are trained offline (`conav train policy`, recorded
-windows) or live (`conav train live`, with the ground-truth rows; `ReproduceConfig.trainer`), and
-evaluated on val or, to choose budgets, on minival (`ReproduceConfig.eval_split`).
+config -> `plan_stages` (each stage: its steps, each a Python call declared as data: the library
+function of its kind and its configs, the directories it reads and writes under OUT, the
+training seed it belongs to (eval.reproduce_steps); and the files that show the stage is done)
+-> one dependency graph (eval.reproduce_progress `prerequisites`, from the declared reads and
+writes) orders them, for the command line's runner in this process and for `run_parallel`'s
+processes alike; progress.json records each step by its identity, its kind and the directory it
+writes, so a stage cut short resumes (every training run resumes exactly from its checkpoints)
+-> results and tables (eval.reproduce_tables); several steps at once and the pack that carries a
+run to another machine (eval.reproduce_run). Planning imports the configs, not the training
+code. The CoNav rows are trained offline (train.policy, recorded windows) or live (train.live,
+with the ground-truth rows; `ReproduceConfig.trainer`), and evaluated on val or, to choose
+budgets, on minival (`ReproduceConfig.eval_split`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
+from conav_jax.eval.reproduce_steps import Call, Stage, Step
 from conav_jax.models.policy import DEFAULT_ENCODER, ENCODERS
 
 STAGES = ("generate", "predictors", "baselines", "bc", "dagger", "eval", "tables", "pack")
@@ -37,16 +39,17 @@ EVAL_SPLITS = ("val", "minival")  # the reported split, and the one choices are 
 INTENTION_OVERRIDES = ("intention_steps", "intention_batch", "intention_lr")
 LIVE_OVERRIDES = ("live_lanes", "live_window_steps", "live_iterations", "live_lr")
 BUDGET_OVERRIDES = INTENTION_OVERRIDES + LIVE_OVERRIDES
-# Panoramas of at least this many pixels train the CoNav policy with `--remat`: at 112x448 it ran
+# Panoramas of at least this many pixels train the CoNav policy with remat: at 112x448 it ran
 # 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
-# smaller panoramas keep the plain update (their runs' commands as made).
+# smaller panoramas keep the plain update (their runs' configs as made).
 REMAT_FROM_PIXELS = 112 * 448
-# At such panoramas each DAgger round records this many of the train episodes (`--dagger-episodes`),
+# At such panoramas each DAgger round records this many of the train episodes (ImitationConfig's
+# dagger_episodes),
 # a subset of its own: the policy's episodes run about 480 steps (its AS on val) where the
 # expert's run 152, some 17 windows of 12 MB each, so 64 hold about 13 GB a round beside BC's
 # 24 GB on the GPU (the host holds them twice while they are joined); all 400 would be about
-# 70 GB a round (estimates from the window size). With the expert mixed in (`--dagger-beta 0.5`)
-# a round of 64 recorded 307 and 370 windows (H100, 112x448), about 4 GB: `--dagger-episodes`
+# 70 GB a round (estimates from the window size). With the expert mixed in (`dagger_beta` 0.5)
+# a round of 64 recorded 307 and 370 windows (H100, 112x448), about 4 GB: `dagger_episodes`
 # asks for more.
 LARGE_PANORAMA_DAGGER_EPISODES = 64
 
@@ -55,8 +58,8 @@ class Budget:
     """Training budgets of one preset (updates, batches, rounds), chosen on minival."""
 
     intention_steps: int = 6000
-    # The intention predictor's samples per update and peak learning rate (None: `conav train
-    # intention`'s defaults, the published runs' commands).
+    # The intention predictor's samples per update and peak learning rate (None:
+    # train.intention.INTENTION_TRAIN's, the published runs').
     intention_batch: int | None = None
     intention_lr: float | None = None
     trajectory_steps: int = 3000
@@ -73,12 +76,12 @@ class Budget:
     # reaches its goal, so its episodes run to the end: about 18 windows each, 1 MB a window
     # at 32x128 (the paper preset's 1,000 episodes: some 18 GB a round on the device).
     baseline_episodes: int | None = None
-    # Updates between validations on minival while training (None: the commands' default, 500);
+    # Updates between validations on minival while training (None: train.policy.POLICY_TRAIN's);
     # the paper preset's minival is 1,000 episodes, so it validates less often.
     val_every: int | None = None
     eval_batch: int = 2048  # evaluation lanes
-    # The CoNav policy's CNN dtype (`conav train policy --conv-dtype`): bfloat16 runs the 112x448
-    # update 1.9x faster on an H100 (BENCHMARKS.md); float32 keeps the small runs' commands.
+    # The CoNav policy's CNN dtype (PolicyConfig.conv_dtype): bfloat16 runs the 112x448 update
+    # 1.9x faster on an H100 (BENCHMARKS.md); float32 keeps the small runs' configs.
     policy_conv_dtype: str = "float32"
     # The live trainer (train.live.LiveConfig): lanes, window steps and updates of every CoNav run,
     # its peak learning rate and warm-up; its DAgger row's beta falls linearly from 1 to the
@@ -100,7 +103,7 @@ BUDGETS = {
     "small": Budget(policy_episodes=500, eval_batch=512, live_lanes=1024, live_iterations=600,
                     live_warmup_iterations=30),
     # Live: 1,024 lanes of 16 steps, 1,000 updates: 16.4M env timesteps, some 1.3 passes over the
-    # 20,293 train episodes; with the policy's visual norm (`conav train live`'s default) it
+    # 20,293 train episodes; with the policy's visual norm (train.live.DEFAULT_POLICY's) it
     # trains (results/paper_112x448_live_visual_norm/README.md). Still to be chosen on minival.
     "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16", baseline_episodes=1000, val_every=1000,
                     live_lanes=1024, live_window_steps=16, live_iterations=1000, live_warmup_iterations=50),
@@ -117,22 +120,22 @@ class ReproduceConfig:
     resolution: tuple[int, int] = (112, 448)  # the panorama every agent reads (the paper's)
     data_seed: int = 0
     workers: int = 2  # dataset generation processes
-    # The expert's share in the DAgger rounds (`conav train policy --dagger-beta`): 0, the policy
+    # The expert's share in the DAgger rounds (ImitationConfig.dagger_beta): 0, the policy
     # alone (runs/dagger_s*); any other value trains and evaluates runs of its own name beside them.
     dagger_beta: float = 0.0
-    # DAgger rounds after BC (`conav train policy --dagger-rounds`); None: the preset's budget. Other
+    # DAgger rounds after BC (ImitationConfig.dagger_rounds); None: the preset's budget. Other
     # counts, like other shares, train and evaluate runs of their own name.
     dagger_rounds: int | None = None
-    # Train episodes each DAgger round records (`conav train policy --dagger-episodes`); None: the
+    # Train episodes each DAgger round records (ImitationConfig.dagger_episodes); None: the
     # resolution's default (LARGE_PANORAMA_DAGGER_EPISODES at >= 112x448, else all the policy's).
     # Another count, like other shares and rounds, trains and evaluates runs of its own name.
     dagger_episodes: int | None = None
-    # The CoNav policy's panorama encoder (`conav train policy --encoder`, PolicyConfig's
-    # ENCODERS) in every BC and DAgger run; one OUT directory holds one encoder, as it holds one
-    # resolution. The default's commands are those of the runs in results/.
+    # The CoNav policy's panorama encoder (models.policy.ENCODERS) in every BC and DAgger run;
+    # one OUT directory holds one encoder, as it holds one resolution. The default's configs are
+    # those of the runs in results/.
     encoder: str = DEFAULT_ENCODER
-    # The intention predictor's training and inference options (`conav train intention --mirror`,
-    # `--seen-objects`); off: the commands of the runs in results/.
+    # The intention predictor's training and inference options (IntentionDataConfig.mirror,
+    # PerceiverConfig.seen_objects); off: the configs of the runs in results/.
     mirror: bool = False
     seen_objects: bool = False
     # How the CoNav rows are trained (TRAINERS). "live" adds the ground-truth rows
@@ -279,39 +282,6 @@ def dagger_variant(row: str) -> tuple[float, int | None, int | None] | None:
 _DAGGER_ROW = re.compile(r"dagger(?:_beta([0-9.e+-]+))?(?:_rounds([0-9]+))?(?:_episodes([0-9]+))?")
 
 
-@dataclass(frozen=True)
-class Step:
-    """One unit of work, declared: `name` (its identity in progress.json: the command's words and
-    the directory it writes, relative to OUT, e.g. "train policy runs/bc_all_s0"), the training
-    `seed` it belongs to (None: every seed's), the directories it `reads` and `writes` (relative
-    to OUT), and its call, `argv`: the `conav` command it runs (("@copy", SRC, DST) copies a run
-    directory: DAgger continues a copy of the BC run)."""
-
-    name: str
-    argv: tuple[str, ...]
-    writes: str
-    reads: tuple[str, ...] = ()
-    seed: int | None = None
-
-    @property
-    def is_copy(self) -> bool:
-        return self.argv[0] == "@copy"
-
-
-@dataclass(frozen=True)
-class Stage:
-    """One stage: its steps, in order, and the files that show it is done."""
-
-    name: str
-    steps: tuple[Step, ...]
-    outputs: tuple[Path, ...] = field(default=())
-
-    @property
-    def commands(self) -> tuple[tuple[str, ...], ...]:
-        """The steps' calls, in order."""
-        return tuple(s.argv for s in self.steps)
-
-
 def resolution_name(cfg: ReproduceConfig) -> str:
     """The run's panorama as the command line writes it: "112x448"."""
     return "x".join(map(str, cfg.resolution))
@@ -319,68 +289,69 @@ def resolution_name(cfg: ReproduceConfig) -> str:
 
 def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     """Every stage of the pipeline for `cfg`, in order."""
-    b, out, res = cfg.budget, Path(cfg.out), resolution_name(cfg)
+    from conav_jax.data.presets import preset
+    from conav_jax.envs.human_crop import default_crop_hw
+    from conav_jax.models.perceiver import PerceiverConfig
+    from conav_jax.models.trajectory import TrajectoryConfig
+    from conav_jax.train.goalnav import imagenav_model, objectnav_model
+    from conav_jax.train.intention import INTENTION_TRAIN, IntentionDataConfig
+    from conav_jax.train.policy import POLICY_TRAIN, ImitationConfig
+    from conav_jax.train.trajectory import TRAJECTORY_TRAIN
+
+    b, out, res = cfg.budget, Path(cfg.out), tuple(cfg.resolution)
     data, runs, evals = out / "data", out / "runs", out / cfg.eval_dir
-    quiet = ("--no-progress",)
-    validated = quiet + (("--val-every", str(b.val_every)) if b.val_every else ())  # the imitation runs
     intention, trajectory = runs / "intention", runs / "trajectory"
-    large = cfg.large
-    encoder = ("--encoder", cfg.encoder) if cfg.encoder != DEFAULT_ENCODER else ()
-    conv_dtype = ("--conv-dtype", b.policy_conv_dtype) if b.policy_conv_dtype != "float32" else ()
-    network = (*conv_dtype, *encoder, *(("--remat",) if large else ()))  # the CoNav policy's CNN
-    subset = ("--dagger-episodes", str(cfg.default_dagger_episodes)) if large else ()
+
+    def step(kind: str, writes: Path, reads: tuple[Path, ...] = (data,), seed: int | None = None, **kwargs) -> Step:
+        return Step(Call(kind, kwargs), str(writes.relative_to(out)), tuple(str(r.relative_to(out)) for r in reads), seed)
+
+    # The imitation runs' rounds: the preset's validation cadence where it has one.
+    rounds = dataclasses.replace(POLICY_TRAIN, **({"val_every": b.val_every} if b.val_every else {}))
+    schedule = {k: v for k, v in (("batch", b.intention_batch), ("lr", b.intention_lr)) if v is not None}
+    stages = [
+        Stage("generate", (step("generate", data, reads=(), cfg=preset(cfg.preset, cfg.data_seed), out_dir=str(data),
+                                workers=cfg.workers),), (data / "manifest.json",)),
+        Stage("predictors", (
+            step("train intention", intention, data_dir=str(data), run_dir=str(intention),
+                 cfg=dataclasses.replace(INTENTION_TRAIN, steps=b.intention_steps, **schedule),
+                 # crops of the panorama the agents render (envs.human_crop)
+                 model=PerceiverConfig(image_hw=default_crop_hw(res), seen_objects=cfg.seen_objects),
+                 data=IntentionDataConfig(resolution=res, mirror=cfg.mirror), progress=False),
+            step("train trajectory", trajectory, data_dir=str(data), run_dir=str(trajectory),
+                 cfg=dataclasses.replace(TRAJECTORY_TRAIN, steps=b.trajectory_steps), model=TrajectoryConfig(),
+                 progress=False),
+        ), (intention / "ckpt_{:08d}.npz".format(b.intention_steps),
+            trajectory / "ckpt_{:08d}.npz".format(b.trajectory_steps))),
+    ]
     # The learned baselines share the policy's encoder. At large panoramas they also record as
     # many train episodes as the policy (the preset's 1,000 would be some 50 GB of BC windows on
     # the GPU, an estimate), with its dtype, remat and the default DAgger subsets (reproduce's
-    # `--dagger-episodes` changes the CoNav DAgger rows' alone); smaller panoramas keep the
-    # commands their runs were made with.
-    episodes = b.policy_episodes if large and b.policy_episodes else b.baseline_episodes
-    baseline = (*(("--episodes", str(episodes)) if episodes else ()), *((*network, *subset) if large else encoder))
-    def step(argv: tuple[str, ...], writes: Path, reads: tuple[Path, ...] = (data,), seed: int | None = None) -> Step:
-        """The step of `argv`, named by its command words and the directory it writes."""
-        words = "copy" if argv[0] == "@copy" else " ".join(w for w in argv[:2] if not w.startswith("-"))
-        rel = str(writes.relative_to(out))
-        return Step(f"{words} {rel}", tuple(argv), rel, tuple(str(r.relative_to(out)) for r in reads), seed)
-
-    stages = [
-        Stage("generate", (step(("generate", "--preset", cfg.preset, "--out", str(data), "--seed", str(cfg.data_seed),
-                                 "--workers", str(cfg.workers)), data, reads=()),), (data / "manifest.json",)),
-        Stage("predictors", (
-            step(("train", "intention", "--data", str(data), "--out", str(intention), "--steps", str(b.intention_steps),
-                  *(("--batch", str(b.intention_batch)) if b.intention_batch is not None else ()),
-                  *(("--lr", f"{b.intention_lr:g}") if b.intention_lr is not None else ()),
-                  "--resolution", res, *(("--mirror",) if cfg.mirror else ()),
-                  *(("--seen-objects",) if cfg.seen_objects else ()), *quiet),
-                 intention),  # crops of the panorama the agents render (envs.human_crop)
-            step(("train", "trajectory", "--data", str(data), "--out", str(trajectory), "--steps",
-                  str(b.trajectory_steps), *quiet), trajectory),
-        ), (intention / "ckpt_{:08d}.npz".format(b.intention_steps),
-            trajectory / "ckpt_{:08d}.npz".format(b.trajectory_steps))),
-        Stage("baselines", tuple(
-            step(("train", kind, "--data", str(data), "--out", str(runs / kind), "--resolution", res,
-                  "--steps", str(b.baseline_steps), "--dagger-rounds", str(b.baseline_dagger_rounds), *baseline,
-                  *validated), runs / kind) for kind in ("objectnav", "imagenav")
-        ), (runs / "objectnav" / "log.jsonl", runs / "imagenav" / "log.jsonl")),
-    ]
+    # `dagger_episodes` changes the CoNav DAgger rows' alone); smaller panoramas keep the
+    # configs their runs were made with.
+    net = _network(cfg, b.policy_conv_dtype if cfg.large else "float32")
+    imitation = ImitationConfig(dagger_rounds=b.baseline_dagger_rounds, dagger_episodes=cfg.default_dagger_episodes,
+                                episodes=b.policy_episodes if cfg.large and b.policy_episodes else b.baseline_episodes)
+    stages.append(Stage("baselines", tuple(
+        step(f"train {kind}", runs / kind, data_dir=str(data), run_dir=str(runs / kind),
+             cfg=dataclasses.replace(rounds, steps=b.baseline_steps), model=model, imitation=imitation,
+             remat=cfg.large, progress=False)
+        for kind, model in (("objectnav", objectnav_model(res, base=net)), ("imagenav", imagenav_model(res, net)))
+    ), (runs / "objectnav" / "log.jsonl", runs / "imagenav" / "log.jsonl")))
     predictors = (data, intention, trajectory)
-    policy = ("--data", str(data), "--intention", str(intention), "--trajectory", str(trajectory),
-              "--train-intentions", "predicted", "--resolution", res, "--steps", str(b.policy_steps),
-              "--batch", str(b.policy_batch), *(("--episodes", str(b.policy_episodes)) if b.policy_episodes else ()),
-              *network, *validated)
-    common = ("--data", str(data), "--split", cfg.eval_split, "--batch", str(b.eval_batch), "--resolution", res)
 
-    def evaluation(agent: str, target: Path, run: Path | None = None, seed: int | None = None,
+    def evaluation(agents: str, target: Path, run: Path | None = None, seed: int | None = None,
                    reads: tuple[Path, ...] = (), ground_truth: bool = False) -> Step:
-        checkpoint = ("--checkpoint", str(run)) if run is not None else ()
-        extra = ("--intention", str(intention)) if intention in reads else ()
-        extra += ("--ground-truth-intentions",) if ground_truth else ()
-        return step(("eval", *common, "--agent", agent, *checkpoint, *extra, "--out", str(target)), target,
-                    (data, *((run,) if run is not None else ()), *reads), seed)
+        intentions = {"ground_truth": True} if ground_truth else {"intention_run": str(intention)} if intention in reads else {}
+        return step("eval", target, (data, *((run,) if run is not None else ()), *reads), seed, data=str(data),
+                    split=cfg.eval_split, agents=tuple(agents.split(",")), out=str(target),
+                    checkpoint=None if run is None else str(run), intention_kwargs=intentions, batch=b.eval_batch,
+                    resolution=res, progress=True)
 
     if cfg.trainer == "live":
-        stages += _live_stages(cfg, step, evaluation, predictors, network)
+        stages += _live_stages(cfg, step, evaluation, predictors)
     else:
-        stages += _offline_stages(cfg, step, evaluation, policy, predictors)
+        stages += _offline_stages(cfg, step, evaluation, dataclasses.replace(rounds, steps=b.policy_steps,
+                                                                              batch=b.policy_batch), predictors)
     evals_ = [evaluation("random,follower,pioneer,pioneer-drive,objectgoal-planner,expert", evals / "scripted"),
               evaluation("objectgoal-oracle", evals / "objectgoal-oracle", runs / "objectnav"),
               evaluation("objectgoal-predicted", evals / "objectgoal-predicted", runs / "objectnav", reads=(intention,)),
@@ -396,65 +367,84 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     return stages
 
 
-def _offline_stages(cfg: ReproduceConfig, step, evaluation, policy: tuple[str, ...], predictors) -> list[Stage]:
-    """The bc and dagger stages of the offline trainer (train.policy)."""
+def _network(cfg: ReproduceConfig, conv_dtype: str, visual_norm: bool | None = None):
+    """The CoNav policy's network at the run's panorama: `cfg.encoder`, convolutions in
+    `conv_dtype`, `visual_norm` (None: PolicyConfig's)."""
+    from conav_jax.models.policy import PolicyConfig, encoder_config
+
+    norm = PolicyConfig.visual_norm if visual_norm is None else visual_norm
+    return encoder_config(PolicyConfig(resolution=tuple(cfg.resolution), conv_dtype=conv_dtype, visual_norm=norm),
+                          cfg.encoder)
+
+
+def _offline_stages(cfg: ReproduceConfig, step, evaluation, schedule, predictors) -> list[Stage]:
+    """The bc and dagger stages of the offline trainer (train.policy); `schedule`: BC's
+    TrainConfig, `predictors`: the data and predictor runs."""
+    from conav_jax.models.policy import ablation_config
+    from conav_jax.train.policy import ImitationConfig
+
     b, runs, evals = cfg.budget, Path(cfg.out) / "runs", Path(cfg.out) / cfg.eval_dir
+    data, intention, trajectory = predictors
+    net = _network(cfg, b.policy_conv_dtype)
+    imitation = ImitationConfig(train_intentions="predicted", episodes=b.policy_episodes)
+    policy = dict(data_dir=str(data), intention_run=str(intention), trajectory_run=str(trajectory), remat=cfg.large,
+                  progress=False)
     # Each BC run, then its evaluation on val: an evaluated run needs no checkpoint to travel in a
     # pack (at 112x448 a policy's is 15 MB, the pack's limit four of them) but the one DAgger continues.
     bc = []
     for s in range(cfg.seeds):
         for a in cfg.table3_rows:
             run = runs / f"bc_{a}_s{s}"
-            bc.append(step(("train", "policy", *policy, "--ablation", a, "--seed", str(s), "--out", str(run)), run,
-                           predictors, s))
+            bc.append(step("train policy", run, predictors, s, **policy, run_dir=str(run),
+                           cfg=dataclasses.replace(schedule, seed=s), model=ablation_config(net, a), imitation=imitation))
             bc.append(evaluation("conav", evals / BC_ROW_EVAL.format(row=a, seed=s), run, s))
     dagger, name = [], cfg.dagger
-    mixed = ("--dagger-beta", f"{cfg.dagger_beta:g}") if cfg.dagger_beta else ()
+    rounds = dataclasses.replace(imitation, dagger_rounds=cfg.rounds, dagger_steps=b.dagger_steps,
+                                 dagger_beta=cfg.dagger_beta, dagger_episodes=cfg.round_episodes)
     for s in range(cfg.seeds):  # DAgger continues a copy of the seed's BC run (all inputs)
         run, start = runs / f"{name}_s{s}", runs / f"bc_all_s{s}"
-        dagger.append(step(("@copy", str(start), str(run)), run, (start,), s))
-        dagger.append(step(("train", "policy", *policy, "--ablation", "all", "--seed", str(s), "--dagger-rounds",
-                            str(cfg.rounds), "--dagger-steps", str(b.dagger_steps), *mixed,
-                            *(("--dagger-episodes", str(cfg.round_episodes)) if cfg.round_episodes else ()),
-                            "--out", str(run)), run, predictors, s))
+        dagger.append(step("copy", run, (start,), s, source=str(start), target=str(run)))
+        dagger.append(step("train policy", run, predictors, s, **policy, run_dir=str(run),
+                           cfg=dataclasses.replace(schedule, seed=s), model=ablation_config(net, "all"),
+                           imitation=rounds))
     return [Stage("bc", tuple(bc), tuple(evals / BC_ROW_EVAL.format(row=a, seed=s) / "metrics.json"
                                          for s in range(cfg.seeds) for a in cfg.table3_rows)),
             Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds)))]
 
 
-def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path, Path, Path],
-                 network: tuple[str, ...]) -> list[Stage]:
+def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path, Path, Path]) -> list[Stage]:
     """The bc and dagger stages of the live trainer (train.live): every Table 3 row, the
     ground-truth rows among them, then its evaluation (on `cfg.eval_split`), seed by seed; the
     DAgger row trains from scratch beside them (seed s of every row shares its episode order and
-    initial weights: train.live). `predictors`: the data and predictor runs; `network`: the
-    policy CNN's flags, as the offline runs get them."""
+    initial weights: train.live). `predictors`: the data and predictor runs."""
+    from conav_jax.models.policy import ablation_config
+    from conav_jax.train.live import DEFAULT_POLICY, LiveConfig
+
     b = cfg.budget
     data, intention, trajectory = predictors
     runs, evals = Path(cfg.out) / "runs", Path(cfg.out) / cfg.eval_dir
-    live = ("--data", str(data), "--resolution", resolution_name(cfg), *network,
-            "--lanes", str(b.live_lanes), "--window-steps", str(b.live_window_steps), "--iterations",
-            str(b.live_iterations), "--lr", f"{b.live_lr:g}", "--warmup-iterations", str(b.live_warmup_iterations),
-            "--no-progress")
-    predicted = ("--intention", str(intention), "--trajectory", str(trajectory))
-    ground_truth = ("--ground-truth-intentions",)
+    net = _network(cfg, b.policy_conv_dtype, visual_norm=DEFAULT_POLICY.visual_norm)
+    live = LiveConfig(lanes=b.live_lanes, window_steps=b.live_window_steps, iterations=b.live_iterations, lr=b.live_lr,
+                      warmup_iterations=b.live_warmup_iterations, remat=cfg.large)
+    predicted = {"intention_run": str(intention), "trajectory_run": str(trajectory)}
     bc, outputs = [], []
     for s in range(cfg.seeds):
         for row in cfg.table3_rows:
             gt = row in GROUND_TRUTH_ROWS
             run, target = runs / f"bc_{row}_s{s}", evals / BC_ROW_EVAL.format(row=row, seed=s)
-            bc.append(step(("train", "live", *live, *(ground_truth if gt else predicted), "--ablation",
-                            GROUND_TRUTH_ROWS.get(row, row), "--seed", str(s), "--out", str(run)), run,
-                           (data,) if gt else predictors, s))
+            bc.append(step("train live", run, (data,) if gt else predictors, s, data_dir=str(data), out_dir=str(run),
+                           policy_config=ablation_config(net, GROUND_TRUTH_ROWS.get(row, row)),
+                           live=dataclasses.replace(live, seed=s), **({} if gt else predicted), progress=False))
             bc.append(evaluation("conav", target, run, s, ground_truth=gt))
             outputs.append(target / "metrics.json")
     name, dagger = cfg.dagger, []
     decay = max(1, round(b.live_dagger_decay * b.live_iterations))
     for s in range(cfg.seeds):
         run = runs / f"{name}_s{s}"
-        dagger.append(step(("train", "live", *live, *predicted, "--ablation", "all", "--beta-start", "1",
-                            "--beta-end", f"{cfg.dagger_beta:g}", "--beta-decay-iterations", str(decay),
-                            "--seed", str(s), "--out", str(run)), run, predictors, s))
+        dagger.append(step("train live", run, predictors, s, data_dir=str(data), out_dir=str(run),
+                           policy_config=ablation_config(net, "all"), **predicted, progress=False,
+                           live=dataclasses.replace(live, seed=s, beta_start=1.0, beta_end=cfg.dagger_beta,
+                                                    beta_decay_iterations=decay)))
     return [Stage("bc", tuple(bc), tuple(outputs)),
             Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds)))]
 

@@ -1,16 +1,16 @@
 """What `conav reproduce` has done and what it runs next: progress.json (each step's record by
-name, the OUT directory's one configuration) and the plan's one dependency graph
-(`prerequisites`, from the steps' declared reads and writes), which the command line's runner in
-this process and `eval.reproduce_run`'s processes share.
+its identity, `Step.name`; the OUT directory's one configuration) and the plan's one dependency
+graph (`prerequisites`, from the steps' declared reads and writes), which the command line's
+runner in this process and `eval.reproduce_run`'s processes share.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
-from conav_jax.eval.reproduce import BUDGET_OVERRIDES, ReproduceConfig, Stage, Step, resolution_name
+from conav_jax.eval.reproduce import BUDGET_OVERRIDES, ReproduceConfig, resolution_name
+from conav_jax.eval.reproduce_steps import Stage, Step
 
 
 # The steps (by name, under "commands") and stages done, with their wall times (s), and under
@@ -18,7 +18,8 @@ from conav_jax.eval.reproduce import BUDGET_OVERRIDES, ReproduceConfig, Stage, S
 # stage's time).
 PROGRESS_FILE = "progress.json"
 # The layout of progress.json. 1 (unmarked): records keyed by the command line, OUT written as
-# "OUT"; 2: keyed by step name (`upgrade_progress` maps the one onto the other).
+# "OUT"; 2: keyed by step name, its kind and the directory it writes (`upgrade_progress` maps
+# the one onto the other).
 RUN_FORMAT = 2
 
 
@@ -29,26 +30,41 @@ def read_progress(out: Path) -> dict:
     return {"run_format": RUN_FORMAT, "commands": {}, "stages": {}}
 
 
-def upgrade_progress(progress: dict, plan: list["Stage"], out: Path) -> list[str]:
+def upgrade_progress(progress: dict, plan: list[Stage], out: Path) -> list[str]:
     """Bring `progress` of an OUT made before RUN_FORMAT 2 (records keyed by command lines) to
-    step names, in place: each record of a planned step's command line moves to the step's
-    name. Returns the old records no planned step matches (dropped: a variant not planned now;
-    its runs resume from their checkpoints when it is planned again). ValueError for a
-    directory written by a newer format."""
+    step names, in place: each record moves to its command's step name (`command_step_name`)
+    where a planned step has it. Returns the old records no planned step matches (dropped: a
+    variant not planned now; its runs resume from their checkpoints when it is planned again).
+    ValueError for a directory written by a newer format."""
     made = progress.get("run_format", 1)
     if made > RUN_FORMAT:
         raise ValueError(f"{out}: progress.json has run format {made}, newer than this version's {RUN_FORMAT}: "
                          "continue it with the version that made it, or use another output directory")
     if made == RUN_FORMAT:
         return []
-    old = {" ".join(s.argv).replace(str(Path(out).resolve()), "OUT"): s.name for st in plan for s in st.steps}
+    planned = {s.name for st in plan for s in st.steps}
     dropped = []
     for record in ("commands", "cut"):
         entries = progress.get(record, {})
-        dropped += [k for k in entries if k not in old]
-        progress[record] = {old[k]: v for k, v in entries.items() if k in old}
+        names = {k: command_step_name(k) for k in entries}
+        dropped += [k for k, name in names.items() if name not in planned]
+        progress[record] = {name: entries[k] for k, name in names.items() if name in planned}
     progress["run_format"] = RUN_FORMAT
     return dropped
+
+
+def command_step_name(command: str) -> str | None:
+    """The step name of a RUN_FORMAT 1 record's key, a `conav` command line with OUT written as
+    "OUT": its command words ("train policy", "eval", ...; "@copy SRC DST" a copy) and the
+    directory it writes, after `--out` (a copy's DST), relative to OUT; None for another line."""
+    words = command.split(" ")
+    if words[0] == "@copy" and len(words) == 3:
+        kind, target = "copy", words[2]
+    elif "--out" in words[:-1]:
+        kind, target = " ".join(words[:2]) if words[0] == "train" else words[0], words[words.index("--out") + 1]
+    else:
+        return None
+    return f"{kind} {target.removeprefix('OUT/')}" if target.startswith("OUT/") else None
 
 
 # What one OUT directory holds one of: its runs and evaluations are of these (progress.json
@@ -100,6 +116,16 @@ def write_progress(out: Path, progress: dict) -> None:
             save_json(out / PROGRESS_FILE, progress)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def record_step(progress: dict, step: Step, seconds: float, ended: bool) -> None:
+    """`step`'s wall time into `progress`: under "commands" when it `ended`, else (failed,
+    stopped) added to its time under "cut"."""
+    if ended:
+        progress["commands"][step.name] = round(seconds, 1)
+    else:
+        cut = progress.setdefault("cut", {})
+        cut[step.name] = round(cut.get(step.name, 0.0) + seconds, 1)
 
 
 def stage_seconds(plan: list["Stage"], progress: dict) -> dict[str, float]:
@@ -174,9 +200,3 @@ def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
                 stack += [m for m in needs[n] if m in keys]
     index = {st.name: i for i, st in enumerate(todo)}
     return sorted(todo, key=lambda st: (-1 if st.seed is None else st.seed, -len(below[st.name]), index[st.name]))
-
-
-def copy_run(step: Step) -> None:
-    """Run a copy step: its source run directory to its target, unless the target exists."""
-    if not Path(step.argv[2]).exists():
-        shutil.copytree(step.argv[1], step.argv[2])

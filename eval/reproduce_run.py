@@ -1,22 +1,106 @@
-"""`conav reproduce` on several GPUs and across machines: steps run at once, each in a process
-of its own on one GPU, in the order of the plan's one dependency graph (eval.reproduce_progress
-prerequisites); the pack that carries a run's progress and the checkpoints still needed to a
-fresh machine.
+"""`conav reproduce`'s runners: a step run in this process, its time recorded, or several at once,
+each in a process of its own on one GPU that runs the step by name (`main`: the plan made again
+from the run's configuration stored under OUT), in the order of the plan's one dependency graph
+(eval.reproduce_progress prerequisites); the pack that carries a run's progress and the
+checkpoints still needed to a fresh machine.
 """
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
+import hashlib
+import json
 import os
+import shlex
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Callable
 
-from conav_jax.eval.reproduce import ReproduceConfig, Stage, Step, plan_stages
-from conav_jax.eval.reproduce_progress import PROGRESS_FILE, by_dependents, copy_run, prerequisites, write_progress
+from conav_jax.eval.reproduce import ReproduceConfig, plan_stages
+from conav_jax.eval.reproduce_progress import PROGRESS_FILE, by_dependents, prerequisites, record_step, write_progress
+from conav_jax.eval.reproduce_steps import Stage, Step, run_step
 
 PACK_LIMIT_BYTES = 60 * 2**20
+# Under OUT: each run's ReproduceConfig (all but OUT), by digest, that its steps' processes plan
+# from; runs of several variants on one OUT keep one each.
+CONFIGS_DIR = "configs"
+
+
+def run_here(step: Step, out: Path, progress: dict) -> None:
+    """Run `step` in this process (`run_step`), its wall time recorded in `progress` (saved): as
+    done when it returns, as cut when it raises (failed, interrupted: SIGTERM raised as
+    KeyboardInterrupt), the exception then raised again."""
+    t0, ended = time.perf_counter(), False
+    try:
+        run_step(step)
+        ended = True
+    finally:
+        record_step(progress, step, time.perf_counter() - t0, ended)
+        write_progress(out, progress)
+
+
+# -- several steps at once, one process each ---------------------------------------------------------
+
+
+def save_config(cfg: ReproduceConfig) -> str:
+    """Store `cfg` but its OUT as OUT/configs/DIGEST.json, for the processes that run its steps
+    by name (`child_command`); returns DIGEST, the first 16 hex digits of the record's sha256."""
+    from conav_jax.data.arrayio import json_bytes, save_json
+
+    record = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg) if f.name != "out"}
+    digest = hashlib.sha256(json_bytes(record)).hexdigest()[:16]
+    path = Path(cfg.out) / CONFIGS_DIR / f"{digest}.json"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_json(path, record)
+    return digest
+
+
+def load_config(out: Path, digest: str) -> ReproduceConfig:
+    """The ReproduceConfig `save_config` stored in OUT as `digest`."""
+    path = Path(out) / CONFIGS_DIR / f"{digest}.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"no run configuration {path}: `conav reproduce --gpus N` stores it before its first step")
+    record = json.loads(path.read_text())
+    return ReproduceConfig(out=Path(out), **{k: tuple(v) if isinstance(v, list) else v for k, v in record.items()})
+
+
+def find_step(plan: list[Stage], name: str) -> Step:
+    """The step of `plan` named `name`; ValueError naming one it has where there is none."""
+    steps = {step.name: step for st in plan for step in st.steps}
+    if name not in steps:
+        raise ValueError(f"the plan has no step {name!r}; `conav reproduce --dry-run` lists them "
+                         f"(e.g. {next(iter(steps))!r})")
+    return steps[name]
+
+
+def child_command(out: Path, digest: str, step: Step, compile_cache: str | None = None) -> list[str]:
+    """The process `run_parallel` runs `step` in: `main`, the step by name in the plan of the
+    run's stored configuration `digest` (`save_config`); `compile_cache` as `conav --compile-cache`."""
+    cache = ["--compile-cache", compile_cache] if compile_cache else []
+    return [sys.executable, "-m", "conav_jax.eval.reproduce_run", "--out", str(out), "--config", digest, *cache,
+            "--step", step.name]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """One step of a `conav reproduce` run, by name, in this process (what each process of
+    `--gpus N` runs); it records nothing: the runner that started it does."""
+    from conav_jax.compile_cache import enable_compile_cache
+
+    parser = argparse.ArgumentParser(prog="python -m conav_jax.eval.reproduce_run", description=main.__doc__)
+    parser.add_argument("--out", required=True, help="the run's output directory")
+    parser.add_argument("--config", required=True, metavar="DIGEST", help="the run's configuration, OUT/configs/DIGEST.json")
+    parser.add_argument("--step", required=True, metavar="NAME", help="the step, as progress.json names it "
+                        "(e.g. 'train policy runs/bc_all_s0')")
+    parser.add_argument("--compile-cache", default=None, metavar="DIR|off", help="as `conav --compile-cache`")
+    args = parser.parse_args(argv)
+    enable_compile_cache(args.compile_cache)
+    run_step(find_step(plan_stages(load_config(Path(args.out), args.config)), args.step))
+    return 0
 
 
 def visible_gpus() -> list[str] | None:
@@ -32,8 +116,8 @@ def visible_gpus() -> list[str] | None:
 
 
 def gpu_slots(gpus: int) -> list[str]:
-    """The GPUs `gpus` commands at once run on, one each: the first `gpus` of `visible_gpus`
-    (0..gpus-1 on a machine without a driver, where the commands run on the CPU). ValueError
+    """The GPUs `gpus` steps at once run on, one each: the first `gpus` of `visible_gpus`
+    (0..gpus-1 on a machine without a driver, where the steps run on the CPU). ValueError
     when fewer are visible (a process given a GPU that does not exist would run on the CPU)."""
     if gpus < 1:
         raise ValueError(f"gpu_slots.gpus must be at least 1, got {gpus}")
@@ -55,12 +139,14 @@ def _tail(path: Path, lines: int = 15) -> str:
 def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict, gpus: list[str],
                  command: Callable[[Step], list[str]], say=None, poll_seconds: float = 0.1) -> tuple[int, list[Step]]:
     """Run `todo` (steps of `plan`) up to len(gpus) at once, each in a process of its own
-    (`command(step)`: the command line that runs that step alone, by name) that sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a step starting once its
-    `prerequisites` are done (in `by_dependents` order); copies run here. Each step's wall time goes into
-    `progress` (saved) as it ends, a failed or stopped one's under "cut". After a failure no new
-    step starts and those running finish. An interrupt (SIGTERM raised as KeyboardInterrupt)
-    stops every process, records their time as cut and is raised again. Returns (0 or the first
-    failure's exit code, the steps left waiting for prerequisites not run here)."""
+    (`command(step)`: the command line that runs that step alone, by name: `child_command`) that
+    sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a step starting once its
+    `prerequisites` are done (in `by_dependents` order); copies run here. Each step's wall time
+    goes into `progress` (saved) as it ends, a failed or stopped one's under "cut". After a
+    failure no new step starts and those running finish. An interrupt (SIGTERM raised as
+    KeyboardInterrupt) stops every process, records their time as cut and is raised again.
+    Returns (0 or the first failure's exit code, the steps left waiting for prerequisites not
+    run here)."""
     say = say or (lambda message: print(message, flush=True))
     needs = prerequisites(plan)
     done = set(progress["commands"])
@@ -68,13 +154,9 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
     (out / "logs").mkdir(parents=True, exist_ok=True)
 
     def record(step: Step, seconds: float, ok: bool) -> None:
-        key = step.name
+        record_step(progress, step, seconds, ok)
         if ok:
-            progress["commands"][key] = round(seconds, 1)
-            done.add(key)
-        else:
-            cut = progress.setdefault("cut", {})
-            cut[key] = round(cut.get(key, 0.0) + seconds, 1)
+            done.add(step.name)
         write_progress(out, progress)
 
     try:
@@ -89,21 +171,22 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                     started = True
                     if step.is_copy:
                         t0 = time.perf_counter()
-                        copy_run(step)
+                        run_step(step)
                         record(step, time.perf_counter() - t0, True)
-                        say(f"copied {step.argv[1]} -> {step.argv[2]}")
+                        say(f"{step.name} done (from {step.call.kwargs['source']})")
                         continue
                     gpu, log = free.pop(0), out / "logs" / _log_name(step)
+                    argv = command(step)
                     with open(log, "a") as f:
-                        f.write(f"$ conav {' '.join(step.argv)}\n")
+                        f.write(f"# {step.name}\n$ {shlex.join(argv)}\n")
                         f.flush()
-                        proc = subprocess.Popen(command(step), stdout=f,
+                        proc = subprocess.Popen(argv, stdout=f,
                                                 stderr=subprocess.STDOUT,
                                                 env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu, "PYTHONUNBUFFERED": "1"})
                     running[proc] = (step, gpu, log, time.perf_counter())
                     say(f"[gpu {gpu}] {step.name} started (log {log})")
             if not running:
-                break  # what is left waits for commands not run here
+                break  # what is left waits for steps not run here
             ended = [proc for proc in running if proc.poll() is not None]
             if not ended:
                 time.sleep(poll_seconds)
@@ -119,7 +202,7 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                 else:
                     failed = failed or proc.returncode
                     say(f"[gpu {gpu}] {step.name} failed (exit {proc.returncode}) after {seconds:.0f} s; "
-                        f"no new command starts. The end of {log}:\n{_tail(log)}")
+                        f"no new step starts. The end of {log}:\n{_tail(log)}")
     except BaseException:
         for proc in running:
             proc.terminate()
@@ -235,3 +318,7 @@ def unpack(pack: Path, out: Path) -> list[str]:
             raise ValueError(f"{pack}: unsafe member paths {bad[:3]}")
         tar.extractall(out)
     return names
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -343,6 +343,17 @@ def _report_md(plan: EvalPlan, n: int, table2: str, table3: str | None, given: l
     return "\n".join(lines) + "\n"
 
 
+def run_eval(data: str | Path, split: str, agents: tuple[str, ...], out: str | Path, progress: bool = False,
+             **plan) -> dict:
+    """What `conav eval` runs: `plan_eval` of these arguments and the keywords `plan`, its env
+    (`load_env`) and `sweep`, the lanes split over the plan's devices (None: all visible).
+    Returns the metrics.json content."""
+    from conav_jax.parallel import make_mesh
+
+    checked = plan_eval(data, split, agents, out, **plan)
+    return sweep(checked, load_env(checked), progress=progress, mesh=make_mesh(checked.devices))
+
+
 def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
     """Evaluate every agent and ablation of `plan` on `env` and write all outputs to plan.out,
     the lanes split over the devices of `mesh` (conav_jax.parallel.make_mesh; None: one

@@ -1,5 +1,5 @@
-"""`conav reproduce` (eval/reproduce.py and its command line): the stages and their commands, the
-runner skipping what is done and resuming after a failure, tables rendered from results."""
+"""`conav reproduce` (eval/reproduce*.py and its command line): the stages and their steps' calls,
+the runner skipping what is done and resuming after a failure, tables rendered from results."""
 
 import dataclasses
 import json
@@ -13,11 +13,13 @@ from pathlib import Path
 import pytest
 
 from conav_jax.eval import cli
-from conav_jax.eval.cli.args import flag
 from conav_jax.eval import reproduce as rp
 from conav_jax.eval import reproduce_progress as rpp
 from conav_jax.eval import reproduce_run as rr
+from conav_jax.eval import reproduce_steps as rs
 from conav_jax.eval import reproduce_tables as rt
+from conav_jax.models.policy import PolicyConfig
+from conav_jax.train.policy import POLICY_TRAIN
 
 METRICS = ("FASR", "RASR", "FASPL", "RASPL", "CR", "AS")
 
@@ -36,101 +38,113 @@ def _eval_doc(agents: dict, ablations: dict | None = None, episodes: int = 100) 
             "ablations": {f"ablation_{k}": entry("conav", v) for k, v in (ablations or {}).items()}}
 
 
+def _kw(step) -> dict:
+    return step.call.kwargs
+
+
+def _trained(stage) -> list:
+    return [s for s in stage.steps if s.call.kind.startswith("train")]
+
+
+def _model(step):
+    """The PolicyConfig a step trains (None for other steps)."""
+    model = _kw(step).get("model", _kw(step).get("policy_config"))
+    return model if isinstance(model, PolicyConfig) else None
+
+
 def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episodes(tmp_path):
     stages = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=2))
     assert [s.name for s in stages] == list(rp.STAGES)
-    bc_stage = {s.name: s for s in stages}["bc"].commands
+    bc_stage = {s.name: s for s in stages}["bc"].steps
     bc = bc_stage[::2]
-    assert len(bc) == 2 * len(rp.ABLATIONS) and all(argv[:2] == ("train", "policy") for argv in bc)
-    assert all("--episodes" in argv and "--train-intentions" in argv for argv in bc)
+    assert len(bc) == 2 * len(rp.ABLATIONS) and all(s.call.kind == "train policy" for s in bc)
+    assert all(_kw(s)["imitation"].episodes and _kw(s)["imitation"].train_intentions == "predicted" for s in bc)
     # Each run is evaluated on val right after it trains (its checkpoint need not travel on).
     for train, evaluate in zip(bc, bc_stage[1::2]):
-        out = train[train.index("--out") + 1]
-        assert evaluate[0] == "eval" and evaluate[evaluate.index("--checkpoint") + 1] == out
-        assert evaluate[evaluate.index("--out") + 1].endswith("eval/conav_" + out.rsplit("/", 1)[1])
-    dagger = {s.name: s for s in stages}["dagger"].commands
-    assert dagger[0] == ("@copy", str(tmp_path / "runs" / "bc_all_s0"), str(tmp_path / "runs" / "dagger_s0"))
-    # The paper preset trains the policy with its CNN in bfloat16; the small preset's commands
+        out = _kw(train)["run_dir"]
+        assert evaluate.call.kind == "eval" and _kw(evaluate)["checkpoint"] == out
+        assert _kw(evaluate)["out"].endswith("eval/conav_" + out.rsplit("/", 1)[1])
+    dagger = {s.name: s for s in stages}["dagger"].steps
+    assert dagger[0].call == rs.Call("copy", {"source": str(tmp_path / "runs" / "bc_all_s0"),
+                                              "target": str(tmp_path / "runs" / "dagger_s0")})
+    # The paper preset trains the policy with its CNN in bfloat16; the small preset's configs
     # stay as its runs were made, so they resume.
-    for argv in (*bc, *dagger[1::2]):
-        assert argv[argv.index("--conv-dtype") + 1] == "bfloat16"
+    for step in (*bc, *dagger[1::2]):
+        assert _model(step).conv_dtype == "bfloat16"
     small = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1))
-    assert not any("--conv-dtype" in argv for st in small for argv in st.commands)
+    assert not any(_model(s) and _model(s).conv_dtype != "float32" for st in small for s in st.steps)
     # At 112x448 every policy run rematerialises its CNN (the faster update there); at 32x128
-    # the commands stay as the published runs were made.
-    assert all("--remat" in argv for argv in (*bc, *dagger[1::2]))
+    # the configs stay as the published runs were made.
+    assert all(_kw(s)["remat"] for s in (*bc, *dagger[1::2]))
     low = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="paper", resolution=(32, 128)))
-    assert not any("--remat" in argv for st in low for argv in st.commands)
+    assert not any(_kw(s).get("remat") for st in low for s in st.steps)
     # There DAgger rounds record a subset of the train episodes each (their windows stay on the GPU).
-    for argv in dagger[1::2]:
-        assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
-        imitation = cli.imitation_config(cli.build_parser().parse_args(list(argv)))
-        assert imitation.dagger_episodes == rp.LARGE_PANORAMA_DAGGER_EPISODES
-    assert not any("--dagger-episodes" in argv for st in low for argv in st.commands)
+    for step in dagger[1::2]:
+        assert _kw(step)["imitation"].dagger_episodes == rp.LARGE_PANORAMA_DAGGER_EPISODES
+    assert not any(_kw(s)["imitation"].dagger_episodes for st in low for s in st.steps if "imitation" in _kw(s))
     # The paper preset's baselines record a subset of its 20,293 train episodes (at 112x448 as
     # many as the policy, with its CNN and DAgger subsets), and its imitation runs validate on the
-    # 1,000 minival episodes less often; the small preset's commands as run.
-    policy_cnn = [bc[0][i:i + 2] for i, a in enumerate(bc[0]) if a in ("--conv-dtype", "--encoder")] + [("--remat",)]
-    for argv in {s.name: s for s in stages}["baselines"].commands:
-        assert argv[argv.index("--episodes") + 1] == bc[0][bc[0].index("--episodes") + 1] == "400"
-        assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
-        assert all(any(argv[i:i + len(f)] == f for i in range(len(argv))) for f in policy_cnn)
-        cli.train_config(cli.build_parser().parse_args(list(argv)))
-    for argv in {s.name: s for s in low}["baselines"].commands:
-        assert argv[argv.index("--episodes") + 1] == "1000"
-        assert not {"--conv-dtype", "--remat", "--dagger-episodes"} & set(argv)
-    for argv in (*{s.name: s for s in stages}["baselines"].commands, *bc, *dagger[1::2]):
-        assert argv[argv.index("--val-every") + 1] == "1000"
+    # 1,000 minival episodes less often; the small preset's configs as run.
+    policy_cnn = {k: getattr(_model(bc[0]), k) for k in ("conv_dtype", "conv_channels", "conv_kernels", "conv_strides")}
+    for step in {s.name: s for s in stages}["baselines"].steps:
+        assert _kw(step)["imitation"].episodes == _kw(bc[0])["imitation"].episodes == 400
+        assert _kw(step)["imitation"].dagger_episodes == rp.LARGE_PANORAMA_DAGGER_EPISODES
+        assert {k: getattr(_model(step), k) for k in policy_cnn} == policy_cnn and _kw(step)["remat"]
+    for step in {s.name: s for s in low}["baselines"].steps:
+        assert _kw(step)["imitation"].episodes == 1000
+        assert _model(step).conv_dtype == "float32" and not _kw(step)["remat"]
+        assert _kw(step)["imitation"].dagger_episodes is None
+    for step in (*{s.name: s for s in stages}["baselines"].steps, *bc, *dagger[1::2]):
+        assert _kw(step)["cfg"].val_every == 1000
     small_as_run = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1, resolution=(32, 128)))
-    assert not any("--val-every" in argv or argv[1] != "policy" and "--episodes" in argv
-                   for st in small_as_run for argv in st.commands if argv[0] == "train")
+    assert not any(_kw(s)["cfg"].val_every != POLICY_TRAIN.val_every or s.call.kind != "train policy"
+                   and _kw(s)["imitation"].episodes for st in small_as_run for s in st.steps if "imitation" in _kw(s))
     # The intention predictor crops from the panorama the agents render.
     for res in ((112, 448), (32, 128)):
-        (intention,) = [argv for argv in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, resolution=res))[1].commands
-                        if argv[1] == "intention"]
-        assert intention[intention.index("--resolution") + 1] == "x".join(map(str, res))
+        (intention,) = [s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, resolution=res))[1].steps
+                        if s.call.kind == "train intention"]
+        assert _kw(intention)["data"].resolution == res
     with pytest.raises(ValueError, match="ReproduceConfig.seeds must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, seeds=0)
 
 
-def test_the_predictors_options_reach_its_training_command_alone(tmp_path, capsys):
+def test_the_predictors_options_reach_its_training_call_alone(tmp_path, capsys):
     plain = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small"))
     both = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", mirror=True, seen_objects=True))
-    (intention,) = [argv for argv in both[1].commands if argv[1] == "intention"]
-    assert "--mirror" in intention and "--seen-objects" in intention
-    args = cli.build_parser().parse_args(list(intention))
-    assert args.mirror and args.seen_objects
-    changed = [a for s0, s1 in zip(plain, both) for a, b in zip(s0.commands, s1.commands) if a != b]
-    assert changed == [tuple(a for a in intention if a not in ("--mirror", "--seen-objects"))]
+    (intention,) = [s for s in both[1].steps if s.call.kind == "train intention"]
+    assert _kw(intention)["data"].mirror and _kw(intention)["model"].seen_objects
+    changed = [a for s0, s1 in zip(plain, both) for a, b in zip(s0.steps, s1.steps) if a != b]
+    assert changed == [dataclasses.replace(intention, call=rs.Call(intention.call.kind, {
+        **_kw(intention), "data": dataclasses.replace(_kw(intention)["data"], mirror=False),
+        "model": dataclasses.replace(_kw(intention)["model"], seen_objects=False)}))]
     assert cli.main(["--compile-cache", "off", "reproduce", "--preset", "tiny", "--seeds", "1", "--out",
                      str(tmp_path / "out"), "--mirror", "--seen-objects", "--dry-run"]) == 0
-    assert capsys.readouterr().out.count("--mirror --seen-objects") == 1
+    printed = capsys.readouterr().out
+    assert printed.count("mirror=True") == printed.count("seen_objects=True") == 1
 
 
 def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_path, capsys):
+    from conav_jax.models.policy import encoder_config
+
     plain = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1))}
     patch = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1,
                                                                   encoder="patch"))}
-    policy_runs = [argv for name in ("baselines", "bc", "dagger") for argv in patch[name].commands
-                   if argv[0] == "train"]
+    policy_runs = [s for name in ("baselines", "bc", "dagger") for s in _trained(patch[name])]
     assert len(policy_runs) == 2 + len(rp.ABLATIONS) + 1  # the learned baselines' CNN is the policy's
-    parser = cli.build_parser()
-    for argv in policy_runs:
-        assert argv[argv.index("--encoder") + 1] == "patch"
-        args = parser.parse_args(list(argv))
-        net = cli.policy_model(args) if argv[1] == "policy" else cli.network_base(args, (8, 32))
-        assert net.conv_strides == (4, 2, 2)
-    # Nothing else changes: the default's commands are those of the published runs.
-    assert not any("--encoder" in argv for st in plain.values() for argv in st.commands)
+    for step in policy_runs:
+        assert _model(step).conv_strides == (4, 2, 2)
+    # Nothing else changes: the default's configs are those of the published runs.
+    assert not any(_model(s) and _model(s).conv_strides for st in plain.values() for s in st.steps)
+    as_conv = lambda s: dataclasses.replace(s, call=rs.Call(s.call.kind, {  # noqa: E731
+        **_kw(s), "model": encoder_config(_model(s), "conv")})) if _model(s) else s
     for name in plain:
-        assert [tuple(a for a in argv if a not in ("--encoder", "patch")) for argv in patch[name].commands] == \
-            list(plain[name].commands)
+        assert [as_conv(s) for s in patch[name].steps] == list(plain[name].steps)
     with pytest.raises(ValueError, match="unknown ReproduceConfig.encoder 'resnet'"):
         rp.ReproduceConfig(out=tmp_path, encoder="resnet")
     # The command line passes it on.
     assert cli.main(["--compile-cache", "off", "reproduce", "--preset", "tiny", "--seeds", "1", "--out",
                      str(tmp_path / "out"), "--encoder", "patch", "--dry-run"]) == 0
-    assert capsys.readouterr().out.count("--encoder patch") == len(policy_runs)
+    assert capsys.readouterr().out.count("conv_strides=(4, 2, 2)") == len(policy_runs)
     results = {"preset": "small", "seeds": 1, "resolution": "112x448", "agents": {}, "conav": {}}
     assert "encoder" not in rt.render_tables(results)  # results.json files written before the key
     assert "panorama 112x448 (the CoNav policy's panorama encoder: `patch`);" in rt.render_tables({**results, "encoder": "patch"})
@@ -255,14 +269,15 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
 def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_show_every_variant(tmp_path):
     runs, evals = tmp_path / "runs", tmp_path / "eval"
     plan = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=2, dagger_beta=0.5))}
-    copy, train = plan["dagger"].commands[:2]
-    assert copy == ("@copy", str(runs / "bc_all_s0"), str(runs / "dagger_beta0.5_s0"))
-    assert train[train.index("--dagger-beta") + 1] == "0.5" and train[-2:] == ("--out", str(runs / "dagger_beta0.5_s0"))
-    assert ("--checkpoint", str(runs / "dagger_beta0.5_s1"), "--out", str(evals / "conav_dagger_beta0.5_s1")) == \
-        plan["eval"].commands[-1][-4:]
-    # The policy-alone runs keep their commands (and so their progress.json records).
+    copy, train = plan["dagger"].steps[:2]
+    assert _kw(copy) == {"source": str(runs / "bc_all_s0"), "target": str(runs / "dagger_beta0.5_s0")}
+    assert _kw(train)["imitation"].dagger_beta == 0.5 and _kw(train)["run_dir"] == str(runs / "dagger_beta0.5_s0")
+    last = _kw(plan["eval"].steps[-1])
+    assert (last["checkpoint"], last["out"]) == (str(runs / "dagger_beta0.5_s1"), str(evals / "conav_dagger_beta0.5_s1"))
+    # The policy-alone runs keep their configs (and so their progress.json records).
     plain = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=2))}
-    assert "--dagger-beta" not in plain["dagger"].commands[1] and plain["dagger"].commands[1][-1] == str(runs / "dagger_s0")
+    plain_train = _kw(plain["dagger"].steps[1])
+    assert plain_train["imitation"].dagger_beta == 0.0 and plain_train["run_dir"] == str(runs / "dagger_s0")
     with pytest.raises(ValueError, match="ReproduceConfig.dagger_beta is a probability"):
         rp.ReproduceConfig(out=tmp_path, dagger_beta=1.5)
 
@@ -289,8 +304,8 @@ def test_another_dagger_round_count_runs_under_its_own_name_and_its_row_says_so(
     runs, evals = tmp_path / "runs", tmp_path / "eval"
     cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=1, dagger_beta=0.5, dagger_rounds=1)
     assert (cfg.rounds, cfg.dagger) == (1, "dagger_beta0.5_rounds1")
-    train = {s.name: s for s in rp.plan_stages(cfg)}["dagger"].commands[1]
-    assert train[train.index("--dagger-rounds") + 1] == "1" and train[-1] == str(runs / "dagger_beta0.5_rounds1_s0")
+    train = _kw({s.name: s for s in rp.plan_stages(cfg)}["dagger"].steps[1])
+    assert train["imitation"].dagger_rounds == 1 and train["run_dir"] == str(runs / "dagger_beta0.5_rounds1_s0")
     # The preset's own count names no rounds: the runs made before the option keep their names.
     same = rp.ReproduceConfig(out=tmp_path, preset="paper", dagger_rounds=rp.BUDGETS["paper"].dagger_rounds)
     assert same.dagger == "dagger" and rp.dagger_row(0.0, 3) == "dagger_rounds3"
@@ -322,16 +337,16 @@ def test_another_dagger_episode_count_runs_under_its_own_name_and_the_baselines_
     cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=1, dagger_beta=0.5, dagger_rounds=1, dagger_episodes=200)
     assert cfg.dagger == "dagger_beta0.5_rounds1_episodes200"
     plan = {s.name: s for s in rp.plan_stages(cfg)}
-    train = plan["dagger"].commands[1]
-    assert train[train.index("--dagger-episodes") + 1] == "200" and train[-1] == str(runs / f"{cfg.dagger}_s0")
-    for argv in plan["baselines"].commands:  # the CoNav DAgger rows' option alone
-        assert argv[argv.index("--dagger-episodes") + 1] == str(rp.LARGE_PANORAMA_DAGGER_EPISODES)
+    train = _kw(plan["dagger"].steps[1])
+    assert train["imitation"].dagger_episodes == 200 and train["run_dir"] == str(runs / f"{cfg.dagger}_s0")
+    for step in plan["baselines"].steps:  # the CoNav DAgger rows' option alone
+        assert _kw(step)["imitation"].dagger_episodes == rp.LARGE_PANORAMA_DAGGER_EPISODES
     # The resolution's own count names none: the runs made before the option keep their names.
     assert rp.ReproduceConfig(out=tmp_path, dagger_episodes=rp.LARGE_PANORAMA_DAGGER_EPISODES).dagger == "dagger"
     small = rp.ReproduceConfig(out=tmp_path, preset="paper", resolution=(32, 128), dagger_episodes=100)
     assert small.dagger == "dagger_episodes100"
-    assert "--dagger-episodes" not in {s.name: s for s in rp.plan_stages(
-        dataclasses.replace(small, dagger_episodes=None))}["dagger"].commands[1]
+    assert _kw({s.name: s for s in rp.plan_stages(
+        dataclasses.replace(small, dagger_episodes=None))}["dagger"].steps[1])["imitation"].dagger_episodes is None
     assert rp.dagger_variant(cfg.dagger) == (0.5, 1, 200) and rp.dagger_variant("dagger_episodes") is None
     with pytest.raises(ValueError, match="ReproduceConfig.dagger_episodes must be at least 1"):
         rp.ReproduceConfig(out=tmp_path, dagger_episodes=0)
@@ -347,40 +362,82 @@ def test_another_dagger_episode_count_runs_under_its_own_name_and_the_baselines_
                for line in rt.render_tables(results).splitlines())
 
 
+@dataclasses.dataclass(frozen=True)
+class Made:
+    """A step's call as the fake library functions saw it: its kind, the directory it wrote and
+    its keywords but the mesh (not compared)."""
+
+    kind: str
+    out: str
+    kwargs: dict = dataclasses.field(compare=False, hash=False)
+
+
 @pytest.fixture
 def fake_conav(monkeypatch):
-    """`conav` commands replaced by a recorder that writes what the real ones would: a run's
-    log, an evaluation's metrics.json. `fail_on` makes one command fail (a cut-off run)."""
+    """The library functions of the steps (but copies) replaced by a recorder that writes what the
+    real ones would: a run's log, an evaluation's metrics.json. `fail_on` makes one step fail (a
+    cut-off run), `term_on` stops the process as `timeout` does."""
     calls, state = [], {"fail_on": None, "term_on": None}
 
-    def fake_main(argv, compile_cache=True):
-        calls.append(tuple(argv))
-        if state["fail_on"] is not None and any(state["fail_on"] in a for a in argv):
+    def fake(kind, mesh=None, **kwargs):
+        out = Path(kwargs.get("run_dir") or kwargs.get("out_dir") or kwargs["out"])
+        calls.append(Made(kind, str(out), kwargs))
+        if state["fail_on"] is not None and any(state["fail_on"] in str(v) for v in kwargs.values()):
             state["fail_on"] = None
-            return 1
-        if state["term_on"] is not None and any(state["term_on"] in a for a in argv):
+            raise RuntimeError("the step failed")
+        if state["term_on"] is not None and any(state["term_on"] in str(v) for v in kwargs.values()):
             state["term_on"] = None
             os.kill(os.getpid(), signal.SIGTERM)  # as `timeout` stops a run
             time.sleep(5)
-        out = Path(argv[argv.index("--out") + 1])
-        if argv[0] == "eval":
-            out.mkdir(parents=True, exist_ok=True)
-            agents = argv[argv.index("--agent") + 1].split(",")
-            ablations = ({item.split("=")[0]: (5, 6, 7, 8, 9, 10) for item in argv[argv.index("--ablation-checkpoints") + 1].split(",")}
-                         if "--ablation-checkpoints" in argv else None)
-            (out / "metrics.json").write_text(json.dumps(_eval_doc({a: (1, 2, 3, 4, 5, 6) for a in agents}, ablations)))
+        out.mkdir(parents=True, exist_ok=True)
+        if kind == "eval":
+            (out / "metrics.json").write_text(json.dumps(_eval_doc({a: (1, 2, 3, 4, 5, 6) for a in kwargs["agents"]})))
         else:
-            out.mkdir(parents=True, exist_ok=True)
-            (out / ("manifest.json" if argv[0] == "generate" else "log.jsonl")).write_text("{}\n")
-        return 0
+            (out / ("manifest.json" if kind == "generate" else "log.jsonl")).write_text("{}\n")
 
-    monkeypatch.setattr(cli, "main", fake_main)
+    real = rs.step_function
+    monkeypatch.setattr(rs, "step_function", lambda kind: real(kind) if kind == "copy" else
+                        (lambda **kwargs: fake(kind, **kwargs)))
     return calls, state
 
 
 def _reproduce(out, *extra):
     args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--seeds", "2", "--out", str(out), *extra])
     return args.func(args)
+
+
+def test_a_step_calls_its_library_function_not_a_command_line(tmp_path, monkeypatch):
+    """Each step calls its kind's library function itself with its declared keywords (and the mesh
+    of every visible device where the function takes one): no `conav` command runs."""
+    import conav_jax.data.episodes as episodes
+    import conav_jax.train.intention as intention
+    import conav_jax.train.trajectory as trajectory
+
+    def no_command(*args, **kwargs):
+        raise AssertionError("a step went through the command line")
+
+    got = []
+
+    def library(name, made):
+        def function(*args, **kwargs):
+            got.append((name, args, kwargs))
+            out = Path(kwargs.get("run_dir") or kwargs["out_dir"])
+            out.mkdir(parents=True, exist_ok=True)
+            (out / made).write_text("{}\n")
+        return function
+
+    monkeypatch.setattr(cli, "main", no_command)
+    monkeypatch.setattr(episodes, "generate_dataset", library("generate_dataset", "manifest.json"))
+    monkeypatch.setattr(intention, "train_intention", library("train_intention", "log.jsonl"))
+    monkeypatch.setattr(trajectory, "train_trajectory", library("train_trajectory", "log.jsonl"))
+    out = tmp_path / "r"
+    assert _reproduce(out, "--stage", "predictors") == 0  # the data first, then the predictors
+    plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2, workers=min(2, os.cpu_count() or 1)))
+    assert [name for name, _, _ in got] == ["generate_dataset", "train_intention", "train_trajectory"]
+    for step, (_, args, kwargs) in zip((*plan[0].steps, *plan[1].steps), got):
+        mesh = kwargs.pop("mesh", None)
+        assert args == () and kwargs == _kw(step)
+        assert (mesh is not None) == rs.STEP_KINDS[step.call.kind].mesh
 
 
 def test_a_run_cut_short_resumes_where_it_stopped_and_gives_the_same_results(fake_conav, tmp_path):
@@ -470,11 +527,11 @@ def test_the_pack_holds_progress_results_and_the_runs_still_needed(fake_conav, t
     # when one stage is asked for alone.
     calls.clear()
     assert _reproduce(fresh, "--stage", "dagger") == 0
-    assert calls[0][0] == "generate" and "dagger_s0" in " ".join(calls[1]) and calls[-1][0] == "train"
+    assert calls[0].kind == "generate" and "dagger_s0" in calls[1].out and calls[-1].kind == "train policy"
     calls.clear()
     assert _reproduce(fresh) == 0
-    assert calls and calls[0][0] == "eval"  # the data are there now: not made again
-    assert not any(c[0] == "train" and "bc_" in c[c.index("--out") + 1] for c in calls if "--out" in c)
+    assert calls and calls[0].kind == "eval"  # the data are there now: not made again
+    assert not any(c.kind.startswith("train") and "bc_" in c.out for c in calls)
 
 
 def test_the_pack_carries_a_run_cut_in_its_first_round_while_it_fits(fake_conav, tmp_path, monkeypatch, capsys):
@@ -514,21 +571,20 @@ def test_the_pack_carries_a_run_cut_in_its_first_round_while_it_fits(fake_conav,
 
 
 @pytest.mark.parametrize("preset", sorted(rp.BUDGETS))
-def test_every_planned_command_parses_into_a_valid_training_config(preset, tmp_path):
-    """Each stage's command line is one the real `conav` accepts, and its budget is a valid
-    TrainConfig (e.g. at least the learning-rate warm-up's updates)."""
-    parser = cli.build_parser()
+def test_every_planned_call_binds_to_its_library_function(preset, tmp_path):
+    """Each step's keywords are arguments of its kind's library function (with the mesh, where
+    it takes one), and its configs are valid: built at planning, each checks itself (e.g. at
+    least the learning-rate warm-up's updates)."""
+    import inspect
+
     mixed = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset=preset, seeds=1, dagger_beta=0.5,
                                                                    dagger_rounds=1))}
     for stage in [*rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset=preset, seeds=1)), mixed["dagger"]]:
-        for argv in stage.commands:
-            if argv[0] == "@copy":
-                continue
-            args = parser.parse_args(list(argv))
-            if argv[0] == "train":
-                cli.train_config(args)
-                if argv[1] == "policy":
-                    cli.imitation_config(args)
+        for step in stage.steps:
+            function = rs.step_function(step.call.kind)
+            mesh = {"mesh": None} if rs.STEP_KINDS[step.call.kind].mesh else {}
+            inspect.signature(function).bind(**_kw(step), **mesh)
+            assert "kwargs" not in inspect.signature(function).parameters or step.call.kind.startswith("train ")
 
 
 def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fake_conav, tmp_path):
@@ -542,7 +598,7 @@ def test_more_seeds_later_rerender_the_tables_and_stage_times_sum_every_call(fak
     rpp.write_progress(out, progress)
     calls.clear()
     assert _reproduce(out) == 0  # the same run with two seeds: only seed 1's commands run
-    assert calls and all("_s0" not in " ".join(argv) for argv in calls)
+    assert calls and all("_s0" not in str(v) for c in calls for v in c.kwargs.values())
     results = json.loads((out / "results.json").read_text())
     assert results["seeds"] == 2 and set(results["conav"]["all"]["seeds"]) == {"0", "1"}
     assert "ours (seed" not in (out / "tables.md").read_text()
@@ -559,8 +615,8 @@ def test_a_finished_run_continued_with_the_expert_mixed_in_runs_only_its_dagger_
     assert _reproduce(out) == 0
     calls.clear()
     assert _reproduce(out, "--dagger-beta", "0.5") == 0
-    assert {argv[0] for argv in calls} == {"train", "eval"} and all("dagger_beta0.5_s" in " ".join(argv) for argv in calls)
-    assert all(argv[argv.index("--dagger-beta") + 1] == "0.5" for argv in calls if argv[0] == "train")
+    assert {c.kind for c in calls} == {"train policy", "eval"} and all("dagger_beta0.5_s" in c.out for c in calls)
+    assert all(c.kwargs["imitation"].dagger_beta == 0.5 for c in calls if c.kind == "train policy")
     assert len(calls) == 4  # two seeds: a DAgger run and its evaluation each
     results = json.loads((out / "results.json").read_text())
     assert {"dagger", "dagger_beta0.5"} <= set(results["conav"]) and results["missing"] == []
@@ -590,11 +646,11 @@ def test_an_out_directory_keyed_by_command_lines_resumes_under_step_names(fake_c
     out = tmp_path / "r"
     assert _reproduce(out, "--stage", "predictors") == 0
     progress = rpp.read_progress(out)
-    plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
-    steps = {s.name: s for st in plan for s in st.steps}
     # As the previous format wrote it: each command line, OUT written as "OUT", and no run_format.
-    old = {" ".join(steps[k].argv).replace(str(out), "OUT"): v for k, v in progress["commands"].items()}
-    old["train policy --out OUT/runs/a_variant_not_planned_s0"] = 5.0
+    old = {"generate --preset tiny --out OUT/data --seed 0 --workers 2": 1.0,
+           "train intention --data OUT/data --out OUT/runs/intention --steps 100 --resolution 112x448 --no-progress": 2.0,
+           "train trajectory --data OUT/data --out OUT/runs/trajectory --steps 100 --no-progress": 3.0,
+           "train policy --out OUT/runs/a_variant_not_planned_s0": 5.0}
     (out / rpp.PROGRESS_FILE).write_text(json.dumps({"commands": old, "stages": progress["stages"],
                                                     "config": progress["config"]}))
     calls.clear()
@@ -606,6 +662,16 @@ def test_an_out_directory_keyed_by_command_lines_resumes_under_step_names(fake_c
     (out / rpp.PROGRESS_FILE).write_text(json.dumps({**again, "run_format": rpp.RUN_FORMAT + 1}))
     assert _reproduce(out) == 2 and calls == []
     assert "newer than this version's" in capsys.readouterr().err
+
+
+def test_a_command_line_record_names_the_step_of_its_words_and_out_directory():
+    name = rpp.command_step_name
+    assert name("eval --data OUT/data --agent conav --checkpoint OUT/runs/bc_all_s0 --out OUT/eval/conav_bc_all_s0 "
+                "--batch 64") == "eval eval/conav_bc_all_s0"
+    assert name("train live --data OUT/data --out OUT/runs/bc_gt_all_s1 --seed 1") == "train live runs/bc_gt_all_s1"
+    assert name("@copy OUT/runs/bc_all_s0 OUT/runs/dagger_s0") == "copy runs/dagger_s0"
+    assert name("generate --preset tiny --out /elsewhere/data") is None  # not under OUT
+    assert name("train policy --data OUT/data --out") is None  # no directory written
 
 
 def test_an_out_directory_holds_one_configuration(tmp_path, capsys):
@@ -642,7 +708,7 @@ def test_one_seed_at_a_time_trains_and_evaluates_it_and_packs_only_what_others_n
     calls.clear()
     state["fail_on"] = "bc_object_s0"  # the machine is lost after seed 0's first two runs and their evaluations
     assert _reproduce(out, "--stage", "bc", "--seed", "0") == 1
-    names = [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls]
+    names = [Path(c.out).name for c in calls]
     assert names == ["bc_none_s0", "conav_bc_none_s0", "bc_activity_s0", "conav_bc_activity_s0", "bc_object_s0"]
     for run in ("intention", "trajectory", "bc_none_s0", "bc_activity_s0"):
         save_checkpoint(checkpoint_path(out / "runs" / run, 5), params={"w": [1.0]}, opt_state=None,
@@ -655,15 +721,15 @@ def test_one_seed_at_a_time_trains_and_evaluates_it_and_packs_only_what_others_n
     assert packed == {"runs/intention/ckpt_00000005.npz", "runs/trajectory/ckpt_00000005.npz"}
     calls.clear()
     assert _reproduce(out, "--stage", "bc", "--seed", "0") == 0
-    names = [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls]
+    names = [Path(c.out).name for c in calls]
     assert names == [n for a in rp.ABLATIONS[2:] for n in (f"bc_{a}_s0", f"conav_bc_{a}_s0")]
     assert "bc" not in rpp.read_progress(out)["stages"]  # seed 1's runs are still to come
     calls.clear()
     assert _reproduce(out, "--stage", "eval", "--seed", "0") == 0 and calls == []
-    assert "waits for the runs it reads: conav eval" in capsys.readouterr().out  # its DAgger run's evaluation
+    assert "waits for the runs it reads: eval eval/" in capsys.readouterr().out  # its DAgger run's evaluation
     calls.clear()
     assert _reproduce(out) == 0  # the rest: seed 1, the baselines, DAgger, every other evaluation
-    assert not any("bc_" in argv[argv.index("--out") + 1] and "_s0" in argv[argv.index("--out") + 1] for argv in calls)
+    assert not any("bc_" in c.out and "_s0" in c.out for c in calls)
     results = json.loads((out / "results.json").read_text())
     assert results["missing"] == [] and set(results["conav"]["all"]["seeds"]) == {"0", "1"}
 
@@ -675,24 +741,25 @@ def test_a_stage_asked_for_alone_runs_what_it_can_and_waits_for_runs_not_trained
     calls.clear()
     # The evaluations before any agent is trained: the scripted agents' runs, the learned ones wait.
     assert _reproduce(out, "--stage", "eval") == 0
-    assert [argv[argv.index("--out") + 1].rsplit("/", 1)[1] for argv in calls] == ["scripted"]
+    assert [Path(c.out).name for c in calls] == ["scripted"]
     printed = capsys.readouterr().out
-    assert "waits for the runs it reads: conav eval" in printed and "objectgoal-oracle" in printed
+    assert "waits for the runs it reads: eval eval/" in printed and "objectgoal-oracle" in printed
     assert "eval" not in rpp.read_progress(out)["stages"]
     calls.clear()
     assert _reproduce(out) == 0  # the rest; the scripted agents are not evaluated again
-    assert sum(argv[argv.index("--out") + 1].endswith("/scripted") for argv in calls) == 0
+    assert sum(c.out.endswith("/scripted") for c in calls) == 0
     assert json.loads((out / "results.json").read_text())["missing"] == []
 
 
-# A `conav` command run as a process of its own (`--gpus`): writes what fake_conav's commands
-# write, and a line of when it ran and on which GPU; FAKE_FAIL_ON names a command that fails.
+# A step run as a process of its own (`--gpus`; arguments: its kind, the directory it writes and
+# an evaluation's agents): writes what fake_conav's steps write, and a line of when it ran and on
+# which GPU; FAKE_FAIL_ON names a step that fails.
 FAKE_CHILD = r'''
 import json, os, sys, time
 from pathlib import Path
 argv = sys.argv[1:]
 t0 = time.time()
-out = Path(argv[argv.index("--out") + 1])
+kind, out, agents = argv[0], Path(argv[1]), argv[2:]
 def note(**extra):
     with open(os.environ["FAKE_RECORD"], "a") as f:
         f.write(json.dumps({"out": str(out), "gpu": os.environ["CUDA_VISIBLE_DEVICES"], "start": t0, "end": time.time(),
@@ -712,28 +779,37 @@ running.touch()
 time.sleep(float(os.environ.get("FAKE_SECONDS", "0.05")))
 running.unlink()
 out.mkdir(parents=True, exist_ok=True)
-if argv[0] == "eval":
-    agents = argv[argv.index("--agent") + 1].split(",")
+if kind == "eval":
     entry = lambda a: {"agent": a, "title": f"T {a}", "intention_source": "none", "privileged": ["oracle map"],
                        "metrics": {m: {"value": v, "lo": v - 1, "hi": v + 1}
                                    for m, v in zip(("FASR", "RASR", "FASPL", "RASPL", "CR", "AS"), (1, 2, 3, 4, 5, 6))}}
     (out / "metrics.json").write_text(json.dumps({"episodes": 100, "agents": {a: entry(a) for a in agents}, "ablations": {}}))
 else:
-    (out / ("manifest.json" if argv[0] == "generate" else "log.jsonl")).write_text("{}\n")
+    (out / ("manifest.json" if kind == "generate" else "log.jsonl")).write_text("{}\n")
 note()
 '''
 
 
 @pytest.fixture
 def fake_children(monkeypatch, tmp_path):
-    """Commands run by `--gpus` as processes of FAKE_CHILD, on the GPUs CUDA_VISIBLE_DEVICES lists;
-    returns the file of their records."""
+    """Steps run by `--gpus` as processes of FAKE_CHILD, on the GPUs CUDA_VISIBLE_DEVICES lists;
+    returns the file of their records. Each process is asked for by `rr.child_command` (its
+    arguments kept in `child_calls`)."""
     script, record = tmp_path / "fake_child.py", tmp_path / "record.jsonl"
     script.write_text(FAKE_CHILD)
-    monkeypatch.setattr(cli.reproduce, "child_command", lambda step, args, cfg: [sys.executable, str(script), *step.argv])
+
+    def command(out, digest, step, compile_cache=None):
+        CHILD_CALLS.append((out, digest, step.name))
+        return [sys.executable, str(script), step.call.kind, str(out / step.writes), *_kw(step).get("agents", ())]
+
+    CHILD_CALLS.clear()
+    monkeypatch.setattr(rr, "child_command", command)
     monkeypatch.setenv("FAKE_RECORD", str(record))
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5,7")
     return record
+
+
+CHILD_CALLS = []  # (OUT, the stored configuration's digest, the step's name) of each process asked for
 
 
 def _runs(record: Path) -> list[dict]:
@@ -745,20 +821,24 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
     calls, _ = fake_conav
     assert _reproduce(tmp_path / "one") == 0
     assert _reproduce(tmp_path / "two", "--gpus", "2") == 0
-    assert not [c for c in calls if str(tmp_path / "two") in " ".join(c)]  # none ran in this process
+    assert not [c for c in calls if str(tmp_path / "two") in c.out]  # none ran in this process
     runs = _runs(fake_children)
     out = tmp_path / "two"
-    plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2))
-    made = [argv for st in plan for argv in st.commands if argv[0] != "@copy"]
-    steps = {s.argv: s for st in plan for s in st.steps}
-    assert sorted(r["out"] for r in runs) == sorted(str(out / steps[a].writes) for a in made)  # each once, in a process
-    # Each started after every command it waits for had ended: the data, the runs it reads.
+    cfg = rp.ReproduceConfig(out=out, preset="tiny", seeds=2, workers=min(2, os.cpu_count() or 1))
+    plan = rp.plan_stages(cfg)
+    made = [s for st in plan for s in st.steps if not s.is_copy]
+    assert sorted(r["out"] for r in runs) == sorted(str(out / s.writes) for s in made)  # each once, in a process
+    # Each process runs its step by name, in the plan of the run's configuration stored in OUT.
+    assert sorted(name for _, _, name in CHILD_CALLS) == sorted(s.name for s in made)
+    ((where, digest),) = {(o, d) for o, d, _ in CHILD_CALLS}
+    assert where == out and rr.load_config(out, digest) == cfg
+    # Each started after every step it waits for had ended: the data, the runs it reads.
     needs = rpp.prerequisites(plan)
     ended = {r["out"]: r["end"] for r in runs}
-    by_name = {s.name: s for s in steps.values()}
-    for argv in made:
-        mine = next(r for r in runs if r["out"] == str(out / steps[argv].writes))
-        for name in needs[steps[argv].name]:
+    by_name = {s.name: s for st in plan for s in st.steps}
+    for step in made:
+        mine = next(r for r in runs if r["out"] == str(out / step.writes))
+        for name in needs[step.name]:
             if not by_name[name].is_copy:
                 assert ended[str(out / by_name[name].writes)] <= mine["start"]
     # Seed by seed, and within a seed what most commands wait on first: the BC run that DAgger
@@ -773,7 +853,7 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
     assert {r["gpu"] for r in runs} == {"5", "7"}
     overlaps = [(a, b) for i, a in enumerate(runs) for b in runs[i + 1:] if a["start"] < b["end"] and b["start"] < a["end"]]
     assert overlaps and all(a["gpu"] != b["gpu"] for a, b in overlaps)
-    assert (out / "logs" / "train_policy_runs_bc_all_s1.log").read_text().startswith("$ conav train policy")
+    assert (out / "logs" / "train_policy_runs_bc_all_s1.log").read_text().startswith("# train policy runs/bc_all_s1\n$ ")
     one, two = (json.loads((tmp_path / d / "results.json").read_text()) for d in ("one", "two"))
     for doc in (one, two):
         for key in ("command", "stage_seconds", "command_seconds", "cut_seconds"):
@@ -797,7 +877,7 @@ def test_several_gpus_stop_starting_commands_after_a_failure_and_resume(fake_con
     assert "bc_none_s0 failed (exit 3)" in printed.out and "a failure the log shows" in printed.out
     after = printed.out.split("bc_none_s0 failed (exit 3)")[1]
     assert " started (log " not in after and " done in " in after  # none starts after it; those running end
-    assert "not started after the failure: conav" in after and "waits for the runs it reads" not in after
+    assert "not started after the failure: eval eval/" in after and "waits for the runs it reads" not in after
     first = _runs(fake_children)
     (failure,) = [r for r in first if r.get("failed")]
     failed_at = max(r["end"] for r in first)
@@ -845,7 +925,7 @@ def test_the_gpus_are_those_the_driver_lists_and_several_named_without_gpus_get_
     with pytest.raises(ValueError, match="gpu_slots.gpus 3: 2 GPU"):
         rr.gpu_slots(3)
     assert _reproduce(tmp_path / "r", "--stage", "generate") == 0
-    assert "2 GPUs visible: each command runs on all of them as one device mesh; --gpus 2" in capsys.readouterr().out
+    assert "2 GPUs visible: each step runs on all of them as one device mesh; --gpus 2" in capsys.readouterr().out
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1")
     assert _reproduce(tmp_path / "r", "--stage", "generate") == 0
     assert "GPUs visible" not in capsys.readouterr().out
@@ -888,43 +968,58 @@ def test_a_gpu_process_runs_its_step_alone_by_name_with_the_runs_options(fake_co
     out = tmp_path / "r"
     cfg = rp.ReproduceConfig(out=out, preset="tiny", seeds=2, dagger_beta=0.5, dagger_rounds=3, mirror=True)
     (step,) = [s for st in rp.plan_stages(cfg) for s in st.steps if s.name == "train policy runs/dagger_beta0.5_rounds3_s1"]
-    argv = cli.reproduce.child_command(step, cli.build_parser().parse_args(["reproduce", "--out", str(out)]), cfg)
-    assert argv[1:3] == ["-m", "conav_jax.eval.cli"] and argv[-2:] == ["--run-step", step.name]
-    child = cli.build_parser().parse_args(argv[3:])
-    assert child.func(child) == 0
-    assert calls == [step.argv]  # that step's call alone
+    digest = rr.save_config(cfg)
+    assert rr.save_config(cfg) == digest and len(list((out / rr.CONFIGS_DIR).iterdir())) == 1  # stored once
+    argv = rr.child_command(out, digest, step)
+    assert argv[1:3] == ["-m", "conav_jax.eval.reproduce_run"] and argv[-2:] == ["--step", step.name]
+    assert rr.main(argv[3:]) == 0
+    assert calls == [Made("train policy", str(out / step.writes), {})] and calls[0].kwargs == _kw(step)  # that call alone
     assert not (out / rpp.PROGRESS_FILE).exists()  # the parent records it
-    child.run_step = "train policy runs/nothing_s0"
     with pytest.raises(ValueError, match="the plan has no step 'train policy runs/nothing_s0'"):
-        child.func(child)
+        rr.main([*argv[3:-1], "train policy runs/nothing_s0"])
+    with pytest.raises(FileNotFoundError, match="no run configuration"):
+        rr.main([*argv[3:5], "--config", "0" * 16, "--step", step.name])
+
+
+def test_a_gpu_process_is_the_module_run_by_python_and_plans_from_out(tmp_path):
+    """The process `--gpus` starts, for real: a DAgger run's copy of its BC run, found by name in
+    the plan of the configuration stored in OUT."""
+    out = tmp_path / "r"
+    cfg = rp.ReproduceConfig(out=out, preset="tiny", seeds=1, dagger_beta=0.5)
+    (step,) = [s for st in rp.plan_stages(cfg) for s in st.steps if s.name == "copy runs/dagger_beta0.5_s0"]
+    (out / "runs" / "bc_all_s0").mkdir(parents=True)
+    (out / "runs" / "bc_all_s0" / "log.jsonl").write_text("{}\n")
+    argv = rr.child_command(out, rr.save_config(cfg), step, compile_cache="off")
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "runs" / "dagger_beta0.5_s0" / "log.jsonl").read_text() == "{}\n"
 
 
 def test_the_live_trainer_plans_ground_truth_rows_paired_seeds_and_a_dagger_from_scratch(tmp_path):
     cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=2, trainer="live")
     stages = {st.name: st for st in rp.plan_stages(cfg)}
-    train = {s.name: s for s in stages["bc"].steps if s.argv[:2] == ("train", "live")}
+    train = {s.name: s for s in stages["bc"].steps if s.call.kind == "train live"}
     assert set(train) == {f"train live runs/bc_{row}_s{s}" for row in cfg.all_rows for s in (0, 1)}
     for name, step in train.items():
-        argv = step.argv
-        assert argv[argv.index("--seed") + 1] == str(step.seed)  # seed s of every row: one order, one init
-        assert argv[argv.index("--iterations") + 1] == str(cfg.budget.live_iterations)
+        assert _kw(step)["live"].seed == step.seed  # seed s of every row: one order, one init
+        assert _kw(step)["live"].iterations == cfg.budget.live_iterations
     gt, predicted = train["train live runs/bc_gt_all_s1"], train["train live runs/bc_all_s1"]
-    assert "--ground-truth-intentions" in gt.argv and "--intention" not in gt.argv and gt.reads == ("data",)
-    assert gt.argv[gt.argv.index("--ablation") + 1] == "all"
-    assert "--ground-truth-intentions" not in predicted.argv and "runs/intention" in predicted.reads
-    evals = {s.name: s for s in stages["bc"].steps if s.argv[0] == "eval"}
-    assert "--ground-truth-intentions" in evals["eval eval/conav_bc_gt_object_s0"].argv
-    assert "--ground-truth-intentions" not in evals["eval eval/conav_bc_object_s0"].argv
+    assert "intention_run" not in _kw(gt) and gt.reads == ("data",)  # the env's true intentions
+    assert _model(gt) == _model(predicted) and _model(gt).use_trajectory  # the inputs of `all`
+    assert _kw(predicted)["intention_run"].endswith("runs/intention") and "runs/intention" in predicted.reads
+    evals = {s.name: s for s in stages["bc"].steps if s.call.kind == "eval"}
+    assert _kw(evals["eval eval/conav_bc_gt_object_s0"])["intention_kwargs"] == {"ground_truth": True}
+    assert _kw(evals["eval eval/conav_bc_object_s0"])["intention_kwargs"] == {}
     # DAgger: its own run from scratch (no copy of BC), beta falling from 1 to --dagger-beta.
     (dagger, _) = stages["dagger"].steps
     assert dagger.name == "train live runs/dagger_live_beta0_s0" and not any(s.is_copy for s in stages["dagger"].steps)
-    argv = dagger.argv
-    assert (argv[argv.index("--beta-start") + 1], argv[argv.index("--beta-end") + 1]) == ("1", "0")
-    assert argv[argv.index("--beta-decay-iterations") + 1] == str(cfg.budget.live_iterations // 2)
+    live = _kw(dagger)["live"]
+    assert (live.beta_start, live.beta_end) == (1.0, 0.0)
+    assert live.beta_decay_iterations == cfg.budget.live_iterations // 2
     assert "eval eval/conav_dagger_live_beta0_s1" in {s.name for s in stages["eval"].steps}
     # A subset of the rows; unknown rows and the offline trainer's lack of ground-truth rows refused.
     some = rp.plan_stages(dataclasses.replace(cfg, rows=("none", "gt_all")))
-    assert {s.name for s in some[3].steps if s.argv[0] == "train"} == {
+    assert {s.name for s in _trained(some[3])} == {
         f"train live runs/bc_{r}_s{s}" for r in ("none", "gt_all") for s in (0, 1)}
     with pytest.raises(ValueError, match="ReproduceConfig.rows gt_all"):
         rp.ReproduceConfig(out=tmp_path, rows=("gt_all",))
@@ -967,13 +1062,13 @@ def test_tables_show_the_ground_truth_bound_and_its_paired_contrasts(tmp_path):
 def test_choices_are_made_on_minival_in_files_of_their_own(tmp_path):
     cfg = rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=1, trainer="live", rows=("none",), eval_split="minival")
     stages = {st.name: st for st in rp.plan_stages(cfg)}
-    (evaluation,) = [s for s in stages["bc"].steps if s.argv[0] == "eval"]
+    (evaluation,) = [s for s in stages["bc"].steps if s.call.kind == "eval"]
     assert evaluation.name == "eval eval_minival/conav_bc_none_s0"
-    assert evaluation.argv[evaluation.argv.index("--split") + 1] == "minival"
+    assert _kw(evaluation)["split"] == "minival"
     assert stages["tables"].outputs == (tmp_path / "results_minival.json", tmp_path / "tables_minival.md")
     # The runs are val's: the same step, the same directory.
     val = rp.plan_stages(dataclasses.replace(cfg, eval_split="val"))
-    assert [s for s in val[3].steps if s.argv[0] == "train"] == [s for s in stages["bc"].steps if s.argv[0] == "train"]
+    assert _trained(val[3]) == _trained(stages["bc"])
     _write_eval(tmp_path / "eval_minival" / rp.BC_ROW_EVAL.format(row="none", seed=0), _eval_doc({"conav": (5, 6, 0, 0, 0, 0)}))
     results = rt.collect_results(tmp_path, 1, {"seeds": 1, "split": "minival"}, cfg.dagger, cfg.table3_rows, cfg.eval_dir)
     assert set(results["conav"]["none"]["seeds"]) == {"0"} and "eval_minival/scripted" in results["missing"]
@@ -983,39 +1078,43 @@ def test_choices_are_made_on_minival_in_files_of_their_own(tmp_path):
 
 
 BUDGET_OVERRIDE_CASES = {
-    # the overridden fields, the flags that give them, what the step's command then holds, and
-    # the field the refused OUT names
-    "live": (dict(live_iterations=40, live_lr=3e-4), ["--live-iterations", "40", "--live-lr", "3e-4"],
-             {"--iterations": "40", "--lr": "0.0003"}, "live_iterations 40"),
+    # the overridden fields, the flags that give them, the step's config that then holds them
+    # (its keyword) and its fields, and the field the refused OUT names
+    # (the paper preset's 50 warm-up updates: a live run of fewer is refused at planning; the
+    # dry run shows the fields that differ from LiveConfig's defaults, lr 3e-4 among them)
+    "live": (dict(live_iterations=400, live_lr=5e-4), ["--live-iterations", "400", "--live-lr", "5e-4"],
+             ("live", {"iterations": 400, "lr": 5e-4}), "live_iterations 400"),
     "intention": (dict(intention_steps=24000, intention_batch=256, intention_lr=6e-4),
                   ["--intention-steps", "24000", "--intention-batch", "256", "--intention-lr", "6e-4"],
-                  {"--steps": "24000", "--batch": "256", "--lr": "0.0006"}, "intention_steps 24000"),
+                  ("cfg", {"steps": 24000, "batch": 256, "lr": 6e-4}), "intention_steps 24000"),
 }
 
 
 def _budget_step(cfg, kind):
     """The step a budget override of `kind` reaches: a live run, or the intention predictor's."""
     if kind == "live":
-        (step,) = [s for s in rp.plan_stages(cfg)[3].steps if s.argv[0] == "train"]
+        (step,) = _trained(rp.plan_stages(cfg)[3])
     else:
-        (step,) = [s for s in rp.plan_stages(cfg)[1].steps if s.argv[1] == "intention"]
+        (step,) = [s for s in rp.plan_stages(cfg)[1].steps if s.call.kind == "train intention"]
     return step
 
 
 @pytest.mark.parametrize("kind", sorted(BUDGET_OVERRIDE_CASES))
 def test_a_budget_other_than_the_presets_is_an_out_directory_of_its_own(tmp_path, capsys, kind):
-    fields, flags, expected, refused = BUDGET_OVERRIDE_CASES[kind]
+    from conav_jax.train.intention import INTENTION_TRAIN
+
+    fields, flags, (keyword, expected), refused = BUDGET_OVERRIDE_CASES[kind]
     cfg = rp.ReproduceConfig(out=tmp_path, preset="paper", seeds=1, trainer="live", rows=("gt_all",), **fields)
     step = _budget_step(cfg, kind)
-    argv = step.argv
-    assert {k: argv[argv.index(k) + 1] for k in expected} == expected
+    config = _kw(step)[keyword]
+    assert {k: getattr(config, k) for k in expected} == expected
     if kind == "live":
-        assert argv[argv.index("--lanes") + 1] == str(rp.BUDGETS["paper"].live_lanes)  # not overridden: the preset's
+        assert config.lanes == rp.BUDGETS["paper"].live_lanes  # not overridden: the preset's
     else:
         assert rp.plan_stages(cfg)[1].outputs[0].name == "ckpt_00024000.npz"
-        # The preset's own schedule keeps the published command: no --batch, no --lr.
-        default = _budget_step(rp.ReproduceConfig(out=tmp_path), kind)
-        assert "--batch" not in default.argv and "--lr" not in default.argv
+        # The preset's own schedule keeps the published one: `conav train intention`'s batch and lr.
+        default = _kw(_budget_step(rp.ReproduceConfig(out=tmp_path), kind))["cfg"]
+        assert (default.batch, default.lr) == (INTENTION_TRAIN.batch, INTENTION_TRAIN.lr)
     progress = rpp.read_progress(tmp_path)
     rpp.check_out(progress, cfg)
     name = refused.split()[0]
@@ -1024,12 +1123,11 @@ def test_a_budget_other_than_the_presets_is_an_out_directory_of_its_own(tmp_path
     for field in fields:
         with pytest.raises(ValueError, match=f"ReproduceConfig.{field} must be positive"):
             dataclasses.replace(cfg, **{field: 0})
-    # The command line: flags to fields, and into each --gpus process's command.
+    # The command line: flags to fields, and into the configuration each --gpus process plans from.
     args = cli.build_parser().parse_args(["reproduce", "--preset", "paper", "--trainer", "live", "--out", str(tmp_path),
                                           *flags, "--dry-run"])
     assert args.func(args) == 0
-    assert " ".join(f"{k} {v}" for k, v in expected.items()) in capsys.readouterr().out
-    from conav_jax.eval.cli.reproduce import child_command
-    child = child_command(step, args, cfg)
-    assert [float(child[child.index(f) + 1]) for f in flags[::2]] == [float(v) for v in flags[1::2]]
-    assert all(flag(f) not in child for f in rp.BUDGET_OVERRIDES if f not in fields)
+    assert ", ".join(f"{k}={v!r}" for k, v in expected.items()) in capsys.readouterr().out
+    stored = rr.load_config(tmp_path, rr.save_config(cfg))
+    assert stored == cfg and [getattr(stored, f) for f in fields] == list(fields.values())
+    assert all(getattr(stored, f) is None for f in rp.BUDGET_OVERRIDES if f not in fields)

@@ -36,6 +36,9 @@ from conav_jax.envs.panorama import front_view
 from conav_jax.envs.rollout import jit_with_bank
 from conav_jax.train.loop import TrainConfig, TrainResult, train
 
+# The predictor's schedule unless a run gives its own (`conav train intention`'s defaults).
+INTENTION_TRAIN = TrainConfig(steps=6000, batch=64, lr=3e-4, weight_decay=0.01)
+
 KIND = runs.INTENTION
 
 

@@ -57,6 +57,9 @@ from conav_jax.train import loop
 from conav_jax.train.loop import TrainConfig
 
 KIND = runs.POLICY
+# Each imitation round's schedule unless a run gives its own (`conav train policy|objectnav|imagenav`'s
+# defaults): BC's updates, windows per update, validations on minival.
+POLICY_TRAIN = TrainConfig(steps=2000, batch=16, lr=3e-4, warmup_steps=100, val_every=1000, ckpt_every=500)
 # ImitationConfig fields a resumed run may change: more DAgger rounds continue a finished run;
 # batching and the validation subset do not change the weights.
 RESUME_FREE = ("dagger_rounds", "rollout_batch", "val_batch", "val_episodes")

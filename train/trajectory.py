@@ -24,6 +24,8 @@ from conav_jax.motion.phases import PHASE_WALK
 from conav_jax.train.loop import TrainConfig, TrainResult, train
 
 KIND = runs.TRAJECTORY
+# The predictor's schedule unless a run gives its own (`conav train trajectory`'s defaults).
+TRAJECTORY_TRAIN = TrainConfig(steps=3000, batch=256, lr=2e-3)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -15,9 +15,9 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from pathlib import Path
 
 from conav_jax import __version__
+from conav_jax.compile_cache import COMPILE_CACHE_ENV, default_compile_cache_dir, enable_compile_cache
 from conav_jax.eval.cli import bench, curve, demo, eval, generate, reproduce, train, view
 from conav_jax.eval.cli.args import as_flags, leaf_flags, parse_checkpoints, parse_physics_override, use_pretrained
 from conav_jax.eval.cli.train import imitation_config, network_base, policy_model
@@ -27,32 +27,8 @@ __all__ = ["build_parser", "main", "enable_compile_cache", "default_compile_cach
            "parse_physics_override", "use_pretrained", "imitation_config", "network_base", "policy_model",
            "train_config"]
 
-COMPILE_CACHE_ENV = "CONAV_COMPILE_CACHE"  # a directory, or "off"
 COMMANDS = (generate, train, eval, view, demo, curve, reproduce, bench)
 _use_pretrained = use_pretrained  # the name an earlier release exported
-
-
-def default_compile_cache_dir() -> Path:
-    """Where compiled XLA programs are kept between runs: $XDG_CACHE_HOME/conav_jax/xla (or ~/.cache/...)."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "conav_jax" / "xla"
-
-
-def enable_compile_cache(setting: str | None) -> Path | None:
-    """Turn on JAX's persistent compilation cache: `setting` a directory, "off", or None for
-    $CONAV_COMPILE_CACHE, else the default directory. Returns the directory (None when off).
-    Every program is kept, whatever its compile time: a CPU run compiles many small ones."""
-    setting = setting or os.environ.get(COMPILE_CACHE_ENV) or str(default_compile_cache_dir())
-    if setting.lower() in ("off", "none", "0", ""):
-        return None
-    import jax
-
-    path = Path(setting).expanduser()
-    path.mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    return path
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -23,7 +23,7 @@ def add(sub) -> None:
 
 
 def run_stage(argv) -> int:
-    """One stage of `conav demo` or `conav reproduce`, run in this process as a fresh `conav`
+    """One stage of `conav demo`, run in this process as a fresh `conav`
     process would run it: JAX's in-memory caches are cleared first. A later stage that reuses a
     function traced by an earlier one lowers to a program of the same computation but other
     function names, whose compile-cache key then misses on the next run (seen on the demo's

@@ -1,9 +1,10 @@
 """`conav eval`: every episode of a split for each agent -> records, metrics with 95% intervals
-and the Table 2/3 report (conav_jax.eval.sweep: plan_eval, load_env, sweep)."""
+and the Table 2/3 report (conav_jax.eval.sweep.run_eval: plan_eval, load_env, sweep)."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from conav_jax.eval.cli.args import (
     INTENTION_FLAGS,
@@ -62,16 +63,13 @@ def run(args: argparse.Namespace) -> int:
 
     agents = tuple(n.strip() for n in args.agent.split(",") if n.strip())
     use_pretrained(args, agents)
-    plan = sweep.plan_eval(
-        args.data, args.split, agents, args.out,
+    doc = sweep.run_eval(
+        args.data, args.split, agents, args.out, progress=True,
         checkpoint=parse_checkpoints(args.checkpoint), intention_kwargs=intention_kwargs(args),
         ablations=parse_ablations(args.ablation_checkpoints), episodes=args.episodes, batch=args.batch,
         seed=args.seed, resolution=args.resolution, devices=args.devices, materials=args.materials,
     )
-    devices = mesh(args)
-    env = sweep.load_env(plan)
-    doc = sweep.sweep(plan, env, progress=True, mesh=devices)
-    print((plan.out / "report.md").read_text().split("## Figures")[0].rstrip())
-    print(f"wrote {plan.out} ({len(doc['agents'])} agents, {len(doc['ablations'])} ablations, {env.num_episodes} "
-          f"episodes, {devices.size} device(s))")
+    print((Path(args.out) / "report.md").read_text().split("## Figures")[0].rstrip())
+    print(f"wrote {Path(args.out)} ({len(doc['agents'])} agents, {len(doc['ablations'])} ablations, {doc['episodes']} "
+          f"episodes, {mesh(args).size} device(s))")
     return 0

@@ -1,5 +1,6 @@
 """`conav reproduce`: the paper's Tables 2 and 3, every stage from data to tables, resumable;
-the plan, progress, parallel runner and pack live in conav_jax.eval.reproduce."""
+the plan (conav_jax.eval.reproduce), its steps (eval.reproduce_steps), progress
+(eval.reproduce_progress), runners and pack (eval.reproduce_run) are the library's."""
 
 from __future__ import annotations
 
@@ -11,10 +12,10 @@ import shlex
 import signal
 import sys
 import time
+import traceback
 from pathlib import Path
 
 from conav_jax.eval.cli.args import as_flags, flag, parse_resolution
-from conav_jax.eval.cli.demo import run_stage
 
 def add(sub) -> None:
     from conav_jax.models.policy import ENCODERS
@@ -36,7 +37,7 @@ def add(sub) -> None:
                    help=f"training seeds of every learned CoNav row (default {d['seeds']})")
     p.add_argument("--stage", choices=STAGES, default=None, action="append",
                    help="run only this stage (repeat for several, run in the plan's order; default: every stage not "
-                   "done); a command whose runs are not trained yet waits, and the stage stays to run")
+                   "done); a step whose runs are not trained yet waits, and the stage stays to run")
     p.add_argument("--resolution", type=parse_resolution, default=d["resolution"], metavar="HxW",
                    help=f"panorama HxW of every agent (default the paper's {h}x{w})")
     p.add_argument("--workers", type=int, default=min(d["workers"], os.cpu_count() or 1),
@@ -87,22 +88,19 @@ def add(sub) -> None:
                    help="the Table 3 rows to train and evaluate (default: every one; the tables list the others as "
                    "not run)")
     p.add_argument("--seed", type=int, default=None, metavar="S",
-                   help="run only training seed S's commands of the bc, dagger and eval stages (each BC run is "
+                   help="run only training seed S's steps of the bc, dagger and eval stages (each BC run is "
                         "evaluated as soon as it has trained; an evaluation of a run not trained yet waits): a machine "
                         "with the time for one seed leaves it finished, and its pack small; a stage is done once "
-                        "every seed's commands are")
+                        "every seed's steps are")
     p.add_argument("--gpus", type=int, default=1, metavar="N",
-                   help="run up to N commands at once, each in a process of its own on one GPU (the first N of "
-                        "CUDA_VISIBLE_DEVICES, else 0..N-1), a command starting as soon as the runs it reads are made; "
-                        "each logs to OUT/logs/ (default 1: one command at a time, in this process, on every visible "
+                   help="run up to N steps at once, each in a process of its own on one GPU (the first N of "
+                        "CUDA_VISIBLE_DEVICES, else 0..N-1), a step starting as soon as the runs it reads are made; "
+                        "each logs to OUT/logs/ (default 1: one step at a time, in this process, on every visible "
                         "device)")
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
-    p.add_argument("--dry-run", action="store_true", help="print the stages and their commands, run nothing")
-    p.add_argument("--run-step", default=None, metavar="NAME",
-                   help="run the one step of the plan named NAME (as --dry-run and progress.json name them, e.g. "
-                   "'train policy runs/bc_all_s0') in this process and record nothing: what each process of --gpus "
-                   "runs")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the stages and their steps (each a library function and its configs), run nothing")
     p.set_defaults(func=run)
 
 
@@ -111,7 +109,7 @@ def _raise_interrupt(signum, frame):
 
 
 def run(args: argparse.Namespace) -> int:
-    # `timeout` and batch schedulers stop a run with SIGTERM: raise, so the command it cut records its time.
+    # `timeout` and batch schedulers stop a run with SIGTERM: raise, so the step it cut records its time.
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
         return _reproduce_stages(args)
@@ -149,8 +147,6 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         print(f"conav reproduce: {as_flags(str(e), args.field_flags)}", file=sys.stderr)
         return 2
     plan = rp.plan_stages(cfg)
-    if args.run_step is not None:
-        return _run_step(plan, args.run_step)
     older = progress.get("run_format", 1) < rpp.RUN_FORMAT
     try:  # an OUT made before steps had names: its records move to them
         dropped = rpp.upgrade_progress(progress, plan, cfg.out)
@@ -178,8 +174,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     commit = git_state()[0][:7]  # provenance's: CONAV_COMMIT names the commit of a copy of the tree
     gpus = rr.visible_gpus() if args.gpus == 1 and not args.dry_run else None
     if gpus is not None and len(gpus) > 1:
-        print(f"{len(gpus)} GPUs visible: each command runs on all of them as one device mesh; --gpus {len(gpus)} "
-              "runs that many commands at once instead, one GPU each", flush=True)
+        print(f"{len(gpus)} GPUs visible: each step runs on all of them as one device mesh; --gpus {len(gpus)} "
+              "runs that many steps at once instead, one GPU each", flush=True)
     if args.gpus > 1 and not args.dry_run:
         stages = _reproduce_parallel(args, cfg, plan, stages, progress)
         if isinstance(stages, int):
@@ -192,30 +188,19 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         # learned baselines' evaluations before their training, say) instead of failing.
         todo, waiting = rpp.ready_steps(plan, st, rpp.stage_seed(st, args.seed), set(progress["commands"]))
         for step in waiting:
-            print(f"[{st.name}] waits for the runs it reads: {_shown(step)}")
+            print(f"[{st.name}] waits for the runs it reads: {step.name}")
         if st.name in progress["stages"] and not todo and st.name not in ("tables", "pack"):  # those two are of now
             print(f"[{st.name}] done ({progress['stages'][st.name]:.0f} s), skipped")
             continue
         t_stage = time.perf_counter()
         for step in todo:
-            print(f"\n{'' if step.is_copy else '$ '}{_shown(step)}", flush=True)
-            t0, rc = time.perf_counter(), 0
-            try:
-                if step.is_copy:
-                    rpp.copy_run(step)
-                else:
-                    rc = run_stage(step.argv)
-            finally:  # a step cut short (failed, interrupted, SIGTERM) still counts its time
-                seconds = round(time.perf_counter() - t0, 1)
-                if rc or sys.exc_info()[0] is not None:
-                    cut = progress.setdefault("cut", {})
-                    cut[step.name] = round(cut.get(step.name, 0.0) + seconds, 1)
-                else:
-                    progress["commands"][step.name] = seconds
-                rpp.write_progress(cfg.out, progress)
-            if rc:
-                print(f"conav reproduce: stage {st.name} failed (exit {rc}) at: {_shown(step)}")
-                return rc
+            print(f"\n{_shown(step)}", flush=True)
+            try:  # run_here counts the time of a step cut short (failed, interrupted, SIGTERM) as cut
+                rr.run_here(step, cfg.out, progress)
+            except Exception:
+                traceback.print_exc()
+                print(f"conav reproduce: stage {st.name} failed at {step.name}", flush=True)
+                return 1
         left = [step for step in st.steps if step.name not in progress["commands"]]
         if left:  # steps waiting for their runs, or with --seed the other seeds' steps
             if args.seed is None:
@@ -250,44 +235,15 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_step(plan: list, name: str) -> int:
-    """--run-step: the step of `plan` named `name`, run here; its exit code."""
-    from conav_jax.eval import reproduce_progress as rpp
-
-    steps = {step.name: step for st in plan for step in st.steps}
-    if name not in steps:
-        raise ValueError(f"the plan has no step {name!r}; --dry-run lists them (e.g. {next(iter(steps))!r})")
-    if steps[name].is_copy:
-        rpp.copy_run(steps[name])
-        return 0
-    return run_stage(steps[name].argv)
-
-
-def child_command(step, args: argparse.Namespace, cfg) -> list[str]:
-    """The process `--gpus` runs a step in: this command with this run's options, for `step`
-    alone (`--run-step`)."""
-    from conav_jax.eval import reproduce as rp
-
-    options = ["--preset", cfg.preset, "--seeds", str(cfg.seeds), "--resolution", rp.resolution_name(cfg),
-               "--workers", str(cfg.workers), "--dagger-beta", f"{cfg.dagger_beta:g}", "--encoder", cfg.encoder,
-               "--trainer", cfg.trainer, "--eval-split", cfg.eval_split,
-               *(("--rows", ",".join(cfg.rows)) if cfg.rows else ())]
-    for name in ("dagger_rounds", "dagger_episodes", *rp.BUDGET_OVERRIDES):
-        if getattr(cfg, name) is not None:
-            options += [flag(name), str(getattr(cfg, name))]
-    options += [option for option, on in (("--mirror", cfg.mirror), ("--seen-objects", cfg.seen_objects)) if on]
-    cache = ("--compile-cache", args.compile_cache) if args.compile_cache else ()
-    return [sys.executable, "-m", "conav_jax.eval.cli", *cache, "reproduce", "--out", str(cfg.out), *options,
-            "--run-step", step.name]
-
-
 def _shown(step) -> str:
-    """A step as a person would type it."""
-    return f"copy {step.argv[1]} -> {step.argv[2]}" if step.is_copy else f"conav {shlex.join(step.argv)}"
+    """A step for people: its name and its call."""
+    from conav_jax.eval.reproduce_steps import call_text
+
+    return f"{step.name}: {call_text(step.call)}"
 
 
 def _print_stage(st, progress: dict) -> None:
-    """--dry-run: the stage, whether it is done, and each step's call."""
+    """--dry-run: the stage, whether it is done, and each step."""
     todo = [step for step in st.steps if step.name not in progress["commands"]]
     print(f"[{st.name}] {'done' if st.name in progress['stages'] and not todo else 'to run'}")
     for step in st.steps:
@@ -312,24 +268,26 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
         return 2
     import jax
 
-    jax.config.update("jax_platforms", "cpu")  # this process runs no program: its GPUs are the commands'
+    jax.config.update("jax_platforms", "cpu")  # this process runs no program: its GPUs are the steps'
     todo = []
     for st in work:
         seed = rpp.stage_seed(st, args.seed)
         todo += [step for step in st.steps if step.name not in progress["commands"] and seed in (None, step.seed)]
-    print(f"{len(todo)} command(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
+    print(f"{len(todo)} step(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
     t0 = time.perf_counter()
-    rc, waiting = rr.run_parallel(plan, todo, cfg.out, progress, gpus, lambda step: child_command(step, args, cfg))
+    digest = rr.save_config(cfg)  # each step's process plans from it, and runs its step by name
+    rc, waiting = rr.run_parallel(plan, todo, cfg.out, progress, gpus,
+                                  lambda step: rr.child_command(cfg.out, digest, step, args.compile_cache))
     for step in waiting:
-        print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: {_shown(step)}")
+        print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: {step.name}")
     for st in work:
         keys = [step.name for step in st.steps]
         if all(k in progress["commands"] for k in keys):
             progress["stages"][st.name] = round(sum(progress["commands"][k] for k in keys), 1)
     rpp.write_progress(cfg.out, progress)
-    print(f"{len(todo) - len(waiting)} command(s) ended in {time.perf_counter() - t0:.0f} s", flush=True)
+    print(f"{len(todo) - len(waiting)} step(s) ended in {time.perf_counter() - t0:.0f} s", flush=True)
     if rc:
-        print(f"conav reproduce: a command failed (exit {rc}); its log is named above", file=sys.stderr)
+        print(f"conav reproduce: a step failed (exit {rc}); its log is named above", file=sys.stderr)
         return rc
     return [st for st in stages if st.name in ("tables", "pack")]
 

@@ -25,16 +25,16 @@ def add(sub) -> None:
     from conav_jax.models.perceiver import PerceiverConfig
     from conav_jax.models.policy import ABLATIONS, PolicyConfig
     from conav_jax.models.trajectory import TrajectoryConfig
-    from conav_jax.train.intention import IntentionDataConfig
-    from conav_jax.train.loop import TrainConfig
-    from conav_jax.train.policy import TRAIN_INTENTIONS, ImitationConfig
+    from conav_jax.train.intention import INTENTION_TRAIN, IntentionDataConfig
+    from conav_jax.train.policy import POLICY_TRAIN, TRAIN_INTENTIONS, ImitationConfig
+    from conav_jax.train.trajectory import TRAJECTORY_TRAIN
     from conav_jax.train.ppo import PPOConfig
 
     train = sub.add_parser("train", help="train the intention / trajectory predictors, the policy, PPO")
     models = train.add_subparsers(dest="model", metavar="MODEL", required=True)
 
     p = models.add_parser("intention", help="train the intention (activity/object B) Perceiver")
-    train_args(p, TrainConfig(steps=6000, batch=64, lr=3e-4, weight_decay=0.01))
+    train_args(p, INTENTION_TRAIN)
     dd, dm = IntentionDataConfig(), PerceiverConfig()
     resolution_arg(p, "the frames come from; agents acting with the run must render it")
     p.add_argument("--image", type=parse_resolution, default=None, metavar="HxW",
@@ -51,12 +51,12 @@ def add(sub) -> None:
     p.set_defaults(func=_run_train_intention)
 
     p = models.add_parser("trajectory", help="train the trajectory (short-term intention) predictor")
-    train_args(p, TrainConfig(steps=3000, batch=256, lr=2e-3))
+    train_args(p, TRAJECTORY_TRAIN)
     p.add_argument("--hidden", type=int, default=TrajectoryConfig.hidden, help="LSTM/MLP width")
     p.set_defaults(func=_run_train_trajectory)
 
     p = models.add_parser("policy", help="imitation-train the CoNav policy from the expert (BC, then DAgger)")
-    train_args(p, TrainConfig(steps=2000, batch=16, lr=3e-4, warmup_steps=100, val_every=1000, ckpt_every=500))
+    train_args(p, POLICY_TRAIN)
     d = ImitationConfig()
     p.add_argument("--intention", default=None, metavar="RUN",
                    help="intention run (conav train intention): validate with its predictions")
@@ -176,7 +176,7 @@ def network_base(args: argparse.Namespace, resolution: tuple[int, int]):
 def _add_train_goalnav(models) -> None:
     """`conav train objectnav` and `conav train imagenav`: the learned goal-navigation baselines."""
     from conav_jax.models.policy import PolicyConfig
-    from conav_jax.train.loop import TrainConfig
+    from conav_jax.train.policy import POLICY_TRAIN
 
     for name, what in (("objectnav", "the object-goal agent (after ZSON): panorama, GPS+compass and a goal category, "
                         "imitating the object-goal planner (nearest instance of object B's category)"),
@@ -187,7 +187,7 @@ def _add_train_goalnav(models) -> None:
                               "train scenes, validated on minival; no human task and no human position. Evaluate "
                               f"the run with `conav eval --agent {'objectgoal-oracle|objectgoal-predicted' if name == 'objectnav' else 'imagegoal'} "
                               "--checkpoint RUN`.")
-        train_args(p, TrainConfig(steps=2000, batch=16, lr=3e-4, warmup_steps=100, val_every=1000, ckpt_every=500))
+        train_args(p, POLICY_TRAIN)
         _add_imitation_args(p, "planner")
         p.add_argument("--remat", action="store_true", help="recompute the CNN per window step in the backward pass")
         _add_network_args(p)

@@ -1,0 +1,130 @@
+"""What a `conav reproduce` step is and how one runs: a Python call of a library function (the
+one the matching `conav` command calls) with declared keyword arguments, the directories it reads
+and writes under OUT, its training seed.
+
+A plan (eval.reproduce) holds steps -> `run_step` imports the function of the step's kind
+(STEP_KINDS), adds this process's device mesh where the function takes one, and calls it; the
+runners (eval.reproduce_run) call `run_step` in this process or in a process of a step's own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+@dataclass(frozen=True)
+class StepKind:
+    """A kind of step: the library function its steps call ("module:function", imported when one
+    runs) and whether that takes this process's device mesh (every visible device; `--gpus`
+    gives each process one)."""
+
+    function: str
+    mesh: bool = False
+
+
+# The kinds of step a plan holds, by the name a step's identity starts with.
+STEP_KINDS = {
+    "generate": StepKind("conav_jax.data.episodes:generate_dataset"),
+    "train intention": StepKind("conav_jax.train.intention:train_intention", mesh=True),
+    "train trajectory": StepKind("conav_jax.train.trajectory:train_trajectory", mesh=True),
+    "train objectnav": StepKind("conav_jax.train.goalnav:train_objectnav", mesh=True),
+    "train imagenav": StepKind("conav_jax.train.goalnav:train_imagenav", mesh=True),
+    "train policy": StepKind("conav_jax.train.policy:train_policy", mesh=True),
+    "train live": StepKind("conav_jax.train.live:train_live_from_data"),
+    "eval": StepKind("conav_jax.eval.sweep:run_eval"),
+    "copy": StepKind("conav_jax.eval.reproduce_steps:copy_run"),  # DAgger continues a copy of the BC run
+}
+
+
+@dataclass(frozen=True)
+class Call:
+    """A step's work: the library function of its `kind` (STEP_KINDS) called with `kwargs`, the
+    function's keyword arguments: frozen config dataclasses, paths (str) and plain values (never
+    changed once planned: steps compare by them)."""
+
+    kind: str
+    kwargs: dict
+
+    def __post_init__(self):
+        if self.kind not in STEP_KINDS:
+            raise ValueError(f"unknown Call.kind {self.kind!r}; choose from {', '.join(STEP_KINDS)}")
+
+
+@dataclass(frozen=True)
+class Step:
+    """One unit of work, declared: its `call`, the directory it `writes` and those it `reads`
+    (relative to OUT), and the training `seed` it belongs to (None: every seed's)."""
+
+    call: Call
+    writes: str
+    reads: tuple[str, ...] = ()
+    seed: int | None = None
+
+    @property
+    def name(self) -> str:
+        """The step's identity (in progress.json, for `--gpus` processes): its kind and the
+        directory it writes, e.g. "train policy runs/bc_all_s0"."""
+        return f"{self.call.kind} {self.writes}"
+
+    @property
+    def is_copy(self) -> bool:
+        return self.call.kind == "copy"
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage: its steps, in order, and the files that show it is done."""
+
+    name: str
+    steps: tuple[Step, ...]
+    outputs: tuple[Path, ...] = field(default=())
+
+
+def step_function(kind: str) -> Callable:
+    """The library function steps of `kind` call."""
+    module, name = STEP_KINDS[kind].function.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def run_step(step: Step) -> Any:
+    """Run `step` in this process: its kind's function called with its keywords (and with the
+    mesh of every visible device where it takes one); what the function returns. JAX's
+    in-memory caches are cleared first, as a fresh process would start: a step that reuses a
+    function traced by an earlier one lowers to a program of other function names, whose
+    compile-cache key then misses on the next run."""
+    kind = STEP_KINDS[step.call.kind]
+    extra = {}
+    if not step.is_copy:
+        import jax
+
+        jax.clear_caches()
+    if kind.mesh:
+        from conav_jax.parallel import make_mesh
+
+        extra["mesh"] = make_mesh()
+    return step_function(step.call.kind)(**step.call.kwargs, **extra)
+
+
+def copy_run(source: str, target: str) -> None:
+    """A copy step: the run directory `source` copied to `target`, unless the target exists."""
+    if not Path(target).exists():
+        shutil.copytree(source, target)
+
+
+def call_text(call: Call) -> str:
+    """`call` as Python, for people: the function and its keywords, each config by the fields
+    that differ from their defaults."""
+    args = ", ".join(f"{k}={_value_text(v)}" for k, v in call.kwargs.items())
+    return f"{STEP_KINDS[call.kind].function.split(':')[1]}({args})"
+
+
+def _value_text(value) -> str:
+    if not dataclasses.is_dataclass(value):
+        return repr(value)
+    changed = [f"{f.name}={_value_text(getattr(value, f.name))}" for f in dataclasses.fields(value)
+               if f.default is dataclasses.MISSING or getattr(value, f.name) != f.default]
+    return f"{type(value).__name__}({', '.join(changed)})"
