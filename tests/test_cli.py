@@ -34,9 +34,14 @@ def test_the_demos_commands_parse_and_its_predictor_crops_the_policys_panorama(t
     from conav_jax.eval.cli import build_parser
     from conav_jax.eval.demo import demo_commands
 
-    commands = demo_commands(tmp_path, seed=0, resolution="16x64")
+    commands = demo_commands(tmp_path, seed=0, resolution="16x64", train=True)
     parsed = {tuple(argv[:2]): build_parser().parse_args(argv) for argv in commands}
     assert tuple(parsed[("train", "intention")].resolution) == tuple(parsed[("train", "live")].resolution) == (16, 64)
+    # By default the shipped agent is evaluated and nothing is trained; its own policy needs training.
+    assert [argv[0] for argv in demo_commands(tmp_path, seed=0, resolution="16x64")] == ["generate", "eval", "view"]
+    own = demo_commands(tmp_path, seed=0, resolution="16x64", pretrained=False)
+    assert [argv[0] for argv in own] == ["generate", "train", "train", "train", "eval", "view"]
+    assert build_parser().parse_args(["demo", "--out", "o", "--train"]).train
 
 
 def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, monkeypatch):
@@ -52,7 +57,7 @@ def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, 
     monkeypatch.setattr(cli, "main", lambda argv, compile_cache=True: events.append(tuple(argv)) or 0)
     args = cli.build_parser().parse_args(["demo", "--out", str(tmp_path / "demo")])
     assert cli.demo.run(args) == 0
-    stages = demo_commands(tmp_path / "demo", args.seed, "x".join(map(str, args.resolution)), args.pretrained)
+    stages = demo_commands(tmp_path / "demo", args.seed, "x".join(map(str, args.resolution)), args.pretrained, args.train)
     assert events == [x for argv in stages for x in ("clear", tuple(argv))]
     events.clear()
     from conav_jax.eval import reproduce_steps

@@ -11,14 +11,18 @@ from pathlib import Path
 from conav_jax.eval.cli.args import parse_resolution
 
 def add(sub) -> None:
-    p = sub.add_parser("demo", help="the whole pipeline on the demo preset (CPU, minutes)")
+    p = sub.add_parser("demo", help="the shipped agent and the baselines on the demo preset; --train: the whole "
+                       "pipeline (CPU, minutes)")
     p.add_argument("--out", required=True, help="output directory (data, runs, eval, episode.rrd)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", default="16x64", type=parse_resolution, metavar="HxW",
                    help="panorama HxW the demo trains at (small: CPU; default 16x64)")
+    p.add_argument("--train", action="store_true",
+                   help="also train the intention and trajectory predictors and a policy briefly (live imitation) "
+                   "before evaluating: the whole pipeline, minutes longer")
     p.add_argument("--no-pretrained", dest="pretrained", action="store_false",
-                   help="evaluate and record the demo's own briefly trained policy (at --resolution) instead of the "
-                   "shipped one (conav_jax/pretrained, 32x128)")
+                   help="evaluate and record the demo's own briefly trained policy (at --resolution; implies --train) "
+                   "instead of the shipped one (conav_jax/pretrained, 32x128)")
     p.set_defaults(func=run)
 
 
@@ -42,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    for argv in demo_commands(out, args.seed, "x".join(map(str, args.resolution)), args.pretrained):
+    for argv in demo_commands(out, args.seed, "x".join(map(str, args.resolution)), args.pretrained, args.train):
         print(f"\n$ conav {shlex.join(argv)}", flush=True)
         t0 = time.perf_counter()
         rc = run_stage(argv)
