@@ -437,6 +437,9 @@ def _row_block(height: int) -> int:
 # (SHADE_KIND_*), a box's corners and a capsule's segment. One table, so the XLA colouring and
 # the Pallas kernel read a hit geom's row the same way (a gather by geom id).
 SHADE_KIND_OTHER, SHADE_KIND_BOX, SHADE_KIND_CAPSULE = 0.0, 1.0, 2.0
+# The material row's layout (conav_jax.data.materials.Material.row): base rgb, second rgb,
+# pattern index, period (m), orientation (rad).
+_RGB_COL, _RGB2_COL, _PATTERN_COL, _PERIOD_COL, _ANGLE_COL = 0, 3, 6, 7, 8
 _KIND_COL = MATERIAL_WIDTH
 _LO_COL, _HI_COL, _P0_COL, _P1_COL = _KIND_COL + 1, _KIND_COL + 4, _KIND_COL + 7, _KIND_COL + 10
 SHADING_WIDTH = _KIND_COL + 13
@@ -447,7 +450,8 @@ def shading_table(geometry: SceneGeometry, geom_material: jax.Array) -> jax.Arra
     MATERIAL_WIDTH), the kind (box, capsule, other: the floor and anything else), the box
     corners and the capsule segment of `geometry` (zeros where they do not apply)."""
     n_geoms = geom_material.shape[0]
-    kind = _geom_table(n_geoms, geometry.box_ids, jnp.full(geometry.box_ids.shape, SHADE_KIND_BOX, jnp.float32))
+    kind = _geom_table(n_geoms, geometry.box_ids, jnp.full(geometry.box_ids.shape, SHADE_KIND_BOX, jnp.float32),
+                       fill=SHADE_KIND_OTHER)
     kind = kind.at[geometry.capsule_ids].set(SHADE_KIND_CAPSULE)
     parts = [geom_material.astype(jnp.float32), kind[:, None],
              _geom_table(n_geoms, geometry.box_ids, geometry.box_lo_m),
@@ -500,14 +504,15 @@ def shade_pixels(cfg: SensorConfig, cam_xyz_m, dirs, depth, ids, column):
     The XLA colouring and the Pallas kernel both call it (their `column` differs: an array
     gather, a load from the kernel's table), so their colours agree."""
     hit = [cam_xyz_m[k] + depth * dirs[k] for k in range(3)]
-    pattern = jnp.floor(column(6) + 0.5).astype(jnp.int32)  # stored as a float index
-    mix = pattern_mix(tuple(hit), pattern, column(7), column(8))
+    pattern = jnp.floor(column(_PATTERN_COL) + 0.5).astype(jnp.int32)  # stored as a float index
+    mix = pattern_mix(tuple(hit), pattern, column(_PERIOD_COL), column(_ANGLE_COL))
     light = light_unit(cfg)
     normal = _normal_components(dirs, hit, column)
     lambert = jnp.maximum(sum(float(light[k]) * normal[k] for k in range(3)), 0.0)
     gain = cfg.ambient + (1.0 - cfg.ambient) * lambert
     hit_any = ids >= 0
-    return [jnp.where(hit_any, (column(c) + mix * (column(3 + c) - column(c))) * gain, float(SKY_RGB[c]))
+    base = [column(_RGB_COL + c) for c in range(3)]
+    return [jnp.where(hit_any, (base[c] + mix * (column(_RGB2_COL + c) - base[c])) * gain, float(SKY_RGB[c]))
             for c in range(3)]
 
 
@@ -520,9 +525,9 @@ def shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: ja
     sky where nothing is hit; depth unchanged (`shade_pixels`).
 
     With the Pallas caster (SensorConfig.kind "pallas", or "auto" where it resolves so) and
-    SensorConfig.pallas_shade the colouring runs in a Pallas kernel too (envs.panorama_pallas.pallas_shade): XLA writes the
-    per-pixel gathers of the material and geometry tables to memory rather than fusing them,
-    and the kernel keeps them in registers. Otherwise XLA computes it from gathers of the
+    SensorConfig.pallas_shade the colouring runs in a Pallas kernel too
+    (envs.panorama_pallas.pallas_shade): XLA writes the per-pixel gathers of the material and
+    geometry tables to memory rather than fusing them, and the kernel keeps them in registers. Otherwise XLA computes it from gathers of the
     shading table, a block of rows at a time (SHADE_BLOCK_ROWS): a batch of thousands of
     panoramas never holds more than a block's temporaries."""
     table = shading_table(geometry, geom_material)

@@ -227,4 +227,5 @@ def test_pallas_colours_in_a_kernel_of_its_own_with_the_xla_colours():
         assert "panorama_shade" not in str(jax.make_jaxpr(lambda: colour(xla))())
         kernel, reference = np.asarray(jax.jit(lambda: colour(cfg))()), np.asarray(jax.jit(lambda: colour(xla))())
         np.testing.assert_array_equal(kernel[..., 3], np.asarray(depth))
-        assert np.abs(kernel - reference).max() < 1e-5
+        # The same per-pixel function: only float rounding (FMA contraction) may differ.
+        assert np.abs(kernel - reference).max() < 1e-4
