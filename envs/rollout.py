@@ -312,12 +312,13 @@ def evaluate(
     batch: int = 256,
     seed: int = 0,
     mesh: Mesh | None = None,
+    compiler_options: dict | None = None,
 ) -> dict[str, np.ndarray]:
     """Final metrics of every given episode (default: all of the bank, each exactly once), on
     `batch` parallel lanes refilled as episodes end (`make_pool_rollout`); with a `mesh`
     (conav_jax.parallel.make_mesh) the lanes are split over its devices, with the same results
-    as on one device."""
-    return make_evaluator(env, lambda _: agent, batch, seed, mesh)(None, episodes)
+    as on one device. `compiler_options` go to `jax.jit` for the rollout."""
+    return make_evaluator(env, lambda _: agent, batch, seed, mesh, compiler_options=compiler_options)(None, episodes)
 
 
 def make_evaluator(

@@ -123,9 +123,10 @@ def test_sweeps_render_no_image_for_an_agent_that_reads_none(env, noisy_expert):
     assert f",{h},{w}]" not in compiled and f",{h},{w},4]" not in compiled  # ... so no image is computed
 
 
-def test_evaluator_compiles_its_rollouts_with_the_given_options(env, noisy_expert, monkeypatch):
-    """Both rollouts (one full-length batch, refilled lanes) go to jax.jit with the options, and
-    jax.jit is given them (an unknown one is refused when the program compiles)."""
+def test_evaluators_compile_their_rollouts_with_the_given_options(env, noisy_expert, monkeypatch):
+    """Both rollouts (one full-length batch, refilled lanes) of make_evaluator and evaluate go to
+    jax.jit with the options, and jax.jit is given them (an unknown one is refused when the
+    program compiles)."""
     from conav_jax.envs import rollout
 
     options = {"xla_no_such_option": False}
@@ -149,4 +150,6 @@ def test_evaluator_compiles_its_rollouts_with_the_given_options(env, noisy_exper
     for episodes in (np.array([0, 1]), np.array([0, 1, 2])):  # a lane each; refilled lanes
         with pytest.raises(NotCompiled):
             evaluator(None, episodes)
-    assert given == [{"compiler_options": options}] * 2
+        with pytest.raises(NotCompiled):
+            evaluate(env, noisy_expert, episodes, batch=2, compiler_options=options)
+    assert given == [{"compiler_options": options}] * 4
