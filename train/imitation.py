@@ -338,9 +338,9 @@ def record_windows(
         # The first chunk starts the episodes: the carry it is given need only have the shapes.
         carry, tail = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), recorder.shapes(k, idx))
         for t0 in range(0, keys.shape[1], recorder.chunk_steps):
-            # Every chunk takes its carry split over the devices: `advance` may return lanes-alike
-            # leaves replicated, and a carry placed otherwise than the first chunk's compiles the
-            # program again.
+            # Every chunk's carry split over the devices, as the first chunk's zeros are: `advance`
+            # may return a leaf alike in every lane replicated, and a carry placed otherwise would
+            # compile it a second time.
             carry, tail = place((carry, tail))
             carry, tail, windows, keep = advance(params, carry, tail, keys, jnp.int32(t0), beta, k, idx)
             keep, done = to_host((keep, carry[0].done))  # the one sync per chunk
