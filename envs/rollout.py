@@ -72,11 +72,13 @@ def jit_with_bank(env: ConavEnv, fn: Callable, **jit_kwargs) -> Callable:
     return run
 
 
-def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent | StateAgent], num_steps: int, record: bool = False):
+def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent | StateAgent], num_steps: int, record: bool = False,
+                       compiler_options: dict | None = None):
     """A jitted function (params, key, episodes (B,)) -> (final metrics dict of (B,), Trace | None)
     for the agent `agent_fn(params)` builds. The agent is built inside the trace, so new params
     of the same structure reuse the compiled rollout (an Agent closing over its params would
-    compile once per set: training-time validation needs this form).
+    compile once per set: training-time validation needs this form). `compiler_options` go to
+    `jax.jit`.
 
     Runs `num_steps` steps; episodes that end earlier stay frozen (the env's contract), so
     the final metrics are each episode's result at its end."""
@@ -103,7 +105,7 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent | StateAge
         start = jax.vmap(lambda episode: _start(env, agent, key, episode))(episodes)
         return jax.vmap(partial(one, agent))(start)
 
-    return jit_with_bank(env, run)
+    return jit_with_bank(env, run, compiler_options=compiler_options)
 
 
 def agent_step(env: ConavEnv, agent: StateAgent, state: State, carry: Any, key: jax.Array):
@@ -235,6 +237,7 @@ def make_pool_rollout(
     chunk: int = 16,
     mesh: Mesh | None = None,
     trace_steps: int = 0,
+    compiler_options: dict | None = None,
 ):
     """A jitted `(params, key, queue (Q,) int32, n ()) -> final metrics dict of (Q,)` that runs
     episodes `queue[:n]` on `slots` parallel lanes, refilling a lane with the next queued
@@ -250,7 +253,7 @@ def make_pool_rollout(
     With `trace_steps > 0` it returns `(metrics, Trace)` where the Trace (`trace_steps`, ...)
     follows `queue[0]`'s episode (lane 0's first) step by step, as `make_param_rollout(...,
     record=True)` records it (steps past the run are zeros): a map of one episode costs no
-    second compile."""
+    second compile. `compiler_options` go to `jax.jit`."""
     if chunk < 1 or slots < 1 or trace_steps < 0:
         raise ValueError("slots and chunk must be at least 1, trace_steps at least 0")
 
@@ -299,7 +302,7 @@ def make_pool_rollout(
         c = jax.lax.while_loop(lambda c: c.active.any() | (c.next_position < n), body, c)
         return (c.results, c.trace) if trace_steps else c.results
 
-    return jit_with_bank(env, run)
+    return jit_with_bank(env, run, compiler_options=compiler_options)
 
 
 def evaluate(
@@ -309,12 +312,13 @@ def evaluate(
     batch: int = 256,
     seed: int = 0,
     mesh: Mesh | None = None,
+    compiler_options: dict | None = None,
 ) -> dict[str, np.ndarray]:
     """Final metrics of every given episode (default: all of the bank, each exactly once), on
     `batch` parallel lanes refilled as episodes end (`make_pool_rollout`); with a `mesh`
     (conav_jax.parallel.make_mesh) the lanes are split over its devices, with the same results
-    as on one device."""
-    return make_evaluator(env, lambda _: agent, batch, seed, mesh)(None, episodes)
+    as on one device. `compiler_options` go to `jax.jit` for the rollout."""
+    return make_evaluator(env, lambda _: agent, batch, seed, mesh, compiler_options=compiler_options)(None, episodes)
 
 
 def make_evaluator(
@@ -324,6 +328,7 @@ def make_evaluator(
     seed: int = 0,
     mesh: Mesh | None = None,
     trace_first: bool = False,
+    compiler_options: dict | None = None,
 ) -> Callable[..., dict[str, np.ndarray]]:
     """`evaluate` for agents built from parameters: `evaluator(params, episodes=None) -> metrics`
     (as `evaluate` returns them). `batch` lanes run the episodes, longest first, each lane
@@ -334,7 +339,7 @@ def make_evaluator(
 
     With `trace_first` the evaluator returns `(metrics, episode, Trace)`: the Trace (host,
     (steps, ...) up to the episode's end) of `episode`, the longest of those given (the first
-    one the lanes take)."""
+    one the lanes take). `compiler_options` go to `jax.jit` for the rollouts."""
     runs: dict = {}
     t_end = np.asarray(env.bank.t_end)
     steps = env.bank.max_steps if trace_first else 0
@@ -354,7 +359,8 @@ def make_evaluator(
             # Every episode has a lane from the start: one full-length batch, the same results
             # for half the compile time of the refilling loop (measured on CPU and GPU).
             if ("batch", slots) not in runs:
-                runs["batch", slots] = make_param_rollout(env, agent_fn, env.bank.max_steps, record=trace_first)
+                runs["batch", slots] = make_param_rollout(env, agent_fn, env.bank.max_steps, record=trace_first,
+                                                        compiler_options=compiler_options)
             run = runs["batch", slots]
             if mesh is not None and params is not None:
                 params = replicate(params, mesh)
@@ -367,7 +373,8 @@ def make_evaluator(
             trace = None if trace is None else jax.tree.map(lambda x: x[0], trace)
         else:
             if slots not in runs:
-                runs[slots] = make_pool_rollout(env, agent_fn, slots, mesh=mesh, trace_steps=steps)
+                runs[slots] = make_pool_rollout(env, agent_fn, slots, mesh=mesh, trace_steps=steps,
+                                               compiler_options=compiler_options)
             args = (params, key, jnp.asarray(queue), jnp.int32(n))
             result = to_host(runs[slots](*(args if mesh is None else replicate(args, mesh))))
             metrics, trace = result if trace_first else (result, None)

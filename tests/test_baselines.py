@@ -16,6 +16,9 @@ from conav_jax.envs.rollout import trace_step
 
 BASELINES = ("random", "pioneer-drive", "follower", "objectgoal-planner")  # the velocity-commanded ones
 T_ARRIVE, T_END = 120, 160  # the human walks 7.25 m from step 60 to 120 (1.2 m/s)
+# Compile time dominates on a CPU: without LLVM optimisation and XLA's fusion emitters the
+# rollouts compile several times faster (same results, slower to run).
+FAST = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 
 # The hall with a partition at x = 5 from the south wall to y = 2.6: the way east is the 1.3 m
 # gap at the north end.
@@ -55,9 +58,11 @@ def runs():
     env = ConavEnv(episodes=_two_scene_split(), config=EnvConfig(sensor=SensorConfig(resolution=(8, 32))))
     agents = [as_state_agent(make_agent(name, env)) for name in BASELINES]
 
-    def one(episode, which, key):
+    def start(episode, key):
         state = env.reset_to_episode(key, episode)
+        return state, tuple(a.init(key, state) for a in agents)
 
+    def one(begin, which, key):
         def body(c, k):
             state, carries = c
             outs = [a.act(state, cr, k) for a, cr in zip(agents, carries)]
@@ -65,15 +70,19 @@ def runs():
             nxt = env.step(state, action)
             return (nxt, tuple(o[1] for o in outs)), (nxt.pipeline_state.qpos, action, trace_step(nxt, action).wall_contact)
 
-        carries = tuple(a.init(key, state) for a in agents)
-        (state, _), (poses, actions, walls) = jax.lax.scan(body, (state, carries), jax.random.split(key, T_END))
-        start = env.reset_to_episode(key, episode).pipeline_state.qpos
-        return jnp.concatenate([start[None], poses]), actions, {**state.metrics, "wall_contact": walls}
+        (state, _), (poses, actions, walls) = jax.lax.scan(body, begin, jax.random.split(key, T_END))
+        return jnp.concatenate([begin[0].pipeline_state.qpos[None], poses]), actions, {**state.metrics, "wall_contact": walls}
+
+    def run(episodes, which, keys):
+        # The start vmapped on its own, as envs.rollout's rollouts do: every carry leaf enters the
+        # scan batched (a partly unbatched carry has vmap batch the scan's body, the whole env
+        # step, again until the batched leaves settle).
+        return jax.vmap(one)(jax.vmap(start)(episodes, keys), which, keys)
 
     n = env.num_episodes
     episodes = jnp.tile(jnp.arange(n, dtype=jnp.int32), len(agents))
     which = jnp.repeat(jnp.arange(len(agents)), n)
-    out = jax.jit(jax.vmap(one))(episodes, which, jax.random.split(jax.random.PRNGKey(0), len(episodes)))
+    out = jax.jit(run, compiler_options=FAST)(episodes, which, jax.random.split(jax.random.PRNGKey(0), len(episodes)))
     poses, actions, metrics = jax.tree.map(np.asarray, out)
     return env, poses, actions, metrics
 
@@ -163,7 +172,7 @@ def test_the_pioneer_is_put_at_the_goal_once_the_human_walks_and_first_reaches_i
     env = runs[0]
     pioneer = make_agent("pioneer", env)
     assert pioneer.action_size == 3 and pioneer.privileged == ("candidate goal points", "pose set by an oracle pathfinder")
-    m = evaluate(env, pioneer, batch=4)
+    m = evaluate(env, pioneer, batch=4, compiler_options=FAST)
     # It stands still through activity A (until step 60), then the human's heading names the
     # table within a second or so: put there at once, it is first, long before the human arrives
     # at step 120.

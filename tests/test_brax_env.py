@@ -1,5 +1,7 @@
 """The environment under brax: registry, training wrappers (vmap, episode length, auto-reset)."""
 
+import functools
+
 import brax.envs
 import jax
 import jax.numpy as jnp
@@ -12,6 +14,10 @@ from conav_jax.envs import EnvConfig, SensorConfig
 from conav_jax.envs.mjcf import UD
 
 CFG = EnvConfig(sensor=SensorConfig(resolution=(8, 32)))
+# Compile time dominates on a CPU: without LLVM optimisation and XLA's fusion emitters the env's
+# graph compiles several times faster (same results, slower to run).
+jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0,
+                                                   "xla_cpu_use_fusion_emitters": False})
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +25,7 @@ def wrapped(tiny_data):
     """The registered env under brax's training wrappers, with its jitted reset and step."""
     env = brax.envs.get_environment("conav", data_dir=str(tiny_data), split="train", config=CFG)
     w = training.wrap(env, episode_length=6)
-    return env, jax.jit(w.reset), jax.jit(w.step)
+    return env, jit(w.reset), jit(w.step)
 
 
 def test_registered_env_runs_under_brax_training_wrappers(wrapped):
@@ -58,7 +64,7 @@ def test_same_seed_same_bytes(wrapped):
 
 def test_reset_to_episode_visits_the_given_episode(tiny_data):
     env = brax.envs.get_environment("conav", data_dir=str(tiny_data), split="val", config=CFG)
-    reset = jax.jit(jax.vmap(env.reset_to_episode))
+    reset = jit(jax.vmap(env.reset_to_episode))
     idx = jnp.arange(env.num_episodes)
     s = reset(jax.random.split(jax.random.PRNGKey(1), env.num_episodes), idx)
     np.testing.assert_array_equal(np.asarray(s.info["episode"]), np.arange(env.num_episodes))

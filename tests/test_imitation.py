@@ -399,7 +399,7 @@ def test_policy_agent_runs_in_evaluate_with_ground_truth_only_when_asked(hall, t
     agent = policy_agent(hall.env, trained.run, ground_truth=True)
     assert agent.name == "conav" and agent.intention_source == "ground_truth"
     assert agent.privileged == ("ground-truth intentions", "future human positions", "oracle segmentation")
-    m = evaluate(hall.env, agent, np.asarray(hall.episodes), batch=3)
+    m = evaluate(hall.env, agent, np.asarray(hall.episodes), batch=3, compiler_options=ENV_FAST)
     assert {"FASR", "RASR", "FASPL", "RASPL", "CR", "AS"} <= set(summarize(m))
     assert (m["nan_actions"] == 0).all()
     # The same policy through imitation's own rollout (how training validates) acts alike.

@@ -22,7 +22,7 @@ from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 from conav_jax.envs.agents.expert import expert_agent, make_expert_step
 from conav_jax.envs.agents.policy import load_policy_run, policy_agent
 from conav_jax.envs.mjcf import UD
-from conav_jax.envs.rollout import make_rollout
+from conav_jax.envs.rollout import make_param_rollout
 from conav_jax.train import live as lv
 from conav_jax.train.live import LiveConfig
 
@@ -77,8 +77,8 @@ def test_behaviour_cloning_drives_as_the_expert_rollout(hall, tiny):
     w0 = jax.tree.map(lambda x: x[0], window)  # iteration 0: beta 1
     assert w0.expert_acted.all() and w0.first[0].all()
     steps = LIVE.window_steps
-    rollout = make_rollout(hall.env, expert_agent(hall.env), steps, record=True)
-    _, trace = rollout(jax.random.PRNGKey(0), jnp.asarray(w0.episode[0]))
+    rollout = make_param_rollout(hall.env, lambda _: expert_agent(hall.env), steps, record=True, compiler_options=FAST)
+    _, trace = rollout(None, jax.random.PRNGKey(0), jnp.asarray(w0.episode[0]))
     for lane in range(LIVE.lanes):
         # Each lane runs its first episode from step 0 until it ends or the window does.
         n = int(np.argmax(w0.first[1:, lane])) + 1 if w0.first[1:, lane].any() else steps

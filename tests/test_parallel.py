@@ -118,7 +118,8 @@ def _policy_updates(mesh) -> dict:
 
 def _recording(mesh) -> dict:
     """train.imitation.record_windows of the expert on the 5 hall episodes in batches of 3 (the
-    second padded), 8x32 panoramas, a tiny policy: the windows kept, summed leaf by leaf."""
+    second padded), 8x32 panoramas, a tiny policy: the windows kept, summed leaf by leaf, and
+    how many programs `advance` compiled."""
     import jax
     from worlds import make_split
 
@@ -132,11 +133,13 @@ def _recording(mesh) -> dict:
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0), (8.0, 1.5, 2.0)])
     env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(resolution=(8, 32)), end_at_reach=True))
     rec = im.make_recorder(env, pcfg, seq_len=16, burn_in=8)
-    m, windows, steps = im.record_windows(rec, jax.jit(rec.start), jax.jit(rec.advance),
+    advance = jax.jit(rec.advance)
+    m, windows, steps = im.record_windows(rec, jax.jit(rec.start), advance,
                                           policy.init(jax.random.PRNGKey(0), pcfg), jax.random.PRNGKey(2),
                                           np.arange(5), 1.0, batch=3, mesh=mesh)
     return {"windows": len(windows["label"]), "steps": steps, "t_reach": np.asarray(m["t_reach"]).tolist(),
-            "sums": [float(np.asarray(x, np.float64).sum()) for x in jax.tree.leaves(windows)]}
+            "sums": [float(np.asarray(x, np.float64).sum()) for x in jax.tree.leaves(windows)],
+            "advance_compiles": advance._cache_size()}
 
 
 def _env_steps(mesh) -> dict:
@@ -226,6 +229,7 @@ def test_sharded_recording_keeps_the_single_device_windows(runs):
     single, sharded = runs["recording"]["single"], runs["recording"]["sharded"]
     assert single["windows"] > 5 and max(single["t_reach"]) >= 0  # the expert reached a goal: some episodes end early
     assert sharded == single
+    assert sharded["advance_compiles"] == 1  # every chunk's carry placed alike: one program for all
 
 
 def test_asking_for_more_devices_than_visible_is_refused():

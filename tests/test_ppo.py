@@ -207,8 +207,11 @@ def test_init_from_loads_the_imitation_policy_and_rejects_bad_runs(tmp_path):
         ppo_agent(wide, tmp_path / "rl8x32")
 
 
-def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, tiny_data):
+def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, tiny_data, monkeypatch):
     bc = _imitation_run(tmp_path / "bc")
+    options = []  # each evaluator's compiler options
+    real_evaluator = ppo.make_evaluator
+    monkeypatch.setattr(ppo, "make_evaluator", lambda *a, **k: options.append(k.get("compiler_options")) or real_evaluator(*a, **k))
     # 3 iterations of 4 envs x 32 steps; validation once, at the end (iteration 3).
     cfg = PPOConfig(num_envs=4, rollout_steps=32, total_env_steps=384, epochs=2, minibatches=2,
                     reset_every=2, eval_every=3, ckpt_every=2, recurrent=True)
@@ -224,6 +227,7 @@ def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, 
     (val,) = [r for r in records if r["split"] == "minival"]  # evaluated on minival, never on val
     assert set(METRIC_NAMES) <= set(val)
     assert val == {"step": 3, "env_steps": 384, "split": "minival", "intention_source": "ground_truth", **result.val}
+    assert options == [FAST]  # the validation's rollout compiles as the run's updates do
 
     last = latest_checkpoint(tmp_path / "rl")
     assert last == checkpoint_path(tmp_path / "rl", 3)

@@ -14,6 +14,9 @@ from conav_jax.envs.agents.base import StateAgent
 from conav_jax.envs.rollout import evaluate, make_evaluator
 
 T_ARRIVE, T_END = 140, 160  # the human walks from the fridge to the table in steps 70-140
+# Compile time dominates on a CPU: without LLVM optimisation and XLA's fusion emitters the
+# rollouts compile several times faster (same results, slower to run).
+FAST = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 
 
 @pytest.fixture(scope="module")
@@ -39,11 +42,13 @@ def noisy_expert(env):
 
 def test_refilled_lanes_match_full_length_batches(env, noisy_expert):
     episodes = np.array([4, 0, 5, 2, 1, 3])
-    evaluator = make_evaluator(env, lambda _: noisy_expert, batch=2, seed=7, trace_first=True)  # 2 lanes, 6 episodes
+    evaluator = make_evaluator(env, lambda _: noisy_expert, batch=2, seed=7, trace_first=True,
+                               compiler_options=FAST)  # 2 lanes, 6 episodes
     pooled, first, first_trace = evaluator(None, episodes)
     # The reference: lanes for every episode, one full-length batch (make_param_rollout, what
     # fixed-batch sweeps ran), no refills.
-    reference, first_b, trace_b = make_evaluator(env, lambda _: noisy_expert, batch=8, seed=7, trace_first=True)(None, episodes)
+    reference, first_b, trace_b = make_evaluator(env, lambda _: noisy_expert, batch=8, seed=7, trace_first=True,
+                                                 compiler_options=FAST)(None, episodes)
     reached = reference["t_reach"]
     assert len(set(reached.tolist())) > 2 and 0 <= reached.min() < T_END - 16  # early, different ends: lanes refill
     # With end_at_reach an episode stops at its first reach, and reports no CR_full.
@@ -111,8 +116,40 @@ def test_sweeps_render_no_image_for_an_agent_that_reads_none(env, noisy_expert):
     from conav_jax.envs.rollout import make_pool_rollout
 
     h, w = env.config.sensor.height, env.config.sensor.width
-    run = make_pool_rollout(env, lambda _: noisy_expert, slots=2)
+    run = make_pool_rollout(env, lambda _: noisy_expert, slots=2, compiler_options=FAST)
     lowered = run.lower(None, jax.random.PRNGKey(0), jnp.arange(3, dtype=jnp.int32), jnp.int32(3))
     assert f"x{h}x{w}x4xf32>" not in lowered.as_text()  # the render is not even traced ...
     compiled = lowered.compile().as_text()
     assert f",{h},{w}]" not in compiled and f",{h},{w},4]" not in compiled  # ... so no image is computed
+
+
+def test_evaluators_compile_their_rollouts_with_the_given_options(env, noisy_expert, monkeypatch):
+    """Both rollouts (one full-length batch, refilled lanes) of make_evaluator and evaluate go to
+    jax.jit with the options, and jax.jit is given them (an unknown one is refused when the
+    program compiles)."""
+    from conav_jax.envs import rollout
+
+    options = {"xla_no_such_option": False}
+    with pytest.raises(Exception, match="No such compile option: 'xla_no_such_option'"):
+        rollout.jit_with_bank(env, lambda x: x + 1, compiler_options=options)(jnp.float32(1.0))
+    given = []
+
+    class NotCompiled(Exception):
+        pass
+
+    def jit_with_bank(env, fn, **jit_kwargs):  # records what each rollout is jitted with, compiles nothing
+        given.append(jit_kwargs)
+
+        def run(*args):
+            raise NotCompiled
+
+        return run
+
+    monkeypatch.setattr(rollout, "jit_with_bank", jit_with_bank)
+    evaluator = make_evaluator(env, lambda _: noisy_expert, batch=2, compiler_options=options)
+    for episodes in (np.array([0, 1]), np.array([0, 1, 2])):  # a lane each; refilled lanes
+        with pytest.raises(NotCompiled):
+            evaluator(None, episodes)
+        with pytest.raises(NotCompiled):
+            evaluate(env, noisy_expert, episodes, batch=2, compiler_options=options)
+    assert given == [{"compiler_options": options}] * 4

@@ -329,15 +329,19 @@ def record_windows(
     episodes = np.asarray(episodes, np.int32)
     if mesh is not None:
         params = replicate(params, mesh)
-    place = jnp.asarray if mesh is None else (lambda x: shard_batch(x, mesh))
+    place = jax.device_put if mesh is None else (lambda x: shard_batch(x, mesh))
     per_chunk = recorder.chunk_steps // recorder.seq_len  # windows per lane and chunk
     beta = jnp.float32(beta)
     metrics, parts, rows, cols, steps_run = [], [], [], [], 0
     for s0, n, k, idx in episode_batches(episodes, batch, key, mesh):
         keys = start(k, idx)
         # The first chunk starts the episodes: the carry it is given need only have the shapes.
-        carry, tail = jax.tree.map(lambda s: place(np.zeros(s.shape, s.dtype)), recorder.shapes(k, idx))
+        carry, tail = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), recorder.shapes(k, idx))
         for t0 in range(0, keys.shape[1], recorder.chunk_steps):
+            # Every chunk's carry split over the devices, as the first chunk's zeros are: `advance`
+            # may return a leaf alike in every lane replicated, and a carry placed otherwise would
+            # compile it a second time.
+            carry, tail = place((carry, tail))
             carry, tail, windows, keep = advance(params, carry, tail, keys, jnp.int32(t0), beta, k, idx)
             keep, done = to_host((keep, carry[0].done))  # the one sync per chunk
             kept = np.flatnonzero(keep[:n])  # (lane, window) of the batch's real lanes, row-major

@@ -490,10 +490,10 @@ def train_ppo(
 
     `policy_config`: the network, its resolution included (default: PolicyConfig()); with
     `init_from` (an imitation "policy" run) the network and its weights come from that run.
-    `compiler_options` go to `jax.jit` (tests lower the XLA optimisation level). `mesh`
-    (conav_jax.parallel.make_mesh): the envs split over its devices, parameters replicated,
-    and the validations' episodes split too (ValueError unless `num_envs` divides by the
-    device count)."""
+    `compiler_options` go to `jax.jit`, the validation's rollout's too (tests lower the XLA
+    optimisation level). `mesh` (conav_jax.parallel.make_mesh): the envs split over its
+    devices, parameters replicated, and the validations' episodes split too (ValueError unless
+    `num_envs` divides by the device count)."""
     run_dir = Path(run_dir)
     if mesh is not None:
         check_divisible(config.num_envs, mesh, "PPOConfig.num_envs")
@@ -520,7 +520,7 @@ def train_ppo(
     recurrent = config.recurrent
     evaluator = None if val_env is None else make_evaluator(
         val_env, lambda p: policy_agent_from_params(p, policy_config, name="ppo", recurrent=recurrent),
-        config.eval_batch, config.seed, mesh)
+        config.eval_batch, config.seed, mesh, compiler_options=compiler_options)
 
     run_dir.mkdir(parents=True, exist_ok=True)
     log_path = run_dir / runs.LOG_FILE
