@@ -60,7 +60,7 @@ def test_each_demo_and_reproduce_stage_starts_from_cleared_jax_caches(tmp_path, 
     stages = demo_commands(tmp_path / "demo", args.seed, "x".join(map(str, args.resolution)), args.pretrained, args.train)
     assert events == [x for argv in stages for x in ("clear", tuple(argv))]
     events.clear()
-    from conav_jax.eval import reproduce_steps
+    from conav_jax.eval.cli import reproduce_steps
 
     monkeypatch.setattr(reproduce_steps, "step_function", lambda kind: lambda **kwargs: events.append(kind))
     args = cli.build_parser().parse_args(["reproduce", "--preset", "tiny", "--out", str(tmp_path / "r"), "--stage",

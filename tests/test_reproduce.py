@@ -1,4 +1,4 @@
-"""`conav reproduce` (eval/reproduce*.py and its command line): the stages and their steps' calls,
+"""`conav reproduce` (eval/cli/reproduce*.py): the stages and their steps' calls,
 the runner skipping what is done and resuming after a failure, tables rendered from results."""
 
 import dataclasses
@@ -13,11 +13,11 @@ from pathlib import Path
 import pytest
 
 from conav_jax.eval import cli
-from conav_jax.eval import reproduce as rp
-from conav_jax.eval import reproduce_progress as rpp
-from conav_jax.eval import reproduce_run as rr
-from conav_jax.eval import reproduce_steps as rs
-from conav_jax.eval import reproduce_tables as rt
+from conav_jax.eval.cli import reproduce_plan as rp
+from conav_jax.eval.cli import reproduce_progress as rpp
+from conav_jax.eval.cli import reproduce_run as rr
+from conav_jax.eval.cli import reproduce_steps as rs
+from conav_jax.eval.cli import reproduce_tables as rt
 from conav_jax.models.policy import PolicyConfig
 from conav_jax.train.policy import POLICY_TRAIN
 
@@ -971,7 +971,7 @@ def test_a_gpu_process_runs_its_step_alone_by_name_with_the_runs_options(fake_co
     digest = rr.save_config(cfg)
     assert rr.save_config(cfg) == digest and len(list((out / rr.CONFIGS_DIR).iterdir())) == 1  # stored once
     argv = rr.child_command(out, digest, step)
-    assert argv[1:3] == ["-m", "conav_jax.eval.reproduce_run"] and argv[-2:] == ["--step", step.name]
+    assert argv[1:3] == ["-m", "conav_jax.eval.cli.reproduce_run"] and argv[-2:] == ["--step", step.name]
     assert rr.main(argv[3:]) == 0
     assert calls == [Made("train policy", str(out / step.writes), {})] and calls[0].kwargs == _kw(step)  # that call alone
     assert not (out / rpp.PROGRESS_FILE).exists()  # the parent records it

@@ -1,6 +1,6 @@
 """`conav reproduce`: the paper's Tables 2 and 3, every stage from data to tables, resumable;
-the plan (conav_jax.eval.reproduce), its steps (eval.reproduce_steps), progress
-(eval.reproduce_progress), runners and pack (eval.reproduce_run) are the library's."""
+the plan (conav_jax.eval.cli.reproduce_plan), its steps (eval.cli.reproduce_steps), progress
+(eval.cli.reproduce_progress), runners and pack (eval.cli.reproduce_run) are the library's."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from conav_jax.eval.cli.args import as_flags, flag, parse_resolution
 
 def add(sub) -> None:
     from conav_jax.models.policy import ENCODERS
-    from conav_jax.eval.reproduce import (BUDGETS, EVAL_SPLITS, GROUND_TRUTH_ROWS, LARGE_PANORAMA_DAGGER_EPISODES,
+    from conav_jax.eval.cli.reproduce_plan import (BUDGETS, EVAL_SPLITS, GROUND_TRUTH_ROWS, LARGE_PANORAMA_DAGGER_EPISODES,
                                           STAGES, TRAINERS, ReproduceConfig)
 
     d = {f.name: f.default for f in dataclasses.fields(ReproduceConfig)}
@@ -118,11 +118,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _reproduce_stages(args: argparse.Namespace) -> int:
-    from conav_jax.eval import reproduce as rp
-    from conav_jax.eval import reproduce_progress as rpp
-    from conav_jax.eval import reproduce_run as rr
+    from conav_jax.eval.cli import reproduce_plan as rp
+    from conav_jax.eval.cli import reproduce_progress as rpp
+    from conav_jax.eval.cli import reproduce_run as rr
     from conav_jax.provenance import git_state
-    from conav_jax.eval import reproduce_tables as rt
+    from conav_jax.eval.cli import reproduce_tables as rt
 
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
@@ -237,7 +237,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
 
 def _shown(step) -> str:
     """A step for people: its name and its call."""
-    from conav_jax.eval.reproduce_steps import call_text
+    from conav_jax.eval.cli.reproduce_steps import call_text
 
     return f"{step.name}: {call_text(step.call)}"
 
@@ -255,8 +255,8 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     stages) runs through `reproduce.run_parallel`; stages whose steps are all done are marked so,
     with their steps' summed time. Returns the stages left to run here (tables, pack), or an
     exit code."""
-    from conav_jax.eval import reproduce_progress as rpp
-    from conav_jax.eval import reproduce_run as rr
+    from conav_jax.eval.cli import reproduce_progress as rpp
+    from conav_jax.eval.cli import reproduce_run as rr
 
     work = [st for st in stages if st.name not in ("tables", "pack")]
     if not work:

@@ -1,7 +1,7 @@
 """What `conav reproduce` has done and what it runs next: progress.json (each step's record by
 its identity, `Step.name`; the OUT directory's one configuration) and the plan's one dependency
 graph (`prerequisites`, from the steps' declared reads and writes), which the command line's
-runner in this process and `eval.reproduce_run`'s processes share.
+runner in this process and `eval.cli.reproduce_run`'s processes share.
 """
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from conav_jax.eval.reproduce import BUDGET_OVERRIDES, ReproduceConfig, resolution_name
-from conav_jax.eval.reproduce_steps import Stage, Step
+from conav_jax.eval.cli.reproduce_plan import BUDGET_OVERRIDES, ReproduceConfig, resolution_name
+from conav_jax.eval.cli.reproduce_steps import Stage, Step
 
 
 # The steps (by name, under "commands") and stages done, with their wall times (s), and under

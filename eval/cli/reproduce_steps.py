@@ -2,9 +2,9 @@
 one the matching `conav` command calls) with declared keyword arguments, the directories it reads
 and writes under OUT, its training seed.
 
-A plan (eval.reproduce) holds steps -> `run_step` imports the function of the step's kind
+A plan (eval.cli.reproduce_plan) holds steps -> `run_step` imports the function of the step's kind
 (STEP_KINDS), adds this process's device mesh where the function takes one, and calls it; the
-runners (eval.reproduce_run) call `run_step` in this process or in a process of a step's own.
+runners (eval.cli.reproduce_run) call `run_step` in this process or in a process of a step's own.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ STEP_KINDS = {
     "train policy": StepKind("conav_jax.train.policy:train_policy", mesh=True),
     "train live": StepKind("conav_jax.train.live:train_live_from_data"),
     "eval": StepKind("conav_jax.eval.sweep:run_eval"),
-    "copy": StepKind("conav_jax.eval.reproduce_steps:copy_run"),  # DAgger continues a copy of the BC run
+    "copy": StepKind("conav_jax.eval.cli.reproduce_steps:copy_run"),  # DAgger continues a copy of the BC run
 }
 
 

@@ -2,13 +2,13 @@
 
 config -> `plan_stages` (each stage: its steps, each a Python call declared as data: the library
 function of its kind and its configs, the directories it reads and writes under OUT, the
-training seed it belongs to (eval.reproduce_steps); and the files that show the stage is done)
--> one dependency graph (eval.reproduce_progress `prerequisites`, from the declared reads and
+training seed it belongs to (eval.cli.reproduce_steps); and the files that show the stage is done)
+-> one dependency graph (eval.cli.reproduce_progress `prerequisites`, from the declared reads and
 writes) orders them, for the command line's runner in this process and for `run_parallel`'s
 processes alike; progress.json records each step by its identity, its kind and the directory it
 writes, so a stage cut short resumes (every training run resumes exactly from its checkpoints)
--> results and tables (eval.reproduce_tables); several steps at once and the pack that carries a
-run to another machine (eval.reproduce_run). Planning imports the configs, not the training
+-> results and tables (eval.cli.reproduce_tables); several steps at once and the pack that carries a
+run to another machine (eval.cli.reproduce_run). Planning imports the configs, not the training
 code. The CoNav rows are trained offline (train.policy, recorded windows) or live (train.live,
 with the ground-truth rows; `ReproduceConfig.trainer`), and evaluated on val or, to choose
 budgets, on minival (`ReproduceConfig.eval_split`).
@@ -21,7 +21,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from conav_jax.eval.reproduce_steps import Call, Stage, Step
+from conav_jax.eval.cli.reproduce_steps import Call, Stage, Step
 from conav_jax.models.policy import DEFAULT_ENCODER, ENCODERS
 
 STAGES = ("generate", "predictors", "baselines", "bc", "dagger", "eval", "tables", "pack")

@@ -1,7 +1,7 @@
 """`conav reproduce`'s runners: a step run in this process, its time recorded, or several at once,
 each in a process of its own on one GPU that runs the step by name (`main`: the plan made again
 from the run's configuration stored under OUT), in the order of the plan's one dependency graph
-(eval.reproduce_progress prerequisites); the pack that carries a run's progress and the
+(eval.cli.reproduce_progress prerequisites); the pack that carries a run's progress and the
 checkpoints still needed to a fresh machine.
 """
 
@@ -20,9 +20,9 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from conav_jax.eval.reproduce import ReproduceConfig, plan_stages
-from conav_jax.eval.reproduce_progress import PROGRESS_FILE, by_dependents, prerequisites, record_step, write_progress
-from conav_jax.eval.reproduce_steps import Stage, Step, run_step
+from conav_jax.eval.cli.reproduce_plan import ReproduceConfig, plan_stages
+from conav_jax.eval.cli.reproduce_progress import PROGRESS_FILE, by_dependents, prerequisites, record_step, write_progress
+from conav_jax.eval.cli.reproduce_steps import Stage, Step, run_step
 
 PACK_LIMIT_BYTES = 60 * 2**20
 # Under OUT: each run's ReproduceConfig (all but OUT), by digest, that its steps' processes plan
@@ -82,7 +82,7 @@ def child_command(out: Path, digest: str, step: Step, compile_cache: str | None 
     """The process `run_parallel` runs `step` in: `main`, the step by name in the plan of the
     run's stored configuration `digest` (`save_config`); `compile_cache` as `conav --compile-cache`."""
     cache = ["--compile-cache", compile_cache] if compile_cache else []
-    return [sys.executable, "-m", "conav_jax.eval.reproduce_run", "--out", str(out), "--config", digest, *cache,
+    return [sys.executable, "-m", "conav_jax.eval.cli.reproduce_run", "--out", str(out), "--config", digest, *cache,
             "--step", step.name]
 
 
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     `--gpus N` runs); it records nothing: the runner that started it does."""
     from conav_jax.compile_cache import enable_compile_cache
 
-    parser = argparse.ArgumentParser(prog="python -m conav_jax.eval.reproduce_run", description=main.__doc__)
+    parser = argparse.ArgumentParser(prog="python -m conav_jax.eval.cli.reproduce_run", description=main.__doc__)
     parser.add_argument("--out", required=True, help="the run's output directory")
     parser.add_argument("--config", required=True, metavar="DIGEST", help="the run's configuration, OUT/configs/DIGEST.json")
     parser.add_argument("--step", required=True, metavar="NAME", help="the step, as progress.json names it "

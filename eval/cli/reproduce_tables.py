@@ -18,7 +18,7 @@ from pathlib import Path
 
 from conav_jax.envs.metrics import METRIC_NAMES
 from conav_jax.eval.stats import paired_difference, resolved, seed_summary
-from conav_jax.eval.reproduce import (ABLATIONS, BC_EVAL, BC_ROW_EVAL, CONAV_EVAL, GROUND_TRUTH_ROWS, dagger_variant,
+from conav_jax.eval.cli.reproduce_plan import (ABLATIONS, BC_EVAL, BC_ROW_EVAL, CONAV_EVAL, GROUND_TRUTH_ROWS, dagger_variant,
                                       live_dagger_variant)
 
 # The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
