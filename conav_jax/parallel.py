@@ -3,8 +3,10 @@ samples; parameters and optimiser state are replicated on every device.
 
 `make_mesh(N)` -> `shard_batch` / `replicate` (device_put) on the host side, `constrain_batch`
 inside jit (`jax.lax.with_sharding_constraint`); jit partitions the vmapped computation from
-them. Work whose lanes are independent (env steps, rollouts) runs per device instead, through
-`per_device` (`jax.shard_map`): XLA cannot partition a Pallas call, and nothing needs to. Several hosts join through `maybe_initialize_distributed()` before the first jax call;
+them. Work whose lanes are independent (env steps) can run per device instead, through
+`per_device`: one single-device program per device, none partitioned (XLA cannot partition a
+Pallas call, and nothing needs to). Several hosts join through `maybe_initialize_distributed()`
+before the first jax call;
 `jax.devices()` then lists every host's devices and a mesh spans them all. No other imports
 from this repository: envs, train and eval use it.
 """
@@ -12,6 +14,7 @@ from this repository: envs, train and eval use it.
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import jax
@@ -81,22 +84,57 @@ def constrain_batch(tree: PyTree, mesh: Mesh | None) -> PyTree:
 
 
 def per_device(fn, mesh: Mesh | None, in_batched: tuple, out_batched: Any = True):
-    """`fn` run once on each device of `mesh` over its share of the lanes (`jax.shard_map`):
-    each positional argument whose `in_batched` entry is True has its leading axis split over
-    the devices, the others are replicated; likewise the outputs by `out_batched` (a prefix of
-    the output tree). Outputs marked False must be the same on every device (e.g. reduced with
-    `jax.lax.psum(x, BATCH_AXIS)` inside `fn`). The body sees one device's lanes, so a Pallas
-    kernel inside it runs as on one GPU. `fn` itself without a mesh."""
+    """`fn` run on each device of `mesh` over its share of the lanes, as one single-device
+    program per device: a host-level function (call it outside jit) whose positional arguments
+    marked True in `in_batched` are split along their leading axis into `mesh.size` equal parts,
+    part i placed on device i, the others copied to every device. The devices' programs are
+    dispatched together and run concurrently; outputs marked True in `out_batched` (a prefix of
+    the output tree) come back as arrays split over the mesh (the devices' parts, not copied),
+    the others as device 0's (they must not depend on the device's lanes). `fn` jitted alone
+    without a mesh.
+
+    Lanes that never talk to each other need no partitioner: a Pallas call runs as on one GPU,
+    and XLA's GPU compiler, which crashes compiling MJX's step inside a partitioned program
+    (`jax.shard_map` or `jax.pmap`), compiles a single-device one."""
+    jitted = jax.jit(fn)
     if mesh is None:
-        return fn
+        return jitted
+    devices = list(mesh.devices.flat)
+    if any(d.process_index != jax.process_index() for d in devices):
+        raise ValueError("per_device runs on this process's own devices; give it a mesh of those alone")
+    n = len(devices)
+    sharding = batch_sharding(mesh)
 
-    def spec(batched):
-        return jax.tree.map(lambda b: PartitionSpec(BATCH_AXIS) if b else PartitionSpec(), batched)
+    def part(x, i):
+        """Device i's part of a batched leaf: its shard where `x` is already split this way."""
+        if isinstance(x, jax.Array) and x.sharding == sharding:
+            return next(s.data for s in x.addressable_shards if s.device == devices[i])
+        size = np.shape(x)[0]
+        check_divisible(size, mesh)
+        k = size // n
+        return jax.device_put(x[i * k:(i + 1) * k], devices[i])
 
-    # The lanes never talk to each other, so the replication checks (which a Pallas call and
-    # lax.cond over per-lane data do not satisfy) have nothing to find.
-    return jax.shard_map(fn, mesh=mesh, in_specs=spec(tuple(in_batched)), out_specs=spec(out_batched),
-                         check_vma=False)
+    def call(*args):
+        if len(args) != len(in_batched):
+            raise ValueError(f"per_device: {len(args)} arguments, but in_batched has {len(in_batched)} entries")
+        shares = [
+            [jax.tree.map(lambda x: part(x, i), a) if b else jax.device_put(a, devices[i])
+             for a, b in zip(args, in_batched)]
+            for i in range(n)
+        ]
+        # Threads: the first call compiles each device's program, and the compiles overlap.
+        with ThreadPoolExecutor(n) as pool:
+            outs = list(pool.map(lambda share: jitted(*share), shares))
+
+        def join(batched, *subtrees):
+            if not batched:
+                return subtrees[0]
+            return jax.tree.map(lambda *xs: jax.make_array_from_single_device_arrays(
+                (n * xs[0].shape[0], *xs[0].shape[1:]), sharding, list(xs)), *subtrees)
+
+        return jax.tree.map(join, out_batched, *outs)
+
+    return call
 
 
 def round_up(size: int, mesh: Mesh | None) -> int:

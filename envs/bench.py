@@ -51,7 +51,6 @@ def _sensor_run(env, batch: int, steps: int, mesh=None):
 
     run_lanes = per_device(lanes, mesh, (True, True))
 
-    @jax.jit
     def run(key):
         return run_lanes(jax.random.split(key, batch), jnp.arange(batch) % n).sum()
 
@@ -142,10 +141,11 @@ def _stage_runs(env, batch: int, steps: int) -> dict:
 
 
 def step_lanes(env, steps: int, mesh=None):
-    """A function (keys (B, 2), episodes (B,)) -> per-lane totals (B,) of `steps` full env steps
-    under random actions from each lane's key, run on each of `mesh`'s devices over its share
-    of the lanes (`per_device`: the Pallas caster runs on every device, nothing is partitioned
-    by XLA); the reference of the multi-device benchmarks."""
+    """A compiled function (keys (B, 2), episodes (B,)) -> per-lane totals (B,) of `steps` full
+    env steps under random actions from each lane's key, run on each of `mesh`'s devices over
+    its share of the lanes (`per_device`: one single-device program per device, so the Pallas
+    caster runs on every device and nothing is partitioned by XLA); the reference of the
+    multi-device benchmarks."""
     reset = jax.vmap(env.reset_to_episode)
     step = jax.vmap(env.step)
 
@@ -167,7 +167,6 @@ def _step_run(env, batch: int, steps: int, mesh=None):
     """Full env steps of `batch` episodes under random actions (`step_lanes`)."""
     run_lanes = step_lanes(env, steps, mesh)
 
-    @jax.jit
     def run_steps(key):
         return run_lanes(jax.random.split(key, batch), jnp.arange(batch) % env.num_episodes).sum()
 

@@ -20,10 +20,10 @@ UNTRAINED_AGENTS = ("conav", "ppo", "objectgoal-oracle", "objectgoal-predicted",
 UNTRAINED = "untrained"
 
 
-def untrained_agent(name: str, env, config, key, frames: int):
+def untrained_agent(name: str, env, config, key, frames: int | None = None):
     """Learned agent `name` (one of UNTRAINED_AGENTS) acting with `models.policy.init(key,
     config)`'s parameters, and where it reads predictions with freshly initialised predictors
-    (the Perceiver over `frames` crops around the human at the env's panorama, the trajectory
+    (`untrained_predictors`: the Perceiver over `frames` crops around the human, the trajectory
     model): the computation of a trained agent, at the env's resolution, for timing without a
     run directory. Its title says it is untrained. ValueError for another name or a `config`
     the agent cannot read (`config.resolution` must be the env's panorama)."""
@@ -66,23 +66,35 @@ def _init(model, key, config):
     return jax.jit(model.init, static_argnums=1)(key, config)  # one compiled program, not one per leaf
 
 
-def untrained_predictors(env, key, frames: int = 8):
+def untrained_predictors(env, key, frames: int | None = None):
     """(intention predictor, trajectory predictor) of freshly initialised parameters at the
-    env's panorama (the Perceiver over `frames` crops around the human): a trained pair's
+    env's panorama: the Perceiver over `frames` crops around the human (default: as many as an
+    intention run trains on), recorded every as many steps as a run trained on the env's split
+    would (`frame_spacing` of its activities A), and the trajectory model. A trained pair's
     computation, for timing without runs."""
     import jax
 
-    from conav_jax.envs.agents.predictors import FrameSpec, make_intention_predictor, trajectory_predictor
+    from conav_jax.envs.agents.predictors import (
+        DEFAULT_FRAMES,
+        FrameSpec,
+        frame_spacing,
+        make_intention_predictor,
+        spacing_stride,
+        trajectory_predictor,
+    )
     from conav_jax.envs.human_crop import default_crop_hw
     from conav_jax.models import perceiver, trajectory
     from conav_jax.models.perceiver import PerceiverConfig
     from conav_jax.models.trajectory import TrajectoryConfig
 
+    frames = DEFAULT_FRAMES if frames is None else frames
+    stride = spacing_stride(frame_spacing(env.split.episodes["t_walk_start"], frames))
     k_intention, k_trajectory = jax.random.split(key)
     hw = env.config.sensor.resolution
     seen = PerceiverConfig(image_hw=default_crop_hw(hw))
     traj = TrajectoryConfig()
-    return (make_intention_predictor(_init(perceiver, k_intention, seen), seen, frames, FrameSpec("human", hw)),
+    return (make_intention_predictor(_init(perceiver, k_intention, seen), seen, frames,
+                                     FrameSpec("human", hw, materials=env.config.sensor.materials), frame_stride=stride),
             trajectory_predictor(_init(trajectory, k_trajectory, traj), traj))
 
 

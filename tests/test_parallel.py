@@ -155,7 +155,7 @@ def _env_steps(mesh) -> dict:
     split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0)])
     env = ConavEnv(episodes=split, config=EnvConfig(sensor=SensorConfig(resolution=(8, 32), kind="pallas",
                                                                         pallas_interpret=True)))
-    run = jax.jit(step_lanes(env, 3, mesh))
+    run = step_lanes(env, 3, mesh)
     out = run(jax.random.split(jax.random.PRNGKey(3), 8), jnp.arange(8) % 4)
     return {"lanes": np.asarray(out).tolist(), "devices": len(out.sharding.device_set)}
 

@@ -30,7 +30,14 @@ from conav_jax.models.perceiver import PerceiverConfig
 from conav_jax.models.policy import categories_in_view
 from conav_jax.nav.navigation import line_of_sight
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
-from conav_jax.envs.agents.predictors import VIEWS, FrameSpec, intention_frame, perceiver_config_from_run
+from conav_jax.envs.agents.predictors import (
+    DEFAULT_FRAMES,
+    VIEWS,
+    FrameSpec,
+    frame_spacing,
+    intention_frame,
+    perceiver_config_from_run,
+)
 from conav_jax.envs.human_crop import human_crop
 from conav_jax.envs.panorama import front_view
 from conav_jax.envs.rollout import jit_with_bank
@@ -52,7 +59,7 @@ class IntentionDataConfig:
     resolution: tuple[int, int] = SensorConfig.resolution
     # What the panoramas' RGB shows (SensorConfig.materials); the predictor's env must render it too.
     materials: str = SensorConfig.materials
-    frames: int = 16  # F: frames per episode, spread evenly over activity A
+    frames: int = DEFAULT_FRAMES  # F: frames per episode, spread evenly over activity A
     # What a frame shows (envs.agents.predictors.VIEWS): "human", the panorama cropped around
     # the human; "front", the front quarter (the input before the crop, for comparison).
     view: str = "human"
@@ -371,12 +378,6 @@ def run_config(model: PerceiverConfig, data: IntentionDataConfig, content_hash: 
                  "camera_height_m": camera_height_m, **extra},
         PROVENANCE_KEY: provenance(materials=data.materials, resolution=list(data.resolution), view=data.view),
     }
-
-
-def frame_spacing(t_walk_start: np.ndarray, frames: int) -> float:
-    """Median steps between consecutive training frames: the predictor's default stride."""
-    length = np.maximum(np.asarray(t_walk_start), 1)
-    return float(np.median(np.maximum((length - 1) / max(frames - 1, 1), 1.0)))
 
 
 def data_metrics(val: dict) -> dict:

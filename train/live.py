@@ -266,16 +266,21 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
     def rollout(params, lanes: Lanes, cursor, seed, key, beta, stages: int = len(ROLLOUT_STAGES)):
         def step(carry, step_key):
             lanes, cursor = carry
-            lanes, cursor, first = refill(lanes, cursor, seed)
-            obs = jax.vmap(env.observe)(lanes.env).obs
+            # Named scopes label a profile's kernels by part of the step.
+            with jax.named_scope("refill"):
+                lanes, cursor, first = refill(lanes, cursor, seed)
+            with jax.named_scope("observe"):
+                obs = jax.vmap(env.observe)(lanes.env).obs
             inputs, pcarry = {k: obs[k] for k in keys if k in obs}, lanes.policy
             label, ecarry = jnp.zeros((n, 2)), lanes.expert
             if stages > ROLLOUT_STAGES.index("expert"):
-                label, ecarry = jax.vmap(expert)(lanes.env, lanes.expert)
+                with jax.named_scope("expert"):
+                    label, ecarry = jax.vmap(expert)(lanes.env, lanes.expert)
             expert_acts = jax.random.uniform(step_key, (n,)) < beta
             if stages <= ROLLOUT_STAGES.index("learner"):  # `live_throughput`'s parts of a step
                 return step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, label)
-            inputs, pcarry = jax.vmap(pol.predict)(obs, lanes.policy)  # the predictors follow every step
+            with jax.named_scope("predictors"):
+                inputs, pcarry = jax.vmap(pol.predict)(obs, lanes.policy)  # the predictors follow every step
 
             def mixed(pcarry):
                 action, _, lstm = policy.apply(params, policy_config, {k: inputs[k] for k in keys}, pcarry.lstm,
@@ -283,11 +288,13 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
                 return jnp.where(expert_acts[:, None], label, action), pcarry._replace(lstm=lstm)
 
             # beta is one scalar for all lanes: with beta >= 1 the learner does not run here.
-            action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
+            with jax.named_scope("learner"):
+                action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
             return step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, action)
 
         def step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, action):
-            state = jax.vmap(functools.partial(env.step, observe=False))(lanes.env, action)
+            with jax.named_scope("env_step"):
+                state = jax.vmap(functools.partial(env.step, observe=False))(lanes.env, action)
             ended = state.done > 0
             data = lanes.env.pipeline_state
             rec = Window(im.compact_obs(inputs), label, first, expert_acts, lanes.env.info["episode"],
@@ -318,10 +325,12 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
 
     def iteration(state: TrainState, key):
         beta = live.beta(state.iteration)
-        lanes, cursor, window = rollout(state.params, state.lanes, state.cursor, state.seed, key, beta)
+        with jax.named_scope("rollout"):
+            lanes, cursor, window = rollout(state.params, state.lanes, state.cursor, state.seed, key, beta)
         # The window's LSTM starts from the carry the lanes had before it (state.lanes), and the
         # next one from where the update's pass (with the weights that acted) ended.
-        params, opt_state, end, metrics = update(state.params, state.opt_state, state.lanes.policy.lstm, window)
+        with jax.named_scope("update"):
+            params, opt_state, end, metrics = update(state.params, state.opt_state, state.lanes.policy.lstm, window)
         lanes = lanes._replace(policy=lanes.policy._replace(lstm=end))
         metrics = {**metrics, "beta": beta, "expert_share": window.expert_acted.mean(),
                    "episodes": window.ended.sum(), "reached": window.reached.sum(),

@@ -38,6 +38,23 @@ from conav_jax.envs.panorama import front_view
 VIEWS = ("human", "front")
 
 
+# Frames per episode an intention run is trained on and its predictor keeps (the Perceiver's
+# sequence), spread evenly over activity A.
+DEFAULT_FRAMES = 16
+
+
+def frame_spacing(t_walk_start: np.ndarray, frames: int) -> float:
+    """Median steps between consecutive training frames of episodes whose activity A lasts
+    `t_walk_start` steps, `frames` per episode: a predictor's default stride."""
+    length = np.maximum(np.asarray(t_walk_start), 1)
+    return float(np.median(np.maximum((length - 1) / max(frames - 1, 1), 1.0)))
+
+
+def spacing_stride(spacing_steps: float) -> int:
+    """The frame stride (steps, >= 1) of a frame spacing."""
+    return max(1, int(round(spacing_steps)))
+
+
 class FrameSpec(NamedTuple):
     """How a run's frames were made from the panorama, which the predictor repeats."""
 
@@ -261,7 +278,7 @@ def load_intention_predictor(
     ValueError naming the run when it is missing or of another kind."""
     ckpt = runs.load_run(run_dir, runs.INTENTION)
     data = ckpt.config["data"]
-    stride = frame_stride if frame_stride is not None else max(1, int(round(data["frame_spacing_steps"])))
+    stride = frame_stride if frame_stride is not None else spacing_stride(data["frame_spacing_steps"])
     model = perceiver_config_from_run(ckpt.config["model"])
     # P(B | A) counted on the run's train split; runs written before the counts step through
     # the graph's links, uniform.

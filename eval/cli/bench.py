@@ -307,12 +307,11 @@ def _bench_eval_agent(args: argparse.Namespace, env):
 
     from conav_jax.models.policy import PolicyConfig
     from conav_jax.train import goalnav
-    from conav_jax.train.intention import IntentionDataConfig
 
     hw = env.config.sensor.resolution
     config = {"objectgoal-oracle": goalnav.objectnav_model(hw), "objectgoal-predicted": goalnav.objectnav_model(hw),
               "imagegoal": goalnav.imagenav_model(hw)}.get(args.agent, PolicyConfig(resolution=hw))
-    return untrained_agent(args.agent, env, config, jax.random.PRNGKey(0), IntentionDataConfig().frames)
+    return untrained_agent(args.agent, env, config, jax.random.PRNGKey(0))
 
 
 def _run_bench_eval(args: argparse.Namespace) -> int:
