@@ -4,8 +4,9 @@ samples; parameters and optimiser state are replicated on every device.
 `make_mesh(N)` -> `shard_batch` / `replicate` (device_put) on the host side, `constrain_batch`
 inside jit (`jax.lax.with_sharding_constraint`); jit partitions the vmapped computation from
 them. Work whose lanes are independent (env steps) can run per device instead, through
-`per_device`: one single-device program per device, none partitioned (XLA cannot partition a
-Pallas call, and nothing needs to). Several hosts join through `maybe_initialize_distributed()`
+`per_device`: one single-device program per device, none partitioned. XLA cannot partition a
+Pallas call: inside a partitioned program a kernel runs per device through `lanes_on_devices`.
+Several hosts join through `maybe_initialize_distributed()`
 before the first jax call;
 `jax.devices()` then lists every host's devices and a mesh spans them all. No other imports
 from this repository: envs, train and eval use it.
@@ -18,6 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -135,6 +137,42 @@ def per_device(fn, mesh: Mesh | None, in_batched: tuple, out_batched: Any = True
         return jax.tree.map(join, out_batched, *outs)
 
     return call
+
+
+def mesh_batch_devices() -> int:
+    """The device count of the "batch" axis of the mesh the current trace runs under
+    (`jax.sharding.use_abstract_mesh`, which `envs.rollout.jit_with_bank` sets for a mesh); 1
+    without one."""
+    mesh = jax.sharding.get_abstract_mesh()
+    if mesh.empty or BATCH_AXIS not in mesh.axis_names:
+        return 1
+    return int(dict(zip(mesh.axis_names, mesh.axis_sizes))[BATCH_AXIS])
+
+
+def lanes_on_devices(fn):
+    """`fn` of one lane (positional array arguments) whose batched form, under `jax.vmap` inside
+    a program partitioned over a mesh with several devices on the "batch" axis
+    (`mesh_batch_devices`), runs each device's lanes on that device (`jax.shard_map`) and is a
+    plain `jax.vmap` otherwise. For a Pallas kernel in such a program: XLA cannot partition a
+    Pallas call, and a call per device needs no partitioning."""
+
+    @jax.custom_batching.custom_vmap
+    def one(*args):
+        return fn(*args)
+
+    @one.def_vmap
+    def batched(axis_size, in_batched, *args):
+        args = [jax.tree.map(lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))), a, bs)
+                for a, bs in zip(args, in_batched)]
+        run = jax.vmap(fn)
+        devices = mesh_batch_devices()
+        if devices > 1 and axis_size % devices == 0:
+            run = jax.shard_map(run, mesh=jax.sharding.get_abstract_mesh(), in_specs=PartitionSpec(BATCH_AXIS),
+                                out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)
+        out = run(*args)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return one
 
 
 def round_up(size: int, mesh: Mesh | None) -> int:

@@ -106,7 +106,7 @@ class ConavEnv(Env):
                 raise ValueError("ConavEnv needs data_dir (a generated dataset) or episodes=")
             episodes = load_split(data_dir, split, max_episodes=max_episodes)
         config = config or EnvConfig()
-        # "auto" becomes the caster this machine runs (pallas on one GPU, else fast), and the
+        # "auto" becomes the caster this machine runs (pallas on a GPU, else fast), and the
         # physics implementation (warp on one CUDA GPU with warp-lang, else jax).
         sensor = dataclasses.replace(config.sensor, kind=resolve_sensor_kind(config.sensor.kind))
         physics = dataclasses.replace(config.physics, impl=resolve_physics_impl(config.physics.impl))

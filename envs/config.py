@@ -14,14 +14,14 @@ MATERIALS = ("instance", "flat")
 
 
 def resolve_sensor_kind(kind: str) -> str:
-    """The caster `kind` names; "auto" is "pallas" on a single visible GPU (121k env steps/s at
-    112x448, batch 4096, on an H100 against 65k for "fast"; BENCHMARKS.md) and "fast" elsewhere:
-    Triton needs a GPU, and XLA's partitioner cannot split a Pallas call over a device mesh."""
+    """The caster `kind` names; "auto" is "pallas" on a GPU (one Triton kernel; the fastest
+    caster there, BENCHMARKS.md) and "fast" elsewhere: Triton needs a GPU. On a mesh of GPUs the
+    kernel runs per device (conav_jax.parallel.lanes_on_devices)."""
     if kind != "auto":
         return kind
     import jax
 
-    return "pallas" if jax.default_backend() == "gpu" and jax.device_count() == 1 else "fast"
+    return "pallas" if jax.default_backend() == "gpu" else "fast"
 
 
 def resolve_physics_impl(impl: str) -> str:
@@ -75,7 +75,7 @@ class SensorConfig:
     max_depth_m: float = 10.0  # farther hits and no hit read as max_depth and sky colour
     # "fast": our column caster, one fused min over all geoms (nothing of size geoms x H x W
     # reaches memory); "pallas": the same math as a Pallas (Triton) GPU kernel; "reference":
-    # mujoco.mjx.ray per pixel; "auto": pallas on one GPU, else fast (resolve_sensor_kind).
+    # mujoco.mjx.ray per pixel; "auto": pallas on a GPU, else fast (resolve_sensor_kind).
     kind: str = "auto"
     # Fast caster: how the min over geoms is written for XLA. "unroll": a running min unrolled
     # over geoms, elementwise chains that XLA fuses whole (only (H, W) buffers; checked in the

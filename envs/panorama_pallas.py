@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
 
+from conav_jax.parallel import lanes_on_devices
 from conav_jax.envs.config import SensorConfig
 from conav_jax.envs.panorama import (
     NO_HIT_KEY,
@@ -132,7 +133,13 @@ def pallas_depth_ids(
     cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, geometry: SceneGeometry
 ) -> tuple[jax.Array, jax.Array]:
     """`envs.panorama.fast_depth_ids` (same arguments and results) as a Pallas kernel: depth
-    (H, W) metres and geom ids (H, W) for one camera at `cam_xyz_m` facing `yaw_rad`."""
+    (H, W) metres and geom ids (H, W) for one camera at `cam_xyz_m` facing `yaw_rad`. Batched
+    inside a program partitioned over a mesh, each device casts its own lanes
+    (conav_jax.parallel.lanes_on_devices)."""
+    return lanes_on_devices(functools.partial(_depth_ids, cfg))(cam_xyz_m, yaw_rad, geometry)
+
+
+def _depth_ids(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, geometry: SceneGeometry):
     h, w, bw = cfg.height, cfg.width, cfg.pallas_block_w
     hp, wp = _pow2(h), -(-w // bw) * bw
     n_box, n_cap = int(geometry.box_lo_m.shape[0]), int(geometry.capsule_p0_m.shape[0])
@@ -222,7 +229,13 @@ def pallas_shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, de
     ids (H, W)) from a camera at `cam_xyz_m` facing `yaw_rad`, coloured from the shading table
     `table` (n_geoms, SHADING_WIDTH; envs.panorama.shading_table). Each program colours one
     block of pixels, loading its geoms' rows from the table (a gather the kernel keeps in
-    registers), with `shade_pixels`, the XLA colouring's own per-pixel function."""
+    registers), with `shade_pixels`, the XLA colouring's own per-pixel function. Batched inside
+    a program partitioned over a mesh, each device colours its own lanes."""
+    return lanes_on_devices(functools.partial(_shade, cfg))(cam_xyz_m, yaw_rad, depth, ids, table)
+
+
+def _shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: jax.Array, ids: jax.Array,
+           table: jax.Array) -> jax.Array:
     h, w = depth.shape
     rb, cb = _pow2_divisor(h, SHADE_BLOCK_ROWS), _pow2_divisor(w, SHADE_BLOCK_COLS)
     az, el = ray_angles(cfg)

@@ -53,15 +53,20 @@ def trace_step(state: State, action: jax.Array) -> Trace:
                  ud[..., UD["wall_touch"]])
 
 
-def jit_with_bank(env: ConavEnv, fn: Callable, **jit_kwargs) -> Callable:
+def jit_with_bank(env: ConavEnv, fn: Callable, mesh: Mesh | None = None, **jit_kwargs) -> Callable:
     """`jax.jit(fn)`, called like `fn`, whose trace reads the env's episode bank as an argument
     (ConavEnv.bound_bank) rather than as constants: the compiled program holds no episode data,
     so it compiles in the same time for 6 episodes or 5,000, and a bigger split needs no new
-    compile of anything but the shapes. Agents must read `env.bank` when they act (they do)."""
+    compile of anything but the shapes. Agents must read `env.bank` when they act (they do).
+    `mesh`: the mesh the program's lanes are split over; it is traced under it, so the Pallas
+    caster casts each device's lanes on that device (conav_jax.parallel.lanes_on_devices)."""
 
     def traced(bank, *args):
         with env.bound_bank(bank):
-            return fn(*args)
+            if mesh is None or mesh.size == 1:
+                return fn(*args)
+            with jax.sharding.use_abstract_mesh(mesh.abstract_mesh):
+                return fn(*args)
 
     jitted = jax.jit(traced, **jit_kwargs)
 
@@ -73,12 +78,12 @@ def jit_with_bank(env: ConavEnv, fn: Callable, **jit_kwargs) -> Callable:
 
 
 def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent | StateAgent], num_steps: int, record: bool = False,
-                       compiler_options: dict | None = None):
+                       compiler_options: dict | None = None, mesh: Mesh | None = None):
     """A jitted function (params, key, episodes (B,)) -> (final metrics dict of (B,), Trace | None)
     for the agent `agent_fn(params)` builds. The agent is built inside the trace, so new params
     of the same structure reuse the compiled rollout (an Agent closing over its params would
     compile once per set: training-time validation needs this form). `compiler_options` go to
-    `jax.jit`.
+    `jax.jit`; `mesh`: the one the episodes are split over (`jit_with_bank`).
 
     Runs `num_steps` steps; episodes that end earlier stay frozen (the env's contract), so
     the final metrics are each episode's result at its end."""
@@ -105,7 +110,7 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent | StateAge
         start = jax.vmap(lambda episode: _start(env, agent, key, episode))(episodes)
         return jax.vmap(partial(one, agent))(start)
 
-    return jit_with_bank(env, run, compiler_options=compiler_options)
+    return jit_with_bank(env, run, mesh, compiler_options=compiler_options)
 
 
 def agent_step(env: ConavEnv, agent: StateAgent, state: State, carry: Any, key: jax.Array):
@@ -302,7 +307,7 @@ def make_pool_rollout(
         c = jax.lax.while_loop(lambda c: c.active.any() | (c.next_position < n), body, c)
         return (c.results, c.trace) if trace_steps else c.results
 
-    return jit_with_bank(env, run, compiler_options=compiler_options)
+    return jit_with_bank(env, run, mesh, compiler_options=compiler_options)
 
 
 def evaluate(
@@ -360,7 +365,7 @@ def make_evaluator(
             # for half the compile time of the refilling loop (measured on CPU and GPU).
             if ("batch", slots) not in runs:
                 runs["batch", slots] = make_param_rollout(env, agent_fn, env.bank.max_steps, record=trace_first,
-                                                        compiler_options=compiler_options)
+                                                        compiler_options=compiler_options, mesh=mesh)
             run = runs["batch", slots]
             if mesh is not None and params is not None:
                 params = replicate(params, mesh)

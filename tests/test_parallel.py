@@ -160,6 +160,31 @@ def _env_steps(mesh) -> dict:
     return {"lanes": np.asarray(out).tolist(), "devices": len(out.sharding.device_set)}
 
 
+def _pallas_partitioned(mesh) -> dict:
+    """Instance-coloured panoramas of 8 hall lanes from the Pallas caster (interpreted on the
+    CPU) inside one program XLA partitions over the mesh (envs.rollout.jit_with_bank under it):
+    each device casts its own lanes (conav_jax.parallel.lanes_on_devices)."""
+    import jax
+    import jax.numpy as jnp
+    from worlds import make_split
+
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.rollout import jit_with_bank
+    from conav_jax.parallel import constrain_batch, shard_batch
+
+    split = make_split([(2.5, 2.0, 0.0), (7.5, 3.0, np.pi), (5.0, 1.0, 1.0), (3.0, 3.0, -1.0)])
+    sensor = SensorConfig(resolution=(8, 32), kind="pallas", pallas_interpret=True, materials="instance")
+    env = ConavEnv(episodes=split, config=EnvConfig(sensor=sensor))
+    reset = jax.vmap(env.reset_to_episode)
+    run = jit_with_bank(env, lambda k, e: constrain_batch(reset(k, e).obs["rgbd"], mesh), mesh)
+    args = (jax.random.split(jax.random.PRNGKey(3), 8), jnp.arange(8) % 4)
+    args = args if mesh is None else shard_batch(args, mesh)
+    out = np.asarray(run(*args), np.float64)
+    text = run.lower(*args).as_text()
+    return {"lanes": out.reshape(8, -1).sum(axis=1).tolist(),
+            "per_device_kernel": any(m in text for m in ("manual_computation", "SPMDFullToShardShape"))}
+
+
 def _child(tmp: str) -> dict:
     import jax
 
@@ -169,7 +194,7 @@ def _child(tmp: str) -> dict:
     out = {"devices": jax.device_count(), "mesh": mesh.size}
     for name, fn in (("loop", lambda m: _loop_losses(Path(tmp), m)), ("evaluate", _evaluate_metrics),
                      ("policy", _policy_updates), ("recording", _recording),
-                     ("steps", _env_steps)):
+                     ("steps", _env_steps), ("pallas_partitioned", _pallas_partitioned)):
         out[name] = {"single": fn(None), "sharded": fn(mesh)}
     return out
 
@@ -214,6 +239,13 @@ def test_env_steps_with_the_pallas_caster_run_on_every_device(runs):
     assert single["devices"] == 1 and sharded["devices"] == DEVICES
     assert len(set(single["lanes"])) > 1  # the lanes differ: a lane mix-up would show
     assert sharded["lanes"] == single["lanes"]
+
+
+def test_pallas_caster_runs_per_device_inside_a_partitioned_program(runs):
+    single, sharded = runs["pallas_partitioned"]["single"], runs["pallas_partitioned"]["sharded"]
+    assert not single["per_device_kernel"] and sharded["per_device_kernel"]
+    assert len(set(np.round(single["lanes"], 3))) > 1  # the lanes differ: a lane mix-up would show
+    np.testing.assert_allclose(sharded["lanes"], single["lanes"], rtol=1e-6)
 
 
 def test_sharded_policy_update_gives_the_single_device_loss(runs):

@@ -97,6 +97,20 @@ def test_rematerialised_sequence_gives_the_same_outputs_and_gradients(params):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.parametrize("remat", [False, True])
+def test_time_major_sequence_equals_batch_major(params, remat):
+    obs_seq, carry = _obs((B, T)), _random_carry()
+    resets = np.zeros((B, T), bool)
+    resets[1, 3] = True
+    actions, values, final = policy.apply_sequence(params, CONFIG, obs_seq, carry, resets, remat=remat)
+    swap = lambda x: jnp.swapaxes(x, 0, 1)
+    t_actions, t_values, t_final = policy.apply_sequence(params, CONFIG, jax.tree.map(swap, obs_seq), carry,
+                                                         swap(resets), remat=remat, time_major=True)
+    np.testing.assert_allclose(swap(t_actions), actions, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(swap(t_values), values, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(t_final.h, final.h, rtol=1e-5, atol=1e-6)
+
+
 def test_reset_starts_the_step_from_a_zero_carry(params):
     obs = _obs((B,))
     fresh = STEP(params, CONFIG, obs, policy.initial_carry(CONFIG, B), np.zeros(B, bool))

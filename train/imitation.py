@@ -495,13 +495,13 @@ def bc_loss(params, cfg: PolicyConfig, batch: dict, remat: bool = False) -> tupl
 
 
 def sequence_loss(params, cfg: PolicyConfig, batch: dict, carry: LSTMState,
-                  remat: bool = False) -> tuple[jax.Array, jax.Array, LSTMState, jax.Array]:
+                  remat: bool = False, time_major: bool = False) -> tuple[jax.Array, jax.Array, LSTMState, jax.Array]:
     """`bc_loss` with the LSTM starting each window from `carry` (B, hidden) -> (loss, steps in
     the loss, the carry after the window's last step, the policy's actions (B, W, 2)): truncated
     BPTT over consecutive windows (train.live), the carry reset where `batch["reset"]` starts an
-    episode."""
+    episode. `time_major`: every entry of `batch` and the actions (W, B, ...) instead."""
     actions, _, end = policy.apply_sequence(params, cfg, batch["obs"], carry, batch["reset"], remat=remat,
-                                            prepare=expand_obs)
+                                            prepare=expand_obs, time_major=time_major)
     err = jnp.sum(jnp.square(actions - batch["label"]), axis=-1)
     n = jnp.sum(batch["mask"])
     loss = jnp.sum(err * batch["mask"]) / jnp.maximum(n, 1.0)

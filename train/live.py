@@ -306,11 +306,13 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         return lanes, cursor, window
 
     def update(params, opt_state, lstm: LSTMState, window: Window):
-        batch = {"obs": jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), window.obs), "label": window.label.swapaxes(0, 1),
-                 "reset": window.first.T, "mask": jnp.ones(window.first.T.shape, jnp.float32)}
+        # Time-major as the rollout wrote it: the window's panoramas are never transposed.
+        batch = {"obs": window.obs, "label": window.label, "reset": window.first,
+                 "mask": jnp.ones(window.first.shape, jnp.float32)}
 
         def loss_fn(p):
-            loss, _, end, actions = im.sequence_loss(p, policy_config, batch, jax.lax.stop_gradient(lstm), live.remat)
+            loss, _, end, actions = im.sequence_loss(p, policy_config, batch, jax.lax.stop_gradient(lstm), live.remat,
+                                                     time_major=True)
             return loss, (end, actions)
 
         (loss, (end, actions)), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)

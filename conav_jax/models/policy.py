@@ -378,31 +378,35 @@ def apply_sequence(
     resets: jax.Array | None = None,
     remat: bool = False,
     prepare: Callable[[Obs], Obs] | None = None,
+    time_major: bool = False,
 ) -> tuple[jax.Array, jax.Array, LSTMState]:
     """A `T`-step rollout for truncated BPTT. obs values `(B, T, ...)`, `resets (B, T)` bool ->
-    `(actions (B, T, 2), values (B, T), final_carry)`; equals calling `apply` step by step.
-    The CNN runs once over all B*T frames; only the LSTM is scanned over time. With `remat`
-    the CNN runs one time step at a time under `jax.checkpoint` and is recomputed for the
-    gradient: activation memory of B frames instead of B*T. On an H100 it cost 1.7x the
-    update's time at 32x128 (measured with an earlier loss); at 112x448 with the bfloat16
-    CNN it is the faster update (1.96x at batch 256), and float32 112x448 windows do not fit
-    at batch 256 without it (BENCHMARKS.md). `prepare` maps stored observations to
-    the model's (e.g. compact uint8 panoramas to float rgbd); with `remat` it runs per step
-    inside the checkpoint, so the widened frames never exist for all T steps at once."""
+    `(actions (B, T, 2), values (B, T), final_carry)`; equals calling `apply` step by step;
+    with `time_major` every one of them `(T, B, ...)` instead (a rollout's own order: no
+    transposition of the panoramas). The CNN runs once over all B*T frames; only the LSTM is
+    scanned over time. With `remat` the CNN runs one time step at a time under
+    `jax.checkpoint` and is recomputed for the gradient: activation memory of B frames instead
+    of B*T. It is the faster update for large panoramas with the bfloat16 CNN, and float32
+    112x448 windows of a few hundred sequences fit only with it (BENCHMARKS.md). `prepare` maps
+    stored observations to the model's (e.g. compact uint8 panoramas to float rgbd); with
+    `remat` it runs per step inside the checkpoint, so the widened frames never exist for all T
+    steps at once."""
     prepare = prepare or (lambda obs: obs)
+    time_axis = 0 if time_major else 1
     if remat:
         # The step's frames are sliced inside the checkpoint, so only the index is saved per
-        # step and the (B, T, ...) inputs are neither copied nor widened to float32 whole.
+        # step and the inputs are neither copied nor widened to float32 whole.
         @jax.checkpoint
         def per_step(t):
-            obs = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, t, 1, keepdims=False), obs_seq)
+            obs = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, t, time_axis, keepdims=False), obs_seq)
             return encode(params, config, prepare(obs))
 
-        num_steps = jax.tree.leaves(obs_seq)[0].shape[1]
+        num_steps = jax.tree.leaves(obs_seq)[0].shape[time_axis]
         features = jax.lax.map(per_step, jnp.arange(num_steps))  # (T, B, F)
     else:
-        features = jnp.swapaxes(encode(params, config, prepare(obs_seq)), 0, 1)  # (T, B, F)
-    time_resets = None if resets is None else jnp.swapaxes(resets, 0, 1)
+        features = encode(params, config, prepare(obs_seq))
+        features = features if time_major else jnp.swapaxes(features, 0, 1)  # (T, B, F)
+    time_resets = resets if resets is None or time_major else jnp.swapaxes(resets, 0, 1)
     carry, hs = nn.lstm.lstm_scan(params["lstm"], carry, features, time_resets)
-    actions, values = _heads(params, jnp.swapaxes(hs, 0, 1))
+    actions, values = _heads(params, hs if time_major else jnp.swapaxes(hs, 0, 1))
     return actions, values, carry

@@ -124,7 +124,7 @@ def add(sub) -> None:
     p.add_argument("--batch", type=int, default=256)
     resolution_arg(p, "(default with a trained run: the run's)")
     p.add_argument("--sensor", choices=SENSOR_KINDS, default="auto",
-                   help="panorama caster (envs.SensorConfig.kind; auto: pallas on one GPU, else fast)")
+                   help="panorama caster (envs.SensorConfig.kind; auto: pallas on a GPU, else fast)")
     p.add_argument("--mode", choices=["sweep", "fixed"], default="sweep",
                    help="sweep: the split through conav eval's evaluator; fixed: one full-length batch")
     p.add_argument("--episodes", type=int, default=None, help="sweep mode: the first N episodes (default: all)")
@@ -138,7 +138,7 @@ def add(sub) -> None:
     p.add_argument("--batch", type=int, nargs="+", default=[1024])
     p.add_argument("--resolution", type=parse_resolution, nargs="+", default=[(112, 448)], metavar="HxW")
     p.add_argument("--sensor", choices=[k for k in SENSOR_KINDS if k != "reference"], default="auto",
-                   help="our caster (auto: pallas on one GPU, else fast)")
+                   help="our caster (auto: pallas on a GPU, else fast)")
     p.add_argument("--rays", choices=["panorama", "pinhole", "both"], default="both",
                    help="MuJoCo Warp's rays: panorama (our equirectangular rays in its four cameras), "
                    "pinhole (its perspective cameras), or both")
@@ -182,8 +182,6 @@ def _run_bench_live(args: argparse.Namespace) -> int:
 
 
 def _run_bench_sim(args: argparse.Namespace) -> int:
-    import jax
-
     from conav_jax.parallel import make_mesh
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
     from conav_jax.envs.bench import bench_sim
@@ -204,10 +202,6 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
             extra = {name: getattr(args, name) for name in ("fast_min", "pallas_block_w", "pallas_num_warps")
                      if getattr(args, name) is not None}
             extra["pallas_shade"] = args.pallas_shade
-            # The benchmark steps each device's lanes on that device (envs.bench.step_lanes), so
-            # the Pallas caster serves any number of GPUs here.
-            if kind == "auto" and jax.default_backend() == "gpu":
-                kind = "pallas"
             cfg = EnvConfig(sensor=SensorConfig(resolution=(h, w), kind=kind, **extra), physics=physics)
             env = ConavEnv(data, args.split, cfg)
             kind = env.config.sensor.kind  # what "auto" became here
