@@ -312,7 +312,7 @@ def test_train_commands_build_the_baselines_networks(model, flags, monkeypatch, 
         rates = {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}
         return SimpleNamespace(run_dir=out, val=rates, expert_val=rates)
 
-    monkeypatch.setattr(goalnav, f"train_{model}", fake)
+    monkeypatch.setattr(goalnav, f"train_{model}_from_data", fake)
     args = build_parser().parse_args(["train", model, "--data", str(tmp_path), "--out", str(tmp_path / "run"),
                                       "--resolution", "16x64", "--steps", "700", "--dagger-rounds", "2", "--dagger-beta", "0.5",
                                       *flags])

@@ -27,7 +27,7 @@ from conav_jax.envs.mjcf import UD
 from conav_jax.envs.rollout import evaluate
 from conav_jax.train import imitation as im
 from conav_jax.train.loop import TrainConfig
-from conav_jax.train.policy import ImitationConfig, check_recordable, records_predictions, run_config, train_policy
+from conav_jax.train.policy import ImitationConfig, check_recordable, records_predictions, run_config, train_policy_from_data
 
 # For the small jits (tests/conftest.py sets level 0 for every other jit too).
 FAST = {"xla_backend_optimization_level": 0}
@@ -367,10 +367,10 @@ def test_predicted_intentions_replace_ground_truth_in_the_records(hall, params0,
     # A policy never reads predictions for one input and ground truth for another.
     with pytest.raises(ValueError, match=r"no intention predictor is given \(intention_run\)"):
         im.make_rollout_fn(hall.env, PCFG, trajectory=FAKE_TRAJECTORY, record_predicted=True)
-    # `conav train policy --train-intentions predicted` names the missing predictor runs up front.
-    with pytest.raises(ValueError, match="predictor runs --intention, --trajectory"):
-        train_policy(tiny_data, tmp_path / "run", TrainConfig(steps=1, warmup_steps=0), PCFG,
-                     ImitationConfig(train_intentions="predicted"))
+    # Training on predicted intentions names the missing predictor runs up front.
+    with pytest.raises(ValueError, match="predictor runs intention_run, trajectory_run"):
+        train_policy_from_data(tiny_data, tmp_path / "run", TrainConfig(steps=1, warmup_steps=0), PCFG,
+                               ImitationConfig(train_intentions="predicted"))
     assert not (tmp_path / "run").exists()
     with pytest.raises(ValueError, match="unknown train_intentions"):
         ImitationConfig(train_intentions="oracle")

@@ -38,6 +38,7 @@ from conav_jax.train.intention import (
     same_object_top1,
     topk_accuracy,
     train_intention,
+    train_intention_from_data,
 )
 from conav_jax.train.loop import TrainConfig
 
@@ -129,10 +130,12 @@ def test_prior_is_the_most_frequent_b_given_a():
 
 
 @pytest.fixture(scope="module")
-def intention_run(tiny_data, tmp_path_factory):
+def intention_run(rendered, tiny_data, tmp_path_factory):
+    """A run trained on env objects: the train env above, minival's as `make_env` builds it."""
     run_dir = tmp_path_factory.mktemp("intention_run")
     cfg = TrainConfig(steps=40, batch=8, lr=3e-3, warmup_steps=0, log_every=10, val_every=40, ckpt_every=40)
-    result = train_intention(tiny_data, run_dir, cfg, MODEL, DATA, progress=False, compiler_options=FAST)
+    result = train_intention(rendered[0], make_env(tiny_data, "minival", DATA), run_dir, cfg, MODEL, DATA,
+                             progress=False, compiler_options=FAST)
     return run_dir, result
 
 
@@ -151,6 +154,35 @@ def test_a_short_run_checkpoints_and_validates_on_minival(intention_run):
     assert result.val["val_frames_with_human"] == 1.0
 
 
+def test_a_run_on_env_objects_records_their_dataset_and_refuses_envs_its_config_does_not_name(
+        intention_run, rendered, tiny_data, tmp_path):
+    from worlds import make_split
+
+    from conav_jax.data.episodes import read_manifest
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+
+    run_dir, _ = intention_run
+    config = load_checkpoint(latest_checkpoint(run_dir)).config
+    assert config["data"]["content_hash"] == read_manifest(tiny_data)["content_hash"]  # the env's dataset
+    train_env = rendered[0]
+    minival = make_env(tiny_data, "minival", DATA)
+    cfg = TrainConfig(steps=1, batch=4, warmup_steps=0)
+    hand_made = ConavEnv(episodes=dataclasses.replace(make_split([(5.0, 2.0, 0.0)]), name="minival"),
+                         config=EnvConfig(sensor=SensorConfig(resolution=DATA.resolution, materials=DATA.materials)))
+    refused = {
+        "train_env holds the 'minival' split; expected 'train'": (minival, minival, DATA),
+        r"IntentionDataConfig.resolution is \(16, 64\) but train_env renders \(32, 128\)":
+            (train_env, minival, dataclasses.replace(DATA, resolution=(16, 64))),
+        "IntentionDataConfig.materials is 'instance' but train_env renders 'flat'":
+            (train_env, minival, dataclasses.replace(DATA, materials="instance")),
+        "train_env and val_env come from different datasets": (train_env, hand_made, DATA),
+    }
+    for message, (train, val, data) in refused.items():
+        with pytest.raises(ValueError, match=message):
+            train_intention(train, val, tmp_path / "run", cfg, MODEL, data, progress=False, compiler_options=FAST)
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_run_weighing_seen_objects_records_its_weights_and_validates_with_them(rendered, tiny_data, tmp_path,
                                                                                    monkeypatch):
     from conav_jax.train import intention
@@ -161,7 +193,7 @@ def test_a_run_weighing_seen_objects_records_its_weights_and_validates_with_them
     monkeypatch.setattr(intention, "make_val_fn", lambda *a, **k: asked.append(k) or real(*a, **k))
     model = dataclasses.replace(MODEL, seen_objects=True)
     cfg = TrainConfig(steps=2, batch=4, warmup_steps=0, log_every=1, val_every=2, ckpt_every=2)
-    train_intention(tiny_data, tmp_path / "run", cfg, model, DATA, progress=False, compiler_options=FAST)
+    train_intention_from_data(tiny_data, tmp_path / "run", cfg, model, DATA, progress=False, compiler_options=FAST)
     config = load_checkpoint(latest_checkpoint(tmp_path / "run")).config
     weights = intention.start_pose_weights(model, d, DATA.viewpoints)
     assert config["data"]["seen_object_weights"] == weights and config["model"]["seen_objects"] is True

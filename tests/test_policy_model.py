@@ -164,7 +164,7 @@ def test_default_config_builds_for_the_112x448_panorama():
 
 def _trained_policy_model(flag, monkeypatch, tmp_path):
     """(PolicyConfig, ImitationConfig) that `conav train policy ... --ablation object FLAG`
-    hands to train.policy.train_policy (replaced by a recorder)."""
+    hands to train.policy.train_policy_from_data (replaced by a recorder)."""
     from conav_jax.eval.cli import build_parser
     from conav_jax.train import policy as train_policy_mod
 
@@ -174,7 +174,7 @@ def _trained_policy_model(flag, monkeypatch, tmp_path):
         seen.update(model=model, imitation=imitation)
         return train_policy_mod.PolicyResult({}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, {"FASR": 0, "RASR": 0, "CR": 0, "AS": 0}, tmp_path)
 
-    monkeypatch.setattr(train_policy_mod, "train_policy", fake_train_policy)
+    monkeypatch.setattr(train_policy_mod, "train_policy_from_data", fake_train_policy)
     args = build_parser().parse_args(["train", "policy", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
                                       "--resolution", "16x64", "--ablation", "object", *flag])
     assert args.func(args) == 0

@@ -17,13 +17,13 @@ from conav_jax.models import policy
 from conav_jax.nav.expert import ExpertConfig
 from conav_jax.train import imitation as im
 from conav_jax.train.loop import TrainConfig
-from conav_jax.train.policy import ImitationConfig, train_policy
+from conav_jax.train.policy import ImitationConfig, imitation_envs, train_policy, train_policy_from_data
 
 # Compile time dominates these runs on a CPU: without LLVM optimisation and XLA's fusion
 # emitters the env's rollouts compile much faster (slower to run; nothing here depends on their
 # float rounding).
 FAST = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
-RUN = {"scan_updates": False, "compiler_options": FAST}  # every train_policy call here
+RUN = {"scan_updates": False, "compiler_options": FAST}  # every train_policy(_from_data) call here
 
 
 def _hand_weights_back(monkeypatch) -> None:
@@ -60,15 +60,42 @@ def test_a_broken_expert_cache_entry_is_named_with_the_way_out(tiny_data, tmp_pa
                                               imitation, ExpertConfig(), False, None, None, record_batch=1, devices=1)
     ceiling.parent.mkdir()
     ceiling.write_text('{"FASR": 1')  # cut short
-    with pytest.raises(ValueError, match=r"expert cache entry .*ceiling_.*unreadable.*--no-share-expert"):
-        train_policy(data, tmp_path / "run", TrainConfig(steps=2, batch=2, warmup_steps=0), PCFG, imitation, **RUN)
+    with pytest.raises(ValueError, match=r"expert cache entry .*ceiling_.*unreadable.*share_expert=False"):
+        train_policy_from_data(data, tmp_path / "run", TrainConfig(steps=2, batch=2, warmup_steps=0), PCFG, imitation,
+                               **RUN)
     (round0.with_suffix(".json")).write_text("{}")
     round0.write_bytes(b"not a zip")
     with pytest.raises(ValueError, match=r"expert cache entry .*round0_.*\.npz is unreadable"):
         tp.read_shared(round0)
 
 
+def test_envs_other_than_the_imitation_config_names_are_refused_before_anything_is_written(tiny_data, tmp_path):
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+
+    imitation = ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ, burn_in=BURN_IN)
+    train_env, val_env = imitation_envs(tiny_data, PCFG, imitation)
+    cfg, run = TrainConfig(steps=2, batch=2, warmup_steps=0), tmp_path / "run"
+    refused = {
+        r"train_env holds the 'minival' split; expected 'train'": (val_env, val_env, PCFG, imitation),
+        r"val_env holds the 'train' split; expected 'minival' \(ImitationConfig.val_split\)":
+            (train_env, train_env, PCFG, imitation),
+        r"PolicyConfig.resolution is \(16, 64\) but train_env renders \(8, 32\)":
+            (train_env, val_env, dataclasses.replace(PCFG, resolution=(16, 64)), imitation),
+        r"ImitationConfig.episodes is 2 but train_env holds 3":
+            (train_env, val_env, PCFG, dataclasses.replace(imitation, episodes=2)),
+        r"val_env must end its episodes at the first reach":
+            (train_env, ConavEnv(episodes=val_env.split, config=EnvConfig(sensor=SensorConfig(resolution=(8, 32)))),
+             PCFG, imitation),
+    }
+    for message, (train, val, model, imitation_) in refused.items():
+        with pytest.raises(ValueError, match=message):
+            train_policy(train, val, run, cfg, model, imitation_, **RUN)
+    assert not run.exists()
+
+
 def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_batches(tiny_data, tmp_path, monkeypatch):
+    from conav_jax.checkpoints import latest_checkpoint, load_checkpoint
+    from conav_jax.data.episodes import read_manifest
     from conav_jax.train import policy as tp
 
     # A lane holds a 32-step chunk, 16 steps of burn-in and twice the chunk's window (48 steps):
@@ -98,21 +125,25 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     monkeypatch.setattr(im, "record_windows", record)
     cfg, imitation = TrainConfig(steps=2, batch=2, warmup_steps=0), ImitationConfig(episodes=3, val_episodes=2, seq_len=SEQ,
                                                                                       burn_in=BURN_IN, val_batch=5)
-    train_policy(data, tmp_path / "run", cfg, PCFG, imitation, **RUN)
+    # Trained on env objects: the expert's cache lies beside the data the train env was loaded from.
+    train_policy(*imitation_envs(data, PCFG, imitation), tmp_path / "run", cfg, PCFG, imitation, **RUN)
+    config = load_checkpoint(latest_checkpoint(tmp_path / "run")).config
+    assert config["data_hash"] == read_manifest(data)["content_hash"]  # the train env's dataset
     # The expert's ceiling, round 0's recording (every lane at once), the final validation.
     assert calls == [5, tp.MAX_ROLLOUT_LANES, 5]
     # The ceiling, round 0's windows and log line, and the lock files of the two entries.
     cached = sorted(p.suffix for p in (data / tp.EXPERT_CACHE_DIR).iterdir())
     assert cached == [".json", ".json", ".lock", ".lock", ".npz"]
-    # A finished run resumed records nothing again and keeps its validation.
+    # A finished run resumed (from the data directory: the same config) records nothing again and
+    # keeps its validation.
     (tmp_path / "run" / "data" / "round_0.npz").unlink()
     calls.clear()
-    assert train_policy(data, tmp_path / "run", cfg, PCFG, imitation, **RUN).val and calls == []
+    assert train_policy_from_data(data, tmp_path / "run", cfg, PCFG, imitation, **RUN).val and calls == []
     # Another seed shares the expert's ceiling and round 0 (the expert ignores the seed:
     # test_expert_round_data_...): it runs neither again (its updates are not under test here:
     # they hand the weights back), and it trains on the same windows and log lines.
     _hand_weights_back(monkeypatch)
-    train_policy(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, imitation, **RUN)
+    train_policy_from_data(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, imitation, **RUN)
     assert calls == []
     [entry] = (data / tp.EXPERT_CACHE_DIR).glob("round0_*.npz")  # the first run's recording (its own file is gone)
     recorded, shared = im.load_sequences(entry), im.load_sequences(tmp_path / "s1" / "data" / "round_0.npz")
@@ -125,7 +156,7 @@ def test_recording_lanes_fill_the_memory_budget_and_validation_runs_in_its_own_b
     seen = []
     monkeypatch.setattr(im, "record_windows", lambda *a, **k: seen.append(np.asarray(a[5])) or recordings[0])
     dagger = dataclasses.replace(imitation, dagger_rounds=1, dagger_episodes=2)
-    train_policy(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, dagger, **RUN)
+    train_policy_from_data(data, tmp_path / "s1", dataclasses.replace(cfg, seed=1), PCFG, dagger, **RUN)
     [episodes] = seen
     assert len(episodes) == 2 and (episodes == tp.round_episodes(np.arange(3), 1, dagger, seed=1)).all()
     assert json.loads((tmp_path / "s1" / "log.jsonl").read_text().splitlines()[-1])["episodes"] == 2
@@ -190,8 +221,8 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
     for name in ("none", "object"):  # the first reads no intention input, the second the object's alone
         if name == "object":
             other = _another_run_recording(data / tp.EXPERT_CACHE_DIR, tmp_path / "aside")
-        train_policy(data, tmp_path / name, cfg, policy.ablation_config(PCFG, name), imitation, intention_run="I",
-                     trajectory_run="T", **RUN, log=log)
+        train_policy_from_data(data, tmp_path / name, cfg, policy.ablation_config(PCFG, name), imitation,
+                               intention_run="I", trajectory_run="T", **RUN, log=log)
     other[0].join()
     assert len(recorded) == 1  # the second row reads the first's recording
     # It started while another run was recording that entry (`conav reproduce --gpus`): it waited.
@@ -201,12 +232,12 @@ def test_table3_rows_share_one_round0_recording_holding_every_prediction(tiny_da
     monkeypatch.setattr(tp, "load_predictors", lambda i, t: fakes)
     monkeypatch.setattr(tp, "predictor_digest", lambda run: {"there/I": "I", "there/T": "T"}.get(run, run))
     logs.clear()
-    train_policy(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,
-                 intention_run="there/I", trajectory_run="there/T", **RUN, log=log)
+    train_policy_from_data(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,
+                           intention_run="there/I", trajectory_run="there/T", **RUN, log=log)
     assert any(line.startswith(f"resuming {tmp_path / 'object'}") for line in logs)
     with pytest.raises(ValueError, match=r"cannot resume .*predictor_digests\.intention: saved 'I' vs expected 'X'"):
-        train_policy(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,
-                     intention_run="X", trajectory_run="there/T", **RUN)
+        train_policy_from_data(data, tmp_path / "object", cfg, policy.ablation_config(PCFG, "object"), imitation,
+                               intention_run="X", trajectory_run="there/T", **RUN)
     # A run saved before runs recorded their predictors' digests is still checked by their paths.
     from conav_jax.checkpoints import save_checkpoint
 

@@ -189,7 +189,7 @@ def test_init_from_loads_the_imitation_policy_and_rejects_bad_runs(tmp_path):
     assert config == TINY
     jax.tree.map(np.testing.assert_array_equal, loaded, params)
     with pytest.raises(ValueError, match="has its own network config"):  # caught before any env is built
-        ppo.train_ppo(tmp_path / "no_data", tmp_path / "rl", PPOConfig(), PolicyConfig(resolution=(16, 64)), init_from=tmp_path / "bc")
+        ppo.train_ppo_from_data(tmp_path / "no_data", tmp_path / "rl", PPOConfig(), PolicyConfig(resolution=(16, 64)), init_from=tmp_path / "bc")
     with pytest.raises(FileNotFoundError, match="not found"):
         ppo.load_policy_init(tmp_path / "missing")
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
@@ -215,8 +215,8 @@ def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, 
     # 3 iterations of 4 envs x 32 steps; validation once, at the end (iteration 3).
     cfg = PPOConfig(num_envs=4, rollout_steps=32, total_env_steps=384, epochs=2, minibatches=2,
                     reset_every=2, eval_every=3, ckpt_every=2, recurrent=True)
-    result = ppo.train_ppo(tiny_data, tmp_path / "rl", cfg, init_from=tmp_path / "bc",
-                           progress=False, compiler_options=FAST)
+    result = ppo.train_ppo_from_data(tiny_data, tmp_path / "rl", cfg, init_from=tmp_path / "bc",
+                                     progress=False, compiler_options=FAST)
     assert result.env_steps == 384 and result.policy_config == TINY
     assert not np.allclose(np.asarray(result.params["value_head"]["w"]), np.asarray(bc["value_head"]["w"]))
 
@@ -234,6 +234,7 @@ def test_short_run_on_tiny_preset_checkpoints_a_policy_that_evaluates(tmp_path, 
     ckpt = load_checkpoint(last)
     assert ckpt.config["kind"] == "ppo" and ckpt.config["ppo"]["recurrent"] is True
     assert ckpt.config["model"]["resolution"] == [8, 32] and ckpt.extra["val"] == result.val
+    assert ckpt.config["env"]["data_dir"] == str(tiny_data)  # the train env's dataset
     jax.tree.map(np.testing.assert_array_equal, ckpt.params, result.params)
 
     # The validation above is ppo_agent(val env, this run dir, ground truth) run through

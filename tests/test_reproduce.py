@@ -428,12 +428,12 @@ def test_a_step_calls_its_library_function_not_a_command_line(tmp_path, monkeypa
 
     monkeypatch.setattr(cli, "main", no_command)
     monkeypatch.setattr(episodes, "generate_dataset", library("generate_dataset", "manifest.json"))
-    monkeypatch.setattr(intention, "train_intention", library("train_intention", "log.jsonl"))
-    monkeypatch.setattr(trajectory, "train_trajectory", library("train_trajectory", "log.jsonl"))
+    monkeypatch.setattr(intention, "train_intention_from_data", library("train_intention_from_data", "log.jsonl"))
+    monkeypatch.setattr(trajectory, "train_trajectory_from_data", library("train_trajectory_from_data", "log.jsonl"))
     out = tmp_path / "r"
     assert _reproduce(out, "--stage", "predictors") == 0  # the data first, then the predictors
     plan = rp.plan_stages(rp.ReproduceConfig(out=out, preset="tiny", seeds=2, workers=min(2, os.cpu_count() or 1)))
-    assert [name for name, _, _ in got] == ["generate_dataset", "train_intention", "train_trajectory"]
+    assert [name for name, _, _ in got] == ["generate_dataset", "train_intention_from_data", "train_trajectory_from_data"]
     for step, (_, args, kwargs) in zip((*plan[0].steps, *plan[1].steps), got):
         mesh = kwargs.pop("mesh", None)
         assert args == () and kwargs == _kw(step)

@@ -14,6 +14,7 @@ from conav_jax.motion.phases import (
     PHASE_DONE,
     PHASE_WALK,
 )
+from conav_jax.checkpoints import latest_checkpoint, load_checkpoint
 from conav_jax.runs import read_log
 from conav_jax.envs.agents.predictors import load_trajectory_predictor
 from conav_jax.train.loop import TrainConfig, train
@@ -21,6 +22,8 @@ from conav_jax.train.trajectory import (
     TrajectoryDataConfig,
     make_val_fn,
     run_config,
+    train_trajectory,
+    train_trajectory_from_data,
     trajectory_loss,
     trajectory_windows,
 )
@@ -97,6 +100,26 @@ def test_predictor_works_in_the_callers_frame(curving_run):
     np.testing.assert_allclose(shifted, future + 10.0, atol=1e-4)
     with pytest.raises(ValueError, match="history"):
         predictor.predict(jnp.zeros((4, 2)))
+
+
+def test_a_run_on_an_env_and_a_split_resumes_from_the_data_directory(tiny_data, tmp_path):
+    from conav_jax.data.episodes import load_split, read_manifest
+    from conav_jax.envs import ConavEnv
+
+    train_split, val_env = load_split(tiny_data, "train"), ConavEnv(str(tiny_data), "val")
+    cfg = TrainConfig(steps=2, batch=8, warmup_steps=0, log_every=1, val_every=2, ckpt_every=2)
+    with pytest.raises(ValueError, match="train_env holds the 'val' split; expected 'train'"):
+        train_trajectory(val_env, val_env, tmp_path / "run", cfg, MODEL, progress=False, compiler_options=FAST)
+    assert not (tmp_path / "run").exists()
+    result = train_trajectory(train_split, val_env, tmp_path / "run", cfg, MODEL, progress=False,
+                              compiler_options=FAST)
+    assert result.step == 2 and result.val["ade_m"] > 0
+    config = load_checkpoint(latest_checkpoint(tmp_path / "run")).config
+    assert config["data"]["content_hash"] == read_manifest(tiny_data)["content_hash"]  # the splits' dataset
+    # The data directory's form writes the same config: it resumes the finished run, training no more.
+    resumed = train_trajectory_from_data(tiny_data, tmp_path / "run", cfg, MODEL, progress=False,
+                                         compiler_options=FAST)
+    assert resumed.step == 2 and [r["split"] for r in read_log(tmp_path / "run")] == ["train", "train", "val", "val"]
 
 
 def test_cli_registers_the_trajectory_command():

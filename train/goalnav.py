@@ -2,9 +2,10 @@
 baselines (object-goal agent after ZSON, image-goal agent after FGPrompt), by imitation of a
 geodesic planner: behaviour cloning, then DAgger rounds (train/policy.py's rounds, unchanged).
 
-train split -> episodes run to the first reach, the teacher acting (BC) or labelling the
-policy's own states (DAgger) -> windows -> L2 imitation loss on train.loop -> validation on
-minival -> a run of kind "objectnav" / "imagenav" that envs.agents.goalnav loads.
+train env (train split) -> episodes run to the first reach, the teacher acting (BC) or
+labelling the policy's own states (DAgger) -> windows -> L2 imitation loss on train.loop ->
+validation on the validation env (minival; `train_*_from_data` builds both from a dataset
+directory) -> a run of kind "objectnav" / "imagenav" that envs.agents.goalnav loads.
 
 No human task: the teachers lead to the goal object's standing point and ignore the human, and
 the policies read no human position (PolicyConfig.use_human_pos off).
@@ -26,10 +27,12 @@ from pathlib import Path
 
 from conav_jax import runs
 from conav_jax.models.policy import PolicyConfig, ablation_config
+from conav_jax.envs import ConavEnv
 from conav_jax.envs.agents.baselines import BaselineConfig, goal_planner_agent, objectgoal_planner_agent
 from conav_jax.envs.agents.goalnav import check_imagegoal_config, check_objectgoal_config, goal_view_sensor
 from conav_jax.train.loop import TrainConfig
-from conav_jax.train.policy import ImitationConfig, ImitationTask, PolicyResult, train_policy
+from conav_jax.train.policy import (ImitationConfig, ImitationTask, PolicyResult, train_policy,
+                                    train_policy_from_data)
 
 
 def objectnav_model(resolution: tuple[int, int], object_saliency: bool = True, base: PolicyConfig = PolicyConfig()) -> PolicyConfig:
@@ -58,22 +61,50 @@ def imagenav_task(planner: BaselineConfig = BaselineConfig()) -> ImitationTask:
                           "baseline": dataclasses.asdict(planner)})
 
 
-def train_objectnav(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, model: PolicyConfig,
-                    imitation: ImitationConfig = ImitationConfig(), planner: BaselineConfig = BaselineConfig(),
-                    **kwargs) -> PolicyResult:
-    """Train the object-goal policy `model` (see `objectnav_model`) into `run_dir`, resuming a
-    run of the same config; `kwargs` as train.policy.train_policy's (progress, mesh, remat...)."""
+def check_objectnav_model(model: PolicyConfig) -> None:
+    """ValueError unless `model` is an object-goal policy (see `objectnav_model`)."""
     check_objectgoal_config(model, "the object-goal model")
     if model.use_human_pos:
-        raise ValueError("the object-goal model reads no human position (use_human_pos=False)")
-    return train_policy(data_dir, run_dir, cfg, model, imitation, task=objectnav_task(planner), **kwargs)
+        raise ValueError("the object-goal model reads no human position (PolicyConfig.use_human_pos=False)")
 
 
-def train_imagenav(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, model: PolicyConfig,
-                   imitation: ImitationConfig = ImitationConfig(), planner: BaselineConfig = BaselineConfig(),
-                   **kwargs) -> PolicyResult:
-    """Train the image-goal policy `model` (see `imagenav_model`) into `run_dir`, as `train_objectnav`."""
+def check_imagenav_model(model: PolicyConfig) -> None:
+    """ValueError unless `model` is an image-goal policy (see `imagenav_model`)."""
     check_imagegoal_config(model, "the image-goal model")
     if model.use_human_pos:
-        raise ValueError("the image-goal model reads no human position (use_human_pos=False)")
-    return train_policy(data_dir, run_dir, cfg, model, imitation, task=imagenav_task(planner), **kwargs)
+        raise ValueError("the image-goal model reads no human position (PolicyConfig.use_human_pos=False)")
+
+
+def train_objectnav(train_env: ConavEnv, val_env: ConavEnv, run_dir: str | Path, cfg: TrainConfig, model: PolicyConfig,
+                    imitation: ImitationConfig = ImitationConfig(), planner: BaselineConfig = BaselineConfig(),
+                    **kwargs) -> PolicyResult:
+    """Train the object-goal policy `model` (see `objectnav_model`) on `train_env` into `run_dir`,
+    validating on `val_env` (the envs as train.policy.train_policy takes them), resuming a run of
+    the same config; `kwargs` as train_policy's (progress, mesh, remat...)."""
+    check_objectnav_model(model)
+    return train_policy(train_env, val_env, run_dir, cfg, model, imitation, task=objectnav_task(planner), **kwargs)
+
+
+def train_imagenav(train_env: ConavEnv, val_env: ConavEnv, run_dir: str | Path, cfg: TrainConfig, model: PolicyConfig,
+                   imitation: ImitationConfig = ImitationConfig(), planner: BaselineConfig = BaselineConfig(),
+                   **kwargs) -> PolicyResult:
+    """Train the image-goal policy `model` (see `imagenav_model`) on `train_env`, as `train_objectnav`."""
+    check_imagenav_model(model)
+    return train_policy(train_env, val_env, run_dir, cfg, model, imitation, task=imagenav_task(planner), **kwargs)
+
+
+def train_objectnav_from_data(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, model: PolicyConfig,
+                              imitation: ImitationConfig = ImitationConfig(),
+                              planner: BaselineConfig = BaselineConfig(), **kwargs) -> PolicyResult:
+    """`train_objectnav` on the dataset `data_dir`, its envs as train.policy.imitation_envs builds
+    them (the model checked before the dataset is loaded)."""
+    check_objectnav_model(model)
+    return train_policy_from_data(data_dir, run_dir, cfg, model, imitation, task=objectnav_task(planner), **kwargs)
+
+
+def train_imagenav_from_data(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, model: PolicyConfig,
+                             imitation: ImitationConfig = ImitationConfig(),
+                             planner: BaselineConfig = BaselineConfig(), **kwargs) -> PolicyResult:
+    """`train_imagenav` on the dataset `data_dir`, as `train_objectnav_from_data`."""
+    check_imagenav_model(model)
+    return train_policy_from_data(data_dir, run_dir, cfg, model, imitation, task=imagenav_task(planner), **kwargs)

@@ -1,7 +1,8 @@
 """Training the long-term intention predictor (paper sec. 4.1).
 
-episodes -> the env's sensor renders, from each robot start pose, F panoramas (112x448 by
-default) during activity A, each cropped around the human where the robot sees it
+The train env and a validation env (`train_intention`; `train_intention_from_data` builds them
+from a dataset directory) -> each env's sensor renders, from each robot start pose, F panoramas
+(112x448 by default) during activity A, each cropped around the human where the robot sees it
 (envs.agents.predictors.intention_frame: the crop the predictor takes at every step) and stored
 as uint8 (one jitted call, rendered in chunks) -> Perceiver trained on a random prefix of the
 frames, cross-entropy on activity B (107), object B (51) and the watched activity A -> top-1/
@@ -41,6 +42,7 @@ from conav_jax.envs.agents.predictors import (
 from conav_jax.envs.human_crop import human_crop
 from conav_jax.envs.panorama import front_view
 from conav_jax.envs.rollout import jit_with_bank
+from conav_jax.train.env_checks import check_same_data, check_sensor, check_split
 from conav_jax.train.loop import TrainConfig, TrainResult, train
 
 # The predictor's schedule unless a run gives its own (`conav train intention`'s defaults).
@@ -399,6 +401,51 @@ def start_pose_weights(model: PerceiverConfig, samples: dict, viewpoints: int) -
 
 
 def train_intention(
+    train_env: ConavEnv,
+    val_env: ConavEnv,
+    run_dir: str | Path,
+    cfg: TrainConfig,
+    model: PerceiverConfig = PerceiverConfig(),
+    data: IntentionDataConfig = IntentionDataConfig(),
+    progress: bool = True,
+    compiler_options: dict | None = None,
+    mesh: Mesh | None = None,
+) -> TrainResult:
+    """Render `train_env` (the train split) and `val_env` (the split validated on, minival as
+    `train_intention_from_data` builds it: hyper-parameters are chosen there, the reported val
+    split stays unseen; its name is in every log record), both rendering `data.resolution` and
+    `data.materials` (as `make_env` builds them) and from one dataset, whose content hash the
+    run records; train on train, validate on val (`mesh`: data-parallel, see train.loop.train).
+    ValueError naming the config field an env does not match, before anything is rendered."""
+    check_split(train_env.split, "train", "train_env")
+    check_same_data(train_env.split, val_env.split)
+    for role, env in (("train_env", train_env), ("val_env", val_env)):
+        check_sensor(env, role, data.resolution, "IntentionDataConfig.resolution", data.materials,
+                     "IntentionDataConfig.materials")
+    train_d = render_split(train_env, model, data, compiler_options=compiler_options)
+    val_d = render_split(val_env, model, data, compiler_options=compiler_options, viewpoints=1)
+    baselines = {**baseline_metrics(train_d, val_d, model), **data_metrics(val_d)}
+    spacing = frame_spacing(train_env.split.episodes["t_walk_start"], data.frames)
+    # P(B | A) of the graph route, counted on the train split's episodes.
+    counts = perceiver.count_transitions(train_env.split.episodes["activity_a"], train_env.split.episodes["activity_b"])
+    # The seen objects' odds, counted on the train split's start poses (as the robot starts).
+    weights = start_pose_weights(model, train_d, data.viewpoints) if model.seen_objects else None
+    config = run_config(model, data, train_env.split.content_hash, spacing, float(train_env.task.camera_height_m),
+                        counts, weights)
+    params = perceiver.init(jax.random.PRNGKey(cfg.seed), model)
+    loss = lambda p, b, k: intention_loss(p, model, b, k, mirror=data.mirror)
+    samples = {k: train_d[k] for k in ("frames", "num_frames", "activity", "object", "activity_a")}
+    return train(
+        run_dir, loss, params, samples, cfg, config,
+        val_fn=make_val_fn(model, val_d, baselines, compiler_options=compiler_options,
+                           transition=perceiver.transition_from_counts(model, counts),
+                           seen_objects=model.seen_objects, unseen_weights=weights),
+        progress=progress, compiler_options=compiler_options, mesh=mesh,
+        log_extra={"val_split": val_env.split.name},
+    )
+
+
+def train_intention_from_data(
     data_dir: str | Path,
     run_dir: str | Path,
     cfg: TrainConfig,
@@ -409,30 +456,11 @@ def train_intention(
     mesh: Mesh | None = None,
     val_split: str = "minival",
 ) -> TrainResult:
-    """Render the train split and `val_split` (minival by default: hyper-parameters are chosen
-    there, the reported val split stays unseen; its name is in every log record), train on
-    train, validate on `val_split` (`mesh`: data-parallel, see train.loop.train)."""
-    content_hash = read_manifest(data_dir).get("content_hash")
+    """`train_intention` on the train split and `val_split` (minival by default) of the dataset
+    `data_dir`, each env rendering `data`'s resolution and materials (`make_env`)."""
     train_env, val_env = make_env(data_dir, "train", data), make_env(data_dir, val_split, data)
-    train_d = render_split(train_env, model, data, compiler_options=compiler_options)
-    val_d = render_split(val_env, model, data, compiler_options=compiler_options, viewpoints=1)
-    baselines = {**baseline_metrics(train_d, val_d, model), **data_metrics(val_d)}
-    spacing = frame_spacing(train_env.split.episodes["t_walk_start"], data.frames)
-    # P(B | A) of the graph route, counted on the train split's episodes.
-    counts = perceiver.count_transitions(train_env.split.episodes["activity_a"], train_env.split.episodes["activity_b"])
-    # The seen objects' odds, counted on the train split's start poses (as the robot starts).
-    weights = start_pose_weights(model, train_d, data.viewpoints) if model.seen_objects else None
-    config = run_config(model, data, content_hash, spacing, float(train_env.task.camera_height_m), counts, weights)
-    params = perceiver.init(jax.random.PRNGKey(cfg.seed), model)
-    loss = lambda p, b, k: intention_loss(p, model, b, k, mirror=data.mirror)
-    samples = {k: train_d[k] for k in ("frames", "num_frames", "activity", "object", "activity_a")}
-    return train(
-        run_dir, loss, params, samples, cfg, config,
-        val_fn=make_val_fn(model, val_d, baselines, compiler_options=compiler_options,
-                           transition=perceiver.transition_from_counts(model, counts),
-                           seen_objects=model.seen_objects, unseen_weights=weights),
-        progress=progress, compiler_options=compiler_options, mesh=mesh, log_extra={"val_split": val_split},
-    )
+    return train_intention(train_env, val_env, run_dir, cfg, model, data, progress=progress,
+                           compiler_options=compiler_options, mesh=mesh)
 
 
 def evaluate_run(run_dir: str | Path, data_dir: str | Path, split: str = "val",

@@ -1,15 +1,16 @@
 """`conav train policy`'s stage: the CoNav LSTM policy imitates the expert (BC, then DAgger rounds).
 
-Round 0 records the expert on the train split; each DAgger round rolls out the current policy
-(the expert mixed in at `ImitationConfig.dagger_beta`), the expert labels the states it
-visits, and the aggregated windows (RUN/data/round_R.npz) train it further. Every round trains
-on train.loop in RUN/round_R/ (its own log.jsonl and checkpoints: it resumes exactly), with a
-fresh Adam and its own warm-up + cosine schedule, warm-started from the previous round's
-weights; validation runs the policy in the simulator on the minival split (hyper-parameters
-are chosen there, never on the reported val split).
+`train_policy` takes the train env and the validation env (`train_policy_from_data` builds them
+from a dataset directory: `imitation_envs`). Round 0 records the expert on the train split; each
+DAgger round rolls out the current policy (the expert mixed in at `ImitationConfig.dagger_beta`),
+the expert labels the states it visits, and the aggregated windows (RUN/data/round_R.npz) train
+it further. Every round trains on train.loop in RUN/round_R/ (its own log.jsonl and
+checkpoints: it resumes exactly), with a fresh Adam and its own warm-up + cosine schedule,
+warm-started from the previous round's weights; validation runs the policy in the simulator on
+the minival split (hyper-parameters are chosen there, never on the reported val split).
 RUN/log.jsonl holds the expert's validation metrics (the ceiling) and the recordings;
 RUN/ckpt_<step>.npz the policy at the end of each round (read by envs.agents.policy and
-train.ppo's --init-from). The expert's ceiling and round-0 recording depend on neither the seed
+train.ppo's init_from). The expert's ceiling and round-0 recording depend on neither the seed
 nor the weights: runs that agree on what they do depend on share them through the dataset's
 `expert_cache/` (`expert_cache_entries`; Table 3's rows and seeds and a DAgger run continuing its
 BC run record once: `round0_configs`). With a device mesh (conav_jax.parallel) every update's windows and
@@ -54,6 +55,7 @@ from conav_jax.envs.metrics import summarize
 from conav_jax.envs.rollout import jit_with_bank
 from conav_jax.train import imitation as im
 from conav_jax.train import loop
+from conav_jax.train.env_checks import check_ends_at_reach, check_same_data, check_sensor, check_split
 from conav_jax.train.loop import TrainConfig
 
 KIND = runs.POLICY
@@ -195,9 +197,9 @@ class PolicyResult(NamedTuple):
 
 def records_predictions(imitation: ImitationConfig, model, intention=None, trajectory=None) -> bool:
     """Whether a run's recordings hold the predictors' outputs in place of the ground-truth
-    intention inputs: `--train-intentions predicted` with predictors given, for a policy that
-    reads some intention input (one that reads none, Table 3's first row, records the same
-    either way and needs no predictor)."""
+    intention inputs: `ImitationConfig.train_intentions` "predicted" with predictors given, for
+    a policy that reads some intention input (one that reads none, Table 3's first row, records
+    the same either way and needs no predictor)."""
     return (imitation.train_intentions == "predicted" and (intention is not None or trajectory is not None)
             and intention_source(model, intention, trajectory) != NO_INTENTIONS)
 
@@ -242,7 +244,7 @@ def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episod
     intention, trajectory = load_predictors(intention_run, trajectory_run)
     predicted = records_predictions(imitation, model, intention, trajectory)
     if imitation.train_intentions == "predicted" and needed_predictors(model) and not predicted:
-        raise ValueError(f"{policy_run} trained on predicted intentions: pass its --intention and --trajectory runs")
+        raise ValueError(f"{policy_run} trained on predicted intentions: pass its intention_run and trajectory_run")
     expert = ExpertConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config["expert"].items()})
     h, w = model.resolution
     sensor = SensorConfig(resolution=(h, w), materials=materials_of_run(config))
@@ -261,9 +263,10 @@ def expert_label_statistics(data_dir: str | Path, policy_run: str | Path, episod
     return out
 
 
-def run_config(model, imitation: ImitationConfig, expert, content_hash: str, intention_run, trajectory_run) -> dict:
+def run_config(model, imitation: ImitationConfig, expert, content_hash: str | None, intention_run,
+               trajectory_run) -> dict:
     """The checkpoint's config: "kind", the PolicyConfig as "model" (what train.ppo's
-    --init-from and envs.agents.policy rebuild the network from: its resolution, ablation and
+    init_from and envs.agents.policy rebuild the network from: its resolution, ablation and
     saliency switch), the data and the predictor runs validation used."""
     return {
         "kind": KIND,
@@ -290,7 +293,7 @@ def predictor_resume_ignore(found: Path | None) -> tuple[str, ...]:
     return PREDICTOR_PATHS if "predictor_digests" in read_checkpoint_meta(found)["config"] else ("predictor_digests",)
 
 
-def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, content_hash: str) -> dict:
+def task_run_config(task: ImitationTask, model, imitation: ImitationConfig, content_hash: str | None) -> dict:
     """The checkpoint's config of a run imitating `task`'s teacher: its kind, the PolicyConfig as
     "model" (what envs.agents.goalnav rebuilds the network from), the data and the teacher."""
     return {
@@ -349,7 +352,7 @@ def read_shared(path: Path):
         return json.loads(path.read_text()) if path.suffix == ".json" else im.load_sequences(path)
     except Exception as e:  # a truncated .npz raises zipfile's, numpy's or OSError, a bad .json its own
         raise ValueError(f"the expert cache entry {path} is unreadable ({type(e).__name__}: {e}); delete "
-                         f"{path.parent} or train with --no-share-expert") from e
+                         f"{path.parent} or train without sharing (share_expert=False)") from e
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -403,8 +406,66 @@ def rates_line(m: dict) -> str:
     return f"FASR {m['FASR']:.1f}  RASR {m['RASR']:.1f}  CR {m['CR']:.1f}  AS {m['AS']:.0f}"
 
 
+def imitation_envs(data_dir: str | Path, model, imitation: ImitationConfig) -> tuple[ConavEnv, ConavEnv]:
+    """The (train, validation) envs `train_policy` takes, from the dataset `data_dir`: its train
+    split's first `imitation.episodes` and `imitation.val_split`'s first
+    `imitation.val_episodes`, rendering the policy's resolution, each episode ending at the first
+    reach (the expert's demonstrations end there)."""
+    h, w = model.resolution
+    env_cfg = EnvConfig(sensor=SensorConfig(resolution=(h, w)), end_at_reach=True)
+    return (ConavEnv(data_dir, "train", env_cfg, max_episodes=imitation.episodes),
+            ConavEnv(data_dir, imitation.val_split, env_cfg, max_episodes=imitation.val_episodes))
+
+
+def check_run_args(cfg: TrainConfig, model, imitation: ImitationConfig, expert=None, intention_run=None,
+                   trajectory_run=None, mesh=None, task: ImitationTask | None = None) -> None:
+    """ValueError for what `train_policy` refuses whatever its envs: a task's run given an expert,
+    predictor runs or predicted intentions; a batch the mesh does not divide; predicted training
+    intentions without a predictor run for each input the ablation keeps."""
+    if task is not None and (expert is not None or intention_run is not None or trajectory_run is not None
+                             or imitation.train_intentions != "ground_truth"):
+        raise ValueError(f"a {task.kind} run imitates its own teacher on its goal: no expert config, predictor runs "
+                         "or predicted training intentions")
+    if mesh is not None:
+        check_divisible(cfg.batch, mesh, "TrainConfig.batch")
+    if imitation.train_intentions == "predicted":
+        given = {"intention": intention_run, "trajectory": trajectory_run}
+        missing = [f"{k}_run" for k in needed_predictors(model) if given[k] is None]
+        if missing:
+            raise ValueError("training on predicted intentions (ImitationConfig.train_intentions) needs the predictor "
+                             f"runs {', '.join(missing)}")
+
+
+def check_imitation_envs(train_env: ConavEnv, val_env: ConavEnv, model, imitation: ImitationConfig) -> None:
+    """ValueError, naming the config field, unless `train_env` holds the train split and `val_env`
+    `imitation.val_split`, both of one dataset, with the episodes `imitation` names
+    (`imitation_envs`), rendering the policy's resolution and the materials a run records
+    (SensorConfig's default), each episode ending at the first reach."""
+    check_split(train_env.split, "train", "train_env")
+    check_split(val_env.split, imitation.val_split, "val_env", "ImitationConfig.val_split")
+    check_same_data(train_env.split, val_env.split)
+    for role, env, field, wanted in (("train_env", train_env, "episodes", imitation.episodes),
+                                     ("val_env", val_env, "val_episodes", imitation.val_episodes)):
+        check_sensor(env, role, model.resolution, "PolicyConfig.resolution", SensorConfig.materials,
+                     "SensorConfig.materials (an imitation run records its default)")
+        check_ends_at_reach(env, role, "the expert's demonstrations end there")
+        check_episodes(env, wanted, f"ImitationConfig.{field}", role)
+
+
+def check_episodes(env: ConavEnv, wanted: int | None, field: str, role: str) -> None:
+    """ValueError unless `env` holds `wanted` episodes of its split (None: every one; all of them
+    where the split has fewer), as ConavEnv's `max_episodes` loads them: a run records `wanted`,
+    and the expert's shared recordings are named by it. A split made by hand counts as whole."""
+    listed = env.split.manifest.get("splits", {}).get(env.split.name, {}).get("episodes", env.num_episodes)
+    expected = listed if wanted is None else min(wanted, listed)
+    if env.num_episodes != expected:
+        raise ValueError(f"{field} is {wanted} but {role} holds {env.num_episodes} of the {listed} episodes of its "
+                         f"split; build it with ConavEnv(..., max_episodes={wanted})")
+
+
 def train_policy(
-    data_dir: str | Path,
+    train_env: ConavEnv,
+    val_env: ConavEnv,
     run_dir: str | Path,
     cfg: TrainConfig,
     model,
@@ -422,8 +483,12 @@ def train_policy(
     share_expert: bool = True,
 ) -> PolicyResult:
     """Imitation-train the policy `model` (a conav_jax.models.policy.PolicyConfig: network,
-    resolution, ablation) on `data_dir`'s train split into `run_dir`, resuming a run of the same
-    config (ValueError naming the first difference otherwise).
+    resolution, ablation) on `train_env` into `run_dir`, validating on `val_env`, resuming a run
+    of the same config (ValueError naming the first difference otherwise). The envs are those
+    `imitation_envs` builds: the train split and `imitation.val_split` of one dataset, whose
+    content hash the run records (None for splits made by hand), with the episodes `imitation`
+    names, rendering the policy's resolution, episodes ending at the first reach
+    (`check_imitation_envs`: ValueError naming the config field an env does not match).
 
     Round 0 (behaviour cloning) makes `cfg.steps` updates, each DAgger round
     `imitation.dagger_steps`, each on train.loop in `run_dir/round_R` with a fresh Adam and its
@@ -439,23 +504,15 @@ def train_policy(
     the CPU) as train.loop.train. With a `task` the policy imitates its teacher instead of the
     CoNav expert and also reads its goal sensor's observations; the run is of its kind (no
     `expert`, no predictor runs: a task's policy trains and validates on its goal itself).
-    With `share_expert` the CoNav expert's ceiling and round-0 recording are read from the
-    dataset's EXPERT_CACHE_DIR when an earlier run made them, else written there (same bytes as
-    recording them: see `expert_cache_key`); a task's teacher is not shared.
-    Nothing is written before the dataset has been checked."""
-    content_hash = read_manifest(data_dir)["content_hash"]  # before anything is written
-    if task is not None and (expert is not None or intention_run is not None or trajectory_run is not None
-                             or imitation.train_intentions != "ground_truth"):
-        raise ValueError(f"a {task.kind} run imitates its own teacher on its goal: no expert config, predictor runs "
-                         "or predicted training intentions")
+    With `share_expert` the CoNav expert's ceiling and round-0 recording are read from
+    EXPERT_CACHE_DIR of the dataset the train env was loaded from when an earlier run made them,
+    else written there (same bytes as recording them: see `expert_cache_key`); a task's teacher
+    and splits made by hand are not shared. Nothing is written before the arguments and the
+    envs have been checked."""
+    check_run_args(cfg, model, imitation, expert, intention_run, trajectory_run, mesh, task)
+    check_imitation_envs(train_env, val_env, model, imitation)
+    content_hash = train_env.split.content_hash
     expert = expert or ExpertConfig()
-    if mesh is not None:
-        check_divisible(cfg.batch, mesh, "TrainConfig.batch")
-    if imitation.train_intentions == "predicted":
-        given = {"intention": intention_run, "trajectory": trajectory_run}
-        missing = [f"--{k}" for k in needed_predictors(model) if given[k] is None]
-        if missing:
-            raise ValueError(f"training on predicted intentions needs the predictor runs {', '.join(missing)}")
     if scan_updates is None:
         scan_updates = jax.default_backend() != "cpu"
 
@@ -481,11 +538,7 @@ def train_policy(
     (run_dir / "data").mkdir(parents=True, exist_ok=True)
     log_path = run_dir / runs.LOG_FILE
 
-    # Imitation data and validation stop at the first reach (the expert's demonstrations end there).
     h, w = model.resolution
-    env_cfg = EnvConfig(sensor=SensorConfig(resolution=(h, w)), end_at_reach=True)
-    train_env = ConavEnv(data_dir, "train", env_cfg, max_episodes=imitation.episodes)
-    val_env = ConavEnv(data_dir, imitation.val_split, env_cfg, max_episodes=imitation.val_episodes)
     intention, trajectory = load_predictors(intention_run, trajectory_run)
     # The rollouts take each split's episode bank as an argument: no episode data in the programs.
     jit = lambda env, f: jit_with_bank(env, f, compiler_options=compiler_options)  # noqa: E731
@@ -497,7 +550,7 @@ def train_policy(
 
     train_task = task_kwargs(train_env)
     teacher_name = "expert" if task is None else train_task["teacher"].name
-    share = share_expert and task is None
+    share = share_expert and task is None and train_env.split.data_dir is not None
     round0_model, round0_key_model = round0_configs(model, imitation, intention, trajectory, share)
     recorder_models = (round0_model, model)
     recorders = {}
@@ -524,7 +577,7 @@ def train_policy(
         recorder.chunk_steps, imitation.seq_len, imitation.burn_in, (h, w),
         goal_image=task is not None and task.goal_obs is not None)
     val_key = jax.random.PRNGKey(cfg.seed + 1)
-    cache = Path(data_dir) / EXPERT_CACHE_DIR if share else None
+    cache = Path(train_env.split.data_dir) / EXPERT_CACHE_DIR if share else None
     if cache is not None:
         ceiling_entry, round0_entry = expert_cache_entries(
             cache, content_hash, round0_key_model, imitation, expert,
@@ -611,3 +664,14 @@ def train_policy(
     if not val:  # resumed after its last round without a validation on record
         val = policy_val(params)
     return PolicyResult(params, val, expert_val, run_dir)
+
+
+def train_policy_from_data(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, model,
+                           imitation: ImitationConfig = ImitationConfig(), **kwargs) -> PolicyResult:
+    """`train_policy` on the dataset `data_dir`, its envs as `imitation_envs` builds them;
+    `kwargs` as train_policy's. The arguments are checked before the dataset is loaded, and the
+    dataset before anything is written."""
+    check_run_args(cfg, model, imitation, **{k: kwargs.get(k) for k in (
+        "expert", "intention_run", "trajectory_run", "mesh", "task")})
+    train_env, val_env = imitation_envs(data_dir, model, imitation)
+    return train_policy(train_env, val_env, run_dir, cfg, model, imitation, **kwargs)

@@ -3,7 +3,9 @@
 wrapped env (VmapWrapper + EpisodeWrapper + AutoResetWrapper) -> `rollout` (lax.scan over time:
 obs, Gaussian actions, log-probs, values, rewards, dones) -> `gae` (reverse scan) -> `update`
 (epochs x minibatches, nested scans, `ppo_loss`) -> one jitted `iteration`, driven by a thin
-Python loop (`train_ppo`) that logs to RUN/log.jsonl, checkpoints and evaluates on val.
+Python loop (`train_ppo`, given the train env and the validation env; `train_ppo_from_data`
+builds them from a dataset directory) that logs to RUN/log.jsonl, checkpoints and evaluates on
+the validation env.
 
 Choices, stated once:
 - Policy: conav_jax.models.policy (the paper's CNN + LSTM), so imitation checkpoints start PPO
@@ -56,7 +58,6 @@ from conav_jax.parallel import batch_sharding, check_divisible, replicated
 from conav_jax.runs import append_log, finite_or_none
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 from conav_jax.envs.agents.policy import (
-    check_policy_env,
     intention_source,
     load_policy_run,
     policy_agent_from_params,
@@ -65,6 +66,7 @@ from conav_jax.envs.agents.policy import (
 from conav_jax.envs.config import env_settings
 from conav_jax.envs.metrics import summarize
 from conav_jax.envs.rollout import make_evaluator
+from conav_jax.train.env_checks import check_ends_at_reach, check_same_data, check_sensor, check_split
 
 KIND = runs.PPO
 LOG_2PI = math.log(2.0 * math.pi)
@@ -474,8 +476,35 @@ class PPOResult(NamedTuple):
     run_dir: Path
 
 
+def initial_policy(run_dir: str | Path, config: PPOConfig, policy_config: PolicyConfig | None = None,
+                   init_from: str | Path | None = None, mesh: Mesh | None = None) -> tuple[dict, PolicyConfig]:
+    """(initial params, PolicyConfig) of a PPO run into `run_dir`: `init_from`'s (an imitation
+    "policy" run), else fresh weights of `policy_config` (default PolicyConfig()). ValueError
+    for a `run_dir` that holds a checkpoint (PPO runs do not resume), a `policy_config` beside
+    `init_from`, or a mesh that does not divide `config.num_envs`; nothing is built or written."""
+    if mesh is not None:
+        check_divisible(config.num_envs, mesh, "PPOConfig.num_envs")
+    if latest_checkpoint(run_dir) is not None:
+        raise ValueError(f"{run_dir} already holds a checkpoint; PPO runs do not resume, choose a new run_dir")
+    if init_from is None:
+        policy_config = policy_config or PolicyConfig()
+        return policy.init(jax.random.PRNGKey(config.seed), policy_config), policy_config
+    params, loaded = load_policy_init(init_from)
+    if policy_config is not None and policy_config != loaded:
+        raise ValueError(f"init_from {init_from} has its own network config; do not pass policy_config too")
+    return params, loaded
+
+
+def ppo_env_config(policy_config: PolicyConfig) -> EnvConfig:
+    """The config of the envs a PPO run trains and validates in: the policy's resolution, each
+    episode ending at the first reach (the reach bonus ends an episode)."""
+    h, w = policy_config.resolution
+    return EnvConfig(sensor=SensorConfig(resolution=(h, w)), end_at_reach=True)
+
+
 def train_ppo(
-    data_dir: str | Path,
+    env: ConavEnv,
+    val_env: ConavEnv | None,
     run_dir: str | Path,
     config: PPOConfig = PPOConfig(),
     policy_config: PolicyConfig | None = None,
@@ -484,9 +513,14 @@ def train_ppo(
     compiler_options: dict | None = None,
     mesh: Mesh | None = None,
 ) -> PPOResult:
-    """Train a PPO policy on the `train` split of `data_dir`; log, checkpoint and evaluate
-    (`config.eval_split`, the agent `conav eval --agent ppo --ground-truth-intentions` builds)
-    into `run_dir`, which must hold no checkpoint yet.
+    """Train a PPO policy in `env` (the train split), on its ground-truth intention observations
+    (privileged, as imitation trains); log, checkpoint and evaluate (the agent `conav eval
+    --agent ppo --ground-truth-intentions` builds) in `val_env` (the split `config.eval_split`
+    of the same dataset; unused, and may be None, when `config.eval_every` is 0) into `run_dir`,
+    which must hold no checkpoint yet. Both envs as `ppo_env_config` builds them: the policy's
+    resolution, one panorama material, episodes ending at the first reach (ValueError naming
+    the config field an env does not match, before anything is written). The run records
+    `env`'s dataset directory (None for a split made by hand).
 
     `policy_config`: the network, its resolution included (default: PolicyConfig()); with
     `init_from` (an imitation "policy" run) the network and its weights come from that run.
@@ -495,28 +529,25 @@ def train_ppo(
     devices, parameters replicated, and the validations' episodes split too (ValueError unless
     `num_envs` divides by the device count)."""
     run_dir = Path(run_dir)
-    if mesh is not None:
-        check_divisible(config.num_envs, mesh, "PPOConfig.num_envs")
-    if latest_checkpoint(run_dir) is not None:
-        raise ValueError(f"{run_dir} already holds a checkpoint; PPO runs do not resume, choose a new --out")
-    if init_from is not None:
-        params, loaded = load_policy_init(init_from)
-        if policy_config is not None and policy_config != loaded:
-            raise ValueError(f"--init-from {init_from} has its own network config; do not pass policy_config too")
-        policy_config = loaded
+    params, policy_config = initial_policy(run_dir, config, policy_config, init_from, mesh)
+    check_split(env.split, "train", "env")
+    envs = (("env", env),)
+    if config.eval_every:
+        if val_env is None:
+            raise ValueError(f"PPOConfig.eval_every is {config.eval_every}: give val_env (the "
+                             f"{config.eval_split!r} split), or set eval_every=0")
+        check_split(val_env.split, config.eval_split, "val_env", "PPOConfig.eval_split")
+        check_same_data(env.split, val_env.split)
+        envs += (("val_env", val_env),)
     else:
-        policy_config = policy_config or PolicyConfig()
-        params = policy.init(jax.random.PRNGKey(config.seed), policy_config)
-    hw = tuple(policy_config.resolution)  # the env renders what the network reads
-    # Training and validation episodes end at the first reach: the reach bonus ends an episode.
-    env_config = EnvConfig(sensor=SensorConfig(resolution=(hw[0], hw[1])), end_at_reach=True)
-    env = brax.envs.get_environment("conav", data_dir=str(data_dir), split="train", config=env_config)
-    # PPO trains on the env's ground-truth intention observations (privileged), as imitation does.
-    check_policy_env(env, policy_config, "the policy", intention_source(policy_config))
+        val_env = None
+    for role, e in envs:  # the env renders what the network reads
+        check_sensor(e, role, policy_config.resolution, "PolicyConfig.resolution", env.config.sensor.materials,
+                     "env's SensorConfig.materials")
+        check_ends_at_reach(e, role, "the reach bonus ends an episode")
     episode_length = config.episode_length or env.bank.max_steps + 1
     config = resolve_reset_every(config, min(episode_length, env.bank.max_steps + 1))
     wrapped = brax_training.wrap(env, episode_length=episode_length)
-    val_env = ConavEnv(str(data_dir), config.eval_split, env_config) if config.eval_every else None
     recurrent = config.recurrent
     evaluator = None if val_env is None else make_evaluator(
         val_env, lambda p: policy_agent_from_params(p, policy_config, name="ppo", recurrent=recurrent),
@@ -528,11 +559,11 @@ def train_ppo(
     run_config = {
         "kind": KIND,
         "model": policy.config_dict(policy_config),
-        "materials": env_config.sensor.materials,
+        "materials": env.config.sensor.materials,
         "ppo": dataclasses.asdict(config),
-        "env": {"episode_length": episode_length, "data_dir": str(data_dir),
+        "env": {"episode_length": episode_length, "data_dir": env.split.data_dir,
                 "init_from": None if init_from is None else str(init_from)},
-        PROVENANCE_KEY: provenance(**env_settings(env_config), encoder=policy.encoder_name(policy_config)),
+        PROVENANCE_KEY: provenance(**env_settings(env.config), encoder=policy.encoder_name(policy_config)),
     }
 
     init_runner, iteration = make_iteration(wrapped, policy_config, config, mesh)
@@ -593,3 +624,17 @@ def train_ppo(
     finally:
         bar.close()
     return PPOResult(runner.params, policy_config, n_iter * per_iter, val, run_dir)
+
+
+def train_ppo_from_data(data_dir: str | Path, run_dir: str | Path, config: PPOConfig = PPOConfig(),
+                        policy_config: PolicyConfig | None = None, init_from: str | Path | None = None,
+                        **kwargs) -> PPOResult:
+    """`train_ppo` on the train split of the dataset `data_dir`, validating on
+    `config.eval_split` (where `config.eval_every`), its envs as `ppo_env_config` builds them;
+    `kwargs` as train_ppo's. The run directory and the network are checked before any env is
+    built."""
+    _, network = initial_policy(run_dir, config, policy_config, init_from, kwargs.get("mesh"))
+    env_config = ppo_env_config(network)
+    env = brax.envs.get_environment("conav", data_dir=str(data_dir), split="train", config=env_config)
+    val_env = ConavEnv(str(data_dir), config.eval_split, env_config) if config.eval_every else None
+    return train_ppo(env, val_env, run_dir, config, policy_config, init_from, **kwargs)

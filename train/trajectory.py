@@ -1,8 +1,10 @@
 """Training the short-term intention (trajectory) predictor.
 
-episodes' `root_xy` -> windows of k past + 5 future positions (mostly while walking, some
-standing), relative to the last past point -> train/loop.py on an L2 loss -> val ADE/FDE (m)
-against constant velocity -> a run that envs.agents.predictors loads for agents.
+The train and val splits' episodes (of envs, or their EpisodeSplits alone: `train_trajectory`;
+`train_trajectory_from_data` loads them from a dataset directory) -> their `root_xy` -> windows
+of k past + 5 future positions (mostly while walking, some standing), relative to the last past
+point -> train/loop.py on an L2 loss -> val ADE/FDE (m) against constant velocity -> a run that
+envs.agents.predictors loads for agents.
 """
 
 from __future__ import annotations
@@ -17,10 +19,12 @@ from jax.sharding import Mesh
 
 from conav_jax.provenance import PROVENANCE_KEY, provenance
 from conav_jax import runs
-from conav_jax.data.episodes import load_split, read_manifest
+from conav_jax.data.episodes import EpisodeSplit, load_split
 from conav_jax.models import trajectory as traj_model
 from conav_jax.models.trajectory import TrajectoryConfig
 from conav_jax.motion.phases import PHASE_WALK
+from conav_jax.envs import ConavEnv
+from conav_jax.train.env_checks import check_same_data, check_split
 from conav_jax.train.loop import TrainConfig, TrainResult, train
 
 KIND = runs.TRAJECTORY
@@ -85,10 +89,10 @@ def trajectory_windows(
 
 
 def split_windows(
-    data_dir: str | Path, split: str, model: TrajectoryConfig, data: TrajectoryDataConfig, max_windows: int
+    split: EpisodeSplit, model: TrajectoryConfig, data: TrajectoryDataConfig, max_windows: int
 ) -> dict[str, np.ndarray]:
-    """`trajectory_windows` of one split of a dataset directory."""
-    eps = load_split(data_dir, split).episodes
+    """`trajectory_windows` of one split's episodes."""
+    eps = split.episodes
     return trajectory_windows(
         eps["root_xy"], eps["phase"], eps["t_end"], model.history, model.horizon,
         data.standing_fraction, max_windows, data.seed,
@@ -134,6 +138,35 @@ def run_config(model: TrajectoryConfig, data: TrajectoryDataConfig, content_hash
 
 
 def train_trajectory(
+    train_env: ConavEnv | EpisodeSplit,
+    val_env: ConavEnv | EpisodeSplit,
+    run_dir: str | Path,
+    cfg: TrainConfig,
+    model: TrajectoryConfig = TrajectoryConfig(),
+    data: TrajectoryDataConfig = TrajectoryDataConfig(),
+    progress: bool = True,
+    compiler_options: dict | None = None,
+    mesh: Mesh | None = None,
+) -> TrainResult:
+    """Train on the windows of `train_env`'s episodes (the train split), validate on
+    `val_env`'s (the val split as `train_trajectory_from_data` loads it), both of one dataset,
+    whose content hash the run records (see train.loop.train for resuming, errors and the
+    data-parallel `mesh`). Either may be its EpisodeSplit alone: only the human's episodes
+    are read, nothing is rendered."""
+    train_split, val_split = (e.split if isinstance(e, ConavEnv) else e for e in (train_env, val_env))
+    check_split(train_split, "train", "train_env")
+    check_same_data(train_split, val_split)
+    train_w = split_windows(train_split, model, data, data.max_train_windows)
+    val_w = split_windows(val_split, model, data, data.max_val_windows)
+    params = traj_model.init(jax.random.PRNGKey(cfg.seed), model)
+    loss = lambda p, b, k: trajectory_loss(p, model, b, k)
+    return train(
+        run_dir, loss, params, train_w, cfg, run_config(model, data, train_split.content_hash),
+        val_fn=make_val_fn(model, val_w, compiler_options), progress=progress, compiler_options=compiler_options, mesh=mesh,
+    )
+
+
+def train_trajectory_from_data(
     data_dir: str | Path,
     run_dir: str | Path,
     cfg: TrainConfig,
@@ -143,14 +176,7 @@ def train_trajectory(
     compiler_options: dict | None = None,
     mesh: Mesh | None = None,
 ) -> TrainResult:
-    """Train on the train split's windows, validate on the val split's (see train.loop.train
-    for resuming, errors and the data-parallel `mesh`)."""
-    content_hash = read_manifest(data_dir).get("content_hash")
-    train_w = split_windows(data_dir, "train", model, data, data.max_train_windows)
-    val_w = split_windows(data_dir, "val", model, data, data.max_val_windows)
-    params = traj_model.init(jax.random.PRNGKey(cfg.seed), model)
-    loss = lambda p, b, k: trajectory_loss(p, model, b, k)
-    return train(
-        run_dir, loss, params, train_w, cfg, run_config(model, data, content_hash),
-        val_fn=make_val_fn(model, val_w, compiler_options), progress=progress, compiler_options=compiler_options, mesh=mesh,
-    )
+    """`train_trajectory` on the train and val splits of the dataset `data_dir` (their episodes
+    alone: no env is built)."""
+    return train_trajectory(load_split(data_dir, "train"), load_split(data_dir, "val"), run_dir, cfg, model, data,
+                            progress=progress, compiler_options=compiler_options, mesh=mesh)

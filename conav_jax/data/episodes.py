@@ -514,6 +514,13 @@ class EpisodeSplit:
     navs: tuple[SceneNav, ...]
     episodes: dict[str, np.ndarray]  # EPISODE_ARRAYS, (N, ...) / (N, T_max, ...)
     config: DatasetConfig
+    data_dir: str | None = None  # the dataset directory it was loaded from (None: made by hand)
+
+    @property
+    def content_hash(self) -> str | None:
+        """The dataset's content hash, from its manifest (None for a split made by hand): what
+        runs trained on the split record of their data."""
+        return self.manifest.get("content_hash")
 
     @property
     def num_episodes(self) -> int:
@@ -566,8 +573,9 @@ def load_split(
     data_dir: str | os.PathLike, split: str, max_episodes: int | None = None, verify: bool = True
 ) -> EpisodeSplit:
     """Load one split ("train", "val" or, when the dataset has it, "minival"); with `verify`,
-    every file read is checked against the manifest's sha256."""
-    data_dir = Path(data_dir)
+    every file read is checked against the manifest's sha256. The split keeps the manifest and
+    `data_dir` as given."""
+    source, data_dir = str(data_dir), Path(data_dir)
     m = read_manifest(data_dir)
     if split not in m["splits"]:
         hint = ""
@@ -607,4 +615,4 @@ def load_split(
                 a = np.concatenate([a, pad], axis=1)
             parts.append(a)
         episodes[name] = np.concatenate(parts, axis=0)[:max_episodes]
-    return EpisodeSplit(split, m, tuple(scenes), tuple(navs), episodes, DatasetConfig.from_dict(m["config"]))
+    return EpisodeSplit(split, m, tuple(scenes), tuple(navs), episodes, DatasetConfig.from_dict(m["config"]), source)

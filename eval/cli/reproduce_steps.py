@@ -29,11 +29,11 @@ class StepKind:
 # The kinds of step a plan holds, by the name a step's identity starts with.
 STEP_KINDS = {
     "generate": StepKind("conav_jax.data.episodes:generate_dataset"),
-    "train intention": StepKind("conav_jax.train.intention:train_intention", mesh=True),
-    "train trajectory": StepKind("conav_jax.train.trajectory:train_trajectory", mesh=True),
-    "train objectnav": StepKind("conav_jax.train.goalnav:train_objectnav", mesh=True),
-    "train imagenav": StepKind("conav_jax.train.goalnav:train_imagenav", mesh=True),
-    "train policy": StepKind("conav_jax.train.policy:train_policy", mesh=True),
+    "train intention": StepKind("conav_jax.train.intention:train_intention_from_data", mesh=True),
+    "train trajectory": StepKind("conav_jax.train.trajectory:train_trajectory_from_data", mesh=True),
+    "train objectnav": StepKind("conav_jax.train.goalnav:train_objectnav_from_data", mesh=True),
+    "train imagenav": StepKind("conav_jax.train.goalnav:train_imagenav_from_data", mesh=True),
+    "train policy": StepKind("conav_jax.train.policy:train_policy_from_data", mesh=True),
     "train live": StepKind("conav_jax.train.live:train_live_from_data"),
     "eval": StepKind("conav_jax.eval.sweep:run_eval"),
     "copy": StepKind("conav_jax.eval.cli.reproduce_steps:copy_run"),  # DAgger continues a copy of the BC run

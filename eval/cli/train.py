@@ -211,12 +211,12 @@ def _trained(args: argparse.Namespace, train, *a, **kw):
 def _run_train_intention(args: argparse.Namespace) -> int:
     from conav_jax.models.perceiver import PerceiverConfig
     from conav_jax.envs.human_crop import default_crop_hw
-    from conav_jax.train.intention import IntentionDataConfig, train_intention
+    from conav_jax.train.intention import IntentionDataConfig, train_intention_from_data
 
     resolution = args.resolution or IntentionDataConfig.resolution
     data = config_from_args(IntentionDataConfig, args, resolution=resolution)
     model = config_from_args(PerceiverConfig, args, image_hw=args.image or default_crop_hw(resolution))
-    result = _trained(args, train_intention, args.data, args.out, train_config(args), model, data,
+    result = _trained(args, train_intention_from_data, args.data, args.out, train_config(args), model, data,
                       progress=not args.no_progress, mesh=mesh(args), val_split=args.val_split)
     if result is None:
         return 1
@@ -243,9 +243,9 @@ def _run_train_intention(args: argparse.Namespace) -> int:
 
 def _run_train_trajectory(args: argparse.Namespace) -> int:
     from conav_jax.models.trajectory import TrajectoryConfig
-    from conav_jax.train.trajectory import train_trajectory
+    from conav_jax.train.trajectory import train_trajectory_from_data
 
-    result = _trained(args, train_trajectory, args.data, args.out, train_config(args),
+    result = _trained(args, train_trajectory_from_data, args.data, args.out, train_config(args),
                       TrajectoryConfig(hidden=args.hidden), progress=not args.no_progress, mesh=mesh(args))
     if result is None:
         return 1
@@ -267,13 +267,19 @@ def policy_model(args: argparse.Namespace):
 
 
 def _run_train_policy(args: argparse.Namespace) -> int:
-    from conav_jax.train.policy import train_policy
+    from conav_jax.envs.agents.policy import needed_predictors
+    from conav_jax.train.policy import train_policy_from_data
 
     imitation = imitation_config(args, train_intentions=args.train_intentions)
+    model = policy_model(args)
     for flag, run in (("--intention", args.intention), ("--trajectory", args.trajectory)):
         if run is not None and not Path(run).is_dir():
             raise FileNotFoundError(f"{flag} run directory not found: {run}")
-    result = _trained(args, train_policy, args.data, args.out, train_config(args), policy_model(args), imitation,
+    if imitation.train_intentions == "predicted":
+        missing = [f"--{k}" for k in needed_predictors(model) if getattr(args, k) is None]
+        if missing:
+            raise ValueError(f"--train-intentions predicted needs the predictor runs {', '.join(missing)}")
+    result = _trained(args, train_policy_from_data, args.data, args.out, train_config(args), model, imitation,
                       intention_run=args.intention, trajectory_run=args.trajectory, progress=not args.no_progress,
                       mesh=mesh(args), remat=args.remat, share_expert=args.share_expert)
     if result is None:
@@ -314,7 +320,7 @@ def _print_imitation_result(kind: str, teacher: str, result, split: str) -> None
 def _run_train_rl(args: argparse.Namespace) -> int:
     from conav_jax.models.policy import PolicyConfig
     from conav_jax.envs.agents.registry import run_resolution
-    from conav_jax.train.ppo import PPOConfig, train_ppo
+    from conav_jax.train.ppo import PPOConfig, train_ppo_from_data
 
     config = config_from_args(PPOConfig, args)
     policy_config = None
@@ -323,7 +329,7 @@ def _run_train_rl(args: argparse.Namespace) -> int:
             raise ValueError("--hidden and --resolution size a new network; with --init-from the network is the imitation run's")
     else:
         policy_config = PolicyConfig(resolution=run_resolution([], args.resolution), hidden=args.hidden or PolicyConfig.hidden)
-    result = _trained(args, train_ppo, args.data, args.out, config, policy_config, args.init_from,
+    result = _trained(args, train_ppo_from_data, args.data, args.out, config, policy_config, args.init_from,
                       progress=not args.no_progress, mesh=mesh(args))
     if result is None:
         return 1
@@ -341,9 +347,9 @@ def _run_train_goalnav(args: argparse.Namespace) -> int:
     hw = run_resolution([], args.resolution)
     base = network_base(args, hw)
     if args.model == "objectnav":
-        model, train = goalnav.objectnav_model(hw, args.object_saliency, base), goalnav.train_objectnav
+        model, train = goalnav.objectnav_model(hw, args.object_saliency, base), goalnav.train_objectnav_from_data
     else:
-        model, train = goalnav.imagenav_model(hw, base), goalnav.train_imagenav
+        model, train = goalnav.imagenav_model(hw, base), goalnav.train_imagenav_from_data
     result = _trained(args, train, args.data, args.out, train_config(args), model, imitation,
                       progress=not args.no_progress, mesh=mesh(args), remat=args.remat)
     if result is None:
