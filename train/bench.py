@@ -150,7 +150,8 @@ def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int,
 
 
 def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int = 32, repeats: int = 5,
-                    intention=None, trajectory=None, beta: float = 0.5, seed: int = 0) -> dict:
+                    intention=None, trajectory=None, beta: float = 0.5, seed: int = 0, remat: bool = False,
+                    profile_dir: str | None = None) -> dict:
     """Env timesteps trained per second of train.live's iteration on `env` (its train split) at
     `lanes` x `window_steps` steps per iteration, and its breakdown: each cumulative part of an
     iteration compiled as its own program and timed alone (the simulator: refills, the
@@ -159,7 +160,10 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     call to call; after a compile-and-warm-up call, the median of `repeats` calls, each with
     `block_until_ready`. `beta`: the expert's share of the actions (below 1 the learner acts
     too). `policy_config` defaults to PolicyConfig at the env's resolution; `intention`,
-    `trajectory` as train.live.train_live takes predictor objects (none: ground truth)."""
+    `trajectory` as train.live.train_live takes predictor objects (none: ground truth);
+    `remat` as LiveConfig.remat. With `profile_dir`, two more calls of the whole iteration are
+    traced there and the result's "profile" holds their device time by part
+    (conav_jax.profiling.profile_program over train.live.PROFILE_SCOPES)."""
     from conav_jax.models import policy
     from conav_jax.models.policy import PolicyConfig
     from conav_jax.envs.rollout import jit_with_bank
@@ -170,7 +174,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     hw = env.config.sensor.resolution
     policy_config = policy_config or PolicyConfig(resolution=hw)
     config = lv.LiveConfig(lanes=lanes, window_steps=window_steps, warmup_iterations=0, beta_start=beta,
-                           beta_end=beta, seed=seed)
+                           beta_end=beta, seed=seed, remat=remat)
     fns = lv.make_live(env, policy_config, config, intention, trajectory)
     state0 = fns.init(policy.init(jax.random.PRNGKey(seed), policy_config))
 
@@ -184,7 +188,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     per_iter = lanes * window_steps
     out = {"device": jax.devices()[0].device_kind, "lanes": lanes, "window_steps": window_steps,
            "resolution": f"{hw[0]}x{hw[1]}", "physics": env.config.physics.impl, "sensor": env.config.sensor.kind,
-           "beta": beta, "intention_source": fns.source, "timesteps_per_iteration": per_iter}
+           "beta": beta, "remat": remat, "intention_source": fns.source, "timesteps_per_iteration": per_iter}
     for name, fn in parts.items():
         jitted = jit_with_bank(env, fn)
         state = state0
@@ -199,4 +203,11 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
         out[f"{name}_median_call_s"] = round(med, 4)
         out[f"{name}_timesteps_per_s"] = round(per_iter / med, 1)
     out["timesteps_trained_per_s"] = out["update_timesteps_per_s"]
+    if profile_dir is not None:
+        from conav_jax.profiling import profile_program
+
+        key = lv.iteration_key(seed, repeats + 1)
+        compiled = jitted.lower(state, key).compile()
+        out["profile"] = profile_program(compiled, (env.bank, state, key), lv.PROFILE_SCOPES, profile_dir,
+                                         after=lambda res: (env.bank, res[0], key))
     return out

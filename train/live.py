@@ -63,6 +63,9 @@ _ORDER_STREAM, _ITERATION_STREAM = 0x0DE5, 0x57E9
 # simulator (refills, the learner's panorama, the env step), the expert's labels, the predictors
 # and the learner acting.
 ROLLOUT_STAGES = ("simulate", "expert", "learner")
+# The named scopes of an iteration (a profile's parts, conav_jax.profiling): a rollout step's
+# parts, then the update, then the rest of the rollout (the scan's own buffers).
+PROFILE_SCOPES = ("refill", "observe", "expert", "predictors", "learner", "env_step", "update", "rollout")
 STEPS = "steps"  # the iteration's metrics entry holding its steps (a Window without observations)
 # The policy live runs train unless given another (`conav train live`'s network flags default to
 # it): its visual embedding is layer-normalised (PolicyConfig.visual_norm), without which the

@@ -9,6 +9,7 @@ import argparse
 import dataclasses
 import itertools
 import json
+from pathlib import Path
 
 from conav_jax.eval.cli.args import (
     INTENTION_FLAGS,
@@ -109,6 +110,9 @@ def add(sub) -> None:
     p.add_argument("--conv-dtype", default="bfloat16", help="dtype of the policy's convolutions")
     p.add_argument("--ground-truth-intentions", action="store_true",
                    help="no predictors: the learner reads ground truth (default: untrained predictors run)")
+    p.add_argument("--remat", action="store_true", help="recompute the encoder for the gradient (LiveConfig.remat)")
+    p.add_argument("--profile", default=None, metavar="DIR",
+                   help="also trace two iterations into DIR and print their device time by part of the iteration")
     p.add_argument("--repeats", type=int, default=3)
     p.set_defaults(func=_run_bench_live)
 
@@ -174,8 +178,10 @@ def _run_bench_live(args: argparse.Namespace) -> int:
                            args.encoder)  # the policy live runs train
     predictors = (None, None) if args.ground_truth_intentions else untrained_predictors(env, jax.random.PRNGKey(0))
     for lanes in args.lanes:
+        profile = None if args.profile is None else str(Path(args.profile) / f"lanes{lanes}")
         res = live_throughput(env, model, lanes=lanes, window_steps=args.window_steps, repeats=args.repeats,
-                              intention=predictors[0], trajectory=predictors[1], beta=args.beta)
+                              intention=predictors[0], trajectory=predictors[1], beta=args.beta, remat=args.remat,
+                              profile_dir=profile)
         print(json.dumps({**res, "encoder": args.encoder, "conv_dtype": args.conv_dtype, "visual_norm": model.visual_norm,
                           "materials": env.config.sensor.materials}), flush=True)
     return 0
