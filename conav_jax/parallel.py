@@ -14,6 +14,7 @@ from this repository: envs, train and eval use it.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -139,10 +140,17 @@ def per_device(fn, mesh: Mesh | None, in_batched: tuple, out_batched: Any = True
     return call
 
 
+def traced_under(mesh: Mesh | None):
+    """A context to trace a program whose lanes are split over `mesh` in: Pallas kernels inside
+    it then run per device (`lanes_on_devices`). Nothing without a mesh of several devices."""
+    if mesh is None or mesh.size == 1:
+        return contextlib.nullcontext()
+    return jax.sharding.use_abstract_mesh(mesh.abstract_mesh)
+
+
 def mesh_batch_devices() -> int:
     """The device count of the "batch" axis of the mesh the current trace runs under
-    (`jax.sharding.use_abstract_mesh`, which `envs.rollout.jit_with_bank` sets for a mesh); 1
-    without one."""
+    (`traced_under`); 1 without one."""
     mesh = jax.sharding.get_abstract_mesh()
     if mesh.empty or BATCH_AXIS not in mesh.axis_names:
         return 1

@@ -63,10 +63,11 @@ def hlo_op_names(hlo_text: str) -> dict[str, str]:
 
 
 def scope_of(op_name: str, scopes: Sequence[str]) -> str:
-    """The first of `scopes` that is a component of `op_name` ("other" if none), with
-    " (backward)" where the op runs in a gradient."""
+    """The first of `scopes` that is a component of `op_name`, bare or under transformations
+    ("vmap(observe)"), "other" if none; " (backward)" added where the op runs in a gradient."""
     parts = op_name.split("/")
-    scope = next((s for s in scopes if s in parts), "other")
+    scope = next((s for s in scopes if any(re.fullmatch(rf"(?:[\w]+\()*{re.escape(s)}\)*", p) for p in parts)),
+                 "other")
     return scope + (" (backward)" if "transpose(jvp(" in op_name else "")
 
 
@@ -83,7 +84,9 @@ def _kernel_events(trace_dir: str) -> list[dict]:
                and "/device:" in (e.get("args") or {}).get("name", "")}
     complete = [e for e in events if e.get("ph") == "X"]
     on_device = [e for e in complete if e.get("pid") in devices]
-    return on_device or [e for e in complete if "hlo_op" in (e.get("args") or {})]
+    # On the host, a loop's or branch's event spans the ops it runs: only the ops count.
+    return on_device or [e for e in complete if "hlo_op" in (e.get("args") or {})
+                         and not re.match(r"(while|conditional|call)\b", e["name"])]
 
 
 def profile_program(compiled, args: Sequence[Any], scopes: Sequence[str], out_dir: str | None = None,

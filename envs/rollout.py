@@ -27,6 +27,7 @@ from conav_jax.parallel import (
     round_up,
     shard_batch,
     to_host,
+    traced_under,
 )
 from conav_jax.envs.agents.base import MIXED_ACTION_SIZE, Agent, StateAgent, as_state_agent
 from conav_jax.envs.conav_env import ConavEnv
@@ -62,11 +63,8 @@ def jit_with_bank(env: ConavEnv, fn: Callable, mesh: Mesh | None = None, **jit_k
     caster casts each device's lanes on that device (conav_jax.parallel.lanes_on_devices)."""
 
     def traced(bank, *args):
-        with env.bound_bank(bank):
-            if mesh is None or mesh.size == 1:
-                return fn(*args)
-            with jax.sharding.use_abstract_mesh(mesh.abstract_mesh):
-                return fn(*args)
+        with env.bound_bank(bank), traced_under(mesh):
+            return fn(*args)
 
     jitted = jax.jit(traced, **jit_kwargs)
 
@@ -110,7 +108,7 @@ def make_param_rollout(env: ConavEnv, agent_fn: Callable[[Any], Agent | StateAge
         start = jax.vmap(lambda episode: _start(env, agent, key, episode))(episodes)
         return jax.vmap(partial(one, agent))(start)
 
-    return jit_with_bank(env, run, mesh, compiler_options=compiler_options)
+    return jit_with_bank(env, run, mesh=mesh, compiler_options=compiler_options)
 
 
 def agent_step(env: ConavEnv, agent: StateAgent, state: State, carry: Any, key: jax.Array):
@@ -120,8 +118,19 @@ def agent_step(env: ConavEnv, agent: StateAgent, state: State, carry: Any, key: 
     step: what the agent does not read (an image, for most scripted agents) is never rendered,
     and an ended episode's image is not kept. Rollouts start from `_start`'s state, which has
     none either. An oracle mover's pose goes through ConavEnv.step_to_pose."""
-    action, carry = agent.act(env.observe(state, agent.reads), carry, key)
-    return apply_action(env, agent, state, action), action, carry
+    # Named scopes label a profile's kernels (SWEEP_PROFILE_SCOPES).
+    with jax.named_scope("observe"):
+        obs = env.observe(state, agent.reads)
+    with jax.named_scope("agent"):
+        action, carry = agent.act(obs, carry, key)
+    with jax.named_scope("env_step"):
+        state = apply_action(env, agent, state, action)
+    return state, action, carry
+
+
+# The parts of a rollout step a profile reports (conav_jax.profiling): refilling lanes, the
+# agent's observation, its predictors and policy (the CoNav agent's), the rest of acting, the env step.
+SWEEP_PROFILE_SCOPES = ("refill", "observe", "predictors", "policy", "agent", "env_step")
 
 
 def apply_action(env: ConavEnv, agent: StateAgent, state: State, action: jax.Array) -> State:
@@ -144,10 +153,11 @@ def _start(env: ConavEnv, agent: StateAgent, key: jax.Array, episode: jax.Array)
     return state, agent.init(k_init, env.observe(state, agent.reads)), k_run
 
 
-def make_rollout(env: ConavEnv, agent: Agent | StateAgent, num_steps: int, record: bool = False):
+def make_rollout(env: ConavEnv, agent: Agent | StateAgent, num_steps: int, record: bool = False,
+                 mesh: Mesh | None = None):
     """A jitted function (key, episodes (B,)) -> (final metrics dict of (B,), Trace | None):
     `make_param_rollout` for an agent without parameters (or closing over its own)."""
-    run = make_param_rollout(env, lambda _: agent, num_steps, record)
+    run = make_param_rollout(env, lambda _: agent, num_steps, record, mesh=mesh)
     return lambda key, episodes: run(None, key, episodes)
 
 
@@ -295,7 +305,8 @@ def make_pool_rollout(
             new_pos = c.next_position + jnp.cumsum(free) - 1
             take = free & (new_pos < n)
             refill = lambda lane: select_lanes(take, start(queue[jnp.clip(new_pos, 0, q - 1)]), lane)
-            lane = constrain_batch(jax.lax.cond(take.any(), refill, lambda lane: lane, c.lanes), mesh)
+            with jax.named_scope("refill"):
+                lane = constrain_batch(jax.lax.cond(take.any(), refill, lambda lane: lane, c.lanes), mesh)
             position, active = jnp.where(take, new_pos, c.position), c.active | take
             (lane, trace, _), _ = jax.lax.scan(one_step, (lane, c.trace, position[0] == 0), None, length=chunk)
             finished = active & (lane.state.done > 0)
@@ -307,7 +318,7 @@ def make_pool_rollout(
         c = jax.lax.while_loop(lambda c: c.active.any() | (c.next_position < n), body, c)
         return (c.results, c.trace) if trace_steps else c.results
 
-    return jit_with_bank(env, run, mesh, compiler_options=compiler_options)
+    return jit_with_bank(env, run, mesh=mesh, compiler_options=compiler_options)
 
 
 def evaluate(

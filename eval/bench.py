@@ -108,7 +108,7 @@ def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
     from conav_jax.envs.rollout import make_rollout
 
     steps = env.bank.max_steps
-    run = make_rollout(env, agent, steps)
+    run = make_rollout(env, agent, steps, mesh=mesh)
     episodes = np.arange(batch, dtype=np.int32) % env.num_episodes
     episodes = jax.device_put(episodes) if mesh is None else shard_batch(episodes, mesh)
 
@@ -139,9 +139,12 @@ def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
     }
 
 
-def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = None, mesh=None) -> dict:
+def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = None, mesh=None,
+                profile_dir: str | None = None) -> dict:
     """Time sweeps of the split's first `episodes` (default all) with `batch` lanes
-    (envs.rollout.make_evaluator), the first sweep including the compile."""
+    (envs.rollout.make_evaluator), the first sweep including the compile. With `profile_dir`
+    (one device), one more sweep of the evaluator's program is traced there and the result's
+    "profile" holds its device time by part of a step (`profile_sweep`)."""
     import jax
     import numpy as np
 
@@ -162,6 +165,7 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
         times.append(time.perf_counter() - t0)
     med = statistics.median(times)
     t_end = np.asarray(env.bank.t_end)[idx]
+    profile = {} if profile_dir is None else {"profile": profile_sweep(env, agent, batch, idx, profile_dir, mesh)}
     return {
         "device": jax.devices()[0].device_kind,
         "devices": 1 if mesh is None else mesh.size,
@@ -172,4 +176,28 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
         "compile_and_first_sweep_s": round(compile_s, 2),
         "median_sweep_s": round(med, 3),
         "episodes_per_min": round(n / med * 60.0, 1),
+        **profile,
     }
+
+
+def profile_sweep(env, agent, batch: int, episodes, profile_dir: str, mesh=None) -> dict:
+    """Device time of one sweep of `episodes` by part of a rollout step
+    (envs.rollout.SWEEP_PROFILE_SCOPES; conav_jax.profiling.profile_program): the refilling
+    pool rollout `make_evaluator` compiles for more episodes than `batch` lanes, longest first,
+    traced into `profile_dir`. One device (ValueError for a mesh of several)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from conav_jax.envs.rollout import SWEEP_PROFILE_SCOPES, make_pool_rollout
+    from conav_jax.profiling import profile_program
+
+    if mesh is not None and mesh.size > 1:
+        raise ValueError("a sweep's profile runs on one device; use one device")
+    episodes = np.asarray(episodes)
+    if batch >= len(episodes):
+        raise ValueError(f"a sweep's profile needs more episodes ({len(episodes)}) than lanes ({batch})")
+    order = np.argsort(-np.asarray(env.bank.t_end)[episodes], kind="stable")
+    args = (None, jax.random.PRNGKey(0), jnp.asarray(episodes[order], jnp.int32), jnp.int32(len(episodes)))
+    compiled = make_pool_rollout(env, lambda _: agent, batch).lower(*args).compile()
+    return profile_program(compiled, (env.bank, *args), SWEEP_PROFILE_SCOPES, profile_dir, calls=1)

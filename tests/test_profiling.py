@@ -32,6 +32,7 @@ def test_a_scope_is_the_first_listed_one_the_op_is_traced_under():
     assert scope_of("jit(f)/rollout/while/body/observe/sin", scopes) == "observe"
     assert scope_of("jit(f)/rollout/while/body/scan", scopes) == "rollout"
     assert scope_of("jit(f)/update/transpose(jvp())/while/body/dot_general", scopes) == "update (backward)"
+    assert scope_of("jit(f)/while/body/vmap(observe)/min", scopes) == "observe"  # a scope under vmap
     assert scope_of("jit(f)/mul", scopes) == "other"
 
 

@@ -137,7 +137,7 @@ def test_evaluators_compile_their_rollouts_with_the_given_options(env, noisy_exp
     class NotCompiled(Exception):
         pass
 
-    def jit_with_bank(env, fn, **jit_kwargs):  # records what each rollout is jitted with, compiles nothing
+    def jit_with_bank(env, fn, mesh=None, **jit_kwargs):  # records what each rollout is jitted with, compiles nothing
         given.append(jit_kwargs)
 
         def run(*args):

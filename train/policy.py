@@ -541,7 +541,7 @@ def train_policy(
     h, w = model.resolution
     intention, trajectory = load_predictors(intention_run, trajectory_run)
     # The rollouts take each split's episode bank as an argument: no episode data in the programs.
-    jit = lambda env, f: jit_with_bank(env, f, compiler_options=compiler_options)  # noqa: E731
+    jit = lambda env, f: jit_with_bank(env, f, mesh=mesh, compiler_options=compiler_options)  # noqa: E731
 
     def task_kwargs(env) -> dict:  # a task's teacher and goal sensor in `env`
         if task is None:

@@ -54,7 +54,7 @@ from conav_jax.models.policy import PolicyConfig
 from conav_jax.nn.lstm import LSTMState
 from conav_jax.optim import Optimizer, adam, clip_by_global_norm
 from conav_jax.provenance import PROVENANCE_KEY, provenance
-from conav_jax.parallel import batch_sharding, check_divisible, replicated
+from conav_jax.parallel import batch_sharding, check_divisible, replicated, traced_under
 from conav_jax.runs import append_log, finite_or_none
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 from conav_jax.envs.agents.policy import (
@@ -437,6 +437,10 @@ def make_iteration(env, policy_config: PolicyConfig, config: PPOConfig, mesh: Me
         return Runner(params, optimizer.init(params), start, key, jnp.zeros((), jnp.int32))
 
     def iteration(runner: Runner):
+        with traced_under(mesh):  # Pallas kernels per device (conav_jax.parallel.lanes_on_devices)
+            return _iteration(runner)
+
+    def _iteration(runner: Runner):
         key, k_reset, k_roll, k_update = jax.random.split(runner.key, 4)
         start = jax.lax.cond(runner.iteration % config.reset_every == 0, fresh, lambda _: runner.env, k_reset)
         if mesh is not None:

@@ -152,7 +152,10 @@ def make_policy_step(cfg: PolicyConfig, intention=None, trajectory=None, recurre
         return action[0], carry._replace(lstm=jax.tree.map(lambda x: x[0], new))
 
     def step(params, obs: dict, carry: PolicyCarry):
-        return act(params, *predict(obs, carry))
+        with jax.named_scope("predictors"):
+            inputs, carry = predict(obs, carry)
+        with jax.named_scope("policy"):
+            return act(params, inputs, carry)
 
     return PolicyStep(init, step, predict, act, source)
 

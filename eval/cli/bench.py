@@ -132,6 +132,8 @@ def add(sub) -> None:
     p.add_argument("--mode", choices=["sweep", "fixed"], default="sweep",
                    help="sweep: the split through conav eval's evaluator; fixed: one full-length batch")
     p.add_argument("--episodes", type=int, default=None, help="sweep mode: the first N episodes (default: all)")
+    p.add_argument("--profile", default=None, metavar="DIR",
+                   help="sweep mode, one device: also trace one sweep into DIR and print its device time by part of a step")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--json", action="store_true", help="print one JSON line")
     devices_arg(p)
@@ -338,7 +340,9 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
            "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind,
            "physics_impl": env.config.physics.impl}
     if args.mode == "sweep":
-        res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, devices))
+        res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, devices, args.profile))
+    elif args.profile is not None:
+        raise ValueError("--profile traces sweeps: use --mode sweep")
     else:
         res.update(bench_eval(env, agent, args.batch, args.repeats, devices))
     who = f"{args.agent} ({UNTRAINED})" if args.untrained else args.agent
@@ -350,6 +354,9 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
               f"{res['episodes']} episodes (mean {res['mean_episode_steps']} steps, longest {res['longest_episode_steps']}) "
               f"in {res['median_sweep_s']} s = {res['episodes_per_min']:,.1f} episodes/min (median of {args.repeats}); "
               f"compile + first sweep {res['compile_and_first_sweep_s']} s", flush=True)
+        if "profile" in res:
+            print(f"device ms of one sweep by part: {json.dumps(res['profile']['by_scope_ms'])}; trace in "
+                  f"{res['profile']['trace_dir']}", flush=True)
     else:
         print(f"{res['devices']} x {res['device']} agent={who} res={h}x{w} sensor={res['sensor']} batch={args.batch} "
               f"({res['steps_per_episode']} steps/episode): {res['episodes_per_min']:,.1f} episodes/min = "
