@@ -445,22 +445,14 @@ def train_intention(
     )
 
 
-def train_intention_from_data(
-    data_dir: str | Path,
-    run_dir: str | Path,
-    cfg: TrainConfig,
-    model: PerceiverConfig = PerceiverConfig(),
-    data: IntentionDataConfig = IntentionDataConfig(),
-    progress: bool = True,
-    compiler_options: dict | None = None,
-    mesh: Mesh | None = None,
-    val_split: str = "minival",
-) -> TrainResult:
+def train_intention_from_data(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig,
+                              model: PerceiverConfig = PerceiverConfig(), data: IntentionDataConfig = IntentionDataConfig(),
+                              val_split: str = "minival", **kwargs) -> TrainResult:
     """`train_intention` on the train split and `val_split` (minival by default) of the dataset
-    `data_dir`, each env rendering `data`'s resolution and materials (`make_env`)."""
+    `data_dir`, each env rendering `data`'s resolution and materials (`make_env`); `kwargs` as
+    `train_intention` takes them (progress, compiler_options, mesh)."""
     train_env, val_env = make_env(data_dir, "train", data), make_env(data_dir, val_split, data)
-    return train_intention(train_env, val_env, run_dir, cfg, model, data, progress=progress,
-                           compiler_options=compiler_options, mesh=mesh)
+    return train_intention(train_env, val_env, run_dir, cfg, model, data, **kwargs)
 
 
 def evaluate_run(run_dir: str | Path, data_dir: str | Path, split: str = "val",

@@ -166,17 +166,8 @@ def train_trajectory(
     )
 
 
-def train_trajectory_from_data(
-    data_dir: str | Path,
-    run_dir: str | Path,
-    cfg: TrainConfig,
-    model: TrajectoryConfig = TrajectoryConfig(),
-    data: TrajectoryDataConfig = TrajectoryDataConfig(),
-    progress: bool = True,
-    compiler_options: dict | None = None,
-    mesh: Mesh | None = None,
-) -> TrainResult:
-    """`train_trajectory` on the train and val splits of the dataset `data_dir` (their episodes
-    alone: no env is built)."""
-    return train_trajectory(load_split(data_dir, "train"), load_split(data_dir, "val"), run_dir, cfg, model, data,
-                            progress=progress, compiler_options=compiler_options, mesh=mesh)
+def train_trajectory_from_data(data_dir: str | Path, run_dir: str | Path, cfg: TrainConfig, *args,
+                               **kwargs) -> TrainResult:
+    """`train_trajectory` (the rest of its arguments) on the train and val splits of the dataset
+    `data_dir` (their episodes alone: no env is built)."""
+    return train_trajectory(load_split(data_dir, "train"), load_split(data_dir, "val"), run_dir, cfg, *args, **kwargs)
