@@ -6,8 +6,7 @@ inside jit (`jax.lax.with_sharding_constraint`); jit partitions the vmapped comp
 them. Work whose lanes are independent (env steps) can run per device instead, through
 `per_device`: one single-device program per device, none partitioned. XLA cannot partition a
 Pallas call: inside a partitioned program a kernel runs per device through `lanes_on_devices`.
-Several hosts join through `maybe_initialize_distributed()`
-before the first jax call;
+Several hosts join through `maybe_initialize_distributed()` before the first jax call;
 `jax.devices()` then lists every host's devices and a mesh spans them all. No other imports
 from this repository: envs, train and eval use it.
 """

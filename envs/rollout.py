@@ -360,6 +360,21 @@ def make_evaluator(
     t_end = np.asarray(env.bank.t_end)
     steps = env.bank.max_steps if trace_first else 0
 
+    def pool(slots: int, params, key, queue: np.ndarray):
+        """(the refilling rollout of `slots` lanes, compiled on its first call, and its arguments
+        for running `queue`)."""
+        if slots not in runs:
+            runs[slots] = make_pool_rollout(env, agent_fn, slots, mesh=mesh, trace_steps=steps,
+                                           compiler_options=compiler_options)
+        args = (params, key, jnp.asarray(queue), jnp.int32(len(queue)))
+        return runs[slots], args if mesh is None else replicate(args, mesh)
+
+    def queue_of(episodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the order the lanes take `episodes` in, longest first: the shortest fill the tail;
+        the queue of episodes in that order)."""
+        order = np.argsort(-t_end[episodes], kind="stable")
+        return order, episodes[order].astype(np.int32)
+
     def evaluator(params, episodes: np.ndarray | None = None):
         episodes = np.arange(env.num_episodes) if episodes is None else np.asarray(episodes)
         if episodes.ndim != 1 or len(episodes) == 0:
@@ -368,8 +383,7 @@ def make_evaluator(
             raise ValueError(f"episode indices must be in [0, {env.num_episodes})")
         n = len(episodes)
         slots = round_up(min(batch, n), mesh)
-        order = np.argsort(-t_end[episodes], kind="stable")  # longest first: the shortest fill the tail
-        queue = episodes[order].astype(np.int32)
+        order, queue = queue_of(episodes)
         key = jax.random.PRNGKey(seed)
         if slots >= n:
             # Every episode has a lane from the start: one full-length batch, the same results
@@ -388,11 +402,8 @@ def make_evaluator(
             metrics, trace = map_episodes(first_trace, queue, slots, key, mesh, per_batch_keys=False)
             trace = None if trace is None else jax.tree.map(lambda x: x[0], trace)
         else:
-            if slots not in runs:
-                runs[slots] = make_pool_rollout(env, agent_fn, slots, mesh=mesh, trace_steps=steps,
-                                               compiler_options=compiler_options)
-            args = (params, key, jnp.asarray(queue), jnp.int32(n))
-            result = to_host(runs[slots](*(args if mesh is None else replicate(args, mesh))))
+            run, args = pool(slots, params, key, queue)
+            result = to_host(run(*args))
             metrics, trace = result if trace_first else (result, None)
         out = {k: np.empty_like(v) for k, v in metrics.items()}
         for k, v in metrics.items():
@@ -404,4 +415,15 @@ def make_evaluator(
         end = int(np.argmax(done)) + 1 if done.any() else len(done)
         return out, int(episodes[order[0]]), jax.tree.map(lambda x: x[:end], trace)
 
+    def pool_program(params, episodes: np.ndarray):
+        """(the refilling rollout `evaluator(params, episodes)` runs, the arguments it runs it
+        with): the very program and call, for a profile (ValueError when the episodes fit in
+        the lanes: that call runs one full-length batch instead)."""
+        episodes = np.asarray(episodes)
+        slots = round_up(min(batch, len(episodes)), mesh)
+        if slots >= len(episodes):
+            raise ValueError(f"{len(episodes)} episodes fit in {slots} lanes: the evaluator runs no refilling rollout")
+        return pool(slots, params, jax.random.PRNGKey(seed), queue_of(episodes)[1])
+
+    evaluator.pool_program = pool_program
     return evaluator

@@ -143,16 +143,19 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
                 profile_dir: str | None = None) -> dict:
     """Time sweeps of the split's first `episodes` (default all) with `batch` lanes
     (envs.rollout.make_evaluator), the first sweep including the compile. With `profile_dir`
-    (one device), one more sweep of the evaluator's program is traced there and the result's
-    "profile" holds its device time by part of a step (`profile_sweep`)."""
+    (one device, more episodes than lanes), one more sweep of the same compiled program is
+    traced there and the result's "profile" holds its device time by part of a rollout step
+    (envs.rollout.SWEEP_PROFILE_SCOPES; conav_jax.profiling.profile_program)."""
     import jax
     import numpy as np
 
-    from conav_jax.envs.rollout import make_evaluator
+    from conav_jax.envs.rollout import SWEEP_PROFILE_SCOPES, make_evaluator
 
     if episodes is not None and episodes > env.num_episodes:
         raise ValueError(f"bench_sweep.episodes {episodes}: the split has only {env.num_episodes} episodes")
     n = env.num_episodes if episodes is None else episodes
+    if profile_dir is not None and (mesh is not None and mesh.size > 1 or batch >= n):
+        raise ValueError(f"a sweep's profile runs on one device with more episodes ({n}) than lanes ({batch})")
     evaluator = make_evaluator(env, lambda _: agent, batch, 0, mesh)
     idx = np.arange(n)
     t0 = time.perf_counter()
@@ -165,7 +168,13 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
         times.append(time.perf_counter() - t0)
     med = statistics.median(times)
     t_end = np.asarray(env.bank.t_end)[idx]
-    profile = {} if profile_dir is None else {"profile": profile_sweep(env, agent, batch, idx, profile_dir, mesh)}
+    profile = {}
+    if profile_dir is not None:
+        from conav_jax.profiling import profile_program
+
+        run, args = evaluator.pool_program(None, idx)
+        compiled = run.lower(*args).compile()  # the program the sweeps ran, from jit's cache
+        profile["profile"] = profile_program(compiled, (env.bank, *args), SWEEP_PROFILE_SCOPES, profile_dir, calls=1)
     return {
         "device": jax.devices()[0].device_kind,
         "devices": 1 if mesh is None else mesh.size,
@@ -178,26 +187,3 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
         "episodes_per_min": round(n / med * 60.0, 1),
         **profile,
     }
-
-
-def profile_sweep(env, agent, batch: int, episodes, profile_dir: str, mesh=None) -> dict:
-    """Device time of one sweep of `episodes` by part of a rollout step
-    (envs.rollout.SWEEP_PROFILE_SCOPES; conav_jax.profiling.profile_program): the refilling
-    pool rollout `make_evaluator` compiles for more episodes than `batch` lanes, longest first,
-    traced into `profile_dir`. One device (ValueError for a mesh of several)."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from conav_jax.envs.rollout import SWEEP_PROFILE_SCOPES, make_pool_rollout
-    from conav_jax.profiling import profile_program
-
-    if mesh is not None and mesh.size > 1:
-        raise ValueError("a sweep's profile runs on one device; use one device")
-    episodes = np.asarray(episodes)
-    if batch >= len(episodes):
-        raise ValueError(f"a sweep's profile needs more episodes ({len(episodes)}) than lanes ({batch})")
-    order = np.argsort(-np.asarray(env.bank.t_end)[episodes], kind="stable")
-    args = (None, jax.random.PRNGKey(0), jnp.asarray(episodes[order], jnp.int32), jnp.int32(len(episodes)))
-    compiled = make_pool_rollout(env, lambda _: agent, batch).lower(*args).compile()
-    return profile_program(compiled, (env.bank, *args), SWEEP_PROFILE_SCOPES, profile_dir, calls=1)

@@ -123,6 +123,19 @@ def test_sweeps_render_no_image_for_an_agent_that_reads_none(env, noisy_expert):
     assert f",{h},{w}]" not in compiled and f",{h},{w},4]" not in compiled  # ... so no image is computed
 
 
+def test_the_pool_program_is_the_refilling_rollout_the_evaluator_runs(env, noisy_expert):
+    """`pool_program` hands out the evaluator's own refilling rollout (its compile cache), with
+    the queue longest first, and refuses episodes that fit in the lanes (no refilling then)."""
+    evaluator = make_evaluator(env, lambda _: noisy_expert, batch=2)
+    with pytest.raises(ValueError, match="fit in 2 lanes"):
+        evaluator.pool_program(None, np.array([0, 1]))
+    run, args = evaluator.pool_program(None, np.array([0, 1, 2]))
+    again, _ = evaluator.pool_program(None, np.array([2, 0, 1]))
+    assert again is run
+    t_end = np.asarray(env.bank.t_end)
+    assert list(t_end[np.asarray(args[2])]) == sorted(t_end[[0, 1, 2]], reverse=True) and int(args[3]) == 3
+
+
 def test_evaluators_compile_their_rollouts_with_the_given_options(env, noisy_expert, monkeypatch):
     """Both rollouts (one full-length batch, refilled lanes) of make_evaluator and evaluate go to
     jax.jit with the options, and jax.jit is given them (an unknown one is refused when the
