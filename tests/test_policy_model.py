@@ -209,6 +209,32 @@ def test_the_patch_encoder_reaches_the_conv_encoders_grid_with_a_patch_product_f
         PolicyConfig(conv_strides=(4, 2))
 
 
+@pytest.mark.parametrize("encoder, dtype", [("patch", "bfloat16"), ("patch", "float32"), ("conv", "bfloat16")])
+def test_a_prepared_panorama_gives_the_step_and_gradient_of_the_raw_observation(encoder, dtype):
+    """What train.live stores of a step (policy.prepare_panorama) is read by `encode` in place
+    of the panorama and segmentation: the same actions and the same gradient."""
+    config = dataclasses.replace(encoder_config(CONFIG, encoder), resolution=(16, 64), conv_dtype=dtype)
+    params = jit(policy.init, static_argnums=1)(jax.random.PRNGKey(0), config)
+    obs = _obs((B, T))
+    prepared = jit(policy.prepare_panorama, static_argnums=0)(config, obs)
+    assert set(prepared) == {policy.PANORAMA_IMAGE, policy.PANORAMA_BEARING}
+    image = prepared[policy.PANORAMA_IMAGE]
+    assert str(image.dtype) == dtype
+    # The patch encoder's image is laid out as its first layer's 4x4 patches of 5 channels.
+    assert image.shape == ((B, T, 4, 16, 80) if encoder == "patch" else (B, T, 16, 64, 5))
+    stored = {**{k: v for k, v in obs.items() if k not in ("rgbd", "segmentation")}, **prepared}
+    resets = np.zeros((B, T), bool)
+
+    def loss(p, o):
+        actions, values, _ = policy.apply_sequence(p, config, o, policy.initial_carry(config, B), resets)
+        return jnp.sum(actions ** 2) + jnp.sum(values), actions
+
+    grad = jit(jax.grad(loss, has_aux=True))
+    (g_raw, a_raw), (g_prep, a_prep) = grad(params, obs), grad(params, stored)
+    np.testing.assert_allclose(a_prep, a_raw, rtol=1e-6, atol=1e-6)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), g_prep, g_raw)
+
+
 def test_runs_store_the_strides_only_for_the_patch_encoder_and_read_them_back():
     import json
 

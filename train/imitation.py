@@ -494,14 +494,16 @@ def bc_loss(params, cfg: PolicyConfig, batch: dict, remat: bool = False) -> tupl
     return loss, {"steps_in_loss": n}
 
 
-def sequence_loss(params, cfg: PolicyConfig, batch: dict, carry: LSTMState,
-                  remat: bool = False, time_major: bool = False) -> tuple[jax.Array, jax.Array, LSTMState, jax.Array]:
+def sequence_loss(params, cfg: PolicyConfig, batch: dict, carry: LSTMState, remat: bool = False,
+                  time_major: bool = False, prepare=expand_obs) -> tuple[jax.Array, jax.Array, LSTMState, jax.Array]:
     """`bc_loss` with the LSTM starting each window from `carry` (B, hidden) -> (loss, steps in
     the loss, the carry after the window's last step, the policy's actions (B, W, 2)): truncated
     BPTT over consecutive windows (train.live), the carry reset where `batch["reset"]` starts an
-    episode. `time_major`: every entry of `batch` and the actions (W, B, ...) instead."""
+    episode. `time_major`: every entry of `batch` and the actions (W, B, ...) instead.
+    `prepare`: policy.apply_sequence's (default: the observations are `compact_obs`'s; None:
+    they are the policy's own)."""
     actions, _, end = policy.apply_sequence(params, cfg, batch["obs"], carry, batch["reset"], remat=remat,
-                                            prepare=expand_obs, time_major=time_major)
+                                            prepare=prepare, time_major=time_major)
     err = jnp.sum(jnp.square(actions - batch["label"]), axis=-1)
     n = jnp.sum(batch["mask"])
     loss = jnp.sum(err * batch["mask"]) / jnp.maximum(n, 1.0)

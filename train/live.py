@@ -65,7 +65,9 @@ _ORDER_STREAM, _ITERATION_STREAM = 0x0DE5, 0x57E9
 ROLLOUT_STAGES = ("simulate", "expert", "learner")
 # The named scopes of an iteration (a profile's parts, conav_jax.profiling): a rollout step's
 # parts, then the update, then the rest of the rollout (the scan's own buffers).
-PROFILE_SCOPES = ("refill", "observe", "expert", "predictors", "learner", "env_step", "update", "rollout")
+PROFILE_SCOPES = ("refill", "observe", "expert", "predictors", "prepare", "learner", "env_step", "update", "rollout")
+# The observations a window replaces by the prepared panorama (policy.prepare_panorama).
+PANORAMA_SOURCES = ("rgbd", "segmentation")
 STEPS = "steps"  # the iteration's metrics entry holding its steps (a Window without observations)
 # The policy live runs train unless given another (`conav train live`'s network flags default to
 # it): its visual embedding is layer-normalised (PolicyConfig.visual_norm), without which the
@@ -180,8 +182,9 @@ class TrainState(NamedTuple):
 
 
 class Window(NamedTuple):
-    """One iteration's steps, time-major (T, N, ...): the compact inputs the learner read
-    (train.imitation.compact_obs, predictions in place of the intentions they replace), the
+    """One iteration's steps, time-major (T, N, ...): the inputs the learner read, its panorama
+    as its CNN reads it (policy.prepare_panorama) and predictions in place of the intentions
+    they replace (a rollout of fewer stages keeps train.imitation.compact_obs's), the
     expert's label, `first` (an episode starts at this step: the LSTM is reset), `expert_acted`,
     the lane's episode, its queue position, the episode's step index and the robot's pose (x,
     y, yaw) before the step, and whether the episode ended with this step and reached the goal
@@ -266,6 +269,13 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         cursor, iteration, seed = (jnp.full((), v, jnp.int32) for v in (0, 0, live.seed))
         return TrainState(params, optimizer.init(params), lanes, cursor, iteration, seed)
 
+    def window_obs(inputs):
+        """What the window keeps of a step's policy inputs: the panorama as the policy's CNN reads
+        it (policy.prepare_panorama: made once here, not on each of the update's passes over
+        the window) and the other inputs, float32."""
+        rest = {k: inputs[k].astype(jnp.float32) for k in keys if k not in PANORAMA_SOURCES}
+        return {**policy.prepare_panorama(policy_config, inputs), **rest}
+
     def rollout(params, lanes: Lanes, cursor, seed, key, beta, stages: int = len(ROLLOUT_STAGES)):
         def step(carry, step_key):
             lanes, cursor = carry
@@ -281,26 +291,28 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
                     label, ecarry = jax.vmap(expert)(lanes.env, lanes.expert)
             expert_acts = jax.random.uniform(step_key, (n,)) < beta
             if stages <= ROLLOUT_STAGES.index("learner"):  # `live_throughput`'s parts of a step
-                return step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, label)
+                return step_out(lanes, cursor, first, im.compact_obs(inputs), label, ecarry, pcarry, expert_acts,
+                                label)
             with jax.named_scope("predictors"):
                 inputs, pcarry = jax.vmap(pol.predict)(obs, lanes.policy)  # the predictors follow every step
+            with jax.named_scope("prepare"):
+                prepared = window_obs(inputs)
 
             def mixed(pcarry):
-                action, _, lstm = policy.apply(params, policy_config, {k: inputs[k] for k in keys}, pcarry.lstm,
-                                               reset=first)
+                action, _, lstm = policy.apply(params, policy_config, prepared, pcarry.lstm, reset=first)
                 return jnp.where(expert_acts[:, None], label, action), pcarry._replace(lstm=lstm)
 
             # beta is one scalar for all lanes: with beta >= 1 the learner does not run here.
             with jax.named_scope("learner"):
                 action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
-            return step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, action)
+            return step_out(lanes, cursor, first, prepared, label, ecarry, pcarry, expert_acts, action)
 
-        def step_out(lanes, cursor, first, inputs, label, ecarry, pcarry, expert_acts, action):
+        def step_out(lanes, cursor, first, recorded, label, ecarry, pcarry, expert_acts, action):
             with jax.named_scope("env_step"):
                 state = jax.vmap(functools.partial(env.step, observe=False))(lanes.env, action)
             ended = state.done > 0
             data = lanes.env.pipeline_state
-            rec = Window(im.compact_obs(inputs), label, first, expert_acts, lanes.env.info["episode"],
+            rec = Window(recorded, label, first, expert_acts, lanes.env.info["episode"],
                          lanes.position, data.userdata[:, UD["t"]].astype(jnp.int32), data.qpos, ended,
                          ended & (state.metrics["reached"] > 0))
             return (Lanes(state, ecarry, pcarry, lanes.position), cursor), rec
@@ -309,13 +321,14 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         return lanes, cursor, window
 
     def update(params, opt_state, lstm: LSTMState, window: Window):
-        # Time-major as the rollout wrote it: the window's panoramas are never transposed.
+        # Time-major as the rollout wrote it, and prepared (window_obs): the window's panoramas
+        # are never transposed or widened here.
         batch = {"obs": window.obs, "label": window.label, "reset": window.first,
                  "mask": jnp.ones(window.first.shape, jnp.float32)}
 
         def loss_fn(p):
             loss, _, end, actions = im.sequence_loss(p, policy_config, batch, jax.lax.stop_gradient(lstm), live.remat,
-                                                     time_major=True)
+                                                     time_major=True, prepare=None)
             return loss, (end, actions)
 
         (loss, (end, actions)), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)

@@ -38,6 +38,9 @@ from conav_jax.nn.lstm import LSTMState
 
 Params = dict
 Obs = dict[str, jax.Array]
+# The observation keys `prepare_panorama` makes of a step's panorama (the CNN's input image, and
+# the saliency channel's bearing features); `encode` reads them in place of `rgbd`.
+PANORAMA_IMAGE, PANORAMA_BEARING = "panorama_image", "panorama_bearing"
 
 # PolicyConfig.conv_dtype -> conav_jax.nn.conv's compute_dtype (None: no cast, float32 throughout).
 CONV_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
@@ -242,18 +245,55 @@ def saliency_bearing(config: PolicyConfig, saliency: jax.Array, depth_m: jax.Arr
     return jnp.concatenate([peak, near], axis=-1)
 
 
-def _conv_stack(params: list, x: jax.Array, compute_dtype=None, strides: tuple[int, ...] | None = None) -> jax.Array:
+def _conv_stack(params: list, x: jax.Array, compute_dtype=None, strides: tuple[int, ...] | None = None,
+                patches: bool = False) -> jax.Array:
     """SAME convs with ReLU at `strides` (default 2 each): `(..., H, W, C) -> (..., ~H / prod,
     ~W / prod, C_last)`, float32 out. With `compute_dtype` (conav_jax.nn.conv.apply's) the
     activations between the layers are in it, and a stride-2 first layer, whose few input
     channels starve GPU convolution kernels, runs over 2x2 pixel blocks when the image's sides
-    are even (the same sums, faster; BENCHMARKS.md)."""
+    are even (the same sums, faster; BENCHMARKS.md). `patches`: `x` is the image already laid
+    out as the first layer's patches (nn.conv.to_patches; that layer embeds patches)."""
     strides = strides or (2,) * len(params)
     for i, (layer, stride) in enumerate(zip(params, strides, strict=True)):
+        if i == 0 and patches:
+            x = jax.nn.relu(nn.conv.apply_to_patches(layer, x, compute_dtype=compute_dtype))
+            continue
         blocks = compute_dtype is not None and i == 0 and stride == 2 and x.shape[-3] % 2 == 0 and x.shape[-2] % 2 == 0
         x = jax.nn.relu(nn.conv.apply(layer, x, stride=stride, padding="SAME", compute_dtype=compute_dtype,
                                       space_to_depth=blocks))
     return x.astype(jnp.float32)
+
+
+def first_layer_embeds_patches(config: PolicyConfig) -> bool:
+    """Whether the panorama CNN's first layer embeds non-overlapping patches (kernel = stride,
+    tiling the panorama): `prepare_panorama` then lays the image out as its patches."""
+    k, s = config.conv_kernels[0], config.strides[0]
+    return k == s and config.resolution[0] % k == 0 and config.resolution[1] % k == 0
+
+
+def prepare_panorama(config: PolicyConfig, obs: Obs) -> Obs:
+    """The parameter-free part of `encode` for a step's panorama: obs `rgbd (..., H, W, 4)` (and
+    `segmentation`, `object_probs` with the saliency channel) -> {PANORAMA_IMAGE: the CNN's input
+    image, rounded to conv_dtype, as the first layer's patches where it embeds patches
+    (first_layer_embeds_patches); PANORAMA_BEARING (..., 2 * sectors) with the saliency channel}.
+    `encode` reads these keys where an observation holds them, so a training window can store
+    them once instead of preparing every frame on each pass over it (train.live); the
+    result is the same."""
+    rgbd = obs["rgbd"].astype(jnp.float32)  # float16 panoramas widen here, per call
+    depth = jnp.clip(rgbd[..., 3:] / config.max_depth_m, 0.0, 1.0)
+    channels = [rgbd[..., :3], depth]
+    if config.uses_saliency:
+        saliency = object_saliency(obs["segmentation"], obs["object_probs"].astype(jnp.float32))
+        channels.append(saliency[..., None])
+    image = jnp.concatenate(channels, axis=-1)
+    if config.conv_compute_dtype is not None:
+        image = image.astype(config.conv_compute_dtype)
+    if first_layer_embeds_patches(config):
+        image = nn.conv.to_patches(image, config.conv_kernels[0])
+    out = {PANORAMA_IMAGE: image}
+    if config.uses_saliency:
+        out[PANORAMA_BEARING] = saliency_bearing(config, saliency, rgbd[..., 3])
+    return out
 
 
 def init(key: jax.Array, config: PolicyConfig) -> Params:
@@ -306,17 +346,13 @@ def _init_goal_encoder(key: jax.Array, config: PolicyConfig) -> Params:
 
 def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
     """Per-step features fed to the LSTM: obs with leading dims `(...)` -> `(..., lstm_in)`.
-    Reads `rgbd (..., H, W, 4)`, `gps_compass (..., 3)`, `human_pos (..., 2)` (with
-    use_human_pos), only the enabled intention keys, with the saliency channel `segmentation
-    (..., H, W)` and, with goal_image, `goal_image (..., H, W/4, 3)`."""
-    rgbd = obs["rgbd"].astype(jnp.float32)  # float16 panoramas widen here, per call
-    depth = jnp.clip(rgbd[..., 3:] / config.max_depth_m, 0.0, 1.0)
-    channels = [rgbd[..., :3], depth]
-    if config.uses_saliency:
-        saliency = object_saliency(obs["segmentation"], obs["object_probs"].astype(jnp.float32))
-        channels.append(saliency[..., None])
-    image = jnp.concatenate(channels, axis=-1)
-    feat = _conv_stack(params["convs"], image, config.conv_compute_dtype, config.strides)
+    Reads `rgbd (..., H, W, 4)` (with the saliency channel also `segmentation (..., H, W)`), or
+    in their place the keys `prepare_panorama` makes of them, `gps_compass (..., 3)`,
+    `human_pos (..., 2)` (with use_human_pos), only the enabled intention keys and, with
+    goal_image, `goal_image (..., H, W/4, 3)`."""
+    panorama = obs if PANORAMA_IMAGE in obs else prepare_panorama(config, obs)
+    feat = _conv_stack(params["convs"], panorama[PANORAMA_IMAGE], config.conv_compute_dtype, config.strides,
+                       patches=first_layer_embeds_patches(config))
     feat = feat.reshape(*feat.shape[:-3], -1)
     visual = nn.linear.apply(params["visual"], feat)
     if config.visual_norm:
@@ -335,8 +371,7 @@ def encode(params: Params, config: PolicyConfig, obs: Obs) -> jax.Array:
             value = value.reshape(*value.shape[:-2], -1) / config.position_scale_m
         parts.append(jax.nn.relu(nn.linear.apply(params["intentions"][name], value)))
     if config.uses_saliency:
-        bearing = saliency_bearing(config, saliency, rgbd[..., 3])
-        parts.append(jax.nn.relu(nn.linear.apply(params["saliency"], bearing)))
+        parts.append(jax.nn.relu(nn.linear.apply(params["saliency"], panorama[PANORAMA_BEARING])))
     if config.goal_image:
         goal = _conv_stack(params["goal_convs"], obs["goal_image"].astype(jnp.float32), config.conv_compute_dtype)
         parts.append(jax.nn.relu(nn.linear.apply(params["goal"], goal.reshape(*goal.shape[:-3], -1))))

@@ -102,14 +102,37 @@ def _tiles(kernel: tuple[int, int], stride: tuple[int, int], image: tuple[int, .
     return kernel == stride and image[0] % stride[0] == 0 and image[1] % stride[1] == 0
 
 
+def to_patches(x: jax.Array, kernel: int | tuple[int, int]) -> jax.Array:
+    """`x (..., H, W, C) -> (..., H / kh, W / kw, kh * kw * C)`, H and W multiples of the
+    kernel: each non-overlapping kh x kw patch flattened row by row, as a kernel is. The input
+    of `apply_to_patches`; a caller that keeps images for several passes of a patch embedding
+    (a training window) lays them out once here instead of on every pass."""
+    kh, kw = _pair(kernel)
+    *lead, h, wd, c = x.shape
+    if h % kh or wd % kw:
+        raise ValueError(f"to_patches needs an image whose sides are multiples of the kernel {kh}x{kw}, got {h}x{wd}")
+    x = x.reshape(-1, h // kh, kh, wd // kw, kw, c).transpose(0, 1, 3, 2, 4, 5)
+    return x.reshape(*lead, h // kh, wd // kw, kh * kw * c)
+
+
+def apply_to_patches(params: Params, patches: jax.Array, *, compute_dtype: jnp.dtype | None = None) -> jax.Array:
+    """The patch embedding (kernel = stride) of an image laid out by `to_patches`: `patches
+    (..., H', W', kh * kw * C_in) -> (..., H', W', C_out)`, the same sums as `apply` on the image.
+    `compute_dtype` as `apply`'s."""
+    w, b = params["w"], params["b"]
+    if patches.shape[-1] != math.prod(w.shape[:3]):
+        raise ValueError(f"patches of {patches.shape[-1]} values do not fit a {w.shape[0]}x{w.shape[1]} kernel over "
+                         f"{w.shape[2]} channels")
+    if compute_dtype is not None:
+        patches, w, b = patches.astype(compute_dtype), w.astype(compute_dtype), b.astype(compute_dtype)
+    return jnp.dot(patches, w.reshape(-1, w.shape[-1])) + b
+
+
 def _conv_patches(x: jax.Array, w: jax.Array) -> jax.Array:
     """The convolution of `x (N, H, W, C)` by `w (kh, kw, C, O)` at stride (kh, kw), H and W
     multiples of them: each kh x kw patch, flattened row by row as the kernel is, times the
     flattened kernel."""
-    n, h, wd, c = x.shape
-    kh, kw, _, o = w.shape
-    patches = x.reshape(n, h // kh, kh, wd // kw, kw, c).transpose(0, 1, 3, 2, 4, 5)
-    return jnp.dot(patches.reshape(n, h // kh, wd // kw, kh * kw * c), w.reshape(kh * kw * c, o))
+    return jnp.dot(to_patches(x, w.shape[:2]), w.reshape(-1, w.shape[-1]))
 
 
 def apply(
