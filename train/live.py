@@ -171,7 +171,10 @@ class TrainState(NamedTuple):
     """Everything an iteration reads and writes: the weights, Adam's state, the lanes, `cursor`
     () the next queue position to hand out, `iteration` () the updates applied and `seed` () the
     run's LiveConfig.seed (an input of the compiled iteration, not a constant of it: the seeds
-    of one configuration share one compiled program)."""
+    of one configuration share one compiled program). `window_obs`: scratch, not state (never
+    checkpointed, rewritten whole by every rollout): the window's observations (T, N, ...),
+    which the rollout writes step by step in place. Carried from iteration to iteration (and
+    donated), it is allocated once, not zero-filled and copied out of the scan each time."""
 
     params: dict
     opt_state: AdamState
@@ -179,6 +182,7 @@ class TrainState(NamedTuple):
     cursor: jax.Array
     iteration: jax.Array
     seed: jax.Array
+    window_obs: dict
 
 
 class Window(NamedTuple):
@@ -207,8 +211,9 @@ class Live(NamedTuple):
     `make_iteration` does)."""
 
     init: Any  # (params) -> TrainState at iteration 0, its lanes waiting for their first episodes
-    # (params, lanes, cursor, seed, key, beta, stages=3) -> (lanes, cursor, Window); fewer stages
-    # (ROLLOUT_STAGES) leave the later parts out (zero labels, the expert's "actions" then)
+    # (params, lanes, cursor, seed, key, beta, stages=3, window_obs=None) -> (lanes, cursor, Window);
+    # fewer stages (ROLLOUT_STAGES) leave the later parts out (zero labels, the expert's
+    # "actions" then); given a TrainState's window_obs, the Window's observations are written there
     rollout: Any
     update: Any  # (params, opt_state, start lstm, Window) -> (params, opt_state, end lstm, metrics)
     # (TrainState, key) -> (TrainState, metrics): scalars, and under STEPS the Window trained on
@@ -267,18 +272,20 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         lanes = lanes._replace(env=lanes.env.replace(done=jnp.ones((n,), jnp.float32)))
         # One buffer per leaf: the iteration donates its state, and a buffer given twice is refused.
         cursor, iteration, seed = (jnp.full((), v, jnp.int32) for v in (0, 0, live.seed))
-        return TrainState(params, optimizer.init(params), lanes, cursor, iteration, seed)
+        window = jax.eval_shape(lambda: rollout(params, lanes, cursor, seed, jax.random.PRNGKey(0), jnp.float32(1.0)))
+        window_obs = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), window[2].obs)
+        return TrainState(params, optimizer.init(params), lanes, cursor, iteration, seed, window_obs)
 
-    def window_obs(inputs):
+    def recorded_obs(inputs):
         """What the window keeps of a step's policy inputs: the panorama as the policy's CNN reads
         it (policy.prepare_panorama: made once here, not on each of the update's passes over
         the window) and the other inputs, float32."""
         rest = {k: inputs[k].astype(jnp.float32) for k in keys if k not in PANORAMA_SOURCES}
         return {**policy.prepare_panorama(policy_config, inputs), **rest}
 
-    def rollout(params, lanes: Lanes, cursor, seed, key, beta, stages: int = len(ROLLOUT_STAGES)):
+    def rollout(params, lanes: Lanes, cursor, seed, key, beta, stages: int = len(ROLLOUT_STAGES), window_obs=None):
         def step(carry, step_key):
-            lanes, cursor = carry
+            (lanes, cursor, buffer), t = carry
             # Named scopes label a profile's kernels by part of the step.
             with jax.named_scope("refill"):
                 lanes, cursor, first = refill(lanes, cursor, seed)
@@ -291,12 +298,12 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
                     label, ecarry = jax.vmap(expert)(lanes.env, lanes.expert)
             expert_acts = jax.random.uniform(step_key, (n,)) < beta
             if stages <= ROLLOUT_STAGES.index("learner"):  # `live_throughput`'s parts of a step
-                return step_out(lanes, cursor, first, im.compact_obs(inputs), label, ecarry, pcarry, expert_acts,
-                                label)
+                return step_out(lanes, cursor, buffer, t, first, im.compact_obs(inputs), label, ecarry, pcarry,
+                                expert_acts, label)
             with jax.named_scope("predictors"):
                 inputs, pcarry = jax.vmap(pol.predict)(obs, lanes.policy)  # the predictors follow every step
             with jax.named_scope("prepare"):
-                prepared = window_obs(inputs)
+                prepared = recorded_obs(inputs)
 
             def mixed(pcarry):
                 action, _, lstm = policy.apply(params, policy_config, prepared, pcarry.lstm, reset=first)
@@ -305,23 +312,27 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
             # beta is one scalar for all lanes: with beta >= 1 the learner does not run here.
             with jax.named_scope("learner"):
                 action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
-            return step_out(lanes, cursor, first, prepared, label, ecarry, pcarry, expert_acts, action)
+            return step_out(lanes, cursor, buffer, t, first, prepared, label, ecarry, pcarry, expert_acts, action)
 
-        def step_out(lanes, cursor, first, recorded, label, ecarry, pcarry, expert_acts, action):
+        def step_out(lanes, cursor, buffer, t, first, recorded, label, ecarry, pcarry, expert_acts, action):
             with jax.named_scope("env_step"):
                 state = jax.vmap(functools.partial(env.step, observe=False))(lanes.env, action)
             ended = state.done > 0
             data = lanes.env.pipeline_state
+            if buffer is not None:  # written in place; the scan stacks the rest
+                buffer = jax.tree.map(lambda b, v: jax.lax.dynamic_update_index_in_dim(b, v, t, 0), buffer, recorded)
+                recorded = {}
             rec = Window(recorded, label, first, expert_acts, lanes.env.info["episode"],
                          lanes.position, data.userdata[:, UD["t"]].astype(jnp.int32), data.qpos, ended,
                          ended & (state.metrics["reached"] > 0))
-            return (Lanes(state, ecarry, pcarry, lanes.position), cursor), rec
+            return ((Lanes(state, ecarry, pcarry, lanes.position), cursor, buffer), t + 1), rec
 
-        (lanes, cursor), window = jax.lax.scan(step, (lanes, cursor), jax.random.split(key, live.window_steps))
-        return lanes, cursor, window
+        carry = ((lanes, cursor, window_obs), jnp.int32(0))
+        ((lanes, cursor, buffer), _), window = jax.lax.scan(step, carry, jax.random.split(key, live.window_steps))
+        return lanes, cursor, window if buffer is None else window._replace(obs=buffer)
 
     def update(params, opt_state, lstm: LSTMState, window: Window):
-        # Time-major as the rollout wrote it, and prepared (window_obs): the window's panoramas
+        # Time-major as the rollout wrote it, and prepared (recorded_obs): the window's panoramas
         # are never transposed or widened here.
         batch = {"obs": window.obs, "label": window.label, "reset": window.first,
                  "mask": jnp.ones(window.first.shape, jnp.float32)}
@@ -344,7 +355,8 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
     def iteration(state: TrainState, key):
         beta = live.beta(state.iteration)
         with jax.named_scope("rollout"):
-            lanes, cursor, window = rollout(state.params, state.lanes, state.cursor, state.seed, key, beta)
+            lanes, cursor, window = rollout(state.params, state.lanes, state.cursor, state.seed, key, beta,
+                                            window_obs=state.window_obs)
         # The window's LSTM starts from the carry the lanes had before it (state.lanes), and the
         # next one from where the update's pass (with the weights that acted) ended.
         with jax.named_scope("update"):
@@ -353,7 +365,7 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         metrics = {**metrics, "beta": beta, "expert_share": window.expert_acted.mean(),
                    "episodes": window.ended.sum(), "reached": window.reached.sum(),
                    "label_v_lin": window.label[..., 0].mean(), STEPS: window._replace(obs={})}
-        return TrainState(params, opt_state, lanes, cursor, state.iteration + 1, state.seed), metrics
+        return TrainState(params, opt_state, lanes, cursor, state.iteration + 1, state.seed, window.obs), metrics
 
     return Live(init, rollout, update, iteration, pol.source)
 
@@ -392,10 +404,10 @@ def _state_tree(state: TrainState) -> tuple[dict, dict]:
 
 
 def _from_tree(template: TrainState, params, opt_state: dict) -> TrainState:
-    """The TrainState of a checkpoint's members; its seed is the template's (the run config's)."""
+    """The TrainState of a checkpoint's members; its seed and scratch are the template's."""
     rest = jax.tree.unflatten(jax.tree.structure((template.lanes, template.cursor, template.iteration)),
                               opt_state["live"])
-    return TrainState(params, opt_state["adam"], *rest, template.seed)
+    return TrainState(params, opt_state["adam"], *rest, template.seed, template.window_obs)
 
 
 def run_config(policy_config: PolicyConfig, live: LiveConfig, expert_config: ExpertConfig, env: ConavEnv,
