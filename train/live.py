@@ -284,6 +284,9 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         return {**policy.prepare_panorama(policy_config, inputs), **rest}
 
     def rollout(params, lanes: Lanes, cursor, seed, key, beta, stages: int = len(ROLLOUT_STAGES), window_obs=None):
+        if window_obs is not None and stages < len(ROLLOUT_STAGES):
+            raise ValueError("a rollout of fewer stages keeps compact observations, not a TrainState's window_obs")
+
         def step(carry, step_key):
             (lanes, cursor, buffer), t = carry
             # Named scopes label a profile's kernels by part of the step.
@@ -304,24 +307,34 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
                 inputs, pcarry = jax.vmap(pol.predict)(obs, lanes.policy)  # the predictors follow every step
             with jax.named_scope("prepare"):
                 prepared = recorded_obs(inputs)
+                # Written into the buffer first, and read back from it by the learner: the
+                # panorama is made straight into its slot (nothing else holds it whole).
+                buffer, recorded = write(buffer, t, prepared)
 
-            def mixed(pcarry):
-                action, _, lstm = policy.apply(params, policy_config, prepared, pcarry.lstm, reset=first)
+            def mixed(operands):
+                pcarry, buffer = operands
+                step_obs = prepared if buffer is None else jax.tree.map(
+                    lambda b: jax.lax.dynamic_index_in_dim(b, t, 0, keepdims=False), buffer)
+                action, _, lstm = policy.apply(params, policy_config, step_obs, pcarry.lstm, reset=first)
                 return jnp.where(expert_acts[:, None], label, action), pcarry._replace(lstm=lstm)
 
             # beta is one scalar for all lanes: with beta >= 1 the learner does not run here.
             with jax.named_scope("learner"):
-                action, pcarry = jax.lax.cond(beta >= 1.0, lambda p: (label, p), mixed, pcarry)
-            return step_out(lanes, cursor, buffer, t, first, prepared, label, ecarry, pcarry, expert_acts, action)
+                action, pcarry = jax.lax.cond(beta >= 1.0, lambda ops: (label, ops[0]), mixed, (pcarry, buffer))
+            return step_out(lanes, cursor, buffer, t, first, recorded, label, ecarry, pcarry, expert_acts, action)
+
+        def write(buffer, t, recorded):
+            """(buffer, what the scan stacks): `recorded` written in place at step `t` of a
+            TrainState's window buffer, else stacked by the scan."""
+            if buffer is None:
+                return buffer, recorded
+            return jax.tree.map(lambda b, v: jax.lax.dynamic_update_index_in_dim(b, v, t, 0), buffer, recorded), {}
 
         def step_out(lanes, cursor, buffer, t, first, recorded, label, ecarry, pcarry, expert_acts, action):
             with jax.named_scope("env_step"):
                 state = jax.vmap(functools.partial(env.step, observe=False))(lanes.env, action)
             ended = state.done > 0
             data = lanes.env.pipeline_state
-            if buffer is not None:  # written in place; the scan stacks the rest
-                buffer = jax.tree.map(lambda b, v: jax.lax.dynamic_update_index_in_dim(b, v, t, 0), buffer, recorded)
-                recorded = {}
             rec = Window(recorded, label, first, expert_acts, lanes.env.info["episode"],
                          lanes.position, data.userdata[:, UD["t"]].astype(jnp.int32), data.qpos, ended,
                          ended & (state.metrics["reached"] > 0))
