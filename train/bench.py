@@ -176,7 +176,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     config = lv.LiveConfig(lanes=lanes, window_steps=window_steps, warmup_iterations=0, beta_start=beta,
                            beta_end=beta, seed=seed, remat=remat)
     fns = lv.make_live(env, policy_config, config, intention, trajectory)
-    state0 = fns.init(policy.init(jax.random.PRNGKey(seed), policy_config))
+    params0 = policy.init(jax.random.PRNGKey(seed), policy_config)
 
     def rollout_part(stages):
         def run(state, key):
@@ -189,9 +189,13 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     out = {"device": jax.devices()[0].device_kind, "lanes": lanes, "window_steps": window_steps,
            "resolution": f"{hw[0]}x{hw[1]}", "physics": env.config.physics.impl, "sensor": env.config.sensor.kind,
            "beta": beta, "remat": remat, "intention_source": fns.source, "timesteps_per_iteration": per_iter}
+    # Each part starts from its own fresh state, donated call to call as train_live's is; the
+    # rollout parts keep compact observations and need no window buffer.
+    donate = () if jax.default_backend() == "cpu" else (1,)
     for name, fn in parts.items():
-        jitted = jit_with_bank(env, fn)
-        state = state0
+        jitted = jit_with_bank(env, fn, donate_argnums=donate)
+        state = fns.init(params0)
+        state = state if name == "update" else state._replace(window_obs={})
         times = []
         for i in range(repeats + 1):
             t0 = time.perf_counter()
