@@ -1003,6 +1003,7 @@ def test_the_live_trainer_plans_ground_truth_rows_paired_seeds_and_a_dagger_from
     for name, step in train.items():
         assert _kw(step)["live"].seed == step.seed  # seed s of every row: one order, one init
         assert _kw(step)["live"].iterations == cfg.budget.live_iterations
+        assert not _kw(step)["live"].remat  # the live window's panoramas are prepared: no recompute
     gt, predicted = train["train live runs/bc_gt_all_s1"], train["train live runs/bc_all_s1"]
     assert "intention_run" not in _kw(gt) and gt.reads == ("data",)  # the env's true intentions
     assert _model(gt) == _model(predicted) and _model(gt).use_trajectory  # the inputs of `all`

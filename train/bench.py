@@ -194,7 +194,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     donate = () if jax.default_backend() == "cpu" else (1,)
     for name, fn in parts.items():
         jitted = jit_with_bank(env, fn, donate_argnums=donate)
-        state = fns.init(params0)
+        state = fns.init(jax.tree.map(jnp.copy, params0))  # donated: params0 itself must survive
         state = state if name == "update" else state._replace(window_obs={})
         times = []
         for i in range(repeats + 1):

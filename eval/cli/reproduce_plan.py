@@ -424,8 +424,10 @@ def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path,
     data, intention, trajectory = predictors
     runs, evals = Path(cfg.out) / "runs", Path(cfg.out) / cfg.eval_dir
     net = _network(cfg, b.policy_conv_dtype, visual_norm=DEFAULT_POLICY.visual_norm)
+    # No remat: the live window holds the panoramas as the CNN reads them, so the update widens
+    # nothing, its activations fit, and recomputing the CNN only costs time (BENCHMARKS.md).
     live = LiveConfig(lanes=b.live_lanes, window_steps=b.live_window_steps, iterations=b.live_iterations, lr=b.live_lr,
-                      warmup_iterations=b.live_warmup_iterations, remat=cfg.large)
+                      warmup_iterations=b.live_warmup_iterations, remat=False)
     predicted = {"intention_run": str(intention), "trajectory_run": str(trajectory)}
     bc, outputs = [], []
     for s in range(cfg.seeds):
