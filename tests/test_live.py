@@ -254,3 +254,13 @@ def test_the_initial_state_holds_no_buffer_twice(hall):
     fns = lv.make_live(hall.env, TINY, LIVE)
     leaves = jax.tree.leaves(fns.init(policy.init(jax.random.PRNGKey(0), TINY)))
     assert len({id(x) for x in leaves}) == len(leaves)
+
+
+def test_the_live_bench_refuses_parts_it_does_not_have_before_building_anything():
+    from conav_jax.train.bench import LIVE_PARTS, live_throughput
+
+    assert LIVE_PARTS[-1] == "update" and LIVE_PARTS[:-1] == lv.ROLLOUT_STAGES
+    with pytest.raises(ValueError, match="parts must be some of"):
+        live_throughput(None, parts=("render",))
+    with pytest.raises(ValueError, match="parts must hold 'update'"):
+        live_throughput(None, parts=("simulate",), profile_dir="trace")

@@ -149,9 +149,12 @@ def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int,
     }
 
 
+LIVE_PARTS = ("simulate", "expert", "learner", "update")  # live_throughput's cumulative parts
+
+
 def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int = 32, repeats: int = 5,
                     intention=None, trajectory=None, beta: float = 0.5, seed: int = 0, remat: bool = False,
-                    profile_dir: str | None = None) -> dict:
+                    profile_dir: str | None = None, parts: tuple[str, ...] = LIVE_PARTS) -> dict:
     """Env timesteps trained per second of train.live's iteration on `env` (its train split) at
     `lanes` x `window_steps` steps per iteration, and its breakdown: each cumulative part of an
     iteration compiled as its own program and timed alone (the simulator: refills, the
@@ -161,8 +164,9 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     `block_until_ready`. `beta`: the expert's share of the actions (below 1 the learner acts
     too). `policy_config` defaults to PolicyConfig at the env's resolution; `intention`,
     `trajectory` as train.live.train_live takes predictor objects (none: ground truth);
-    `remat` as LiveConfig.remat. With `profile_dir`, two more calls of the whole iteration are
-    traced there and the result's "profile" holds their device time by part
+    `remat` as LiveConfig.remat. `parts`: which of LIVE_PARTS to compile and time ("update" is
+    the whole iteration, what a run pays). With `profile_dir`, two more calls of the whole
+    iteration are traced there and the result's "profile" holds their device time by part
     (conav_jax.profiling.profile_program over train.live.PROFILE_SCOPES)."""
     from conav_jax.models import policy
     from conav_jax.models.policy import PolicyConfig
@@ -171,6 +175,10 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
 
     if lanes <= 0 or window_steps <= 0 or repeats <= 0:
         raise ValueError(f"lanes, window_steps and repeats must be > 0, got {lanes}, {window_steps}, {repeats}")
+    if not parts or set(parts) - set(LIVE_PARTS):
+        raise ValueError(f"parts must be some of {LIVE_PARTS}, got {parts}")
+    if profile_dir is not None and "update" not in parts:
+        raise ValueError("a profile traces the whole iteration: parts must hold 'update'")
     hw = env.config.sensor.resolution
     policy_config = policy_config or PolicyConfig(resolution=hw)
     config = lv.LiveConfig(lanes=lanes, window_steps=window_steps, warmup_iterations=0, beta_start=beta,
@@ -184,7 +192,8 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
             return state._replace(lanes=lanes_, cursor=cursor), window
         return run
 
-    parts = {name: rollout_part(i + 1) for i, name in enumerate(lv.ROLLOUT_STAGES)} | {"update": fns.iteration}
+    programs = {name: rollout_part(i + 1) for i, name in enumerate(lv.ROLLOUT_STAGES)} | {"update": fns.iteration}
+    assert tuple(programs) == LIVE_PARTS
     per_iter = lanes * window_steps
     out = {"device": jax.devices()[0].device_kind, "lanes": lanes, "window_steps": window_steps,
            "resolution": f"{hw[0]}x{hw[1]}", "physics": env.config.physics.impl, "sensor": env.config.sensor.kind,
@@ -192,7 +201,9 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     # Each part starts from its own fresh state, donated call to call as train_live's is; the
     # rollout parts keep compact observations and need no window buffer.
     donate = () if jax.default_backend() == "cpu" else (1,)
-    for name, fn in parts.items():
+    for name, fn in programs.items():
+        if name not in parts:
+            continue
         jitted = jit_with_bank(env, fn, donate_argnums=donate)
         state = fns.init(jax.tree.map(jnp.copy, params0))  # donated: params0 itself must survive
         state = state if name == "update" else state._replace(window_obs={})
@@ -206,7 +217,8 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
         out[f"{name}_compile_and_first_call_s"] = round(times[0], 2)
         out[f"{name}_median_call_s"] = round(med, 4)
         out[f"{name}_timesteps_per_s"] = round(per_iter / med, 1)
-    out["timesteps_trained_per_s"] = out["update_timesteps_per_s"]
+    if "update" in parts:
+        out["timesteps_trained_per_s"] = out["update_timesteps_per_s"]
     if profile_dir is not None:
         from conav_jax.profiling import profile_program
 

@@ -29,7 +29,7 @@ def add(sub) -> None:
     from conav_jax.envs.agents.registry import AGENTS
     from conav_jax.envs.config import MATERIALS, SENSOR_KINDS
     from conav_jax.eval.bench import UNTRAINED_AGENTS
-    from conav_jax.train.bench import DEFAULT_BATCH, SETUPS
+    from conav_jax.train.bench import DEFAULT_BATCH, LIVE_PARTS, SETUPS
 
     bench = sub.add_parser("bench", help="throughput benchmarks (run them on a GPU)")
     # One sub-parser per benchmark, each with its `_run_bench_*` below.
@@ -113,6 +113,8 @@ def add(sub) -> None:
     p.add_argument("--remat", action="store_true", help="recompute the encoder for the gradient (LiveConfig.remat)")
     p.add_argument("--profile", default=None, metavar="DIR",
                    help="also trace two iterations into DIR and print their device time by part of the iteration")
+    p.add_argument("--parts", nargs="+", default=list(LIVE_PARTS), choices=LIVE_PARTS,
+                   help="the cumulative parts to compile and time (update: the whole iteration, what a run pays)")
     p.add_argument("--repeats", type=int, default=3)
     p.set_defaults(func=_run_bench_live)
 
@@ -183,7 +185,7 @@ def _run_bench_live(args: argparse.Namespace) -> int:
         profile = None if args.profile is None else str(Path(args.profile) / f"lanes{lanes}")
         res = live_throughput(env, model, lanes=lanes, window_steps=args.window_steps, repeats=args.repeats,
                               intention=predictors[0], trajectory=predictors[1], beta=args.beta, remat=args.remat,
-                              profile_dir=profile)
+                              profile_dir=profile, parts=tuple(args.parts))
         print(json.dumps({**res, "encoder": args.encoder, "conv_dtype": args.conv_dtype, "visual_norm": model.visual_norm,
                           "materials": env.config.sensor.materials}), flush=True)
     return 0
