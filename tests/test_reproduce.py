@@ -1008,6 +1008,8 @@ def test_the_live_trainer_plans_ground_truth_rows_paired_seeds_and_a_dagger_from
     assert "intention_run" not in _kw(gt) and gt.reads == ("data",)  # the env's true intentions
     assert _model(gt) == _model(predicted) and _model(gt).use_trajectory  # the inputs of `all`
     assert _kw(predicted)["intention_run"].endswith("runs/intention") and "runs/intention" in predicted.reads
+    none = train["train live runs/bc_none_s1"]  # reads no intention: starts without waiting for the predictors
+    assert "intention_run" not in _kw(none) and none.reads == ("data",)
     evals = {s.name: s for s in stages["bc"].steps if s.call.kind == "eval"}
     assert _kw(evals["eval eval/conav_bc_gt_object_s0"])["intention_kwargs"] == {"ground_truth": True}
     assert _kw(evals["eval eval/conav_bc_object_s0"])["intention_kwargs"] == {}

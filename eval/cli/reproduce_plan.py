@@ -417,6 +417,7 @@ def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path,
     ground-truth rows among them, then its evaluation (on `cfg.eval_split`), seed by seed; the
     DAgger row trains from scratch beside them (seed s of every row shares its episode order and
     initial weights: train.live). `predictors`: the data and predictor runs."""
+    from conav_jax.envs.agents.policy import needed_predictors
     from conav_jax.models.policy import ablation_config
     from conav_jax.train.live import DEFAULT_POLICY, LiveConfig
 
@@ -433,10 +434,13 @@ def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path,
     for s in range(cfg.seeds):
         for row in cfg.table3_rows:
             gt = row in GROUND_TRUTH_ROWS
+            config = ablation_config(net, GROUND_TRUTH_ROWS.get(row, row))
+            # A row that reads no intention (none) neither reads nor waits for the predictors.
+            reads_predictors = not gt and bool(needed_predictors(config))
             run, target = runs / f"bc_{row}_s{s}", evals / BC_ROW_EVAL.format(row=row, seed=s)
-            bc.append(step("train live", run, (data,) if gt else predictors, s, data_dir=str(data), out_dir=str(run),
-                           policy_config=ablation_config(net, GROUND_TRUTH_ROWS.get(row, row)),
-                           live=dataclasses.replace(live, seed=s), **({} if gt else predicted), progress=False))
+            bc.append(step("train live", run, predictors if reads_predictors else (data,), s, data_dir=str(data),
+                           out_dir=str(run), policy_config=config, live=dataclasses.replace(live, seed=s),
+                           **(predicted if reads_predictors else {}), progress=False))
             bc.append(evaluation("conav", target, run, s, ground_truth=gt))
             outputs.append(target / "metrics.json")
     name, dagger = cfg.dagger, []
