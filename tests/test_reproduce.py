@@ -1134,3 +1134,64 @@ def test_a_budget_other_than_the_presets_is_an_out_directory_of_its_own(tmp_path
     stored = rr.load_config(tmp_path, rr.save_config(cfg))
     assert stored == cfg and [getattr(stored, f) for f in fields] == list(fields.values())
     assert all(getattr(stored, f) is None for f in rp.BUDGET_OVERRIDES if f not in fields)
+
+
+@pytest.mark.parametrize("gpus", ["1", "2"])
+def test_a_time_limit_starts_only_the_steps_that_end_within_it_with_their_evaluations(
+        fake_conav, fake_children, tmp_path, gpus, capsys):
+    calls, _ = fake_conav
+    out = tmp_path / "r"
+    assert _reproduce(out, "--seed", "0", "--gpus", gpus) == 0  # seed 0, and what every seed shares
+    progress = rpp.read_progress(out)  # as recorded: a training 100 s, an evaluation 30 s
+    progress["commands"].update({k: 100.0 if k.startswith("train ") else 30.0 if k.startswith("eval ") else v
+                                 for k, v in progress["commands"].items()})
+    rpp.write_progress(out, progress)
+    ran = lambda: {Path(c.out).name for c in calls} | {Path(r["out"]).name for r in _runs(fake_children)}  # noqa: E731
+    before = ran()
+    capsys.readouterr()
+    # 120 s: a seed-1 training (100 s) fits, but not with its evaluation (30 s): neither starts.
+    assert _reproduce(out, "--gpus", gpus, "--time-limit", "120") == 0
+    assert not {n for n in ran() - before if n.endswith("_s1")}
+    assert "not started, for want of time: train policy runs/bc_none_s1" in capsys.readouterr().out
+    assert "train policy runs/bc_none_s1" not in rpp.read_progress(out)["commands"]
+    # 135 s: each fits, and the fake steps take no time, so the seed runs to its end.
+    assert _reproduce(out, "--gpus", gpus, "--time-limit", "135") == 0
+    assert {"bc_none_s1", "conav_bc_none_s1", "dagger_s1", "conav_dagger_s1"} <= ran() - before
+    assert _reproduce(out, "--time-limit", "0") == 2
+
+
+def test_the_pack_leaves_out_a_trained_run_it_has_no_room_for_and_its_record(fake_conav, tmp_path, monkeypatch,
+                                                                            capsys):
+    import tarfile
+
+    from conav_jax.checkpoints import checkpoint_path, save_checkpoint
+
+    calls, state = fake_conav
+    out = tmp_path / "r"
+    state["fail_on"] = "eval/conav_bc_none_s1"
+    assert _reproduce(out) == 1  # bc_none_s1 trained, its evaluation cut
+    save_checkpoint(checkpoint_path(out / "runs" / "bc_none_s1", 5), params={"w": [1.0] * 4000}, opt_state=None,
+                    config={"kind": "policy"}, step=5)
+    cfg = rp.ReproduceConfig(out=out, preset="tiny", seeds=2)
+    progress = rpp.read_progress(out)
+    assert "train policy runs/bc_none_s1" in progress["commands"]
+    members = rr.pack_members(cfg, progress)
+    run_bytes = sum(p.stat().st_size for p in members if "bc_none_s1" in str(p))
+    assert run_bytes > 0
+    monkeypatch.setattr(rr, "PACK_LIMIT_BYTES", sum(p.stat().st_size for p in members) - run_bytes // 2)
+    capsys.readouterr()
+    assert _reproduce(out, "--stage", "pack") == 0
+    assert f"left out of the pack for want of room: runs/bc_none_s1/ckpt_00000005.npz ({rr.TRAINS_AGAIN})" in \
+        capsys.readouterr().out
+    tar = tarfile.open(out / "pack.tar")
+    assert not any("bc_none_s1" in n for n in tar.getnames())
+    packed = json.loads(tar.extractfile(rpp.PROGRESS_FILE).read())
+    assert "train policy runs/bc_none_s1" not in packed["commands"] and "bc" not in packed["stages"]
+    assert "train policy runs/bc_none_s0" in packed["commands"]
+    assert "train policy runs/bc_none_s1" in rpp.read_progress(out)["commands"]  # this machine's record stays
+    # A fresh machine continuing from the pack trains the run again, then evaluates it.
+    calls.clear()
+    assert _reproduce(tmp_path / "fresh", "--unpack", str(out / "pack.tar"), "--stage", "bc") == 0
+    made = [Path(c.out).name for c in calls]
+    assert made.index("bc_none_s1") < made.index("conav_bc_none_s1")
+    assert "bc_none_s0" not in made

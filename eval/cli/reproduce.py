@@ -97,6 +97,11 @@ def add(sub) -> None:
                         "CUDA_VISIBLE_DEVICES, else 0..N-1), a step starting as soon as the runs it reads are made; "
                         "each logs to OUT/logs/ (default 1: one step at a time, in this process, on every visible "
                         "device)")
+    p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                   help="a sitting of SECONDS: start no step expected to end later (its expected time: the longest "
+                        "of its kind this OUT has recorded, with the evaluations of the run it trains; a kind never "
+                        "run here starts while time is left), so a sitting cut by its machine's limit leaves "
+                        "evaluated runs; steps already running finish (default: no limit)")
     p.add_argument("--unpack", default=None, metavar="PACK",
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
     p.add_argument("--dry-run", action="store_true",
@@ -134,6 +139,12 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     if args.gpus < 1:
         print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
         return 2
+    if args.time_limit is not None and args.time_limit <= 0:
+        print(f"conav reproduce: --time-limit must be positive seconds, got {args.time_limit:g}", file=sys.stderr)
+        return 2
+    started = time.monotonic()
+    args.seconds_left = None if args.time_limit is None else (
+        lambda: args.time_limit - (time.monotonic() - started))
     if args.seed is not None and not 0 <= args.seed < cfg.seeds:
         print(f"conav reproduce: --seed {args.seed} is not one of the run's seeds 0..{cfg.seeds - 1}", file=sys.stderr)
         return 2
@@ -193,7 +204,13 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             print(f"[{st.name}] done ({progress['stages'][st.name]:.0f} s), skipped")
             continue
         t_stage = time.perf_counter()
+        expected, needs, not_started = rpp.expected_seconds(plan, progress), rpp.prerequisites(plan), set()
         for step in todo:
+            if args.seconds_left is not None and (needs[step.name] & not_started or
+                                                  not rpp.fits_in(step, expected, args.seconds_left())):
+                print(f"[{st.name}] not started, for want of time: {step.name}", flush=True)
+                not_started.add(step.name)
+                continue
             print(f"\n{_shown(step)}", flush=True)
             try:  # run_here counts the time of a step cut short (failed, interrupted, SIGTERM) as cut
                 rr.run_here(step, cfg.out, progress)
@@ -224,9 +241,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         if st.name == "pack":
             path, size, left_out = rr.write_pack(cfg, progress)
             print(f"wrote {path} ({size / 2**20:.1f} MiB)")
-            for ckpt in left_out:
-                print(f"left out of the pack for want of room: {ckpt.relative_to(cfg.out)} (continued from this "
-                      "pack, that run starts its first round again)")
+            for ckpt, why in left_out:
+                print(f"left out of the pack for want of room: {ckpt.relative_to(cfg.out)} ({why})")
         progress["stages"][st.name] = round(time.perf_counter() - t_stage, 1)
         rpp.write_progress(cfg.out, progress)
         print(f"[{st.name}] done in {progress['stages'][st.name]:.0f} s", flush=True)
@@ -277,9 +293,13 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     t0 = time.perf_counter()
     digest = rr.save_config(cfg)  # each step's process plans from it, and runs its step by name
     rc, waiting = rr.run_parallel(plan, todo, cfg.out, progress, gpus,
-                                  lambda step: rr.child_command(cfg.out, digest, step, args.compile_cache))
+                                  lambda step: rr.child_command(cfg.out, digest, step, args.compile_cache),
+                                  seconds_left=args.seconds_left)
+    done = set(progress["commands"])
     for step in waiting:
-        print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: {step.name}")
+        why = ("not started after the failure" if rc else "waits for the runs it reads"
+               if not rpp.prerequisites(plan)[step.name] <= done else "not started, for want of time")
+        print(f"{why}: {step.name}")
     for st in work:
         keys = [step.name for step in st.steps]
         if all(k in progress["commands"] for k in keys):

@@ -102,11 +102,10 @@ BUDGETS = {
                    live_lanes=8, live_window_steps=8, live_iterations=4, live_warmup_iterations=0),
     "small": Budget(policy_episodes=500, eval_batch=512, live_lanes=1024, live_iterations=600,
                     live_warmup_iterations=30),
-    # Live: 1,024 lanes of 16 steps, 1,000 updates: 16.4M env timesteps, some 1.3 passes over the
-    # 20,293 train episodes; with the policy's visual norm (train.live.DEFAULT_POLICY's) it
-    # trains (results/paper_112x448_live_visual_norm/README.md). Still to be chosen on minival.
+    # Live: 2,048 lanes of 16 steps, 500 updates (16.4M env timesteps), chosen on minival over
+    # 8,192 x 4 at 16.4M and at 50M timesteps (results/paper_112x448_live_budget/README.md).
     "paper": Budget(policy_episodes=400, policy_conv_dtype="bfloat16", baseline_episodes=1000, val_every=1000,
-                    live_lanes=1024, live_window_steps=16, live_iterations=1000, live_warmup_iterations=50),
+                    live_lanes=2048, live_window_steps=16, live_iterations=500, live_warmup_iterations=50),
 }
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Callable
 
 from conav_jax.eval.cli.reproduce_plan import BUDGET_OVERRIDES, ReproduceConfig, resolution_name
 from conav_jax.eval.cli.reproduce_steps import Stage, Step
@@ -200,3 +201,41 @@ def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
                 stack += [m for m in needs[n] if m in keys]
     index = {st.name: i for i, st in enumerate(todo)}
     return sorted(todo, key=lambda st: (-1 if st.seed is None else st.seed, -len(below[st.name]), index[st.name]))
+
+
+def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[Step], float | None]:
+    """A step's expected wall time, to plan a sitting of limited time: the longest recorded time
+    of the finished steps of its kind (`call.kind`: "train live", "eval", ...), plus that of the
+    evaluations that read the run it writes (a run trained and not evaluated is of no use to a
+    sitting that ends, and too large to carry: eval.cli.reproduce_run.write_pack), read from the
+    records as they are when asked. None when no step of its kind has finished in this OUT
+    (nothing to go by: it may start)."""
+    by_name = {st.name: st for stage in plan for st in stage.steps}
+    readers: dict[str, list[Step]] = {}
+    for st in by_name.values():
+        if st.call.kind == "eval":
+            for run in st.reads:
+                readers.setdefault(run, []).append(st)
+
+    def expected(step: Step) -> float | None:
+        longest: dict[str, float] = {}  # read at each call: the records grow as steps end
+        for name, seconds in progress["commands"].items():
+            if name in by_name:
+                kind = by_name[name].call.kind
+                longest[kind] = max(longest.get(kind, 0.0), float(seconds))
+        if step.call.kind not in longest:
+            return None
+        evals = [longest.get("eval", 0.0) for st in readers.get(step.writes, ())
+                 if st.name not in progress["commands"] and st is not step]
+        return longest[step.call.kind] + sum(evals)
+
+    return expected
+
+
+def fits_in(step: Step, expected: Callable[[Step], float | None], seconds_left: float | None) -> bool:
+    """Whether `step` may start with `seconds_left` of a sitting's time (None: no limit): when its
+    `expected` time (with its run's evaluations) is unknown or no more than what is left."""
+    if seconds_left is None:
+        return True
+    need = expected(step)
+    return seconds_left > 0 and (need is None or need <= seconds_left)

@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import Callable
 
 from conav_jax.eval.cli.reproduce_plan import ReproduceConfig, plan_stages
-from conav_jax.eval.cli.reproduce_progress import PROGRESS_FILE, by_dependents, prerequisites, record_step, write_progress
+from conav_jax.eval.cli.reproduce_progress import (PROGRESS_FILE, by_dependents, expected_seconds, fits_in,
+                                                   prerequisites, record_step, write_progress)
 from conav_jax.eval.cli.reproduce_steps import Stage, Step, run_step
 
 PACK_LIMIT_BYTES = 60 * 2**20
@@ -137,7 +138,8 @@ def _tail(path: Path, lines: int = 15) -> str:
 
 
 def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict, gpus: list[str],
-                 command: Callable[[Step], list[str]], say=None, poll_seconds: float = 0.1) -> tuple[int, list[Step]]:
+                 command: Callable[[Step], list[str]], say=None, poll_seconds: float = 0.1,
+                 seconds_left: Callable[[], float] | None = None) -> tuple[int, list[Step]]:
     """Run `todo` (steps of `plan`) up to len(gpus) at once, each in a process of its own
     (`command(step)`: the command line that runs that step alone, by name: `child_command`) that
     sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a step starting once its
@@ -145,12 +147,15 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
     goes into `progress` (saved) as it ends, a failed or stopped one's under "cut". After a
     failure no new step starts and those running finish. An interrupt (SIGTERM raised as
     KeyboardInterrupt) stops every process, records their time as cut and is raised again.
-    Returns (0 or the first failure's exit code, the steps left waiting for prerequisites not
-    run here)."""
+    With `seconds_left` (the sitting's time left), a step starts only while it `fits_in` it
+    (its expected time, with its run's evaluations, from this OUT's records); those running
+    finish. Returns (0 or the first failure's exit code, the steps not started: waiting for
+    prerequisites not run here, or for want of time)."""
     say = say or (lambda message: print(message, flush=True))
     needs = prerequisites(plan)
     done = set(progress["commands"])
     pending, running, free, failed = by_dependents(todo, needs), {}, list(gpus), 0
+    expected = expected_seconds(plan, progress) if seconds_left is not None else None
     (out / "logs").mkdir(parents=True, exist_ok=True)
 
     def record(step: Step, seconds: float, ok: bool) -> None:
@@ -166,6 +171,8 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                 started = False
                 for step in list(pending):
                     if not needs[step.name] <= done or (not step.is_copy and not free):
+                        continue
+                    if expected is not None and not fits_in(step, expected, seconds_left()):
                         continue
                     pending.remove(step)
                     started = True
@@ -233,22 +240,33 @@ def _pending_runs(cfg: ReproduceConfig, progress: dict) -> tuple[set[Path], set[
     return read, written
 
 
+def _record_members(out: Path) -> list[Path]:
+    """The progress record, every evaluation's outputs (val's, and minival's where made), results
+    and tables."""
+    evals = sorted(d for d in out.glob("eval*") if d.is_dir())
+    members = [out / PROGRESS_FILE] + [p for d in evals for p in sorted(d.rglob("*.json")) + sorted(d.rglob("*.md"))]
+    members += sorted(out.glob("results*.json")) + sorted(out.glob("tables*.md"))
+    return [p for p in members if p.exists()]
+
+
+def _run_members(cfg: ReproduceConfig, progress: dict) -> dict[Path, list[Path]]:
+    """Each run a step still to run reads, with a checkpoint: its latest checkpoint and its log."""
+    from conav_jax.checkpoints import latest_checkpoint
+
+    found = {}
+    for run in sorted(set.union(*_pending_runs(cfg, progress))):
+        ckpt = latest_checkpoint(run)
+        if ckpt is not None:
+            found[run] = [ckpt] + [p for p in (run / "log.jsonl",) if p.exists()]
+    return found
+
+
 def pack_members(cfg: ReproduceConfig, progress: dict) -> list[Path]:
     """What a fresh machine needs to continue: the progress record, every evaluation's outputs,
     results and tables, and the latest checkpoint of every run a stage still to run reads (the
     data are regenerated from their seed; a training round cut short restarts from the run's
     last finished round, or from `first_round_checkpoints`' when the pack carries them)."""
-    from conav_jax.checkpoints import latest_checkpoint
-
-    out = Path(cfg.out)
-    evals = sorted(d for d in out.glob("eval*") if d.is_dir())  # val's, and minival's where made
-    members = [out / PROGRESS_FILE] + [p for d in evals for p in sorted(d.rglob("*.json")) + sorted(d.rglob("*.md"))]
-    members += sorted(out.glob("results*.json")) + sorted(out.glob("tables*.md"))
-    for run in sorted(set.union(*_pending_runs(cfg, progress))):
-        found = latest_checkpoint(run)
-        if found is not None:
-            members += [found] + [p for p in (run / "log.jsonl",) if p.exists()]
-    return [p for p in members if p.exists()]
+    return _record_members(Path(cfg.out)) + [p for files in _run_members(cfg, progress).values() for p in files]
 
 
 def first_round_checkpoints(cfg: ReproduceConfig, progress: dict) -> list[tuple[Path, ...]]:
@@ -266,35 +284,64 @@ def first_round_checkpoints(cfg: ReproduceConfig, progress: dict) -> list[tuple[
     return found
 
 
-def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[Path]]:
-    """OUT/pack.tar (atomically): `pack_members`, paths relative to OUT, and the runs cut in their
-    first round (`first_round_checkpoints`) while the pack stays within PACK_LIMIT_BYTES; returns
-    (the pack, its bytes, the first-round checkpoints left out for want of room). ValueError when
-    `pack_members` alone would exceed the limit, naming the largest members."""
+# Why a checkpoint was left out of a pack, for each kind.
+TRAINS_AGAIN = "its run's record dropped from the pack: that run trains again from its start"
+FIRST_ROUND_AGAIN = "continued from this pack, that run starts its first round again"
+
+
+def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[tuple[Path, str]]]:
+    """OUT/pack.tar (atomically), paths relative to OUT: the records (progress, evaluations,
+    results, tables), then the checkpoints of the runs still read (`pack_members`), smallest
+    first, and the runs cut in their first round (`first_round_checkpoints`), each while the pack
+    stays within PACK_LIMIT_BYTES. A run read but left out (a policy trained, its evaluation not
+    run) has its training record dropped from the packed progress, so a fresh machine trains it
+    again instead of reading a run it lacks. Returns (the pack, its bytes, (each checkpoint left
+    out, why)). ValueError when the records alone would exceed the limit, naming the largest."""
+    import io
     import os
     import tarfile
     import tempfile
 
     out = Path(cfg.out)
-    members = pack_members(cfg, progress)
-    total = sum(p.stat().st_size for p in members)
+    size = lambda files: sum(p.stat().st_size for p in files)  # noqa: E731
+    members = _record_members(out)
+    total = size(members)
     if total > PACK_LIMIT_BYTES:
         big = sorted(members, key=lambda p: -p.stat().st_size)[:5]
         raise ValueError(f"the pack would hold {total / 2**20:.1f} MiB (limit {PACK_LIMIT_BYTES / 2**20:.0f} MiB); "
                          "largest: " + ", ".join(f"{p.relative_to(out)} {p.stat().st_size / 2**20:.1f} MiB" for p in big))
-    left_out = []
-    for files in first_round_checkpoints(cfg, progress):
-        size = sum(p.stat().st_size for p in files)
-        if total + size <= PACK_LIMIT_BYTES:
+    left_out, dropped = [], set()
+    for run, files in sorted(_run_members(cfg, progress).items(), key=lambda item: (size(item[1]), str(item[0]))):
+        if total + size(files) <= PACK_LIMIT_BYTES:
             members += files
-            total += size
+            total += size(files)
         else:
-            left_out.append(files[0])
+            left_out.append((files[0], TRAINS_AGAIN))
+            dropped.add(str(run.relative_to(out)))
+    for files in first_round_checkpoints(cfg, progress):
+        if total + size(files) <= PACK_LIMIT_BYTES:
+            members += list(files)
+            total += size(files)
+        else:
+            left_out.append((files[0], FIRST_ROUND_AGAIN))
+    # The record as saved (write_progress merges every process's), less the runs left out.
+    saved = out / PROGRESS_FILE
+    packed = json.loads(saved.read_text()) if saved.exists() else json.loads(json.dumps(progress))
+    for stage in plan_stages(cfg):
+        for step in stage.steps:
+            if step.writes in dropped:
+                packed["commands"].pop(step.name, None)
+                packed["stages"].pop(stage.name, None)
+    record = json.dumps(packed, indent=1).encode()
     fd, tmp = tempfile.mkstemp(prefix=".pack.", suffix=".tmp", dir=out)
     os.close(fd)
     with tarfile.open(tmp, "w") as tar:
+        info = tarfile.TarInfo(PROGRESS_FILE)
+        info.size, info.mtime = len(record), int(time.time())
+        tar.addfile(info, io.BytesIO(record))
         for p in members:
-            tar.add(p, arcname=str(p.relative_to(out)))
+            if p != out / PROGRESS_FILE:
+                tar.add(p, arcname=str(p.relative_to(out)))
     os.replace(tmp, out / "pack.tar")
     return out / "pack.tar", total, left_out
 
