@@ -179,3 +179,13 @@ def test_train_live_builds_its_configs_from_flags_and_passes_the_predictors(tmp_
     assert calls[-1][4]["intention_run"] == "I" and calls[-1][4]["trajectory_run"] == "T"
     assert cli.main([*base, "--intention", "I"]) == 2  # all inputs read the trajectory predictor
     assert "--trajectory RUN" in capsys.readouterr().err
+
+
+def test_train_live_asks_for_an_intention_source_only_where_the_ablation_reads_one(tmp_path, capsys):
+    from conav_jax.eval.cli import main
+
+    common = ["train", "live", "--data", str(tmp_path / "no_such_dataset"), "--out", str(tmp_path / "run")]
+    assert main([*common, "--ablation", "object"]) == 2
+    assert "--ablation object reads intentions: give --intention RUN" in capsys.readouterr().err
+    assert main([*common, "--ablation", "none"]) == 2  # reads none: on to the data, which are missing
+    assert "dataset directory not found" in capsys.readouterr().err

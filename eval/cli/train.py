@@ -113,7 +113,7 @@ def _add_train_live(models) -> None:
                           "train episode in turn, nothing stored")
     p.add_argument("--data", required=True, help="dataset dir written by `conav generate`")
     p.add_argument("--out", required=True, help="run dir (a policy run: `conav eval --agent conav --checkpoint RUN`)")
-    source = p.add_mutually_exclusive_group(required=True)
+    source = p.add_mutually_exclusive_group()  # one of them unless the ablation reads no intention (none)
     source.add_argument("--intention", default=None, metavar="RUN", help="intention run the learner reads")
     source.add_argument("--ground-truth-intentions", action="store_true",
                         help="the learner reads the env's ground-truth intentions (a privileged run)")
@@ -127,6 +127,7 @@ def _add_train_live(models) -> None:
 
 
 def _run_train_live(args: argparse.Namespace) -> int:
+    from conav_jax.envs.agents.policy import needed_predictors
     from conav_jax.models.policy import ablation_config
     from conav_jax.envs.agents.registry import run_resolution
     from conav_jax.train.live import LiveConfig, train_live_from_data
@@ -134,6 +135,9 @@ def _run_train_live(args: argparse.Namespace) -> int:
     if args.intention is not None and args.trajectory is None and args.ablation == "all":
         raise ValueError("--ablation all reads the trajectory predictor: give --trajectory RUN")
     model = ablation_config(network_base(args, run_resolution([], args.resolution)), args.ablation)
+    if needed_predictors(model) and args.intention is None and not args.ground_truth_intentions:
+        raise ValueError(f"--ablation {args.ablation} reads intentions: give --intention RUN (and --trajectory RUN) "
+                         "or --ground-truth-intentions")
     live = config_from_args(LiveConfig, args)
     result = _trained(args, train_live_from_data, args.data, args.out, model, live, intention_run=args.intention,
                       trajectory_run=args.trajectory, progress=not args.no_progress)
