@@ -559,14 +559,16 @@ def test_the_pack_carries_a_run_cut_in_its_first_round_while_it_fits(fake_conav,
     names = set(tarfile.open(out / "pack.tar").getnames())
     assert {"runs/bc_none_s0/round_0/ckpt_00000003.npz", "runs/bc_none_s0/log.jsonl", "runs/bc_none_s0/round_0/log.jsonl",
             "runs/bc_object_s0/ckpt_00000005.npz"} <= names
-    assert not any("round_1" in n or "bc_object_s0/round_0" in n for n in names)
+    assert not any(n.endswith(".npz") and ("round_1" in n or "bc_object_s0/round_0" in n) for n in names)
+    # Every run's training log and every step's log travel, as records of how the runs went.
+    assert {str(p.relative_to(out)) for p in (*runs.rglob("log.jsonl"), *(out / "logs").glob("*.log"))} <= names
     # Without room for it the pack is still written, without it, and the command says so.
     required = sum(p.stat().st_size for p in rr.pack_members(rp.ReproduceConfig(out=out, preset="tiny", seeds=2),
                                                              rpp.read_progress(out)))
     monkeypatch.setattr(rr, "PACK_LIMIT_BYTES", required + 10)
     capsys.readouterr()
     assert _reproduce(out, "--stage", "pack") == 0
-    assert not any("bc_none_s0" in n for n in tarfile.open(out / "pack.tar").getnames())
+    assert not any("bc_none_s0" in n and n.endswith(".npz") for n in tarfile.open(out / "pack.tar").getnames())
     assert "left out of the pack for want of room: runs/bc_none_s0/round_0/ckpt_00000003.npz" in capsys.readouterr().out
 
 
@@ -1184,7 +1186,8 @@ def test_the_pack_leaves_out_a_trained_run_it_has_no_room_for_and_its_record(fak
     assert f"left out of the pack for want of room: runs/bc_none_s1/ckpt_00000005.npz ({rr.TRAINS_AGAIN})" in \
         capsys.readouterr().out
     tar = tarfile.open(out / "pack.tar")
-    assert not any("bc_none_s1" in n for n in tar.getnames())
+    assert not any("bc_none_s1" in n and n.endswith(".npz") for n in tar.getnames())
+    assert "runs/bc_none_s1/log.jsonl" in tar.getnames()  # a record; a run trained again drops it
     packed = json.loads(tar.extractfile(rpp.PROGRESS_FILE).read())
     assert "train policy runs/bc_none_s1" not in packed["commands"] and "bc" not in packed["stages"]
     assert "train policy runs/bc_none_s0" in packed["commands"]

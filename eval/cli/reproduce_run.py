@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Callable
 
 from conav_jax.eval.cli.reproduce_plan import ReproduceConfig, plan_stages
+from conav_jax.runs import LOG_FILE
 from conav_jax.eval.cli.reproduce_progress import (PROGRESS_FILE, by_dependents, expected_seconds, fits_in,
                                                    prerequisites, record_step, write_progress)
 from conav_jax.eval.cli.reproduce_steps import Stage, Step, run_step
@@ -242,22 +243,26 @@ def _pending_runs(cfg: ReproduceConfig, progress: dict) -> tuple[set[Path], set[
 
 def _record_members(out: Path) -> list[Path]:
     """The progress record, every evaluation's outputs (val's, and minival's where made), results
-    and tables."""
+    and tables, and the records of how each run went: every run's training log (a fresh
+    machine that trains a run again drops its stale log: conav_jax.runs.resume) and every step's
+    process log."""
     evals = sorted(d for d in out.glob("eval*") if d.is_dir())
     members = [out / PROGRESS_FILE] + [p for d in evals for p in sorted(d.rglob("*.json")) + sorted(d.rglob("*.md"))]
     members += sorted(out.glob("results*.json")) + sorted(out.glob("tables*.md"))
-    return [p for p in members if p.exists()]
+    members += sorted((out / "runs").rglob(LOG_FILE)) + sorted((out / "logs").glob("*.log"))
+    return list(dict.fromkeys(p for p in members if p.exists()))
 
 
 def _run_members(cfg: ReproduceConfig, progress: dict) -> dict[Path, list[Path]]:
-    """Each run a step still to run reads, with a checkpoint: its latest checkpoint and its log."""
+    """Each run a step still to run reads, with a checkpoint: its latest checkpoint (its log is a
+    record: `_record_members`)."""
     from conav_jax.checkpoints import latest_checkpoint
 
     found = {}
     for run in sorted(set.union(*_pending_runs(cfg, progress))):
         ckpt = latest_checkpoint(run)
         if ckpt is not None:
-            found[run] = [ckpt] + [p for p in (run / "log.jsonl",) if p.exists()]
+            found[run] = [ckpt]
     return found
 
 
@@ -319,8 +324,9 @@ def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[tu
             left_out.append((files[0], TRAINS_AGAIN))
             dropped.add(str(run.relative_to(out)))
     for files in first_round_checkpoints(cfg, progress):
+        files = [p for p in files if p not in members]  # its logs are records, packed already
         if total + size(files) <= PACK_LIMIT_BYTES:
-            members += list(files)
+            members += files
             total += size(files)
         else:
             left_out.append((files[0], FIRST_ROUND_AGAIN))
