@@ -240,6 +240,22 @@ def _evaluate_with(evaluator: Callable, params) -> Callable:
     return run
 
 
+def trained_with(run: str | Path) -> dict:
+    """What an evaluated agent's weights were trained with, from its run's latest checkpoint: the
+    run, the checkpoint's step and the run's provenance (its commit, dirty state, device, encoder,
+    materials, ...: conav_jax.provenance), so an evaluation names the code of its weights as well
+    as its own. A run without a readable checkpoint (weights given another way) records the path
+    alone."""
+    from conav_jax.checkpoints import latest_checkpoint, read_checkpoint_meta
+    from conav_jax.provenance import PROVENANCE_KEY
+
+    found = latest_checkpoint(run) if Path(run).is_dir() else Path(run) if Path(run).is_file() else None
+    if found is None:
+        return {"run": str(run)}
+    meta = read_checkpoint_meta(found)
+    return {"run": str(run), "step": meta.get("step"), PROVENANCE_KEY: (meta.get("config") or {}).get(PROVENANCE_KEY)}
+
+
 def episode_records(split, metrics: dict, given: dict) -> list[dict]:
     """One CSV row per episode: what the agent was given (`given`: envs.agents.base.describe),
     the episode's identity, human timing, robot outcome (envs.metrics rules)."""
@@ -386,6 +402,8 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
         j = int(np.flatnonzero(metrics["episode"] == i)[0])
         bar.update(1)
         given[key] = describe(agent)
+        if ckpt is not None:
+            given[key]["trained"] = trained_with(ckpt)
         if key.startswith("ablation_"):
             given[key]["title"] = f"{key.removeprefix('ablation_')}: {given[key]['title']}"
         title = given[key]["title"]

@@ -1042,6 +1042,8 @@ def test_tables_show_the_ground_truth_bound_and_its_paired_contrasts(tmp_path):
                 rp.BC_ROW_EVAL.format(row=row, seed=s)
             doc = _eval_doc({"conav": (f, f, 0, 0, 0, 0)})
             doc["provenance"] = {"commit": "abcdef0123456789"}
+            if row == "gt_all":
+                doc["agents"]["conav"]["trained"] = {"run": "r", "step": 5, "provenance": {"commit": f"5eed{s}00000000"}}
             _write_eval(evals / name, doc)
     results = rt.collect_results(tmp_path, 3, {"seeds": 3, "trainer": "live"}, "dagger_live_beta0",
                                  ("none", "object", "all", "gt_object", "gt_all"))
@@ -1060,7 +1062,8 @@ def test_tables_show_the_ground_truth_bound_and_its_paired_contrasts(tmp_path):
     assert any("live DAgger, the expert's share falling from 1 to 0" in line for line in lines)
     assert any(line.startswith("| T conav (live imitation) |") for line in lines)  # Table 2's none row beside all
     assert sum(line.startswith("| T conav (live imitation) |") for line in lines) == 2
-    assert "- `gt_all`: abcdef0123" in lines
+    assert "- `gt_all`: abcdef0123 (trained at 5eed000000, 5eed100000, 5eed200000)" in lines
+    assert "- `none`: abcdef0123" in lines  # evaluations that name no training commit
     assert not any(line.startswith("| activity |") for line in lines)  # not planned: no contrast, nothing missing
 
 

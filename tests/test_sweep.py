@@ -231,6 +231,8 @@ def test_a_run_listed_as_agent_and_ablation_is_swept_once_with_the_same_numbers(
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["ablations"]["ablation_all"]["metrics"] == doc["agents"]["conav"]["metrics"]
     assert doc["ablations"]["ablation_all"]["title"].startswith("all: ")
+    assert doc["agents"]["conav"]["trained"] == sweep.trained_with(policy_run)  # the weights' own record
+    assert doc["agents"]["conav"]["trained"]["run"] == str(policy_run)
     agent_rows, ablation_rows = (list(csv.DictReader((out / f"episodes_{k}.csv").open())) for k in ("conav", "ablation_all"))
     assert [r["t_reach"] for r in agent_rows] == [r["t_reach"] for r in ablation_rows]
 
@@ -289,3 +291,15 @@ def test_untrained_learned_agents_act_from_fresh_weights_and_say_so(tiny_data, m
         untrained_agent("pioneer", env, small, key, 2)
     with pytest.raises(ValueError, match="16x64"):
         untrained_agent("conav", env, dataclasses.replace(small, resolution=(8, 32)), key, 2)
+
+
+def test_an_evaluation_names_the_run_step_and_code_its_weights_were_trained_with(tmp_path):
+    from conav_jax.checkpoints import checkpoint_path, save_checkpoint
+
+    run = tmp_path / "run"
+    for step, commit in ((5, "older"), (9, "abc123")):
+        save_checkpoint(checkpoint_path(run, step), params={"w": np.ones(2)}, opt_state=None, step=step,
+                        config={"kind": "policy", "provenance": {"commit": commit, "dirty": False, "encoder": "patch"}})
+    assert sweep.trained_with(run) == {"run": str(run), "step": 9,
+                                       "provenance": {"commit": "abc123", "dirty": False, "encoder": "patch"}}
+    assert sweep.trained_with(tmp_path / "elsewhere") == {"run": str(tmp_path / "elsewhere")}

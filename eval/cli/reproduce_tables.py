@@ -98,6 +98,9 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", 
         if commit is not None:
             slot.setdefault("commits", [])
             slot["commits"] = sorted({*slot["commits"], commit})
+        trained = ((entry.get("trained") or {}).get("provenance") or {}).get("commit")
+        if trained is not None:  # evaluations made before they recorded it name none
+            slot["trained_commits"] = sorted({*slot.get("trained_commits", []), trained})
 
     for s in range(seeds):
         for row in ABLATIONS + tuple(GROUND_TRUTH_ROWS):
@@ -274,11 +277,14 @@ def render_tables(results: dict) -> str:
         if not gt:
             lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
     lines += _paired_lines(results)
-    commits = [(name, row["commits"]) for name, row in results["conav"].items() if row.get("commits")]
+    commits = [(name, row["commits"], row.get("trained_commits", [])) for name, row in results["conav"].items()
+               if row.get("commits")]
     if commits:
-        lines += ["", "## Commits", "", "The commit each learned row's evaluations ran at (their metrics.json "
-                  "provenance; the runs' own configs name the commit they trained at).", ""]
-        lines += [f"- `{name}`: {', '.join(c[:10] for c in found)}" for name, found in commits]
+        lines += ["", "## Commits", "", "The commits each learned row's evaluations ran at and, where they record "
+                  "it, those its runs were trained at (their metrics.json provenance).", ""]
+        lines += [f"- `{name}`: {', '.join(c[:10] for c in found)}" +
+                  (f" (trained at {', '.join(c[:10] for c in trained)})" if trained else "")
+                  for name, found, trained in commits]
     if results.get("missing"):
         lines += ["", "## Not run yet", "",
                   "These evaluations are not made yet; the rows above that need them are marked so, and the learned "
