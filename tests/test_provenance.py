@@ -63,3 +63,24 @@ def test_every_trainers_run_config_records_provenance():
         assert {"commit", "dirty", "jax", "device"} <= set(block), kind
     assert configs["intention"][PROVENANCE_KEY]["resolution"] == [16, 64]
     assert configs["policy"][PROVENANCE_KEY]["encoder"] == "conv"
+
+
+def test_the_source_hash_follows_every_module_and_the_provenance_block_carries_it(tmp_path, monkeypatch):
+    from conav_jax.provenance import code_hash, source_hash
+
+    root = tmp_path / "fakecode"
+    (root / "sub").mkdir(parents=True)
+    for path, text in ((root / "__init__.py", ""), (root / "a.py", "A = 1\n"), (root / "sub" / "__init__.py", ""),
+                       (root / "sub" / "b.py", "B = 2\n")):
+        path.write_text(text)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    before = source_hash(("fakecode",))
+    assert source_hash(("fakecode",)) == before and len(before) == 16
+    (root / "sub" / "b.py").write_text("B = 3\n")  # a module of a subpackage
+    assert source_hash(("fakecode",)) != before
+    (root / "sub" / "b.py").write_text("B = 2\n")
+    (root / "sub" / "c.py").write_text("")  # a module added
+    assert source_hash(("fakecode",)) != before
+    assert provenance()["code"] == code_hash()
+    with pytest.raises(ValueError, match="code"):
+        provenance(code="made up")
