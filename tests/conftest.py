@@ -5,8 +5,8 @@ import sys
 
 # Compile-time, not run-time, dominates this suite on a 2-core CPU: XLA's cheapest backend
 # optimisation level and its older CPU emitters (no fusion emitters) compile several times
-# faster; float rounding may differ from the defaults'. Set before JAX initialises its backend.
-# tests/test_pretrained_pinned.py compiles with the default emitters its pins were measured with.
+# faster; float rounding may differ from the defaults' (tests that pin numbers allow for it).
+# Set before JAX initialises its backend.
 _FAST_FLAGS = " --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + _FAST_FLAGS).strip()
 # Commands run by the tests compile afresh and write nothing under the user's cache directory.
