@@ -2,9 +2,8 @@
 
 Every run's config and every evaluation's metrics.json carry `provenance(...)`: the code's
 commit, whether the tree held uncommitted changes and a hash of the source itself (`code_hash`),
-the JAX version and the device, and the
-settings that change what a figure means (physics implementation, caster, materials, encoder,
-resolution). A resumed run may be continued by other code (the commit changes), so the run
+the JAX version and the device, and the settings that change what a figure means (physics
+implementation, caster, materials, encoder, resolution). A resumed run may be continued by other code (the commit changes), so the run
 format compares configs without this block (`PROVENANCE_KEY`).
 """
 

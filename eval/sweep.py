@@ -244,12 +244,11 @@ def trained_with(run: str | Path) -> dict:
     """What an evaluated agent's weights were trained with, from its run's latest checkpoint: the
     run, the checkpoint's step and the run's provenance (its commit, dirty state, device, encoder,
     materials, ...: conav_jax.provenance), so an evaluation names the code of its weights as well
-    as its own. A run without a readable checkpoint (weights given another way) records the path
-    alone."""
+    as its own. A run without a checkpoint records the path alone."""
     from conav_jax.checkpoints import latest_checkpoint, read_checkpoint_meta
     from conav_jax.provenance import PROVENANCE_KEY
 
-    found = latest_checkpoint(run) if Path(run).is_dir() else Path(run) if Path(run).is_file() else None
+    found = latest_checkpoint(run)
     if found is None:
         return {"run": str(run)}
     meta = read_checkpoint_meta(found)

@@ -143,8 +143,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         print(f"conav reproduce: --time-limit must be positive seconds, got {args.time_limit:g}", file=sys.stderr)
         return 2
     started = time.monotonic()
-    args.seconds_left = None if args.time_limit is None else (
-        lambda: args.time_limit - (time.monotonic() - started))
+    seconds_left = None if args.time_limit is None else (lambda: args.time_limit - (time.monotonic() - started))
     if args.seed is not None and not 0 <= args.seed < cfg.seeds:
         print(f"conav reproduce: --seed {args.seed} is not one of the run's seeds 0..{cfg.seeds - 1}", file=sys.stderr)
         return 2
@@ -188,7 +187,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         print(f"{len(gpus)} GPUs visible: each step runs on all of them as one device mesh; --gpus {len(gpus)} "
               "runs that many steps at once instead, one GPU each", flush=True)
     if args.gpus > 1 and not args.dry_run:
-        stages = _reproduce_parallel(args, cfg, plan, stages, progress)
+        stages = _reproduce_parallel(args, cfg, plan, stages, progress, seconds_left)
         if isinstance(stages, int):
             return stages
     for st in stages:
@@ -206,8 +205,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         t_stage = time.perf_counter()
         expected, needs, not_started = rpp.expected_seconds(plan, progress), rpp.prerequisites(plan), set()
         for step in todo:
-            if args.seconds_left is not None and (needs[step.name] & not_started or
-                                                  not rpp.fits_in(step, expected, args.seconds_left())):
+            if seconds_left is not None and (needs[step.name] & not_started or
+                                             not rpp.fits_in(step, expected, seconds_left())):
                 print(f"[{st.name}] not started, for want of time: {step.name}", flush=True)
                 not_started.add(step.name)
                 continue
@@ -266,9 +265,11 @@ def _print_stage(st, progress: dict) -> None:
         print(f"  {'(done) ' if step.name in progress['commands'] else ''}{_shown(step)}")
 
 
-def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list, progress: dict) -> list | int:
+def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list, progress: dict,
+                        seconds_left=None) -> list | int:
     """`--gpus N`: every step of `stages` not done (training seed `--seed`'s alone in the seeded
-    stages) runs through `reproduce.run_parallel`; stages whose steps are all done are marked so,
+    stages) runs through `reproduce.run_parallel` (starting only what fits in `seconds_left()`
+    where given: `--time-limit`); stages whose steps are all done are marked so,
     with their steps' summed time. Returns the stages left to run here (tables, pack), or an
     exit code."""
     from conav_jax.eval.cli import reproduce_progress as rpp
@@ -294,11 +295,11 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     digest = rr.save_config(cfg)  # each step's process plans from it, and runs its step by name
     rc, waiting = rr.run_parallel(plan, todo, cfg.out, progress, gpus,
                                   lambda step: rr.child_command(cfg.out, digest, step, args.compile_cache),
-                                  seconds_left=args.seconds_left)
-    done = set(progress["commands"])
+                                  seconds_left=seconds_left)
+    done, needs = set(progress["commands"]), rpp.prerequisites(plan)
     for step in waiting:
         why = ("not started after the failure" if rc else "waits for the runs it reads"
-               if not rpp.prerequisites(plan)[step.name] <= done else "not started, for want of time")
+               if not needs[step.name] <= done else "not started, for want of time")
         print(f"{why}: {step.name}")
     for st in work:
         keys = [step.name for step in st.steps]

@@ -226,7 +226,7 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[Step], floa
         if step.call.kind not in longest:
             return None
         evals = [longest.get("eval", 0.0) for st in readers.get(step.writes, ())
-                 if st.name not in progress["commands"] and st is not step]
+                 if st.name not in progress["commands"]]
         return longest[step.call.kind] + sum(evals)
 
     return expected
