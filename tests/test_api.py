@@ -84,6 +84,20 @@ def test_step_refuses_anything_but_velocities(hall):
         hall.step_to_pose(start, jnp.zeros(2))  # an oracle's pose goes through its own method
 
 
+def test_an_agent_sharing_a_rollout_with_the_pioneer_cannot_set_the_pose(hall):
+    # The scripted agents share one rollout of mixed actions (the pioneer's poses, the others'
+    # velocities); what an agent declares, not the shape it returns, says which it gives.
+    pioneer = make_agent("pioneer", hall)
+    teleporter = conav_jax.Agent("teleporter", lambda key, obs: (), lambda carry, obs, key: (carry, jnp.zeros(3)))
+    with pytest.raises(ValueError, match=r"'teleporter' declares actions of size 2 .*returned shape \(3,\)"):
+        _trace(hall, lambda which: switch_agent([pioneer, teleporter], which), jnp.int32(1))
+    _trace(hall, lambda which: switch_agent([pioneer, _spy("still")[0]], which), jnp.int32(1))  # velocities pass
+    # Only a declared oracle mover's actions are poses; a group's mixed kind is no agent's own.
+    mixed = switch_agent([pioneer, _spy("still")[0]], jnp.int32(0))
+    with pytest.raises(ValueError, match="action_size is 2 .* or 3"):
+        mixed._replace(privileged=()).check()
+
+
 def _spy(title, **declared):
     """An Agent that stands still and records the observation keys init and act receive."""
     seen = {}

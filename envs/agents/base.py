@@ -102,7 +102,8 @@ class StateAgent(NamedTuple):
 
     def check(self) -> "StateAgent":
         """This agent, after checking its description; ValueError naming what is wrong."""
-        if self.action_size not in (2, 3, MIXED_ACTION_SIZE) or (self.action_size == 3) != (ORACLE_MOVES in self.privileged):
+        # MIXED_ACTION_SIZE belongs to switch_agent's groups alone, which are never rows.
+        if self.action_size not in (2, 3) or (self.action_size == 3) != (ORACLE_MOVES in self.privileged):
             raise ValueError(f"agent {self.name!r}: action_size is 2 (velocities) or 3 (poses, listing "
                              f"{ORACLE_MOVES!r} as privileged), got {self.action_size}")
         return _check_declarations(self)
@@ -143,10 +144,11 @@ def as_state_agent(agent: Agent | StateAgent) -> StateAgent:
                       agent.intention_source, agent.privileged, agent.reads)
 
 
-def _as_mixed_action(action: jax.Array) -> jax.Array:
-    """A velocity (2,) or pose (3,) action as (6,) = (kind, v_lin, v_ang, x, y, yaw), the unused
-    part zero (envs.rollout's `agent_step` steps it with ConavEnv.step_to_pose)."""
-    if action.shape[-1] == 2:
+def _as_mixed_action(action: jax.Array, action_size: int) -> jax.Array:
+    """A velocity (2,) or pose (3,) action, as its agent's `action_size` declares it, as (6,) =
+    (kind, v_lin, v_ang, x, y, yaw), the unused part zero (envs.rollout's `agent_step` steps it
+    with ConavEnv.step_to_pose)."""
+    if action_size == 2:
         return jnp.concatenate([jnp.zeros_like(action[..., :1]), action, jnp.zeros((*action.shape[:-1], 3), action.dtype)], -1)
     return jnp.concatenate([jnp.ones_like(action[..., :1]), jnp.zeros_like(action[..., :2]), action], -1)
 
@@ -173,7 +175,15 @@ def switch_agent(agents: Sequence[Agent | StateAgent], which: jax.Array) -> Stat
         def branch(i):
             def run(carry):
                 action, mine = agents[i].act(own(state, agents[i]), carry[i], key)
-                return _as_mixed_action(action) if mixed else action, carry[:i] + (mine,) + carry[i + 1:]
+                action = jnp.asarray(action)
+                # What an agent declares, not the shape it returns, says what its action is: only
+                # a declared oracle mover's three numbers are a pose.
+                if action.shape[-1:] != (agents[i].action_size,):
+                    raise ValueError(f"agent {agents[i].name!r} declares actions of size {agents[i].action_size} "
+                                     f"({'a pose' if agents[i].action_size == 3 else '(v_lin, v_ang)'}), "
+                                     f"returned shape {action.shape}")
+                return (_as_mixed_action(action, agents[i].action_size) if mixed else action,
+                        carry[:i] + (mine,) + carry[i + 1:])
             return run
 
         return jax.lax.switch(which, [branch(i) for i in range(len(agents))], carry)
