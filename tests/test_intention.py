@@ -30,6 +30,7 @@ from conav_jax.train.intention import (
     make_env,
     make_renderer,
     intention_loss,
+    recolour_frames,
     make_val_fn,
     prior_scores,
     render_split,
@@ -191,10 +192,15 @@ def test_a_run_weighing_seen_objects_records_its_weights_and_validates_with_them
     asked = []
     real = intention.make_val_fn
     monkeypatch.setattr(intention, "make_val_fn", lambda *a, **k: asked.append(k) or real(*a, **k))
+    losses, real_loss = [], intention.intention_loss
+    monkeypatch.setattr(intention, "intention_loss", lambda *a, **k: losses.append(k) or real_loss(*a, **k))
     model = dataclasses.replace(MODEL, seen_objects=True)
     cfg = TrainConfig(steps=2, batch=4, warmup_steps=0, log_every=1, val_every=2, ckpt_every=2)
-    train_intention_from_data(tiny_data, tmp_path / "run", cfg, model, DATA, progress=False, compiler_options=FAST)
+    # (The same run checks that the data options it records are those it trains with.)
+    data = dataclasses.replace(DATA, recolour=True)
+    train_intention_from_data(tiny_data, tmp_path / "run", cfg, model, data, progress=False, compiler_options=FAST)
     config = load_checkpoint(latest_checkpoint(tmp_path / "run")).config
+    assert config["data"]["recolour"] is True and losses and all(k["recolour"] is True for k in losses)
     weights = intention.start_pose_weights(model, d, DATA.viewpoints)
     assert config["data"]["seen_object_weights"] == weights and config["model"]["seen_objects"] is True
     assert 0.0 < weights["activity_b"] < 1.0
@@ -220,24 +226,50 @@ def test_validation_reports_each_route_over_every_episode(rendered):
     assert val["activity_a_object_top1"] == same_object_top1(MODEL, watched, np.asarray(d["activity_a"]))
 
 
-def test_mirrored_samples_are_their_frames_flipped_left_right(rendered):
+def _mirror_by_hand(frames, key):
+    flip = np.asarray(jax.random.bernoulli(key, 0.5, (frames.shape[0],)))
+    assert 0 < flip.sum() < frames.shape[0]  # the draw mirrors some samples and not others
+    return jnp.asarray(np.where(flip[:, None, None, None, None], np.asarray(frames)[:, :, :, ::-1], frames))
+
+
+@pytest.mark.parametrize("option, by_hand", [("mirror", _mirror_by_hand), ("recolour", lambda f, k: recolour_frames(f, k))])
+def test_an_augmenting_loss_reads_its_transformed_frames_and_only_its_runs_say_so(rendered, option, by_hand):
     d = rendered[1]
     params = perceiver.init(jax.random.PRNGKey(1), MODEL)
     batch = {k: jnp.asarray(d[k][:6]) for k in ("frames", "num_frames", "activity", "object", "activity_a")}
     key = jax.random.PRNGKey(3)
-    mirrored, _ = jax.jit(lambda b: intention_loss(params, MODEL, b, key, mirror=True))(batch)
-    # The loss's draw: which samples are mirrored, and the key left for the rest of the loss.
-    k_rest, k_mirror = jax.random.split(key)
-    flip = np.asarray(jax.random.bernoulli(k_mirror, 0.5, (6,)))
-    assert 0 < flip.sum() < 6
-    frames = np.asarray(batch["frames"])
-    by_hand = {**batch, "frames": jnp.asarray(np.where(flip[:, None, None, None, None], frames[:, :, :, ::-1], frames))}
-    expected, _ = intention_loss(params, MODEL, by_hand, k_rest)
+    augmented, _ = jax.jit(lambda b: intention_loss(params, MODEL, b, key, **{option: True}))(batch)
+    # The loss's draw, and the key left for the rest of the loss.
+    k_rest, k_option = jax.random.split(key)
+    expected, _ = intention_loss(params, MODEL, {**batch, "frames": by_hand(batch["frames"], k_option)}, k_rest)
     plain, _ = intention_loss(params, MODEL, batch, k_rest)
-    assert mirrored == pytest.approx(float(expected), rel=1e-5) and mirrored != pytest.approx(float(plain), rel=1e-5)
-    # A run's config names the mirroring only where it is on (runs from before it resume).
-    assert "mirror" not in run_config(MODEL, DATA, None, 1.0, 1.25)["data"]
-    assert run_config(MODEL, dataclasses.replace(DATA, mirror=True), None, 1.0, 1.25)["data"]["mirror"] is True
+    assert augmented == pytest.approx(float(expected), rel=1e-5) and augmented != pytest.approx(float(plain), rel=1e-5)
+    # A run's config names the option only where it is on (runs from before it resume).
+    assert option not in run_config(MODEL, DATA, None, 1.0, 1.25)["data"]
+    assert run_config(MODEL, dataclasses.replace(DATA, **{option: True}), None, 1.0, 1.25)["data"][option] is True
+
+
+def test_recoloured_samples_keep_their_depth_and_share_one_colour_map_over_their_frames():
+    key = jax.random.PRNGKey(5)
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (8, 3, 5, 6, 4), dtype=np.uint8)
+    out = np.asarray(recolour_frames(jnp.asarray(frames), key))
+    assert out.dtype == np.uint8 and out.shape == frames.shape
+    np.testing.assert_array_equal(out[..., 3], frames[..., 3])  # depth untouched
+    # Each sample's map is a channel order and gains, the same for every frame and pixel:
+    # recovered from the draw, it reproduces the output to within uint8 rounding.
+    k_perm, k_gain = jax.random.split(key)
+    order = np.asarray(jax.vmap(lambda k: jax.random.permutation(k, 3))(jax.random.split(k_perm, 8)))
+    gain = np.asarray(jax.random.uniform(k_gain, (8, 3), minval=0.6, maxval=1.4))
+    by_hand = np.clip(np.take_along_axis(frames[..., :3] / 255.0, order[:, None, None, None, :], -1)
+                      * gain[:, None, None, None, :], 0.0, 1.0)
+    np.testing.assert_allclose(out[..., :3] / 255.0, by_hand, atol=0.51 / 255.0)
+    assert len({tuple(o) for o in order}) > 1 and not np.allclose(out[..., :3], frames[..., :3], atol=2)
+    # Float frames (depth in metres) keep their depth and dtype too.
+    as_float = np.concatenate([frames[..., :3] / 255.0, frames[..., 3:] / 10.0], -1).astype(np.float32)
+    out_f = np.asarray(recolour_frames(jnp.asarray(as_float), key))
+    assert out_f.dtype == np.float32 and np.array_equal(out_f[..., 3], as_float[..., 3])
+    np.testing.assert_allclose(out_f[..., :3], by_hand, atol=1e-6)
 
 
 def test_an_activity_of_the_true_activitys_object_counts_as_the_same_object():

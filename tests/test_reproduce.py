@@ -110,17 +110,18 @@ def test_plan_lists_every_stage_and_the_paper_preset_records_a_subset_of_episode
 
 def test_the_predictors_options_reach_its_training_call_alone(tmp_path, capsys):
     plain = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small"))
-    both = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", mirror=True, seen_objects=True))
+    both = rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", mirror=True, recolour=True,
+                                             seen_objects=True))
     (intention,) = [s for s in both[1].steps if s.call.kind == "train intention"]
-    assert _kw(intention)["data"].mirror and _kw(intention)["model"].seen_objects
+    assert _kw(intention)["data"].mirror and _kw(intention)["data"].recolour and _kw(intention)["model"].seen_objects
     changed = [a for s0, s1 in zip(plain, both) for a, b in zip(s0.steps, s1.steps) if a != b]
     assert changed == [dataclasses.replace(intention, call=rs.Call(intention.call.kind, {
-        **_kw(intention), "data": dataclasses.replace(_kw(intention)["data"], mirror=False),
+        **_kw(intention), "data": dataclasses.replace(_kw(intention)["data"], mirror=False, recolour=False),
         "model": dataclasses.replace(_kw(intention)["model"], seen_objects=False)}))]
     assert cli.main(["--compile-cache", "off", "reproduce", "--preset", "tiny", "--seeds", "1", "--out",
-                     str(tmp_path / "out"), "--mirror", "--seen-objects", "--dry-run"]) == 0
+                     str(tmp_path / "out"), "--mirror", "--recolour", "--seen-objects", "--dry-run"]) == 0
     printed = capsys.readouterr().out
-    assert printed.count("mirror=True") == printed.count("seen_objects=True") == 1
+    assert printed.count("mirror=True") == printed.count("recolour=True") == printed.count("seen_objects=True") == 1
 
 
 def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_path, capsys):

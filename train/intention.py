@@ -75,6 +75,12 @@ class IntentionDataConfig:
     # Mirror each training sample left-right with probability 1/2 (a fresh draw every update;
     # an activity means the same done to either side). Validation frames are never mirrored.
     mirror: bool = False
+    # Recolour each training sample (`recolour_frames`: its RGB channels permuted and scaled, one
+    # draw for all its frames, a fresh one every update). Instance colours come from one palette
+    # every category shares, so a predictor can memorise which colour marks which object in the
+    # training scenes and learn nothing that carries to new ones; recoloured, it must read shape,
+    # depth and motion. Depth is never changed; validation frames are never recoloured.
+    recolour: bool = False
 
     def __post_init__(self):
         if self.frames < 1:
@@ -280,16 +286,43 @@ def _cross_entropy(logits: jax.Array, labels: jax.Array) -> jax.Array:
     return -jnp.mean(jnp.take_along_axis(logp, labels[:, None], axis=-1))
 
 
-def intention_loss(params, config: PerceiverConfig, batch: dict, key: jax.Array, mirror: bool = False):
+# Per-channel gains of `recolour_frames`, drawn uniformly in this range.
+RECOLOUR_GAIN_RANGE = (0.6, 1.4)
+
+
+def recolour_frames(frames: jax.Array, key: jax.Array) -> jax.Array:
+    """`frames (B, F, h, w, 4)` (uint8 as `perceiver.encode_frames` stores them, or float: RGB in
+    [0, 1], depth in metres) with each sample's RGB channels permuted (one of the six orders) and
+    scaled by gains in RECOLOUR_GAIN_RANGE, clipped to [0, 1], one draw per sample for all its
+    frames; depth unchanged; the dtype kept (uint8 rounded back to its 255 steps)."""
+    b = frames.shape[0]
+    k_perm, k_gain = jax.random.split(key)
+    order = jax.vmap(lambda k: jax.random.permutation(k, 3))(jax.random.split(k_perm, b))  # (B, 3)
+    gain = jax.random.uniform(k_gain, (b, 3), minval=RECOLOUR_GAIN_RANGE[0], maxval=RECOLOUR_GAIN_RANGE[1])
+    is_uint8 = frames.dtype == jnp.uint8
+    rgb = frames[..., :3].astype(jnp.float32) / (255.0 if is_uint8 else 1.0)
+    rgb = jnp.take_along_axis(rgb, order[:, None, None, None, :], axis=-1) * gain[:, None, None, None, :]
+    rgb = jnp.clip(rgb, 0.0, 1.0)
+    if is_uint8:
+        rgb = jnp.round(rgb * 255.0).astype(jnp.uint8)
+    return jnp.concatenate([rgb.astype(frames.dtype), frames[..., 3:]], axis=-1)
+
+
+def intention_loss(params, config: PerceiverConfig, batch: dict, key: jax.Array, mirror: bool = False,
+                   recolour: bool = False):
     """CE(activity B) + CE(object B) (+ CE(activity A) with the A head); each sample sees a
-    random prefix of 1..num_frames frames (the paper: the robot may have watched for any time)
-    and, with `mirror`, its frames mirrored left-right with probability 1/2. Aux: each CE."""
+    random prefix of 1..num_frames frames (the paper: the robot may have watched for any time);
+    with `mirror`, its frames mirrored left-right with probability 1/2; with `recolour`, its
+    frames recoloured (`recolour_frames`). Aux: each CE."""
     frames = batch["frames"]  # uint8 as rendered (or float): perceiver.apply reads either
     f = frames.shape[1]
     if mirror:
         key, k_mirror = jax.random.split(key)
         flip = jax.random.bernoulli(k_mirror, 0.5, (frames.shape[0],))
         frames = jnp.where(flip[:, None, None, None, None], frames[:, :, :, ::-1], frames)
+    if recolour:
+        key, k_colour = jax.random.split(key)
+        frames = recolour_frames(frames, k_colour)
     seen = jax.random.randint(key, batch["num_frames"].shape, 1, batch["num_frames"] + 1)
     mask = jnp.arange(f)[None, :] < seen[:, None]
     logits = perceiver.apply(params, config, frames, mask)
@@ -369,9 +402,9 @@ def run_config(model: PerceiverConfig, data: IntentionDataConfig, content_hash: 
     extra = {} if transition_counts is None else {"transition_counts": transition_counts}
     if seen_object_weights is not None:
         extra["seen_object_weights"] = seen_object_weights
-    # `mirror` and `seen_objects` only where set: runs written before they existed resume with
-    # the same config.
-    data_fields = {k: v for k, v in dataclasses.asdict(data).items() if k != "mirror" or v}
+    # `mirror`, `recolour` and `seen_objects` only where set: runs written before they existed
+    # resume with the same config.
+    data_fields = {k: v for k, v in dataclasses.asdict(data).items() if k not in ("mirror", "recolour") or v}
     model_fields = {k: v for k, v in dataclasses.asdict(model).items() if k != "seen_objects" or v}
     return {
         "kind": KIND,
@@ -433,7 +466,7 @@ def train_intention(
     config = run_config(model, data, train_env.split.content_hash, spacing, float(train_env.task.camera_height_m),
                         counts, weights)
     params = perceiver.init(jax.random.PRNGKey(cfg.seed), model)
-    loss = lambda p, b, k: intention_loss(p, model, b, k, mirror=data.mirror)
+    loss = lambda p, b, k: intention_loss(p, model, b, k, mirror=data.mirror, recolour=data.recolour)
     samples = {k: train_d[k] for k in ("frames", "num_frames", "activity", "object", "activity_a")}
     return train(
         run_dir, loss, params, samples, cfg, config,

@@ -60,6 +60,9 @@ def add(sub) -> None:
                         "112x448); one OUT directory holds one encoder")
     p.add_argument("--mirror", action="store_true",
                    help="train the intention predictor on frames mirrored half the time (`conav train intention --mirror`)")
+    p.add_argument("--recolour", action="store_true",
+                   help="train the intention predictor on frames whose colours are redrawn for every sample and "
+                        "update (`conav train intention --recolour`)")
     p.add_argument("--seen-objects", action="store_true",
                    help="the intention predictor weighs activities by whether the robot's panoramas have shown their "
                    "object (`conav train intention --seen-objects`: oracle segmentation, listed as privileged)")
@@ -132,7 +135,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
                              resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
                              dagger_rounds=args.dagger_rounds, dagger_episodes=args.dagger_episodes,
-                             encoder=args.encoder, mirror=args.mirror, seen_objects=args.seen_objects,
+                             encoder=args.encoder, mirror=args.mirror, recolour=args.recolour,
+                             seen_objects=args.seen_objects,
                              trainer=args.trainer, rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()),
                              eval_split=args.eval_split,
                              **{name: getattr(args, name) for name in rp.BUDGET_OVERRIDES})

@@ -133,9 +133,10 @@ class ReproduceConfig:
     # one OUT directory holds one encoder, as it holds one resolution. The default's configs are
     # those of the runs in results/.
     encoder: str = DEFAULT_ENCODER
-    # The intention predictor's training and inference options (IntentionDataConfig.mirror,
-    # PerceiverConfig.seen_objects); off: the configs of the runs in results/.
+    # The intention predictor's training and inference options (IntentionDataConfig.mirror and
+    # .recolour, PerceiverConfig.seen_objects); off: the configs of the runs in results/.
     mirror: bool = False
+    recolour: bool = False
     seen_objects: bool = False
     # How the CoNav rows are trained (TRAINERS). "live" adds the ground-truth rows
     # (GROUND_TRUTH_ROWS) to Table 3, and its DAgger row starts from scratch with a decaying beta.
@@ -315,7 +316,8 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                  cfg=dataclasses.replace(INTENTION_TRAIN, steps=b.intention_steps, **schedule),
                  # crops of the panorama the agents render (envs.human_crop)
                  model=PerceiverConfig(image_hw=default_crop_hw(res), seen_objects=cfg.seen_objects),
-                 data=IntentionDataConfig(resolution=res, mirror=cfg.mirror), progress=False),
+                 data=IntentionDataConfig(resolution=res, mirror=cfg.mirror, recolour=cfg.recolour),
+                 progress=False),
             step("train trajectory", trajectory, data_dir=str(data), run_dir=str(trajectory),
                  cfg=dataclasses.replace(TRAJECTORY_TRAIN, steps=b.trajectory_steps), model=TrajectoryConfig(),
                  progress=False),

@@ -42,7 +42,7 @@ def add(sub) -> None:
                    f"to it; default {dm.image_hw[0]}x{dm.image_hw[1]}, or the --resolution height rounded down to a "
                    "multiple of 8 where that is smaller)")
     p.add_argument("--view", choices=("human", "front"), default=dd.view, help=field_docs(IntentionDataConfig)["view"])
-    add_fields(p, IntentionDataConfig, ("frames", "viewpoints", "mirror"))
+    add_fields(p, IntentionDataConfig, ("frames", "viewpoints", "mirror", "recolour"))
     add_fields(p, PerceiverConfig, ("dim", "num_latents", "num_blocks", "activity_a_head", "graph_mix", "seen_objects"),
                flags={"num_latents": "--latents", "num_blocks": "--blocks"}, num_latents="latent array length")
     p.add_argument("--val-split", default="minival",
