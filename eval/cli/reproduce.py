@@ -56,8 +56,8 @@ def add(sub) -> None:
                         "another count trains and evaluates runs of its own (runs/dagger[...]_episodesN_s*)")
     p.add_argument("--encoder", choices=sorted(ENCODERS), default=d["encoder"],
                    help="the CoNav policy's panorama encoder in every BC and DAgger run (`conav train policy "
-                        f"--encoder`; default {d['encoder']}, the published runs'; patch trains about 2x faster at "
-                        "112x448); one OUT directory holds one encoder")
+                        f"--encoder`; default {d['encoder']}, the published runs'; patch trains faster at large "
+                        "panoramas, BENCHMARKS.md); one OUT directory holds one encoder")
     p.add_argument("--mirror", action="store_true",
                    help="train the intention predictor on frames mirrored half the time (`conav train intention --mirror`)")
     p.add_argument("--recolour", action="store_true",

@@ -39,9 +39,10 @@ EVAL_SPLITS = ("val", "minival")  # the reported split, and the one choices are 
 INTENTION_OVERRIDES = ("intention_steps", "intention_batch", "intention_lr")
 LIVE_OVERRIDES = ("live_lanes", "live_window_steps", "live_iterations", "live_lr")
 BUDGET_OVERRIDES = INTENTION_OVERRIDES + LIVE_OVERRIDES
-# Panoramas of at least this many pixels train the CoNav policy with remat: at 112x448 it ran
-# 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
-# smaller panoramas keep the plain update (their runs' configs as made).
+# Panoramas of at least this many pixels train the CoNav policy with remat: recomputing the CNN
+# in the backward pass instead of keeping every window step's activations makes their update
+# faster, not slower (BENCHMARKS.md, "Training updates"); smaller panoramas keep the plain
+# update (their runs' configs as made).
 REMAT_FROM_PIXELS = 112 * 448
 # At such panoramas each DAgger round records this many of the train episodes (ImitationConfig's
 # dagger_episodes),
@@ -49,8 +50,8 @@ REMAT_FROM_PIXELS = 112 * 448
 # expert's run 152, some 17 windows of 12 MB each, so 64 hold about 13 GB a round beside BC's
 # 24 GB on the GPU (the host holds them twice while they are joined); all 400 would be about
 # 70 GB a round (estimates from the window size). With the expert mixed in (`dagger_beta` 0.5)
-# a round of 64 recorded 307 and 370 windows (H100, 112x448), about 4 GB: `dagger_episodes`
-# asks for more.
+# episodes end sooner and a round records far fewer windows (results/bench/README.md), so
+# `dagger_episodes` may ask for more.
 LARGE_PANORAMA_DAGGER_EPISODES = 64
 
 @dataclass(frozen=True)
@@ -80,8 +81,9 @@ class Budget:
     # the paper preset's minival is 1,000 episodes, so it validates less often.
     val_every: int | None = None
     eval_batch: int = 2048  # evaluation lanes
-    # The CoNav policy's CNN dtype (PolicyConfig.conv_dtype): bfloat16 runs the 112x448 update
-    # 1.9x faster on an H100 (BENCHMARKS.md); float32 keeps the small runs' configs.
+    # The CoNav policy's CNN dtype (PolicyConfig.conv_dtype): bfloat16 halves the CNN's memory
+    # traffic and runs it on tensor cores, which speeds up the large panoramas' update
+    # (BENCHMARKS.md, "Training updates"); float32 keeps the small runs' configs.
     policy_conv_dtype: str = "float32"
     # The live trainer (train.live.LiveConfig): lanes, window steps and updates of every CoNav run,
     # its peak learning rate and warm-up; its DAgger row's beta falls linearly from 1 to the
