@@ -245,13 +245,11 @@ def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mes
     devices if given) with the env's sensor rendering `materials` (SensorConfig.materials;
     None: the env's own); returns a dict of figures, rates in total and per device."""
     env = with_materials(env, materials)
+    if what in ("compile", "breakdown") and mesh is not None and mesh.size > 1:
+        raise ValueError(f"bench_sim.what {what} runs on one device: bench_sim.mesh must hold one, not {mesh.size}")
     if what == "compile":
-        if mesh is not None and mesh.size > 1:
-            raise ValueError("--what compile runs on one device; use --devices 1")
         return bench_compile(env, batch)
     if what == "breakdown":
-        if mesh is not None and mesh.size > 1:
-            raise ValueError("--what breakdown runs on one device; use --devices 1")
         return bench_breakdown(env, batch, steps, repeats)
     if mesh is not None:
         check_divisible(batch, mesh)

@@ -179,15 +179,16 @@ class PhysicsConfig:
     # friction): it slides along what it touches, as Habitat's navmesh sliding does, and each
     # contact is one constraint row instead of four, so the solver converges in ~3 iterations.
     # Against a 30-iteration solve on random drives into walls: 3/4 iterations match exactly,
-    # 2/4 within 1.4 mm; with friction even 4/8 was 2.8 mm off. 32x128 panoramas at batch
-    # 32768 on an H100: 713k env steps/s, against 358k with friction at 4/8 (BENCHMARKS.md).
+    # 2/4 within 1.4 mm; with friction even 4/8 was 2.8 mm off. Fewer rows and iterations make
+    # the step cheaper: `conav bench sim --physics contact_condim=3 solver_iterations=4
+    # ls_iterations=8` times the frictional alternative.
     contact_condim: int = 1
     # Constraint solver budget per substep (MJX defaults to 100 / 50; three dofs need few).
     solver_iterations: int = 3
     ls_iterations: int = 4
     # Substeps unrolled per iteration of the substep scan (1: a rolled loop). Unrolling lets XLA
-    # fuse across substeps, but on an H100 10 was no faster (352k vs 358k env steps/s at 32x128)
-    # and compiled 2.6x longer; `conav bench sim --physics substep_unroll=N` times it.
+    # fuse across substeps, but where timed it ran no faster and compiled much longer;
+    # `conav bench sim --physics substep_unroll=N` times it.
     substep_unroll: int = 1
     # MJX implementation: "jax" (XLA), "warp" (MuJoCo Warp kernels through JAX's FFI; needs
     # warp-lang, `pip install -e ".[warp]"`), or "auto": warp where warp-lang imports and the

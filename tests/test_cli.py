@@ -157,6 +157,36 @@ def test_bench_sim_times_each_material_and_passes_the_shading_switch(monkeypatch
     assert [x["pallas"]["shade"] for x in lines] == [True, True, False]
 
 
+
+def test_bench_sim_one_device_modes_name_the_argument_and_the_flag(monkeypatch, capsys):
+    from types import SimpleNamespace
+
+    import pytest
+
+    from conav_jax.envs.bench import bench_sim
+    from conav_jax.eval import cli
+
+    two = SimpleNamespace(size=2)
+    with pytest.raises(ValueError, match="^bench_sim.what compile runs on one device: bench_sim.mesh must hold one"):
+        bench_sim(None, 4, 1, 1, "compile", two)
+    monkeypatch.setattr("conav_jax.envs.ConavEnv", lambda data, split, config: SimpleNamespace(config=config))
+    monkeypatch.setattr("conav_jax.parallel.make_mesh", lambda n: SimpleNamespace(size=n))
+    assert cli.main(["bench", "sim", "--data", "d", "--what", "breakdown", "--devices", "2"]) == 2
+    assert "error: --what breakdown runs on one device: --devices must hold one, not 2" in capsys.readouterr().err
+
+
+def test_bench_train_policy_options_name_the_arguments_and_the_flags(capsys):
+    import pytest
+
+    from conav_jax.eval import cli
+    from conav_jax.train.bench import bench_train
+
+    with pytest.raises(ValueError, match="^bench_train.remat, bench_train.conv_dtype and bench_train.encoder apply"):
+        bench_train("trajectory", 2, (8, 32), 1, 1, remat=True)
+    assert cli.main(["bench", "train", "--model", "trajectory", "--remat", "--devices", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "error: --remat, --conv-dtype and --encoder apply to the policy model, not --model trajectory" in err
+
 def test_train_live_builds_its_configs_from_flags_and_passes_the_predictors(tmp_path, monkeypatch, capsys):
     from conav_jax.eval import cli
     from conav_jax.train.live import LiveConfig

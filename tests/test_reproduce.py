@@ -1099,6 +1099,22 @@ BUDGET_OVERRIDE_CASES = {
 }
 
 
+def test_the_runs_flags_are_the_configs_fields_with_their_comments_as_help():
+    from conav_jax.eval.cli.args import config_from_args, field_docs
+
+    parser = cli.build_parser()
+    args = parser.parse_args(["reproduce", "--out", "o", "--rows", "none, all", "--resolution", "32x128", "--mirror",
+                              "--live-lr", "0.01", "--dagger-rounds", "3"])
+    expected = rp.ReproduceConfig(out=Path("o"), rows=("none", "all"), resolution=(32, 128), mirror=True, live_lr=0.01,
+                                  dagger_rounds=3, workers=args.workers)
+    assert config_from_args(rp.ReproduceConfig, args, out=Path("o")) == expected
+    (sub,) = [a for a in parser._actions if a.dest == "command"]
+    helps = {a.dest: a.help for a in sub.choices["reproduce"]._actions}
+    docs = field_docs(rp.ReproduceConfig)
+    assert helps["preset"] == f"{docs['preset']} (default paper)" and helps["rows"] == docs["rows"]
+    assert helps["resolution"] == f"{docs['resolution']} (default 112x448)"
+
+
 def _budget_step(cfg, kind):
     """The step a budget override of `kind` reaches: a live run, or the intention predictor's."""
     if kind == "live":

@@ -106,7 +106,8 @@ def bench_train(model: str, batch: int, resolution: tuple[int, int], steps: int,
     if mesh is not None:
         check_divisible(batch, mesh)
     if (remat or conv_dtype != "float32" or encoder is not None) and model != "policy":
-        raise ValueError("--remat, --conv-dtype and --encoder apply to the policy model")
+        raise ValueError(f"bench_train.remat, bench_train.conv_dtype and bench_train.encoder apply to the policy "
+                         f"model, not bench_train.model {model}")
     extra = {"remat": remat, "conv_dtype": conv_dtype, "encoder": encoder} if model == "policy" else {}
     params, data, loss, shape_info = SETUPS[model](jax.random.PRNGKey(0), batch, resolution, **extra)
     cfg = TrainConfig(steps=steps * (repeats + 1), batch=batch, warmup_steps=0)

@@ -209,8 +209,9 @@ def round0_configs(model, imitation: ImitationConfig, intention=None, trajectory
     expert alone acts in round 0, so the policy's config only decides which inputs the records
     hold as predicted; every other input holds the ground truth, whatever the policy reads. A
     shared recording of predictions holds every one the given predictors make; each run reads
-    its own inputs from it and never the others, so Table 3's five rows share one recording (at
-    112x448 some 25 GB on disk, and 100 s of an H100's time, each). Unshared: `model` twice."""
+    its own inputs from it and never the others, so Table 3's five rows share one recording
+    instead of making five, each large on disk and long to make at large panoramas
+    (results/bench/README.md). Unshared: `model` twice."""
     if not shared:
         return model, model
     if imitation.train_intentions == "predicted":

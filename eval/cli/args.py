@@ -50,6 +50,11 @@ def parse_physics_override(text: str) -> tuple[str, object]:
         raise argparse.ArgumentTypeError(f"physics {name} needs a {kind.__name__}, got {value!r}") from None
 
 
+def parse_names(text: str) -> tuple[str, ...]:
+    """`A,B,...` -> ("A", "B", ...), blanks dropped ("" -> ())."""
+    return tuple(name.strip() for name in text.split(",") if name.strip())
+
+
 def parse_checkpoints(text: str | None) -> str | dict[str | None, str] | None:
     """`RUN` -> RUN; `AGENT=RUN,...` (with at most one bare RUN: the other learned agents') ->
     {agent: run, None: run}."""
@@ -109,10 +114,11 @@ def _value_type(cls: type, name: str, default):
 
 
 def add_fields(p, cls: type, names: tuple[str, ...] | None = None, defaults=None, flags: dict | None = None,
-               **helps: str) -> None:
+               options: dict[str, dict] | None = None, **helps: str) -> None:
     """Add `--field-name` (or `flags[name]`) for the fields `names` of dataclass `cls` (default:
     all), each with the field's type, its default (from `defaults`, an instance, when given) and
-    its documenting comment as help (`helps[name]` overrides it). Booleans become --x / --no-x."""
+    its documenting comment as help (`helps[name]` overrides it); `options[name]`: more
+    `add_argument` keywords (choices, metavar, a parser as type). Booleans become --x / --no-x."""
     names = names or tuple(f.name for f in dataclasses.fields(cls))
     defaults = defaults if defaults is not None else cls()
     added = p.get_default("config_fields") or {}
@@ -120,12 +126,22 @@ def add_fields(p, cls: type, names: tuple[str, ...] | None = None, defaults=None
     for name in names:
         default = getattr(defaults, name)
         text = helps.get(name) or field_docs(cls).get(name) or f"{cls.__name__}.{name}"
-        text = f"{text} (default {default})".replace("%", "%%")
-        option = (flags or {}).get(name, flag(name))
+        if default not in (None, ()):  # the comment says what None or nothing means
+            text = f"{text} (default {_shown(default)})"
+        text = text.replace("%", "%%")
+        option, extra = (flags or {}).get(name, flag(name)), (options or {}).get(name, {})
         if isinstance(default, bool):
-            p.add_argument(option, dest=name, action=argparse.BooleanOptionalAction, default=default, help=text)
+            p.add_argument(option, dest=name, action=argparse.BooleanOptionalAction, default=default, help=text, **extra)
         else:
-            p.add_argument(option, dest=name, type=_value_type(cls, name, default), default=default, help=text)
+            p.add_argument(option, dest=name, **{"type": _value_type(cls, name, default), "default": default,
+                                                 "help": text, **extra})
+
+
+def _shown(default) -> str:
+    """A default as its flag takes it: a tuple of ints as HxW, of names comma-separated."""
+    if isinstance(default, tuple):
+        return ("x" if all(isinstance(v, int) for v in default) else ",").join(map(str, default))
+    return str(default)
 
 
 def _qualified(cls: type) -> str:

@@ -59,6 +59,7 @@ def add(sub) -> None:
                    help="PhysicsConfig fields to override, e.g. timestep_s=0.02 solver_iterations=2 substep_unroll=10")
     p.add_argument("--json", action="store_true", help="print one JSON line per configuration")
     devices_arg(p)
+    translate_errors(p, mesh="--devices")
     p.set_defaults(func=_run_bench_sim)
 
     p = what.add_parser("intention", help="an intention run's top-1/top-5 on a split, by route, with P(B | A) "
@@ -200,8 +201,10 @@ def _run_bench_sim(args: argparse.Namespace) -> int:
     physics = PhysicsConfig(**dict(args.physics))
     tmp = None if args.data is not None else tiny_dataset()
     data = args.data or tmp.name
-    # The breakdown times single-device stages; the other modes split the batch over the mesh.
-    mesh = make_mesh(args.devices) if args.devices != 1 and args.what not in ("breakdown", "compile") else None
+    # The breakdown and compile times are one device's: without --devices they take one, and
+    # bench_sim refuses several asked for; the other modes split the batch over the mesh.
+    one_device = args.what in ("breakdown", "compile") and args.devices is None
+    mesh = make_mesh(args.devices) if args.devices != 1 and not one_device else None
     kinds = []
     for k in args.sensor:
         for kk in (["fast", "reference"] if k == "both" else [k]):

@@ -30,8 +30,8 @@ def run_stage(argv) -> int:
     """One stage of `conav demo`, run in this process as a fresh `conav`
     process would run it: JAX's in-memory caches are cleared first. A later stage that reuses a
     function traced by an earlier one lowers to a program of the same computation but other
-    function names, whose compile-cache key then misses on the next run (seen on the demo's
-    evaluation: 40 s on a second run instead of 15 s)."""
+    function names, whose compile-cache key then misses on the next run (the demo's evaluation
+    then compiles again on every run)."""
     import jax
 
     from conav_jax.eval import cli

@@ -15,14 +15,10 @@ import time
 import traceback
 from pathlib import Path
 
-from conav_jax.eval.cli.args import as_flags, flag, parse_resolution
+from conav_jax.eval.cli.args import add_fields, as_flags, config_from_args, field_docs, parse_names, parse_resolution
 
 def add(sub) -> None:
-    from conav_jax.models.policy import ENCODERS
-    from conav_jax.eval.cli.reproduce_plan import (BUDGETS, EVAL_SPLITS, GROUND_TRUTH_ROWS, LARGE_PANORAMA_DAGGER_EPISODES,
-                                          STAGES, TRAINERS, ReproduceConfig)
-
-    d = {f.name: f.default for f in dataclasses.fields(ReproduceConfig)}
+    from conav_jax.eval.cli.reproduce_plan import STAGES
 
     p = sub.add_parser(
         "reproduce", help="the paper's Tables 2 and 3: every stage from data to tables, resumable",
@@ -30,66 +26,11 @@ def add(sub) -> None:
         "(Table 3's five intention ablations and DAgger, each for --seeds seeds), evaluate every agent on the "
         "val split and write results.json and tables.md. Stages already done are skipped; a stage cut short "
         "resumes where it stopped (every training run resumes from its checkpoints).")
-    h, w = d["resolution"]
-    p.add_argument("--preset", choices=sorted(BUDGETS), default=d["preset"])
     p.add_argument("--out", required=True, help="output directory (data, runs, eval, results.json, tables.md)")
-    p.add_argument("--seeds", type=int, default=d["seeds"],
-                   help=f"training seeds of every learned CoNav row (default {d['seeds']})")
+    _config_args(p.add_argument_group("the run (ReproduceConfig)"))
     p.add_argument("--stage", choices=STAGES, default=None, action="append",
                    help="run only this stage (repeat for several, run in the plan's order; default: every stage not "
                    "done); a step whose runs are not trained yet waits, and the stage stays to run")
-    p.add_argument("--resolution", type=parse_resolution, default=d["resolution"], metavar="HxW",
-                   help=f"panorama HxW of every agent (default the paper's {h}x{w})")
-    p.add_argument("--workers", type=int, default=min(d["workers"], os.cpu_count() or 1),
-                   help="dataset generation processes")
-    p.add_argument("--dagger-beta", type=float, default=d["dagger_beta"], metavar="P",
-                   help="DAgger with the expert acting at a step of round r with probability P**r (`conav train "
-                        "policy --dagger-beta`); 0 (default): the policy alone. Other values train and evaluate runs "
-                        "of their own (runs/dagger_betaP_s*), and the tables show every DAgger variant evaluated")
-    p.add_argument("--dagger-rounds", type=int, default=d["dagger_rounds"], metavar="N",
-                   help="DAgger rounds after BC (default: the preset's, " +
-                        ", ".join(f"{k} {b.dagger_rounds}" for k, b in BUDGETS.items()) +
-                        "); another count trains and evaluates runs of its own (runs/dagger[_betaP]_roundsN_s*)")
-    p.add_argument("--dagger-episodes", type=int, default=d["dagger_episodes"], metavar="N",
-                   help="train episodes each DAgger round records (`conav train policy --dagger-episodes`; default: "
-                        f"{LARGE_PANORAMA_DAGGER_EPISODES} at panoramas of 112x448 and more, else all the policy's); "
-                        "another count trains and evaluates runs of its own (runs/dagger[...]_episodesN_s*)")
-    p.add_argument("--encoder", choices=sorted(ENCODERS), default=d["encoder"],
-                   help="the CoNav policy's panorama encoder in every BC and DAgger run (`conav train policy "
-                        f"--encoder`; default {d['encoder']}, the published runs'; patch trains about 2x faster at "
-                        "112x448); one OUT directory holds one encoder")
-    p.add_argument("--mirror", action="store_true",
-                   help="train the intention predictor on frames mirrored half the time (`conav train intention --mirror`)")
-    p.add_argument("--recolour", action="store_true",
-                   help="train the intention predictor on frames whose colours are redrawn for every sample and "
-                        "update (`conav train intention --recolour`)")
-    p.add_argument("--seen-objects", action="store_true",
-                   help="the intention predictor weighs activities by whether the robot's panoramas have shown their "
-                   "object (`conav train intention --seen-objects`: oracle segmentation, listed as privileged)")
-    p.add_argument("--trainer", choices=TRAINERS, default=d["trainer"],
-                   help="how the CoNav rows are trained: offline (default; `conav train policy`: recorded windows of a "
-                   "subset of the train episodes, BC then DAgger rounds) or live (`conav train live`: the live simulator "
-                   "over every train episode; adds the ground-truth rows " + ", ".join(GROUND_TRUTH_ROWS) + " to Table 3, "
-                   "and DAgger is beta falling from 1 to --dagger-beta); one OUT directory holds one trainer")
-    b = BUDGETS["paper"]
-    for name, kind, what, default in (("intention_steps", int, "updates", f"paper {b.intention_steps}"),
-                                      ("intention_batch", int, "samples per update", "`conav train intention`'s"),
-                                      ("intention_lr", float, "peak learning rate", "`conav train intention`'s")):
-        p.add_argument(flag(name), type=kind, default=None, metavar="N" if kind is int else "LR",
-                       help=f"the intention predictor's {what} (default: the preset's; {default}); one OUT "
-                       "directory holds one budget")
-    for name, kind, what in (("live_lanes", int, "lanes"), ("live_window_steps", int, "window steps"),
-                             ("live_iterations", int, "updates"), ("live_lr", float, "peak learning rate")):
-        p.add_argument(flag(name), type=kind, default=None, metavar="N" if kind is int else "LR",
-                       help=f"with --trainer live: the runs' {what} (default: the preset's; paper "
-                       f"{getattr(b, name):g}); one OUT directory holds one budget")
-    p.add_argument("--eval-split", choices=EVAL_SPLITS, default=d["eval_split"],
-                   help="the split every evaluation runs on: val (default; the reported numbers) or minival, where "
-                   "budgets and variants are chosen (evaluations under OUT/eval_minival, results_minival.json, "
-                   "tables_minival.md; the runs are shared)")
-    p.add_argument("--rows", default="", metavar="ROW,...",
-                   help="the Table 3 rows to train and evaluate (default: every one; the tables list the others as "
-                   "not run)")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="run only training seed S's steps of the bc, dagger and eval stages (each BC run is "
                         "evaluated as soon as it has trained; an evaluation of a run not trained yet waits): a machine "
@@ -112,6 +53,39 @@ def add(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _config_args(p) -> None:
+    """ReproduceConfig's fields as flags, but --out (resolved by `run`) and the data seed (the
+    preset's); their comments as help, with the values the presets' budgets give a None."""
+    from conav_jax.eval.cli.reproduce_plan import (BUDGET_OVERRIDES, BUDGETS, EVAL_SPLITS, LARGE_PANORAMA_DAGGER_EPISODES,
+                                                   TRAINERS, ReproduceConfig)
+    from conav_jax.models.policy import ENCODERS
+
+    docs = field_docs(ReproduceConfig)
+    helps = {name: f"{docs[name]} (default: the preset's; {_presets(name)}); one OUT directory holds one budget"
+             for name in BUDGET_OVERRIDES}
+    metavars = {"dagger_beta": "P", "dagger_rounds": "N", "dagger_episodes": "N",
+                **{name: "LR" if name.endswith("_lr") else "N" for name in BUDGET_OVERRIDES}}
+    add_fields(p, ReproduceConfig, tuple(f.name for f in dataclasses.fields(ReproduceConfig)
+                                         if f.name not in ("out", "data_seed")),
+               defaults=ReproduceConfig(out=Path(), workers=min(ReproduceConfig.workers, os.cpu_count() or 1)),
+               options={**{name: {"metavar": m} for name, m in metavars.items()},
+                        "preset": {"choices": sorted(BUDGETS)}, "encoder": {"choices": sorted(ENCODERS)},
+                        "trainer": {"choices": TRAINERS}, "eval_split": {"choices": EVAL_SPLITS},
+                        "resolution": {"type": parse_resolution, "metavar": "HxW"},
+                        "rows": {"type": parse_names, "metavar": "ROW,..."}},
+               dagger_rounds=f"{docs['dagger_rounds']} (presets: {_presets('dagger_rounds')})",
+               dagger_episodes=f"{docs['dagger_episodes']} (LARGE_PANORAMA_DAGGER_EPISODES: "
+                               f"{LARGE_PANORAMA_DAGGER_EPISODES})", **helps)
+
+
+def _presets(name: str) -> str:
+    """Budget field `name` in every preset that sets it ("tiny 1, small 2, paper 2")."""
+    from conav_jax.eval.cli.reproduce_plan import BUDGETS
+
+    values = {preset: getattr(b, name) for preset, b in BUDGETS.items() if getattr(b, name) is not None}
+    return ", ".join(f"{preset} {v:g}" for preset, v in values.items()) or "every preset: the trainer's own"
+
+
 def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
@@ -132,14 +106,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     from conav_jax.provenance import git_state
     from conav_jax.eval.cli import reproduce_tables as rt
 
-    cfg = rp.ReproduceConfig(out=Path(args.out).resolve(), preset=args.preset, seeds=args.seeds,
-                             resolution=tuple(args.resolution), workers=args.workers, dagger_beta=args.dagger_beta,
-                             dagger_rounds=args.dagger_rounds, dagger_episodes=args.dagger_episodes,
-                             encoder=args.encoder, mirror=args.mirror, recolour=args.recolour,
-                             seen_objects=args.seen_objects,
-                             trainer=args.trainer, rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()),
-                             eval_split=args.eval_split,
-                             **{name: getattr(args, name) for name in rp.BUDGET_OVERRIDES})
+    cfg = config_from_args(rp.ReproduceConfig, args, out=Path(args.out).resolve())
     if args.gpus < 1:
         print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
         return 2

@@ -39,9 +39,10 @@ EVAL_SPLITS = ("val", "minival")  # the reported split, and the one choices are 
 INTENTION_OVERRIDES = ("intention_steps", "intention_batch", "intention_lr")
 LIVE_OVERRIDES = ("live_lanes", "live_window_steps", "live_iterations", "live_lr")
 BUDGET_OVERRIDES = INTENTION_OVERRIDES + LIVE_OVERRIDES
-# Panoramas of at least this many pixels train the CoNav policy with remat: at 112x448 it ran
-# 500 updates of the preset's 256 windows in 56 s, against 110 s without (one H100, BENCHMARKS.md);
-# smaller panoramas keep the plain update (their runs' configs as made).
+# Panoramas of at least this many pixels train the CoNav policy with remat: recomputing the CNN
+# in the backward pass instead of keeping every window step's activations makes their update
+# faster, not slower (BENCHMARKS.md, "Training updates"); smaller panoramas keep the plain
+# update (their runs' configs as made).
 REMAT_FROM_PIXELS = 112 * 448
 # At such panoramas each DAgger round records this many of the train episodes (ImitationConfig's
 # dagger_episodes),
@@ -49,8 +50,8 @@ REMAT_FROM_PIXELS = 112 * 448
 # expert's run 152, some 17 windows of 12 MB each, so 64 hold about 13 GB a round beside BC's
 # 24 GB on the GPU (the host holds them twice while they are joined); all 400 would be about
 # 70 GB a round (estimates from the window size). With the expert mixed in (`dagger_beta` 0.5)
-# a round of 64 recorded 307 and 370 windows (H100, 112x448), about 4 GB: `dagger_episodes`
-# asks for more.
+# episodes end sooner and a round records far fewer windows (results/bench/README.md), so
+# `dagger_episodes` may ask for more.
 LARGE_PANORAMA_DAGGER_EPISODES = 64
 
 @dataclass(frozen=True)
@@ -80,8 +81,9 @@ class Budget:
     # the paper preset's minival is 1,000 episodes, so it validates less often.
     val_every: int | None = None
     eval_batch: int = 2048  # evaluation lanes
-    # The CoNav policy's CNN dtype (PolicyConfig.conv_dtype): bfloat16 runs the 112x448 update
-    # 1.9x faster on an H100 (BENCHMARKS.md); float32 keeps the small runs' configs.
+    # The CoNav policy's CNN dtype (PolicyConfig.conv_dtype): bfloat16 halves the CNN's memory
+    # traffic and runs it on tensor cores, which speeds up the large panoramas' update
+    # (BENCHMARKS.md, "Training updates"); float32 keeps the small runs' configs.
     policy_conv_dtype: str = "float32"
     # The live trainer (train.live.LiveConfig): lanes, window steps and updates of every CoNav run,
     # its peak learning rate and warm-up; its DAgger row's beta falls linearly from 1 to the
@@ -113,14 +115,16 @@ BUDGETS = {
 class ReproduceConfig:
     """One `conav reproduce` run."""
 
-    out: Path
-    preset: str = "paper"
+    out: Path  # data, runs, evaluations, results and tables
+    preset: str = "paper"  # the dataset preset and its training budgets (BUDGETS)
     seeds: int = 3  # training seeds of every learned CoNav row
     resolution: tuple[int, int] = (112, 448)  # the panorama every agent reads (the paper's)
     data_seed: int = 0
     workers: int = 2  # dataset generation processes
-    # The expert's share in the DAgger rounds (ImitationConfig.dagger_beta): 0, the policy
-    # alone (runs/dagger_s*); any other value trains and evaluates runs of its own name beside them.
+    # The expert's share in the DAgger rounds (ImitationConfig.dagger_beta: it acts at a step of
+    # round r with probability dagger_beta**r); 0: the policy alone (runs/dagger_s*). Any other
+    # value trains and evaluates runs of its own name beside them (runs/dagger_betaP_s*), and the
+    # tables show every DAgger variant evaluated.
     dagger_beta: float = 0.0
     # DAgger rounds after BC (ImitationConfig.dagger_rounds); None: the preset's budget. Other
     # counts, like other shares, train and evaluate runs of their own name.
@@ -129,17 +133,26 @@ class ReproduceConfig:
     # resolution's default (LARGE_PANORAMA_DAGGER_EPISODES at >= 112x448, else all the policy's).
     # Another count, like other shares and rounds, trains and evaluates runs of its own name.
     dagger_episodes: int | None = None
-    # The CoNav policy's panorama encoder (models.policy.ENCODERS) in every BC and DAgger run;
-    # one OUT directory holds one encoder, as it holds one resolution. The default's configs are
-    # those of the runs in results/.
+    # The CoNav policy's panorama encoder (models.policy.ENCODERS) in every BC and DAgger run:
+    # the default's configs are those of the runs in results/; patch trains faster at large
+    # panoramas (BENCHMARKS.md). One OUT directory holds one encoder, as it holds one resolution.
     encoder: str = DEFAULT_ENCODER
-    # The intention predictor's training and inference options (IntentionDataConfig.mirror and
-    # .recolour, PerceiverConfig.seen_objects); off: the configs of the runs in results/.
+    # The intention predictor's training and inference options; off: the configs of the runs in
+    # results/.
+
+    # The intention predictor trains on frames mirrored half the time (IntentionDataConfig.mirror).
     mirror: bool = False
+    # The intention predictor trains on frames whose colours are redrawn for every sample and
+    # update (IntentionDataConfig.recolour).
     recolour: bool = False
+    # The intention predictor weighs activities by whether the robot's panoramas have shown their
+    # object (PerceiverConfig.seen_objects: oracle segmentation, listed as privileged).
     seen_objects: bool = False
-    # How the CoNav rows are trained (TRAINERS). "live" adds the ground-truth rows
-    # (GROUND_TRUTH_ROWS) to Table 3, and its DAgger row starts from scratch with a decaying beta.
+    # How the CoNav rows are trained (TRAINERS): "offline" (train.policy: recorded windows of a
+    # subset of the train episodes, BC then DAgger rounds) or "live" (train.live: the live
+    # simulator over every train episode; adds the ground-truth rows, GROUND_TRUTH_ROWS, to Table
+    # 3, and its DAgger row starts from scratch, beta falling from 1 to dagger_beta). One OUT
+    # directory holds one trainer.
     trainer: str = "offline"
     # The Table 3 rows to train and evaluate (empty: every one the trainer has, `all_rows`); the
     # tables list the others as not run.
@@ -147,13 +160,13 @@ class ReproduceConfig:
     # The intention predictor's schedule and the live trainer's budget where they are not the
     # preset's (None: Budget.intention_*, Budget.live_*): one OUT directory holds one budget, so
     # budgets compared on minival are OUT directories of their own.
-    intention_steps: int | None = None
-    intention_batch: int | None = None
-    intention_lr: float | None = None
-    live_lanes: int | None = None
-    live_window_steps: int | None = None
-    live_iterations: int | None = None
-    live_lr: float | None = None
+    intention_steps: int | None = None  # the intention predictor's updates
+    intention_batch: int | None = None  # the intention predictor's samples per update
+    intention_lr: float | None = None  # the intention predictor's peak learning rate
+    live_lanes: int | None = None  # the live trainer's lanes
+    live_window_steps: int | None = None  # the live trainer's control steps per window
+    live_iterations: int | None = None  # the live trainer's updates
+    live_lr: float | None = None  # the live trainer's peak learning rate
     # The split every evaluation runs on: "val", the reported numbers, or "minival", where
     # budgets and variants are chosen (its evaluations, results and tables are files of their
     # own: `eval_dir`, `results_file`, `tables_file`; the runs are shared).

@@ -65,9 +65,9 @@ def add(sub) -> None:
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="all", help="intention inputs kept (Table 3 row; default all)")
     _add_imitation_args(p, "expert")
     p.add_argument("--remat", action="store_true",
-                   help="recompute the CNN per window step in the backward pass: less memory (float32 112x448 windows "
-                   "at batch >= 256 need it on an H100); slower at 32x128, about 2x faster at 112x448 with "
-                   "--conv-dtype bfloat16 (BENCHMARKS.md)")
+                   help="recompute the CNN per window step in the backward pass: less memory (large float32 "
+                   "panoramas at large batches need it), more compute: slower at small panoramas, faster at "
+                   "large ones with --conv-dtype bfloat16 (BENCHMARKS.md)")
     _add_network_args(p)
     p.add_argument("--train-intentions", choices=TRAIN_INTENTIONS, default=d.train_intentions,
                    help="intention inputs in the training data: ground truth (the paper) or the predictor runs' outputs")
@@ -161,8 +161,8 @@ def _add_network_args(p, visual_norm: bool | None = None) -> None:
                    "of the run's model: a run resumes only with the value it began with)")
     p.add_argument("--encoder", choices=sorted(ENCODERS), default=DEFAULT_ENCODER,
                    help="the policy's panorama CNN: conv, stride-2 convolutions (every published run and the shipped "
-                   "policy), or patch, whose first layer embeds 4x4 pixel blocks (1.9x the 112x448 update on a GPU; "
-                   "part of the run's model, BENCHMARKS.md)")
+                   "policy), or patch, whose first layer embeds 4x4 pixel blocks (a faster update at large "
+                   "panoramas, BENCHMARKS.md; part of the run's model)")
     p.add_argument("--visual-norm", action=argparse.BooleanOptionalAction, default=visual_norm,
                    help="layer-normalise the panorama's embedding before the LSTM: without it, large panoramas and "
                    "learning rates let the embedding grow until the policy ignores its inputs (default: "
