@@ -181,14 +181,14 @@ class PhysicsConfig:
     # Against a 30-iteration solve on random drives into walls: 3/4 iterations match exactly,
     # 2/4 within 1.4 mm; with friction even 4/8 was 2.8 mm off. Fewer rows and iterations make
     # the step cheaper: `conav bench sim --physics contact_condim=3 solver_iterations=4
-    # ls_iterations=8` times the frictional alternative.
+    # ls_iterations=8` times the frictional alternative (measured: results/bench/README.md).
     contact_condim: int = 1
     # Constraint solver budget per substep (MJX defaults to 100 / 50; three dofs need few).
     solver_iterations: int = 3
     ls_iterations: int = 4
     # Substeps unrolled per iteration of the substep scan (1: a rolled loop). Unrolling lets XLA
     # fuse across substeps, but where timed it ran no faster and compiled much longer;
-    # `conav bench sim --physics substep_unroll=N` times it.
+    # `conav bench sim --physics substep_unroll=N` times it (results/bench/README.md).
     substep_unroll: int = 1
     # MJX implementation: "jax" (XLA), "warp" (MuJoCo Warp kernels through JAX's FFI; needs
     # warp-lang, `pip install -e ".[warp]"`), or "auto": warp where warp-lang imports and the
