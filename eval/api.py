@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import re
 import weakref
 from pathlib import Path
 from typing import Any, NamedTuple, Sequence
@@ -25,7 +24,7 @@ from conav_jax.envs.config import env_settings
 from conav_jax.envs.agents.base import Agent, StateAgent, describe
 from conav_jax.envs.rollout import make_evaluator
 from conav_jax.eval.report import summarize_with_ci, table2_markdown
-from conav_jax.eval.sweep import episode_records, write_csv
+from conav_jax.eval.sweep import episode_records, file_stem, write_csv
 
 
 def make_env(data_dir: str | Path, split: str = "val", resolution: tuple[int, int] = (112, 448),
@@ -93,7 +92,7 @@ def evaluate(env: ConavEnv, agent: Agent | StateAgent, batch: int = 256, seed: i
 def _write(out: Path, env: ConavEnv, given: dict, records: list[dict], summary: dict, batch: int, seed: int) -> Path:
     """The row's files in `out`: its episodes CSV, metrics.json and report.md."""
     out.mkdir(parents=True, exist_ok=True)
-    key = re.sub(r"[^A-Za-z0-9_.-]+", "_", given["agent"])
+    key = file_stem(given["agent"])
     write_csv(out / f"episodes_{key}.csv", records)
     hw = f"{env.config.sensor.height}x{env.config.sensor.width}"
     rounded = {m: {k: round(v, 4) for k, v in e.items()} for m, e in summary.items()}

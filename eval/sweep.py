@@ -5,7 +5,7 @@ jitted evaluator (envs.rollout.make_evaluator: `batch` lanes, each taking the ne
 its own ends; with trace_first, so the longest episode's robot path for its map comes from the
 same compile) -> episodes_<agent>.csv, metrics.json
 (each metric with a 95% interval), report.md (the paper's Table 2, and Table 3 for ablation
-checkpoints), success_over_time.png and map_<agent>.png.
+checkpoints), success_over_time.png and map_<agent>.png, file names from file_stem.
 """
 
 from __future__ import annotations
@@ -26,6 +26,27 @@ from conav_jax.envs.agents.registry import AGENTS, check_agent
 from conav_jax.envs.config import env_settings
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")  # ablation names become file names
+_UNSAFE_RUN = re.compile(r"[^A-Za-z0-9_.-]+")
+
+
+def file_stem(name: str) -> str:
+    """The part of a row's file names (episodes_<stem>.csv, map_<stem>.png) its name gives:
+    letters, digits, '.', '_' and '-' only, so the files open anywhere. A user's
+    'package.module:factory' becomes 'package.module.factory'; any other run of characters
+    outside the set becomes '_'. Different names can share a stem ('a.b:c' and 'a:b.c'):
+    plan_eval refuses to evaluate them together (_check_stems)."""
+    return _UNSAFE_RUN.sub("_", name.replace(":", "."))
+
+
+def _check_stems(keys: list[str]) -> None:
+    """ValueError when two of an evaluation's rows (agent names, ablation_<name>) would write
+    the same files; stems are compared ignoring case, as some file systems do."""
+    seen: dict[str, str] = {}
+    for key in keys:
+        other = seen.setdefault(file_stem(key).casefold(), key)
+        if other != key:
+            raise ValueError(f"EvalPlan.agents: {other!r} and {key!r} would both write episodes_{file_stem(key)}.csv; "
+                             "evaluate them separately")
 
 
 def _learned(name: str) -> bool:
@@ -122,6 +143,7 @@ def plan_eval(
             raise ValueError(f"ablation name {name!r} is given twice")
         names.add(name)
         check_agent("conav", run)
+    _check_stems([*agents, *(f"ablation_{n}" for n, _ in ablations)])
     if episodes is not None and episodes < 1:
         raise ValueError(f"EvalPlan.episodes must be at least 1, got {episodes}")
     if batch < 1:
@@ -408,10 +430,10 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
         title = given[key]["title"]
         results[key] = (title, metrics)
         summaries[key] = summarize_with_ci(metrics, seed=plan.seed)
-        write_csv(plan.out / f"episodes_{key}.csv", episode_records(env.split, metrics, given[key]))
+        write_csv(plan.out / f"episodes_{file_stem(key)}.csv", episode_records(env.split, metrics, given[key]))
         ep = {k: env.split.episodes[k][i] for k in ("root_xy", "phase", "goal_xy", "robot_start", "t_end")}
         start = np.asarray(ep["robot_start"])[None]
-        png = f"map_{key}.png"
+        png = f"map_{file_stem(key)}.png"
         plots.episode_map(
             env.split.scenes[int(env.split.episodes["scene_index"][i])],
             ep,
