@@ -51,7 +51,8 @@ class Results(NamedTuple):
     percent, AS in steps; 95% intervals as eval.report makes them); `records`: one dict per
     episode (the CSV rows of `conav eval`); `metrics`: the env's final metrics, arrays over
     episodes (with "episode", the bank index); `agent`: the row's description (title with its
-    privileged inputs, intention source); `out_dir`: where the files went, or None."""
+    privileged inputs, intention source, observation keys read); `out_dir`: where the files
+    went, or None."""
 
     summary: dict[str, dict[str, float]]
     records: list[dict]

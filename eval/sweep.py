@@ -445,12 +445,13 @@ def _report_md(doc: dict, agents: Sequence[Row], ablations: Sequence[Row], maps:
         "",
         "What each row was given (privileged inputs are what a robot with the paper's sensors lacks):",
         "",
-        "| row | intention inputs | privileged inputs |",
-        "|---|---|---|",
+        "| row | intention inputs | privileged inputs | observation keys read |",
+        "|---|---|---|---|",
     ]
     for row in (*agents, *ablations):
         g = row.given
-        lines.append(f"| {g['title']} | {g['intention_source']} | {', '.join(g['privileged']) or 'none'} |")
+        reads = ", ".join(f"`{k}`" for k in g["reads"]) or "none"
+        lines.append(f"| {g['title']} | {g['intention_source']} | {', '.join(g['privileged']) or 'none'} | {reads} |")
     lines.append("")
     if ablations:
         table3 = table3_markdown([(row.given["title"], tuple(row.given["inputs"].values()), row.summary) for row in ablations])
