@@ -4,28 +4,25 @@
 obs) -> carry`, `act(carry, obs, key) -> (carry, action)`, the observation keys it reads and the
 privileged inputs it declares: envs.agents.base) -> `evaluate(env, agent)` runs every episode
 once (envs.rollout.evaluate) -> `Results`: per-episode records, the summary with 95% intervals
-(eval.report), and with `out_dir` the files `conav eval` writes for a row (episodes CSV,
-metrics.json, report.md with the paper's Table 2).
+(eval.report), and with `out_dir` the files `conav eval` writes, by its own writer
+(eval.sweep.write_results: episodes CSV, map, metrics.json, report.md with the paper's Table 2
+and what the row was given).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
-import re
 import weakref
 from pathlib import Path
 from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from conav_jax.provenance import provenance
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
-from conav_jax.envs.config import env_settings
 from conav_jax.envs.agents.base import Agent, StateAgent, describe
 from conav_jax.envs.rollout import make_evaluator
-from conav_jax.eval.report import summarize_with_ci, table2_markdown
-from conav_jax.eval.sweep import episode_records, write_csv
+from conav_jax.eval.report import summarize_with_ci
+from conav_jax.eval.sweep import Row, episode_records, write_results
 
 
 def make_env(data_dir: str | Path, split: str = "val", resolution: tuple[int, int] = (112, 448),
@@ -54,7 +51,8 @@ class Results(NamedTuple):
     percent, AS in steps; 95% intervals as eval.report makes them); `records`: one dict per
     episode (the CSV rows of `conav eval`); `metrics`: the env's final metrics, arrays over
     episodes (with "episode", the bank index); `agent`: the row's description (title with its
-    privileged inputs, intention source); `out_dir`: where the files went, or None."""
+    privileged inputs, intention source, observation keys read); `out_dir`: where the files
+    went, or None."""
 
     summary: dict[str, dict[str, float]]
     records: list[dict]
@@ -68,10 +66,12 @@ def evaluate(env: ConavEnv, agent: Agent | StateAgent, batch: int = 256, seed: i
     """Run `agent` once on each episode of `env` (all, the first `episodes` when an int, or the
     given indices) on `batch` parallel lanes, keys from `seed` and the episode alone (the
     numbers do not depend on the batch or device count; `mesh`: conav_jax.parallel.make_mesh),
-    and summarise. With `out_dir`, write `episodes_<name>.csv`, `metrics.json` and `report.md`
-    there. The same agent evaluated again on `env` reuses the compiled rollout. ValueError for
-    an env whose episodes end at the first reach (the benchmark runs them
-    to the human's end of activity B) or for an agent whose declarations do not hold."""
+    and summarise. With `out_dir`, write there the files `conav eval` writes, by the same
+    writer (eval.sweep.write_results): `episodes_<name>.csv`, `map_<name>.png` (name through
+    eval.sweep.file_stem), `success_over_time.png`, `metrics.json` and `report.md`. The same
+    agent evaluated again on `env` reuses the compiled rollout. ValueError for an env whose
+    episodes end at the first reach (the benchmark runs them to the human's end of activity B)
+    or for an agent whose declarations do not hold."""
     if env.config.end_at_reach:
         raise ValueError("the benchmark runs episodes to t_end: build the env with end_at_reach=False")
     if not isinstance(agent, (Agent, StateAgent)):
@@ -81,32 +81,13 @@ def evaluate(env: ConavEnv, agent: Agent | StateAgent, batch: int = 256, seed: i
         episodes = np.arange(min(int(episodes), env.num_episodes))
     per_env = _EVALUATORS.setdefault(env, {})
     if (agent, batch, seed, mesh) not in per_env:
-        per_env[agent, batch, seed, mesh] = make_evaluator(env, lambda _: agent, batch, seed, mesh)
-    metrics = per_env[agent, batch, seed, mesh](None, None if episodes is None else np.asarray(episodes))
+        # trace_first: the longest episode's robot path, for the map the files hold, from the same compile.
+        per_env[agent, batch, seed, mesh] = make_evaluator(env, lambda _: agent, batch, seed, mesh, trace_first=True)
+    metrics, first, trace = per_env[agent, batch, seed, mesh](None, None if episodes is None else np.asarray(episodes))
     given = describe(agent)
-    records = episode_records(env.split, metrics, given)
     summary = summarize_with_ci(metrics, seed=seed)
-    out = None if out_dir is None else _write(Path(out_dir), env, given, records, summary, batch, seed)
-    return Results(summary, records, metrics, given, out)
-
-
-def _write(out: Path, env: ConavEnv, given: dict, records: list[dict], summary: dict, batch: int, seed: int) -> Path:
-    """The row's files in `out`: its episodes CSV, metrics.json and report.md."""
-    out.mkdir(parents=True, exist_ok=True)
-    key = re.sub(r"[^A-Za-z0-9_.-]+", "_", given["agent"])
-    write_csv(out / f"episodes_{key}.csv", records)
-    hw = f"{env.config.sensor.height}x{env.config.sensor.width}"
-    rounded = {m: {k: round(v, 4) for k, v in e.items()} for m, e in summary.items()}
-    doc = {"split": env.split.name, "episodes": len(records), "seed": seed, "batch": batch, "resolution": hw,
-           "provenance": provenance(**env_settings(env.config)), "agents": {key: {**given, "metrics": rounded}}}
-    (out / "metrics.json").write_text(json.dumps(doc, indent=1) + "\n")
-    privileged = ", ".join(given["privileged"]) or "none"
-    (out / "report.md").write_text("\n".join([
-        "# CoNav evaluation", "",
-        f"{len(records)} episodes (each run to the human's end of activity B); seed {seed}, batch {batch}, "
-        f"panorama {hw}.", "",
-        "## Agents (paper Table 2)", "",
-        table2_markdown([(given["title"], summary)]),
-        f"Intention inputs: {given['intention_source']}; privileged inputs: {privileged}. Rates and SPLs in "
-        "percent, AS in steps; `±` is half the width of the 95% interval (exact bounds in metrics.json).", ""]))
-    return out
+    out = None if out_dir is None else Path(out_dir)
+    if out is not None:
+        row = Row(agent.name, given, metrics, summary, int(first), np.asarray(trace.robot_pose))
+        write_results(out, env, seed, batch, [row])
+    return Results(summary, episode_records(env.split, metrics, given), metrics, given, out)

@@ -3,9 +3,9 @@
 args -> validated plan (data, agents, checkpoints; nothing compiled yet) -> env -> per agent one
 jitted evaluator (envs.rollout.make_evaluator: `batch` lanes, each taking the next episode when
 its own ends; with trace_first, so the longest episode's robot path for its map comes from the
-same compile) -> episodes_<agent>.csv, metrics.json
-(each metric with a 95% interval), report.md (the paper's Table 2, and Table 3 for ablation
-checkpoints), success_over_time.png and map_<agent>.png.
+same compile) -> write_results, which conav_jax.evaluate shares: episodes_<agent>.csv,
+metrics.json (each metric with a 95% interval), report.md (the paper's Table 2, and Table 3 for
+ablation checkpoints), success_over_time.png and map_<agent>.png, file names from file_stem.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -26,6 +26,27 @@ from conav_jax.envs.agents.registry import AGENTS, check_agent
 from conav_jax.envs.config import env_settings
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")  # ablation names become file names
+_UNSAFE_RUN = re.compile(r"[^A-Za-z0-9_.-]+")
+
+
+def file_stem(name: str) -> str:
+    """The part of a row's file names (episodes_<stem>.csv, map_<stem>.png) its name gives:
+    letters, digits, '.', '_' and '-' only, so the files open anywhere. A user's
+    'package.module:factory' becomes 'package.module.factory'; any other run of characters
+    outside the set becomes '_'. Different names can share a stem ('a.b:c' and 'a:b.c'):
+    plan_eval refuses to evaluate them together (_check_stems)."""
+    return _UNSAFE_RUN.sub("_", name.replace(":", "."))
+
+
+def _check_stems(keys: list[str]) -> None:
+    """ValueError when two of an evaluation's rows (agent names, ablation_<name>) would write
+    the same files; stems are compared ignoring case, as some file systems do."""
+    seen: dict[str, str] = {}
+    for key in keys:
+        other = seen.setdefault(file_stem(key).casefold(), key)
+        if other != key:
+            raise ValueError(f"EvalPlan.agents: {other!r} and {key!r} would both write episodes_{file_stem(key)}.csv; "
+                             "evaluate them separately")
 
 
 def _learned(name: str) -> bool:
@@ -122,6 +143,7 @@ def plan_eval(
             raise ValueError(f"ablation name {name!r} is given twice")
         names.add(name)
         check_agent("conav", run)
+    _check_stems([*agents, *(f"ablation_{n}" for n, _ in ablations)])
     if episodes is not None and episodes < 1:
         raise ValueError(f"EvalPlan.episodes must be at least 1, got {episodes}")
     if batch < 1:
@@ -325,18 +347,96 @@ def _rounded(summary: dict) -> dict:
     return {m: {k: round(v, 4) for k, v in entry.items()} for m, entry in summary.items()}
 
 
-def _report_md(plan: EvalPlan, n: int, table2: str, table3: str | None, given: list[dict],
-               maps: list[tuple[str, str]]) -> str:
-    h, w = plan.resolution
+class Row(NamedTuple):
+    """One evaluated row of a report. `key` names it in metrics.json (an agent name, or
+    ablation_<name>) and, through file_stem, its files; `given`: what it was given
+    (envs.agents.base.describe, with a trained agent's `trained` and an ablation's `run` and
+    `inputs`); `metrics`: the env's final metrics over episodes; `summary`: summarize_with_ci's;
+    `first`: the episode its map draws (the longest); `path`: the robot's poses (steps, 3) in it."""
+
+    key: str
+    given: dict
+    metrics: dict
+    summary: dict
+    first: int
+    path: np.ndarray
+
+
+def write_results(out: Path, env, seed: int, batch: int, agents: Sequence[Row], ablations: Sequence[Row] = ()) -> dict:
+    """Every file of an evaluation on `env` (rollout keys from `seed`, `batch` lanes), written
+    the same way for `conav eval` (sweep) and conav_jax.evaluate, so one agent gets one document
+    from either: per row episodes_<stem>.csv and map_<stem>.png (file_stem), success_over_time.png,
+    metrics.json (the data, its content hash, the setting, the env's provenance, each row's
+    description and metrics with exact 95% bounds) and report.md (Table 2 of `agents`, Table 3
+    of `ablations`, what each row was given). Returns the metrics.json content."""
+    from conav_jax.eval import plots
+
+    out.mkdir(parents=True, exist_ok=True)
+    rows = [*agents, *ablations]
+    maps = []
+    for row in rows:
+        write_csv(out / f"episodes_{file_stem(row.key)}.csv", episode_records(env.split, row.metrics, row.given))
+        maps.append((row.given["title"], _draw_map(out, env, row)))
+    plots.success_over_time({row.given["title"]: row.metrics for row in rows}, out / "success_over_time.png")
+    h, w = env.config.sensor.resolution
+    doc = {
+        "data": env.split.data_dir,
+        "content_hash": env.split.content_hash,
+        "split": env.split.name,
+        "episodes": len(rows[0].metrics["episode"]),
+        "seed": seed,
+        "batch": batch,
+        "resolution": f"{h}x{w}",
+        "materials": env.config.sensor.materials,
+        "provenance": provenance(**env_settings(env.config)),
+        "agents": {row.key: {**row.given, "metrics": _rounded(row.summary)} for row in agents},
+        "ablations": {row.key: {**row.given, "metrics": _rounded(row.summary)} for row in ablations},
+    }
+    (out / "metrics.json").write_text(json.dumps(doc, indent=1) + "\n")
+    (out / "report.md").write_text(_report_md(doc, agents, ablations, maps))
+    return doc
+
+
+def _draw_map(out: Path, env, row: Row) -> str:
+    """map_<stem>.png in `out`: the robot's path in `row`'s drawn episode over its scene, the
+    human's walk and the goal; returns the file's name."""
+    from conav_jax.eval import plots
+
+    i = row.first
+    j = int(np.flatnonzero(row.metrics["episode"] == i)[0])
+    ep = {k: env.split.episodes[k][i] for k in ("root_xy", "phase", "goal_xy", "robot_start", "t_end")}
+    png = f"map_{file_stem(row.key)}.png"
+    plots.episode_map(
+        env.split.scenes[int(env.split.episodes["scene_index"][i])],
+        ep,
+        np.concatenate([np.asarray(ep["robot_start"])[None], row.path]),
+        out / png,
+        success_radius_m=env.task.success_radius_m,
+        robot_height_m=env.task.robot_height_m,
+        title=f"{row.given['title']}: episode {i}, t_reach {int(row.metrics['t_reach'][j])}, "
+              f"human arrives {int(row.metrics['t_arrive'][j])}",
+    )
+    return png
+
+
+def _report_md(doc: dict, agents: Sequence[Row], ablations: Sequence[Row], maps: list[tuple[str, str]]) -> str:
+    """report.md of an evaluation: its setting (from `doc`, the metrics.json content), Table 2
+    of `agents`, what each row was given, Table 3 of `ablations` and the figures `maps`."""
+    from conav_jax.eval.report import table2_markdown, table3_markdown
+
+    if doc["data"] is not None and doc["content_hash"] is not None:
+        source = f"Data `{doc['data']}` (content hash {doc['content_hash'][:16]})"
+    else:
+        source = "Episodes made in memory (no dataset directory or content hash)"
     lines = [
         "# CoNav evaluation",
         "",
-        f"Data `{plan.data}` (content hash {plan.content_hash[:16]}), split `{plan.split}`, {n} episodes "
-        f"(each run to the human's end of activity B); seed {plan.seed}, batch {plan.batch}, panorama {h}x{w}.",
+        f"{source}, split `{doc['split']}`, {doc['episodes']} episodes (each run to the human's end of activity B); "
+        f"seed {doc['seed']}, batch {doc['batch']}, panorama {doc['resolution']}.",
         "",
         "## Agents (paper Table 2)",
         "",
-        table2,
+        table2_markdown([(row.given["title"], row.summary) for row in agents]),
         "Rates and SPLs in percent, AS in steps (0.1 s). FASPL/RASPL weigh success by the paper's "
         "l / max(l, p) in control steps; FASPL_m/RASPL_m by metres. CR counts contacts up to the "
         "first reach (the paper's), CR_full up to the human's end of activity B. `±` is half the "
@@ -345,13 +445,16 @@ def _report_md(plan: EvalPlan, n: int, table2: str, table3: str | None, given: l
         "",
         "What each row was given (privileged inputs are what a robot with the paper's sensors lacks):",
         "",
-        "| row | intention inputs | privileged inputs |",
-        "|---|---|---|",
+        "| row | intention inputs | privileged inputs | observation keys read |",
+        "|---|---|---|---|",
     ]
-    for g in given:
-        lines.append(f"| {g['title']} | {g['intention_source']} | {', '.join(g['privileged']) or 'none'} |")
+    for row in (*agents, *ablations):
+        g = row.given
+        reads = ", ".join(f"`{k}`" for k in g["reads"]) or "none"
+        lines.append(f"| {g['title']} | {g['intention_source']} | {', '.join(g['privileged']) or 'none'} | {reads} |")
     lines.append("")
-    if table3 is not None:
+    if ablations:
+        table3 = table3_markdown([(row.given["title"], tuple(row.given["inputs"].values()), row.summary) for row in ablations])
         lines += ["## Ablations of the intention inputs (paper Table 3)", "", table3, "`?`: the run does not say which inputs it uses.", ""]
     lines += ["## Figures", "", "![success by step](success_over_time.png)", ""]
     lines += [f"![{title}: longest episode]({png})" for title, png in maps]
@@ -370,24 +473,23 @@ def run_eval(data: str | Path, split: str, agents: tuple[str, ...], out: str | P
 
 
 def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
-    """Evaluate every agent and ablation of `plan` on `env` and write all outputs to plan.out,
-    the lanes split over the devices of `mesh` (conav_jax.parallel.make_mesh; None: one
-    device), with a progress bar over the agents if `progress`. Returns the metrics.json content."""
+    """Evaluate every agent and ablation of `plan` on `env` and write all outputs to plan.out
+    (write_results), the lanes split over the devices of `mesh` (conav_jax.parallel.make_mesh;
+    None: one device), with a progress bar over the agents if `progress`. Returns the
+    metrics.json content."""
     from tqdm import tqdm
 
     from conav_jax.envs.agents.base import describe
-    from conav_jax.eval import plots
-    from conav_jax.eval.report import summarize_with_ci, table2_markdown, table3_markdown
+    from conav_jax.eval.report import summarize_with_ci
 
     if env.config.end_at_reach:
         raise ValueError("the benchmark runs episodes to t_end: build the env with EnvConfig(end_at_reach=False)")
-    plan.out.mkdir(parents=True, exist_ok=True)
     episodes = np.arange(env.num_episodes)
     runs = [(name, name, plan.checkpoint_of(name)) for name in plan.agents]
     runs += [(f"ablation_{n}", "conav", run) for n, run in plan.ablations]
     built = build_evaluators(env, [(name, ckpt, plan.intention_kwargs if _reads_intentions(name) else {})
                                    for _, name, ckpt in runs], plan.batch, plan.seed, mesh)
-    results, summaries, given, maps = {}, {}, {}, []
+    rows = {}
     # A run listed twice (Table 3's all-inputs row is usually the agent itself) is swept once:
     # keys are per episode, so a second sweep would give the same numbers.
     swept = {}
@@ -397,58 +499,17 @@ def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
         bar.set_postfix_str(f"{key} ({len(episodes)} episodes, {'as swept above' if same in swept else 'compile + run'})")
         if same not in swept:
             swept[same] = evaluator(episodes)
-        metrics, i, first_path = swept[same]
-        j = int(np.flatnonzero(metrics["episode"] == i)[0])
+        metrics, first, path = swept[same]
         bar.update(1)
-        given[key] = describe(agent)
+        given = describe(agent)
         if ckpt is not None:
-            given[key]["trained"] = trained_with(ckpt)
-        if key.startswith("ablation_"):
-            given[key]["title"] = f"{key.removeprefix('ablation_')}: {given[key]['title']}"
-        title = given[key]["title"]
-        results[key] = (title, metrics)
-        summaries[key] = summarize_with_ci(metrics, seed=plan.seed)
-        write_csv(plan.out / f"episodes_{key}.csv", episode_records(env.split, metrics, given[key]))
-        ep = {k: env.split.episodes[k][i] for k in ("root_xy", "phase", "goal_xy", "robot_start", "t_end")}
-        start = np.asarray(ep["robot_start"])[None]
-        png = f"map_{key}.png"
-        plots.episode_map(
-            env.split.scenes[int(env.split.episodes["scene_index"][i])],
-            ep,
-            np.concatenate([start, first_path]),
-            plan.out / png,
-            success_radius_m=env.task.success_radius_m,
-            robot_height_m=env.task.robot_height_m,
-            title=f"{title}: episode {i}, t_reach {int(metrics['t_reach'][j])}, human arrives {int(metrics['t_arrive'][j])}",
-        )
-        maps.append((title, png))
+            given["trained"] = trained_with(ckpt)
+        rows[key] = Row(key, given, metrics, summarize_with_ci(metrics, seed=plan.seed), int(first), path)
     bar.close()
-    plots.success_over_time({t: m for t, m in results.values()}, plan.out / "success_over_time.png")
-
-    agent_keys = list(plan.agents)
-    ablation_keys = [f"ablation_{n}" for n, _ in plan.ablations]
-    flags = {f"ablation_{n}": ablation_flags(n, run) for n, run in plan.ablations}
-    table2 = table2_markdown([(results[k][0], summaries[k]) for k in agent_keys])
-    table3 = table3_markdown([(results[k][0], flags[k], summaries[k]) for k in ablation_keys]) if ablation_keys else None
-    h, w = plan.resolution
-    doc = {
-        "data": str(plan.data),
-        "content_hash": plan.content_hash,
-        "split": plan.split,
-        "episodes": int(env.num_episodes),
-        "seed": plan.seed,
-        "batch": plan.batch,
-        "resolution": f"{h}x{w}",
-        "materials": plan.materials,
-        "provenance": provenance(**env_settings(env.config)),
-        "agents": {k: {**given[k], "metrics": _rounded(summaries[k])} for k in agent_keys},
-        "ablations": {
-            k: {**given[k], "run": run, "inputs": dict(zip(("activity", "object", "trajectory"), flags[k])),
-                "metrics": _rounded(summaries[k])}
-            for k, (_, run) in zip(ablation_keys, plan.ablations)
-        },
-    }
-    (plan.out / "metrics.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (plan.out / "report.md").write_text(_report_md(plan, env.num_episodes, table2, table3,
-                                                   [given[k] for k in agent_keys + ablation_keys], maps))
-    return doc
+    for name, run in plan.ablations:
+        given = rows[f"ablation_{name}"].given
+        given["title"] = f"{name}: {given['title']}"
+        given["run"] = run
+        given["inputs"] = dict(zip(("activity", "object", "trajectory"), ablation_flags(name, run)))
+    return write_results(plan.out, env, plan.seed, plan.batch, [rows[k] for k in plan.agents],
+                         [rows[f"ablation_{n}"] for n, _ in plan.ablations])

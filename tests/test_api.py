@@ -3,6 +3,7 @@ an agent sees exactly the observation keys it declares (privileged ones only whe
 their input), ConavEnv.step takes velocities only, user agents load from "module:factory", and
 the API and the command line import beside a user's own `train.py`, `eval.py` and `envs/`."""
 
+import json
 import os
 import re
 import subprocess
@@ -62,6 +63,31 @@ def test_readme_snippet_evaluates_an_agent(tiny_data, tmp_path, capsys, monkeypa
     report = (tmp_path / "report.md").read_text()
     assert agent.title in report and "FASR" in report and (tmp_path / "metrics.json").exists()
     assert len((tmp_path / f"episodes_{agent.title}.csv").read_text().splitlines()) == env.num_episodes + 1
+    # The keys it reads (none declared: every sensor) are recorded with the row.
+    assert json.loads((tmp_path / "metrics.json").read_text())["agents"][agent.title]["reads"] == list(SENSOR_KEYS)
+    assert f"| {agent.title} | none | none | {', '.join(f'`{k}`' for k in SENSOR_KEYS)} |" in report
+
+
+def test_evaluate_writes_the_files_conav_eval_writes(tiny_data, tmp_path):
+    from conav_jax.eval.cli import main
+
+    cli, api = tmp_path / "cli", tmp_path / "api"
+    assert main(["--compile-cache", "off", "eval", "--data", str(tiny_data), "--agent", "pioneer-drive", "--episodes", "3",
+                 "--batch", "4", "--resolution", "8x32", "--seed", "1", "--out", str(cli)]) == 0
+    env = conav_jax.make_env(str(tiny_data), "val", resolution=(8, 32), max_episodes=3)
+    results = conav_jax.evaluate(env, make_agent("pioneer-drive", env), batch=4, seed=1, out_dir=api)
+    assert results.out_dir == api and results.agent["reads"] == ["human_history"]
+    files = sorted(p.name for p in cli.iterdir())
+    assert files == sorted(p.name for p in api.iterdir())
+    assert {"report.md", "metrics.json", "episodes_pioneer-drive.csv", "map_pioneer-drive.png"} <= set(files)
+    for name in ("report.md", "metrics.json", "episodes_pioneer-drive.csv"):
+        assert (api / name).read_text() == (cli / name).read_text(), name
+    doc = json.loads((api / "metrics.json").read_text())
+    assert doc["content_hash"] == env.split.content_hash and doc["agents"]["pioneer-drive"]["reads"] == ["human_history"]
+    report = (api / "report.md").read_text()
+    assert f"content hash {env.split.content_hash[:16]}" in report
+    assert "| Pioneer Agent, driving (candidate goal points + oracle map) | none | candidate goal points, oracle map | " \
+           "`human_history` |" in report
 
 
 def test_the_api_and_command_line_import_beside_a_users_own_modules(tmp_path):

@@ -4,6 +4,8 @@ determinism, and input errors raised before anything is compiled."""
 import csv
 import dataclasses
 import json
+import re
+import textwrap
 
 import numpy as np
 import pytest
@@ -117,8 +119,12 @@ def test_sweep_writes_records_metrics_report_and_figures(two_sweeps):
     m = entry["metrics"]
     for name, column in (("FASR", "FASR"), ("FASPL", "FASPL"), ("CR", "collided"), ("CR_full", "collided_full")):
         assert m[name]["value"] == pytest.approx(100 * np.mean([float(r[column]) for r in rows]), abs=1e-3), name
+    # ...and the observation keys each reads.
+    assert entry["reads"] == [] and doc["agents"]["pioneer"]["reads"] == ["human_history"]
     report = (out / "report.md").read_text()
     assert "| Object-goal planner (oracle goal category + oracle map) |" in report
+    assert "| Pioneer Agent (candidate goal points + pose set by an oracle pathfinder) | none | candidate goal points, " \
+           "pose set by an oracle pathfinder | `human_history` |" in report
     assert "| CR↓ | CR_full↓ |" in report and "![success by step](success_over_time.png)" in report
     assert (out / "map_objectgoal-planner.png").read_bytes()[:4] == b"\x89PNG"
 
@@ -181,6 +187,41 @@ def test_bad_input_fails_before_anything_is_built(tiny_data, tmp_path, monkeypat
     monkeypatch.setattr(sweep, "load_env", never)
     with pytest.raises(ValueError, match=message):
         run_eval(_args("--data", str(tiny_data), "--out", str(tmp_path / "o"), *argv))
+
+
+def test_a_user_agents_files_are_named_safely_and_record_what_it_reads(tiny_data, tmp_path, monkeypatch):
+    (tmp_path / "sweep_agents.py").write_text(textwrap.dedent("""
+        import jax.numpy as jnp
+        import conav_jax
+
+        def still():
+            return conav_jax.Agent("Standing still", lambda key, obs: (), lambda carry, obs, key: (carry, jnp.zeros(2)),
+                                   reads=("gps_compass", "human_pos"))
+    """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "o"
+    assert run_eval(_args("--data", str(tiny_data), "--agent", "sweep_agents:still", "--episodes", "2", "--batch", "2",
+                          "--resolution", "8x32", "--out", str(out))) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert all(re.fullmatch(r"[A-Za-z0-9_.-]+", n) for n in names), names
+    assert {"episodes_sweep_agents.still.csv", "map_sweep_agents.still.png"} <= set(names)
+    entry = json.loads((out / "metrics.json").read_text())["agents"]["sweep_agents:still"]
+    assert entry["title"] == "Standing still" and entry["reads"] == ["gps_compass", "human_pos"]
+    report = (out / "report.md").read_text()
+    assert "| Standing still | none | none | `gps_compass`, `human_pos` |" in report
+    assert "(map_sweep_agents.still.png)" in report
+
+
+def test_agents_whose_files_would_share_a_name_are_refused(tiny_data, tmp_path, monkeypatch):
+    assert sweep.file_stem("pkg.mod:make") == "pkg.mod.make" and sweep.file_stem("a b/c") == "a_b_c"
+    (tmp_path / "twin").mkdir()
+    (tmp_path / "twin" / "__init__.py").write_text("from . import mod\n")
+    (tmp_path / "twin" / "mod.py").write_text("def make():\n    return None\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    # Different factories' names, one file name: twin.mod.make.
+    with pytest.raises(ValueError, match="'twin.mod:make' and 'twin:mod.make' would both write episodes_twin.mod.make.csv"):
+        sweep.plan_eval(tiny_data, "val", ("twin.mod:make", "twin:mod.make"), tmp_path / "o")
+    sweep.plan_eval(tiny_data, "val", ("twin.mod:make", "random"), tmp_path / "o")  # distinct names pass
 
 
 def test_missing_dataset_is_a_clear_error(tmp_path):
