@@ -450,7 +450,7 @@ def _report_md(doc: dict, agents: Sequence[Row], ablations: Sequence[Row], maps:
     ]
     for row in (*agents, *ablations):
         g = row.given
-        reads = ", ".join(f"`{k}`" for k in g["reads"]) or "none"
+        reads = ", ".join([f"`{k}`" for k in g["reads"]] + (["the simulator's state"] if g.get("reads_state") else [])) or "none"
         lines.append(f"| {g['title']} | {g['intention_source']} | {', '.join(g['privileged']) or 'none'} | {reads} |")
     lines.append("")
     if ablations:

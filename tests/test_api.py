@@ -87,7 +87,7 @@ def test_evaluate_writes_the_files_conav_eval_writes(tiny_data, tmp_path):
     report = (api / "report.md").read_text()
     assert f"content hash {env.split.content_hash[:16]}" in report
     assert "| Pioneer Agent, driving (candidate goal points + oracle map) | none | candidate goal points, oracle map | " \
-           "`human_history` |" in report
+           "`human_history`, the simulator's state |" in report
 
 
 def test_the_api_and_command_line_import_beside_a_users_own_modules(tmp_path):

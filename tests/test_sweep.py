@@ -120,11 +120,14 @@ def test_sweep_writes_records_metrics_report_and_figures(two_sweeps):
     for name, column in (("FASR", "FASR"), ("FASPL", "FASPL"), ("CR", "collided"), ("CR_full", "collided_full")):
         assert m[name]["value"] == pytest.approx(100 * np.mean([float(r[column]) for r in rows]), abs=1e-3), name
     # ...and the observation keys each reads.
+    # (Scripted agents read the simulator's state, which the row says beside the keys.)
     assert entry["reads"] == [] and doc["agents"]["pioneer"]["reads"] == ["human_history"]
+    assert entry["reads_state"] and doc["agents"]["pioneer"]["reads_state"]
     report = (out / "report.md").read_text()
-    assert "| Object-goal planner (oracle goal category + oracle map) |" in report
+    assert "| Object-goal planner (oracle goal category + oracle map) | none | oracle goal category, oracle map | " \
+           "the simulator's state |" in report
     assert "| Pioneer Agent (candidate goal points + pose set by an oracle pathfinder) | none | candidate goal points, " \
-           "pose set by an oracle pathfinder | `human_history` |" in report
+           "pose set by an oracle pathfinder | `human_history`, the simulator's state |" in report
     assert "| CR↓ | CR_full↓ |" in report and "![success by step](success_over_time.png)" in report
     assert (out / "map_objectgoal-planner.png").read_bytes()[:4] == b"\x89PNG"
 
@@ -206,7 +209,7 @@ def test_a_user_agents_files_are_named_safely_and_record_what_it_reads(tiny_data
     assert all(re.fullmatch(r"[A-Za-z0-9_.-]+", n) for n in names), names
     assert {"episodes_sweep_agents.still.csv", "map_sweep_agents.still.png"} <= set(names)
     entry = json.loads((out / "metrics.json").read_text())["agents"]["sweep_agents:still"]
-    assert entry["title"] == "Standing still" and entry["reads"] == ["gps_compass", "human_pos"]
+    assert entry["title"] == "Standing still" and entry["reads"] == ["gps_compass", "human_pos"] and not entry["reads_state"]
     report = (out / "report.md").read_text()
     assert "| Standing still | none | none | `gps_compass`, `human_pos` |" in report
     assert "(map_sweep_agents.still.png)" in report

@@ -205,13 +205,15 @@ def row_title(agent: Agent | StateAgent) -> str:
 
 def describe(agent: Agent | StateAgent) -> dict:
     """What a results file records about a checked agent (Agent.check fills in its defaults):
-    name, row title, intention source, privileged inputs and the observation keys it reads (an
-    Agent's declared `reads`, the keys a StateAgent's State holds), so a row says what it was
-    given as well as how it did."""
+    name, row title, intention source, privileged inputs, the observation keys it reads (an
+    Agent's declared `reads`, the keys a StateAgent's State holds) and whether it reads the
+    simulator's state (a StateAgent: the scripted and goal-navigation agents, whose privileged
+    inputs say what of it they use), so a row says what it was given as well as how it did."""
     return {
         "agent": agent.name,
         "title": row_title(agent),
         "intention_source": agent.intention_source,
         "privileged": list(agent.privileged),
         "reads": list(agent.reads),
+        "reads_state": isinstance(agent, StateAgent),
     }
