@@ -1,4 +1,4 @@
-"""Confidence intervals and the Markdown tables of an evaluation (pure functions, no JAX).
+"""Confidence intervals, the Markdown tables and report.md of an evaluation (pure functions, no JAX).
 
 Per-episode results (the env's final metrics, envs.metrics) -> per-episode outcomes ->
 each metric's value with a 95% interval (Wilson for the rates FASR, RASR, CR; a seeded
@@ -107,4 +107,45 @@ def table3_markdown(
     for name, flags, summary in rows:
         marks = " | ".join(_mark(f) for f in flags)
         lines.append(f"| {name} | {marks} | " + " | ".join(format_cell(summary[m]) for m in cols) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def report_markdown(doc: dict, agents: Sequence, ablations: Sequence, maps: list[tuple[str, str]]) -> str:
+    """report.md of an evaluation: its setting (from `doc`, the metrics.json content), Table 2
+    of `agents`, what each row was given, Table 3 of `ablations` (rows as eval.sweep.Row: each
+    its `given` description and `summary`) and the figures `maps` ((title, png) each)."""
+    if doc["data"] is not None and doc["content_hash"] is not None:
+        source = f"Data `{doc['data']}` (content hash {doc['content_hash'][:16]})"
+    else:
+        source = "Episodes made in memory (no dataset directory or content hash)"
+    lines = [
+        "# CoNav evaluation",
+        "",
+        f"{source}, split `{doc['split']}`, {doc['episodes']} episodes (each run to the human's end of activity B); "
+        f"seed {doc['seed']}, batch {doc['batch']}, panorama {doc['resolution']}.",
+        "",
+        "## Agents (paper Table 2)",
+        "",
+        table2_markdown([(row.given["title"], row.summary) for row in agents]),
+        "Rates and SPLs in percent, AS in steps (0.1 s). FASPL/RASPL weigh success by the paper's "
+        "l / max(l, p) in control steps; FASPL_m/RASPL_m by metres. CR counts contacts up to the "
+        "first reach (the paper's), CR_full up to the human's end of activity B. `±` is half the "
+        "width of the 95% interval: Wilson for the rates, a percentile bootstrap (2000 resamples, "
+        "the run's seed) for the SPLs and AS; exact bounds in metrics.json.",
+        "",
+        "What each row was given (privileged inputs are what a robot with the paper's sensors lacks):",
+        "",
+        "| row | intention inputs | privileged inputs | observation keys read |",
+        "|---|---|---|---|",
+    ]
+    for row in (*agents, *ablations):
+        g = row.given
+        reads = ", ".join([f"`{k}`" for k in g["reads"]] + (["the simulator's state"] if g.get("reads_state") else [])) or "none"
+        lines.append(f"| {g['title']} | {g['intention_source']} | {', '.join(g['privileged']) or 'none'} | {reads} |")
+    lines.append("")
+    if ablations:
+        table3 = table3_markdown([(row.given["title"], tuple(row.given["inputs"].values()), row.summary) for row in ablations])
+        lines += ["## Ablations of the intention inputs (paper Table 3)", "", table3, "`?`: the run does not say which inputs it uses.", ""]
+    lines += ["## Figures", "", "![success by step](success_over_time.png)", ""]
+    lines += [f"![{title}: longest episode]({png})" for title, png in maps]
     return "\n".join(lines) + "\n"

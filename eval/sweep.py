@@ -370,6 +370,7 @@ def write_results(out: Path, env, seed: int, batch: int, agents: Sequence[Row], 
     description and metrics with exact 95% bounds) and report.md (Table 2 of `agents`, Table 3
     of `ablations`, what each row was given). Returns the metrics.json content."""
     from conav_jax.eval import plots
+    from conav_jax.eval.report import report_markdown
 
     out.mkdir(parents=True, exist_ok=True)
     rows = [*agents, *ablations]
@@ -393,7 +394,7 @@ def write_results(out: Path, env, seed: int, batch: int, agents: Sequence[Row], 
         "ablations": {row.key: {**row.given, "metrics": _rounded(row.summary)} for row in ablations},
     }
     (out / "metrics.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (out / "report.md").write_text(_report_md(doc, agents, ablations, maps))
+    (out / "report.md").write_text(report_markdown(doc, agents, ablations, maps))
     return doc
 
 
@@ -417,48 +418,6 @@ def _draw_map(out: Path, env, row: Row) -> str:
               f"human arrives {int(row.metrics['t_arrive'][j])}",
     )
     return png
-
-
-def _report_md(doc: dict, agents: Sequence[Row], ablations: Sequence[Row], maps: list[tuple[str, str]]) -> str:
-    """report.md of an evaluation: its setting (from `doc`, the metrics.json content), Table 2
-    of `agents`, what each row was given, Table 3 of `ablations` and the figures `maps`."""
-    from conav_jax.eval.report import table2_markdown, table3_markdown
-
-    if doc["data"] is not None and doc["content_hash"] is not None:
-        source = f"Data `{doc['data']}` (content hash {doc['content_hash'][:16]})"
-    else:
-        source = "Episodes made in memory (no dataset directory or content hash)"
-    lines = [
-        "# CoNav evaluation",
-        "",
-        f"{source}, split `{doc['split']}`, {doc['episodes']} episodes (each run to the human's end of activity B); "
-        f"seed {doc['seed']}, batch {doc['batch']}, panorama {doc['resolution']}.",
-        "",
-        "## Agents (paper Table 2)",
-        "",
-        table2_markdown([(row.given["title"], row.summary) for row in agents]),
-        "Rates and SPLs in percent, AS in steps (0.1 s). FASPL/RASPL weigh success by the paper's "
-        "l / max(l, p) in control steps; FASPL_m/RASPL_m by metres. CR counts contacts up to the "
-        "first reach (the paper's), CR_full up to the human's end of activity B. `±` is half the "
-        "width of the 95% interval: Wilson for the rates, a percentile bootstrap (2000 resamples, "
-        "the run's seed) for the SPLs and AS; exact bounds in metrics.json.",
-        "",
-        "What each row was given (privileged inputs are what a robot with the paper's sensors lacks):",
-        "",
-        "| row | intention inputs | privileged inputs | observation keys read |",
-        "|---|---|---|---|",
-    ]
-    for row in (*agents, *ablations):
-        g = row.given
-        reads = ", ".join([f"`{k}`" for k in g["reads"]] + (["the simulator's state"] if g.get("reads_state") else [])) or "none"
-        lines.append(f"| {g['title']} | {g['intention_source']} | {', '.join(g['privileged']) or 'none'} | {reads} |")
-    lines.append("")
-    if ablations:
-        table3 = table3_markdown([(row.given["title"], tuple(row.given["inputs"].values()), row.summary) for row in ablations])
-        lines += ["## Ablations of the intention inputs (paper Table 3)", "", table3, "`?`: the run does not say which inputs it uses.", ""]
-    lines += ["## Figures", "", "![success by step](success_over_time.png)", ""]
-    lines += [f"![{title}: longest episode]({png})" for title, png in maps]
-    return "\n".join(lines) + "\n"
 
 
 def run_eval(data: str | Path, split: str, agents: tuple[str, ...], out: str | Path, progress: bool = False,
