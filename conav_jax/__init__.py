@@ -24,6 +24,14 @@ The public names (loaded on first use, so `import conav_jax.data` stays light):
   `observation_shapes(env.config)` its shapes for an env. Privileged keys reach only agents
   that declare their privileged input.
 
+Trainers take envs and configs, and write a run directory (checkpoints, log.jsonl) that the
+agents load: `conav_jax.train.live.train_live(env, policy_config, live_config, out_dir, intention,
+trajectory)` (the CoNav policy imitating the expert live), `train.policy.train_policy`,
+`train.intention.train_intention`, `train.trajectory.train_trajectory`,
+`train.goalnav.train_objectnav` / `train_imagenav` and `train.ppo.train_ppo` (each `(train_env,
+val_env, run_dir, config, ...)`); each has a `..._from_data(data_dir, ...)` twin that builds the
+envs as the `conav train` command does.
+
 The package itself holds the data side (scenes, activities, motion, episodes, planning) and
 the pure-JAX learning stack (nn, models, optim, checkpoints). Data flows one way: `conav_jax`
 <- `conav_jax.envs` (MJX simulator, sensors) <- `conav_jax.train`, `conav_jax.eval`; only the
