@@ -80,14 +80,18 @@ def evaluate(env: ConavEnv, agent: Agent | StateAgent, batch: int = 256, seed: i
     if isinstance(episodes, (int, np.integer)):
         episodes = np.arange(min(int(episodes), env.num_episodes))
     per_env = _EVALUATORS.setdefault(env, {})
-    if (agent, batch, seed, mesh) not in per_env:
-        # trace_first: the longest episode's robot path, for the map the files hold, from the same compile.
-        per_env[agent, batch, seed, mesh] = make_evaluator(env, lambda _: agent, batch, seed, mesh, trace_first=True)
-    metrics, first, trace = per_env[agent, batch, seed, mesh](None, None if episodes is None else np.asarray(episodes))
+    # With files to write, the longest episode's robot path (for the map) from the same compile;
+    # without, no trace is recorded.
+    traced = out_dir is not None
+    if (agent, batch, seed, mesh, traced) not in per_env:
+        per_env[agent, batch, seed, mesh, traced] = make_evaluator(env, lambda _: agent, batch, seed, mesh,
+                                                                   trace_first=traced)
+    result = per_env[agent, batch, seed, mesh, traced](None, None if episodes is None else np.asarray(episodes))
+    metrics = result[0] if traced else result
     given = describe(agent)
     summary = summarize_with_ci(metrics, seed=seed)
     out = None if out_dir is None else Path(out_dir)
     if out is not None:
-        row = Row(agent.name, given, metrics, summary, int(first), np.asarray(trace.robot_pose))
-        write_results(out, env, seed, batch, [row])
+        _, first, trace = result
+        write_results(out, env, seed, batch, [Row(agent.name, given, metrics, summary, int(first), np.asarray(trace.robot_pose))])
     return Results(summary, episode_records(env.split, metrics, given), metrics, given, out)

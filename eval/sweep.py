@@ -26,7 +26,7 @@ from conav_jax.envs.agents.registry import AGENTS, check_agent
 from conav_jax.envs.config import env_settings
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")  # ablation names become file names
-_UNSAFE_RUN = re.compile(r"[^A-Za-z0-9_.-]+")
+_UNSAFE_FILE_CHARS = re.compile(r"[^A-Za-z0-9_.-]+")
 
 
 def file_stem(name: str) -> str:
@@ -35,7 +35,7 @@ def file_stem(name: str) -> str:
     'package.module:factory' becomes 'package.module.factory'; any other run of characters
     outside the set becomes '_'. Different names can share a stem ('a.b:c' and 'a:b.c'):
     plan_eval refuses to evaluate them together (_check_stems)."""
-    return _UNSAFE_RUN.sub("_", name.replace(":", "."))
+    return _UNSAFE_FILE_CHARS.sub("_", name.replace(":", "."))
 
 
 def _check_stems(keys: list[str]) -> None:
