@@ -131,7 +131,8 @@ def test_the_patch_encoder_reaches_every_policy_run_and_the_tables_name_it(tmp_p
     patch = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="small", seeds=1,
                                                                   encoder="patch"))}
     policy_runs = [s for name in ("baselines", "bc", "dagger") for s in _trained(patch[name])]
-    assert len(policy_runs) == 2 + len(rp.ABLATIONS) + 1  # the learned baselines' CNN is the policy's
+    # the learned baselines (each of its three seeds) share the policy's CNN
+    assert len(policy_runs) == 2 * 3 + len(rp.ABLATIONS) + 1
     for step in policy_runs:
         assert _model(step).conv_strides == (4, 2, 2)
     # Nothing else changes: the default's configs are those of the published runs.
@@ -265,6 +266,42 @@ def test_a_seed_without_its_dagger_run_adds_to_the_bc_rows_only_and_the_tables_s
         made.unlink()
     with pytest.raises(FileNotFoundError, match="no evaluation under"):
         rt.collect_results(tmp_path, 2, {"seeds": 2})
+
+
+def test_each_learned_baseline_trains_and_is_tabulated_over_its_own_seeds(tmp_path):
+    runs, evals = tmp_path / "runs", tmp_path / "eval"
+    plan = {s.name: s for s in rp.plan_stages(rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=1,
+                                                                 baseline_seeds=3))}
+    trained = [(s.call.kind, _kw(s)["run_dir"], _kw(s)["cfg"].seed, s.seed) for s in plan["baselines"].steps]
+    # Seed 0 keeps the names OUT directories made with one seed have, so they continue as they are.
+    assert trained == [(f"train {k}", str(runs / (k if s == 0 else f"{k}_s{s}")), s, s)
+                       for s in range(3) for k in ("objectnav", "imagenav")]
+    baseline_evals = {_kw(s)["out"]: (_kw(s)["checkpoint"], s.seed) for s in plan["eval"].steps
+                      if _kw(s)["agents"][0] in rp.LEARNED_BASELINES}
+    assert baseline_evals[str(evals / "imagegoal_s2")] == (str(runs / "imagenav_s2"), 2)
+    assert baseline_evals[str(evals / "objectgoal-predicted")] == (str(runs / "objectnav"), 0)
+    assert len(baseline_evals) == 9 and str(evals / "objectgoal-oracle_s1") in baseline_evals
+    with pytest.raises(ValueError, match="ReproduceConfig.baseline_seeds must be at least 1"):
+        rp.ReproduceConfig(out=tmp_path, baseline_seeds=0)
+
+    _write_eval(evals / "scripted", _eval_doc({"random": (1, 2, 3, 4, 5, 6)}))
+    _write_eval(evals / rp.BC_ROW_EVAL.format(row="all", seed=0), _eval_doc({"conav": (10, 20, 5, 6, 30, 100)}))
+    for s, fasr in ((0, 10), (1, 20), (2, 30)):
+        _write_eval(evals / rp.baseline_name("objectgoal-oracle", s),
+                    _eval_doc({"objectgoal-oracle": (fasr, 40, 5, 6, 30, 100)}))
+    _write_eval(evals / "imagegoal_s1", _eval_doc({"imagegoal": (7, 8, 5, 6, 30, 100)}))
+    results = rt.collect_results(tmp_path, 1, {"seeds": 1, "baseline_seeds": 3}, baseline_seeds=3)
+    assert set(results["agents"]["objectgoal-oracle"]["seeds"]) == {"0", "1", "2"}
+    assert {"eval/imagegoal", "eval/imagegoal_s2", "eval/objectgoal-predicted_s1"} <= set(results["missing"])
+    lines = rt.render_tables(results).splitlines()
+    # mean 20, sd 10, t(0.975, 2 df) = 4.303: 20 ± 4.303 * 10 / sqrt(3) = 20 ± 24.8
+    assert any(line.startswith("| T objectgoal-oracle | oracle map | ours | 20.0 ± 10.0 [-4.8, 44.8] (n=3) |")
+               for line in lines)
+    assert any(line.startswith("| T imagegoal | oracle map | ours (seed 1 of 3) | 7.0 (1 seed) |") for line in lines)
+    assert "| objectgoal-predicted | | not run yet | - | - | - | - | - | - | - |" in lines
+    # Results made with one baseline seed read as before.
+    one = rt.collect_results(tmp_path, 1, {"seeds": 1})
+    assert set(one["agents"]["objectgoal-oracle"]["seeds"]) == {"0"} and "eval/imagegoal_s1" not in one["missing"]
 
 
 def test_dagger_with_the_expert_mixed_in_runs_under_its_own_name_and_the_tables_show_every_variant(tmp_path):

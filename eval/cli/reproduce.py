@@ -22,7 +22,8 @@ def add(sub) -> None:
 
     p = sub.add_parser(
         "reproduce", help="the paper's Tables 2 and 3: every stage from data to tables, resumable",
-        description="Generate the data, train the predictors, the learned baselines and every CoNav row "
+        description="Generate the data, train the predictors, the learned baselines (--baseline-seeds seeds "
+        "each) and every CoNav row "
         "(Table 3's five intention ablations and DAgger, each for --seeds seeds), evaluate every agent on the "
         "val split and write results.json and tables.md. Stages already done are skipped; a stage cut short "
         "resumes where it stopped (every training run resumes from its checkpoints).")
@@ -32,7 +33,7 @@ def add(sub) -> None:
                    help="run only this stage (repeat for several, run in the plan's order; default: every stage not "
                    "done); a step whose runs are not trained yet waits, and the stage stays to run")
     p.add_argument("--seed", type=int, default=None, metavar="S",
-                   help="run only training seed S's steps of the bc, dagger and eval stages (each BC run is "
+                   help="run only training seed S's steps of the baselines, bc, dagger and eval stages (each BC run is "
                         "evaluated as soon as it has trained; an evaluation of a run not trained yet waits): a machine "
                         "with the time for one seed leaves it finished, and its pack small; a stage is done once "
                         "every seed's steps are")
@@ -199,13 +200,15 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                   "its steps done") + f"; {len(left)} of the stage's {len(st.steps)} to run", flush=True)
             continue
         if st.name == "tables":
-            extra = {"preset": cfg.preset, "seeds": cfg.seeds, "resolution": rp.resolution_name(cfg),
+            extra = {"preset": cfg.preset, "seeds": cfg.seeds, "baseline_seeds": cfg.baseline_seeds,
+                     "resolution": rp.resolution_name(cfg),
                      "encoder": cfg.encoder, "trainer": cfg.trainer, "split": cfg.eval_split,
                      "commit": commit, "command": "conav " + shlex.join(sys.argv[1:] or ["reproduce"]),
                      "stage_seconds": rpp.stage_seconds(plan, progress), "command_seconds": progress["commands"],
                      "cut_seconds": progress.get("cut", {})}
             # FileNotFoundError without any evaluation
-            results = rt.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger, cfg.table3_rows, cfg.eval_dir)
+            results = rt.collect_results(cfg.out, cfg.seeds, extra, cfg.dagger, cfg.table3_rows, cfg.eval_dir,
+                                         cfg.baseline_seeds)
             (cfg.out / cfg.results_file).write_text(json.dumps(results, indent=1) + "\n")
             (cfg.out / cfg.tables_file).write_text(rt.render_tables(results))
         if st.name == "pack":

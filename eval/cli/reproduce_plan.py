@@ -118,6 +118,10 @@ class ReproduceConfig:
     out: Path  # data, runs, evaluations, results and tables
     preset: str = "paper"  # the dataset preset and its training budgets (BUDGETS)
     seeds: int = 3  # training seeds of every learned CoNav row
+    # Training seeds of each learned baseline (the object-goal and image-goal agents). Seed 0's
+    # runs and evaluations keep the unseeded names (`baseline_name`) of OUT directories made with
+    # one seed, so those continue as they are.
+    baseline_seeds: int = 3
     resolution: tuple[int, int] = (112, 448)  # the panorama every agent reads (the paper's)
     data_seed: int = 0
     workers: int = 2  # dataset generation processes
@@ -137,10 +141,8 @@ class ReproduceConfig:
     # the default's configs are those of the runs in results/; patch trains faster at large
     # panoramas (BENCHMARKS.md). One OUT directory holds one encoder, as it holds one resolution.
     encoder: str = DEFAULT_ENCODER
-    # The intention predictor's training and inference options; off: the configs of the runs in
-    # results/.
-
-    # The intention predictor trains on frames mirrored half the time (IntentionDataConfig.mirror).
+    # The intention predictor's training and inference options (off: the configs of the runs in
+    # results/). Frames mirrored half the time (IntentionDataConfig.mirror):
     mirror: bool = False
     # The intention predictor trains on frames whose colours are redrawn for every sample and
     # update (IntentionDataConfig.recolour).
@@ -189,6 +191,8 @@ class ReproduceConfig:
             raise ValueError(f"unknown preset {self.preset!r}; choose from {', '.join(BUDGETS)}")
         if self.seeds < 1:
             raise ValueError(f"ReproduceConfig.seeds must be at least 1, got {self.seeds}")
+        if self.baseline_seeds < 1:
+            raise ValueError(f"ReproduceConfig.baseline_seeds must be at least 1, got {self.baseline_seeds}")
         if not 0.0 <= self.dagger_beta <= 1.0:
             raise ValueError(f"ReproduceConfig.dagger_beta is a probability in [0, 1], got {self.dagger_beta}")
         if self.dagger_rounds is not None and self.dagger_rounds < 1:
@@ -295,6 +299,17 @@ def dagger_variant(row: str) -> tuple[float, int | None, int | None] | None:
 _DAGGER_ROW = re.compile(r"dagger(?:_beta([0-9.e+-]+))?(?:_rounds([0-9]+))?(?:_episodes([0-9]+))?")
 
 
+def baseline_name(name: str, seed: int) -> str:
+    """A learned baseline's run (runs/NAME) or evaluation (eval/NAME) for training seed `seed`:
+    NAME for seed 0, as OUT directories with one seed name it, else NAME_s{seed}."""
+    return name if seed == 0 else f"{name}_s{seed}"
+
+
+# The learned baselines' evaluations (Table 2's rows) and the run each reads, with the predictor
+# the predicted-goal agent adds.
+LEARNED_BASELINES = {"objectgoal-oracle": "objectnav", "objectgoal-predicted": "objectnav", "imagegoal": "imagenav"}
+
+
 def resolution_name(cfg: ReproduceConfig) -> str:
     """The run's panorama as the command line writes it: "112x448"."""
     return "x".join(map(str, cfg.resolution))
@@ -345,12 +360,14 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     net = _network(cfg, b.policy_conv_dtype if cfg.large else "float32")
     imitation = ImitationConfig(dagger_rounds=b.baseline_dagger_rounds, dagger_episodes=cfg.default_dagger_episodes,
                                 episodes=b.policy_episodes if cfg.large and b.policy_episodes else b.baseline_episodes)
+    kinds = (("objectnav", objectnav_model(res, base=net)), ("imagenav", imagenav_model(res, net)))
+    baseline_runs = [(s, kind, runs / baseline_name(kind, s)) for s in range(cfg.baseline_seeds) for kind, _ in kinds]
     stages.append(Stage("baselines", tuple(
-        step(f"train {kind}", runs / kind, data_dir=str(data), run_dir=str(runs / kind),
-             cfg=dataclasses.replace(rounds, steps=b.baseline_steps), model=model, imitation=imitation,
-             remat=cfg.large, progress=False)
-        for kind, model in (("objectnav", objectnav_model(res, base=net)), ("imagenav", imagenav_model(res, net)))
-    ), (runs / "objectnav" / "log.jsonl", runs / "imagenav" / "log.jsonl")))
+        step(f"train {kind}", run, seed=s, data_dir=str(data), run_dir=str(run),
+             cfg=dataclasses.replace(rounds, steps=b.baseline_steps, seed=s), model=dict(kinds)[kind],
+             imitation=imitation, remat=cfg.large, progress=False)
+        for s, kind, run in baseline_runs
+    ), tuple(run / "log.jsonl" for _, _, run in baseline_runs)))
     predictors = (data, intention, trajectory)
 
     def evaluation(agents: str, target: Path, run: Path | None = None, seed: int | None = None,
@@ -366,15 +383,15 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     else:
         stages += _offline_stages(cfg, step, evaluation, dataclasses.replace(rounds, steps=b.policy_steps,
                                                                               batch=b.policy_batch), predictors)
-    evals_ = [evaluation("random,follower,pioneer,pioneer-drive,objectgoal-planner,expert", evals / "scripted"),
-              evaluation("objectgoal-oracle", evals / "objectgoal-oracle", runs / "objectnav"),
-              evaluation("objectgoal-predicted", evals / "objectgoal-predicted", runs / "objectnav", reads=(intention,)),
-              evaluation("imagegoal", evals / "imagegoal", runs / "imagenav")]
+    baseline_evals = [(baseline_name(agent, s), agent, runs / baseline_name(kind, s), s)
+                      for s in range(cfg.baseline_seeds) for agent, kind in LEARNED_BASELINES.items()]
+    evals_ = [evaluation("random,follower,pioneer,pioneer-drive,objectgoal-planner,expert", evals / "scripted")] + [
+        evaluation(agent, evals / target, run, s, reads=(intention,) if agent == "objectgoal-predicted" else ())
+        for target, agent, run, s in baseline_evals]
     name = cfg.dagger
     dagger_eval = CONAV_EVAL.format(row=name, seed="{}")
     evals_ += [evaluation("conav", evals / dagger_eval.format(s), runs / f"{name}_s{s}", s) for s in range(cfg.seeds)]
-    names = ["scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"] + [
-        dagger_eval.format(s) for s in range(cfg.seeds)]
+    names = ["scripted"] + [target for target, *_ in baseline_evals] + [dagger_eval.format(s) for s in range(cfg.seeds)]
     stages.append(Stage("eval", tuple(evals_), tuple(evals / n / "metrics.json" for n in names)))
     stages.append(Stage("tables", (), (out / cfg.results_file, out / cfg.tables_file)))
     stages.append(Stage("pack", (), (out / "pack.tar",)))

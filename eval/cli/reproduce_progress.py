@@ -146,7 +146,7 @@ def stage_seconds(plan: list["Stage"], progress: dict) -> dict[str, float]:
 
 def stage_seed(stage: Stage, seed: int | None) -> int | None:
     """The training seed whose steps `--seed` selects in `stage`: None (every step) in a stage
-    without seeded steps (data, predictors, baselines)."""
+    without seeded steps (generate, predictors)."""
     return seed if seed is not None and any(s.seed is not None for s in stage.steps) else None
 
 
@@ -185,7 +185,8 @@ def prerequisites(plan: list[Stage]) -> dict[str, set[str]]:
 
 def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
     """`todo` in the order `run_parallel` starts what is ready: the steps every seed shares (data,
-    predictors, baselines) first, then seed by seed; within those, the most steps of `todo`
+    predictors, the scripted agents' evaluation) first, then seed by seed (a learned baseline's
+    seed s with the CoNav rows' seed s); within those, the most steps of `todo`
     waiting on it (directly or not) first, then plan order. A BC run that a DAgger run and two
     evaluations wait for starts before a run only its evaluation waits for, and a seed's
     evaluations before the next seed's training: a sitting cut short leaves whole seeds,

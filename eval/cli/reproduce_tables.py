@@ -18,8 +18,8 @@ from pathlib import Path
 
 from conav_jax.envs.metrics import METRIC_NAMES
 from conav_jax.eval.stats import paired_difference, resolved, seed_summary
-from conav_jax.eval.cli.reproduce_plan import (ABLATIONS, BC_EVAL, BC_ROW_EVAL, CONAV_EVAL, GROUND_TRUTH_ROWS, dagger_variant,
-                                      live_dagger_variant)
+from conav_jax.eval.cli.reproduce_plan import (ABLATIONS, BC_EVAL, BC_ROW_EVAL, CONAV_EVAL, GROUND_TRUTH_ROWS,
+                                               LEARNED_BASELINES, baseline_name, dagger_variant, live_dagger_variant)
 
 # The paper's Table 2 and Table 3 (FASR, RASR, FASPL, RASPL, CR, AS), for side-by-side tables.
 PAPER_TABLE2 = {
@@ -39,11 +39,6 @@ PAPER_TABLE3 = {
     "all": (19.8, 23.2, 13.5, 14.9, 20.1, 354.5),
 }
 
-
-
-
-
-
 _SEEDED_EVAL = re.compile(r"conav_(.+)_s[0-9]+")
 
 
@@ -62,10 +57,11 @@ def dagger_rows(evals: Path, planned: str = "dagger") -> list[str]:
 
 
 def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", rows: tuple[str, ...] = ABLATIONS,
-                    eval_dir: str = "eval") -> dict:
+                    eval_dir: str = "eval", baseline_seeds: int = 1) -> dict:
     """results.json's content from the evaluations under `out/eval_dir` ("eval": val's;
     "eval_minival": minival's): per agent its title,
-    intention source, privileged inputs and metrics (per seed for the learned CoNav rows).
+    intention source, privileged inputs and metrics (per seed for the learned CoNav rows and,
+    over `baseline_seeds` seeds, the learned baselines: `eval/{agent}`, `eval/{agent}_s{s}`).
 
     A seed's BC rows come from `eval/conav_bc_{row}_s{s}` (else, as made before, from
     `eval/conav_bc_s{s}`, its five BC runs as one evaluation's ablations), a DAgger
@@ -81,18 +77,16 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", 
         raise FileNotFoundError(f"no evaluation under {evals}: nothing to tabulate")
     agents: dict[str, dict] = {}
     missing: list[str] = []
-    for name in ("scripted", "objectgoal-oracle", "objectgoal-predicted", "imagegoal"):
-        path = evals / name / "metrics.json"
-        if not path.is_file():
-            missing.append(f"{eval_dir}/{name}")
-            continue
-        doc = json.loads(path.read_text())
-        for key, entry in doc["agents"].items():
+    path = evals / "scripted" / "metrics.json"
+    if path.is_file():
+        for key, entry in json.loads(path.read_text())["agents"].items():
             agents[key] = {k: entry[k] for k in ("title", "intention_source", "privileged", "metrics")}
+    else:
+        missing.append(f"{eval_dir}/scripted")
     conav: dict[str, dict] = {}
 
-    def add(row: str, s: int, entry: dict, episodes: int, doc: dict | None = None) -> None:
-        slot = conav.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
+    def add(table: dict, row: str, s: int, entry: dict, episodes: int, doc: dict | None = None) -> None:
+        slot = table.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
         slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": episodes}
         commit = ((doc or {}).get("provenance") or {}).get("commit")
         if commit is not None:
@@ -102,15 +96,24 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", 
         if trained is not None:  # evaluations made before they recorded it name none
             slot["trained_commits"] = sorted({*slot.get("trained_commits", []), trained})
 
+    for agent in LEARNED_BASELINES:
+        for s in range(baseline_seeds):
+            path = evals / baseline_name(agent, s) / "metrics.json"
+            if not path.is_file():
+                missing.append(f"{eval_dir}/{path.parent.name}")
+                continue
+            doc = json.loads(path.read_text())
+            for key, entry in doc["agents"].items():
+                add(agents, key, s, entry, doc["episodes"], doc)
     for s in range(seeds):
         for row in ABLATIONS + tuple(GROUND_TRUTH_ROWS):
             path, combined = evals / BC_ROW_EVAL.format(row=row, seed=s) / "metrics.json", evals / BC_EVAL.format(s) / "metrics.json"
             if path.is_file():
                 doc = json.loads(path.read_text())
-                add(row, s, doc["agents"]["conav"], doc["episodes"], doc)
+                add(conav, row, s, doc["agents"]["conav"], doc["episodes"], doc)
             elif combined.is_file() and row in ABLATIONS:
                 doc = json.loads(combined.read_text())
-                add(row, s, doc["ablations"][f"ablation_{row}"], doc["episodes"], doc)
+                add(conav, row, s, doc["ablations"][f"ablation_{row}"], doc["episodes"], doc)
             elif row in rows:
                 missing.append(f"{eval_dir}/{path.parent.name}")
     for row in dagger_rows(evals, dagger):
@@ -121,7 +124,7 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", 
                     missing.append(f"{eval_dir}/{path.parent.name}")
                 continue
             doc = json.loads(path.read_text())
-            add(row, s, doc["agents"]["conav"], doc["episodes"], doc)
+            add(conav, row, s, doc["agents"]["conav"], doc["episodes"], doc)
     # The split's size, from any evaluation (each runs the whole split).
     episodes = json.loads(made[0].read_text()).get("episodes")
     return {**extra, "episodes": episodes, "agents": agents, "conav": conav, "missing": missing}
@@ -250,7 +253,10 @@ def render_tables(results: dict) -> str:
                 lines.append(f"| CoNav Agent (BC + DAgger) | | not run yet | {not_run} |")
         else:
             entry = results["agents"].get(key)
-            if entry is not None:
+            if entry is not None and "seeds" in entry:  # a learned baseline, over its training seeds
+                lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | "
+                             f"{_learned_source(entry, results.get('baseline_seeds'))} | " + _learned_cells(entry) + " |")
+            elif entry is not None:
                 lines.append(f"| {entry['title']} | {', '.join(entry['privileged']) or 'none'} | ours | "
                              + _our_cells(entry["metrics"]) + " |")
             else:
@@ -277,7 +283,8 @@ def render_tables(results: dict) -> str:
         if not gt:
             lines.append(f"| {k} | {marks} | paper | " + _paper_cells(PAPER_TABLE3[name]) + " |")
     lines += _paired_lines(results)
-    commits = [(name, row["commits"], row.get("trained_commits", [])) for name, row in results["conav"].items()
+    learned = {**{k: v for k, v in results["agents"].items() if "seeds" in v}, **results["conav"]}
+    commits = [(name, row["commits"], row.get("trained_commits", [])) for name, row in learned.items()
                if row.get("commits")]
     if commits:
         lines += ["", "## Commits", "", "The commits each learned row's evaluations ran at and, where they record "
