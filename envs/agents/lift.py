@@ -21,7 +21,7 @@ from functools import partial
 from typing import Any, Callable, Hashable, NamedTuple
 
 import jax
-import jax.extend
+import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -112,7 +112,8 @@ def _hoist(fn: Callable, *example) -> tuple[Callable, list, Any]:
                              f"{in_tree} of {in_types}, got {tree} of {types}")
         given, kept = iter(params), iter(fixed)
         consts = [next(given) if h else next(kept) for h in hoisted]
-        return jax.tree.unflatten(out_tree, jax.core.eval_jaxpr(jaxpr, consts, *flat))
+        run = jax.extend.core.jaxpr_as_fun(jax.extend.core.ClosedJaxpr(jaxpr, consts))
+        return jax.tree.unflatten(out_tree, run(*flat))
 
     return converted, params, out_shape
 
