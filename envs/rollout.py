@@ -5,8 +5,9 @@ An agent (envs.agents.base) acts for ONE environment (the rollout vmaps it): an 
 oracle baseline, the expert) the env's brax State with those keys, and the env's constants
 through a closure. Each step observes exactly what the agent reads (ConavEnv.observe), so what
 no agent reads is never computed. Oracle movers step through ConavEnv.step_to_pose, every other
-agent through ConavEnv.step. Learned agents close over their parameters. This module is what
-evaluation sweeps, DAgger and validation during training all run on. With a device mesh
+agent through ConavEnv.step. A learned agent's weights are the compiled rollout's arguments,
+not its constants (envs.agents.lift), so runs of one configuration share a program. This module
+is what evaluation sweeps, DAgger and validation during training all run on. With a device mesh
 (conav_jax.parallel), each batch of episodes is split over the devices.
 """
 
@@ -30,6 +31,7 @@ from conav_jax.parallel import (
     traced_under,
 )
 from conav_jax.envs.agents.base import MIXED_ACTION_SIZE, Agent, StateAgent, as_state_agent
+from conav_jax.envs.agents.lift import lift_agent
 from conav_jax.envs.conav_env import ConavEnv
 from conav_jax.envs.mjcf import UD
 
@@ -156,9 +158,12 @@ def _start(env: ConavEnv, agent: StateAgent, key: jax.Array, episode: jax.Array)
 def make_rollout(env: ConavEnv, agent: Agent | StateAgent, num_steps: int, record: bool = False,
                  mesh: Mesh | None = None):
     """A jitted function (key, episodes (B,)) -> (final metrics dict of (B,), Trace | None):
-    `make_param_rollout` for an agent without parameters (or closing over its own)."""
-    run = make_param_rollout(env, lambda _: agent, num_steps, record, mesh=mesh)
-    return lambda key, episodes: run(None, key, episodes)
+    `make_param_rollout` of the agent with its weights taken out as the program's arguments
+    (envs.agents.lift)."""
+    lifted = lift_agent(env, agent)
+    run = make_param_rollout(env, lifted.agent_fn, num_steps, record, mesh=mesh)
+    params = lifted.params if mesh is None else replicate(lifted.params, mesh)
+    return lambda key, episodes: run(params, key, episodes)
 
 
 def map_episodes(
@@ -333,8 +338,11 @@ def evaluate(
     """Final metrics of every given episode (default: all of the bank, each exactly once), on
     `batch` parallel lanes refilled as episodes end (`make_pool_rollout`); with a `mesh`
     (conav_jax.parallel.make_mesh) the lanes are split over its devices, with the same results
-    as on one device. `compiler_options` go to `jax.jit` for the rollout."""
-    return make_evaluator(env, lambda _: agent, batch, seed, mesh, compiler_options=compiler_options)(None, episodes)
+    as on one device. `compiler_options` go to `jax.jit` for the rollout, which takes the agent's
+    weights as arguments (envs.agents.lift)."""
+    lifted = lift_agent(env, agent)
+    evaluator = make_evaluator(env, lifted.agent_fn, batch, seed, mesh, compiler_options=compiler_options)
+    return evaluator(lifted.params, episodes)
 
 
 def make_evaluator(

@@ -20,6 +20,7 @@ import numpy as np
 
 from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
 from conav_jax.envs.agents.base import Agent, StateAgent, describe
+from conav_jax.envs.agents.lift import lift_agent
 from conav_jax.envs.rollout import make_evaluator
 from conav_jax.eval.report import summarize_with_ci
 from conav_jax.eval.sweep import Row, episode_records, write_results
@@ -41,8 +42,9 @@ def make_env(data_dir: str | Path, split: str = "val", resolution: tuple[int, in
     return ConavEnv(data_dir, split, EnvConfig(sensor=sensor, **config_overrides), max_episodes=max_episodes)
 
 
-# Each env's evaluators by (agent, batch, seed, mesh): the same agent evaluated again (with
-# `out_dir`, or on other episodes) reuses its compiled rollout.
+# Each env's evaluators by (program, batch, seed, mesh, traced): the same agent evaluated again
+# (with `out_dir`, or on other episodes), or another with the same program and other weights,
+# reuses its compiled rollout (envs.agents.lift).
 _EVALUATORS: "weakref.WeakKeyDictionary[ConavEnv, dict]" = weakref.WeakKeyDictionary()
 
 
@@ -68,10 +70,11 @@ def evaluate(env: ConavEnv, agent: Agent | StateAgent, batch: int = 256, seed: i
     numbers do not depend on the batch or device count; `mesh`: conav_jax.parallel.make_mesh),
     and summarise. With `out_dir`, write there the files `conav eval` writes, by the same
     writer (eval.sweep.write_results): `episodes_<name>.csv`, `map_<name>.png` (name through
-    eval.sweep.file_stem), `success_over_time.png`, `metrics.json` and `report.md`. The same
-    agent evaluated again on `env` reuses the compiled rollout. ValueError for an env whose
-    episodes end at the first reach (the benchmark runs them to the human's end of activity B)
-    or for an agent whose declarations do not hold."""
+    eval.sweep.file_stem), `success_over_time.png`, `metrics.json` and `report.md`. The agent's
+    weights are the compiled rollout's arguments (envs.agents.lift): the same agent evaluated
+    again on `env`, or one running the same program with other weights, reuses it. ValueError
+    for an env whose episodes end at the first reach (the benchmark runs them to the human's
+    end of activity B) or for an agent whose declarations do not hold."""
     if env.config.end_at_reach:
         raise ValueError("the benchmark runs episodes to t_end: build the env with end_at_reach=False")
     if not isinstance(agent, (Agent, StateAgent)):
@@ -83,10 +86,11 @@ def evaluate(env: ConavEnv, agent: Agent | StateAgent, batch: int = 256, seed: i
     # With files to write, the longest episode's robot path (for the map) from the same compile;
     # without, no trace is recorded.
     traced = out_dir is not None
-    if (agent, batch, seed, mesh, traced) not in per_env:
-        per_env[agent, batch, seed, mesh, traced] = make_evaluator(env, lambda _: agent, batch, seed, mesh,
-                                                                   trace_first=traced)
-    result = per_env[agent, batch, seed, mesh, traced](None, None if episodes is None else np.asarray(episodes))
+    lifted = lift_agent(env, agent)
+    key = (lifted.key, batch, seed, mesh, traced)
+    if key not in per_env:
+        per_env[key] = make_evaluator(env, lifted.agent_fn, batch, seed, mesh, trace_first=traced)
+    result = per_env[key](lifted.params, None if episodes is None else np.asarray(episodes))
     metrics = result[0] if traced else result
     given = describe(agent)
     summary = summarize_with_ci(metrics, seed=seed)

@@ -108,7 +108,6 @@ def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
     from conav_jax.envs.rollout import make_rollout
 
     steps = env.bank.max_steps
-    run = make_rollout(env, agent, steps, mesh=mesh)
     episodes = np.arange(batch, dtype=np.int32) % env.num_episodes
     episodes = jax.device_put(episodes) if mesh is None else shard_batch(episodes, mesh)
 
@@ -117,6 +116,7 @@ def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
         return k if mesh is None else replicate(k, mesh)
 
     t0 = time.perf_counter()
+    run = make_rollout(env, agent, steps, mesh=mesh)  # the agent's weights its arguments (envs.agents.lift)
     jax.block_until_ready(run(key(0), episodes))
     compile_s = time.perf_counter() - t0
     times = []
@@ -142,13 +142,15 @@ def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
 def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = None, mesh=None,
                 profile_dir: str | None = None) -> dict:
     """Time sweeps of the split's first `episodes` (default all) with `batch` lanes
-    (envs.rollout.make_evaluator), the first sweep including the compile. With `profile_dir`
-    (one device, more episodes than lanes), one more sweep of the same compiled program is
-    traced there and the result's "profile" holds its device time by part of a rollout step
+    (envs.rollout.make_evaluator, the agent's weights its arguments as in `conav eval`), the
+    first sweep including the lift (envs.agents.lift) and the compile. With `profile_dir` (one
+    device, more episodes than lanes), one more sweep of the same compiled program is traced
+    there and the result's "profile" holds its device time by part of a rollout step
     (envs.rollout.SWEEP_PROFILE_SCOPES; conav_jax.profiling.profile_program)."""
     import jax
     import numpy as np
 
+    from conav_jax.envs.agents.lift import lift_agent
     from conav_jax.envs.rollout import SWEEP_PROFILE_SCOPES, make_evaluator
 
     if episodes is not None and episodes > env.num_episodes:
@@ -156,15 +158,16 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
     n = env.num_episodes if episodes is None else episodes
     if profile_dir is not None and (mesh is not None and mesh.size > 1 or batch >= n):
         raise ValueError(f"a sweep's profile runs on one device with more episodes ({n}) than lanes ({batch})")
-    evaluator = make_evaluator(env, lambda _: agent, batch, 0, mesh)
     idx = np.arange(n)
     t0 = time.perf_counter()
-    evaluator(None, idx)
+    lifted = lift_agent(env, agent)  # the weights as arguments, as `conav eval` runs a learned agent
+    evaluator = make_evaluator(env, lifted.agent_fn, batch, 0, mesh)
+    evaluator(lifted.params, idx)
     compile_s = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        evaluator(None, idx)  # returns host arrays: the sweep has finished
+        evaluator(lifted.params, idx)  # returns host arrays: the sweep has finished
         times.append(time.perf_counter() - t0)
     med = statistics.median(times)
     t_end = np.asarray(env.bank.t_end)[idx]
@@ -172,7 +175,7 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
     if profile_dir is not None:
         from conav_jax.profiling import profile_program
 
-        run, args = evaluator.pool_program(None, idx)
+        run, args = evaluator.pool_program(lifted.params, idx)
         compiled = run.lower(*args).compile()  # the program the sweeps ran, from jit's cache
         profile["profile"] = profile_program(compiled, (env.bank, *args), SWEEP_PROFILE_SCOPES, profile_dir, calls=1)
     return {

@@ -3,9 +3,11 @@
 args -> validated plan (data, agents, checkpoints; nothing compiled yet) -> env -> per agent one
 jitted evaluator (envs.rollout.make_evaluator: `batch` lanes, each taking the next episode when
 its own ends; with trace_first, so the longest episode's robot path for its map comes from the
-same compile) -> write_results, which conav_jax.evaluate shares: episodes_<agent>.csv,
-metrics.json (each metric with a 95% interval), report.md (the paper's Table 2, and Table 3 for
-ablation checkpoints), success_over_time.png and map_<agent>.png, file names from file_stem.
+same compile), shared by the scripted agents and by runs of one configuration (their weights
+its arguments: envs.agents.lift) -> write_results, which conav_jax.evaluate shares:
+episodes_<agent>.csv, metrics.json (each metric with a 95% interval), report.md (the paper's
+Table 2, and Table 3 for ablation checkpoints), success_over_time.png and map_<agent>.png, file
+names from file_stem.
 """
 
 from __future__ import annotations
@@ -222,12 +224,16 @@ def build_evaluators(env, runs: list[tuple[str, str | None, dict]], batch: int, 
     (name, checkpoint, agent keywords) of `runs`: every agent is built (checkpoints loaded)
     before anything compiles, so a bad run fails fast. The scripted agents share one compiled
     evaluator, the agent chosen as data (envs.agents.base.switch_agent): one compile of the
-    env's rollout instead of one per agent. Evaluators are kept per env, agent set, batch, seed
-    and mesh: evaluating the same agents on the same data again (tests, notebooks) skips the
-    compile. Keys per episode (envs.rollout), so the numbers do not depend on the batch."""
+    env's rollout instead of one per agent. Every other agent's weights are its evaluator's
+    arguments (envs.agents.lift): runs of one configuration (training seeds, predictor runs)
+    share one compiled evaluator, and the persistent compile cache finds it in a later process.
+    Evaluators are kept per env, program, batch, seed and mesh: evaluating the same agents on
+    the same data again (tests, notebooks) skips the compile. Keys per episode (envs.rollout),
+    so the numbers do not depend on the batch."""
     import jax.numpy as jnp
 
-    from conav_jax.envs.agents.base import switch_agent
+    from conav_jax.envs.agents.base import StateAgent, switch_agent
+    from conav_jax.envs.agents.lift import lift_agent
     from conav_jax.envs.agents.registry import make_agent
     from conav_jax.envs.rollout import make_evaluator
 
@@ -245,11 +251,17 @@ def build_evaluators(env, runs: list[tuple[str, str | None, dict]], batch: int, 
                 per_env[key] = make_evaluator(env, lambda which, group=group: switch_agent(group, which), batch, seed,
                                               mesh, trace_first=True)
             params = jnp.int32(scripted.index(k))
-        else:
-            key = (name, ckpt, batch, seed, mesh, tuple(sorted(kw.items())))
+        elif k in scripted and isinstance(agent, StateAgent):  # no weights to take out: kept by name
+            key = (name, batch, seed, mesh, tuple(sorted(kw.items())))
             if key not in per_env:
                 per_env[key] = make_evaluator(env, lambda _, a=agent: a, batch, seed, mesh, trace_first=True)
             params = None
+        else:
+            lifted = lift_agent(env, agent)
+            key = (lifted.key, batch, seed, mesh)
+            if key not in per_env:
+                per_env[key] = make_evaluator(env, lifted.agent_fn, batch, seed, mesh, trace_first=True)
+            params = lifted.params
         out.append((agent, _evaluate_with(per_env[key], params)))
     return out
 

@@ -101,6 +101,30 @@ def test_the_api_and_command_line_import_beside_a_users_own_modules(tmp_path):
         assert proc.returncode == 0, proc.stderr
 
 
+def test_agents_of_one_program_share_a_compiled_rollout(hall, monkeypatch):
+    """evaluate takes an agent's weights as its rollout's arguments: two agents of one program
+    and other weights compile once, and each gets, bit for bit, the numbers of a rollout
+    compiled around its own weights."""
+    from conav_jax.eval import api
+    from conav_jax.envs.rollout import make_evaluator
+
+    def steering(seed):  # an affine map of GPS/compass to velocities, its weights closed over
+        w = jax.random.normal(jax.random.PRNGKey(seed), (2, 4))
+        return conav_jax.Agent(f"steering {seed}", lambda key, obs: (),
+                               lambda carry, obs, key: (carry, jnp.tanh(w[:, :3] @ obs["gps_compass"] + w[:, 3])),
+                               reads=("gps_compass",))
+
+    built = []
+    monkeypatch.setattr(api, "make_evaluator", lambda *a, **k: built.append(a) or make_evaluator(*a, **k))
+    first, second = (conav_jax.evaluate(hall, steering(seed), seed=2) for seed in (1, 2))
+    assert len(built) == 1
+    assert not np.array_equal(first.metrics["path_length_m"], second.metrics["path_length_m"])
+    closed = make_evaluator(hall, lambda _: steering(2), 256, 2)(None, None)
+    assert set(closed) == set(second.metrics)
+    for k, v in closed.items():
+        np.testing.assert_array_equal(second.metrics[k], v, err_msg=k)
+
+
 def test_step_refuses_anything_but_velocities(hall):
     start = jax.eval_shape(lambda: hall.reset_to_episode(KEY, 0, observe=False))
     for shape in ((3,), (6,), (1, 2)):

@@ -265,6 +265,31 @@ def test_the_image_goal_agent_sees_an_image_rendered_at_the_humans_position(hall
     assert np.linalg.norm(seen[1][1][:2] - seen[0][1][:2]) > 1.0  # the human walked, the camera followed
 
 
+def test_lifted_goal_agents_act_as_before_and_share_a_key(hall, trained, agents, monkeypatch):
+    """The goal agents given privileged inputs (envs.agents.base.sensing_agent) lift their
+    policy's weights: they act as before from them, and the same agent with other weights has
+    the same key."""
+    from conav_jax.envs.agents.lift import lift_agent
+
+    env = hall.env
+    lifted = {name: lift_agent(env, agents[name]) for name in ("objectgoal-oracle", "imagegoal")}
+    halved = jax.tree.map(lambda x: 0.5 * x, trained.params["objectnav"])
+    assert lift_agent(env, objectgoal_agent_from_params(halved, OBJ, env)).key == lifted["objectgoal-oracle"].key
+    assert lifted["imagegoal"].key != lifted["objectgoal-oracle"].key
+    monkeypatch.setattr(env, "render_at", lambda episode, pose, t: (jnp.full((8, 32, 4), 0.5),
+                                                                    jnp.zeros((8, 32), jnp.int32)))
+    key = jax.random.PRNGKey(0)
+    for name, lift in lifted.items():
+        agent, again = agents[name], lift.agent_fn(lift.params)
+        assert again.reads == agent.reads and again.privileged == agent.privileged
+        state = _fake_state(2, T_ARRIVE)
+        state.obs = {k: state.obs[k] for k in agent.reads}  # what a rollout observes for it
+        (action, carry), (want, want_carry) = (a.act(state, a.init(key, state), key) for a in (again, agent))
+        np.testing.assert_array_equal(action, want, err_msg=name)
+        for got, expected in zip(jax.tree.leaves(carry), jax.tree.leaves(want_carry)):
+            np.testing.assert_array_equal(got, expected, err_msg=name)
+
+
 def test_goal_runs_load_through_the_registry_and_eval_takes_a_run_per_agent(hall, trained, tmp_path, tiny_data):
     from conav_jax.eval.cli import parse_checkpoints
     from conav_jax.eval.sweep import plan_eval

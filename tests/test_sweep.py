@@ -255,6 +255,84 @@ def test_learning_curve_pools_reach_rates_over_reset_cycles(tmp_path):
         learning_curve({"imitation": [{"split": "train", "step": 10, "loss": 0.1}]}, tmp_path / "bad.png")
 
 
+@pytest.fixture(scope="module")
+def policy_runs(tiny_data, tmp_path_factory):
+    """The shipped CoNav policy and a copy with other weights (every float scaled by 0.8): two
+    runs of one configuration, with the shipped predictors, on 2 val episodes at their 32x128
+    (the env `conav eval --pretrained --episodes 2` loads, kept by eval.sweep.load_env)."""
+    from types import SimpleNamespace
+
+    import jax
+
+    from conav_jax import pretrained, runs
+    from conav_jax.checkpoints import checkpoint_path, save_checkpoint
+
+    shipped = pretrained.pretrained_runs()
+    ckpt = runs.load_run(shipped["policy"], runs.POLICY)
+    other = tmp_path_factory.mktemp("other_policy")
+    scaled = jax.tree.map(lambda v: v * np.float32(0.8) if np.issubdtype(v.dtype, np.floating) else v, ckpt.params)
+    save_checkpoint(checkpoint_path(other, ckpt.step), params=scaled, opt_state=None, config=ckpt.config,
+                    step=ckpt.step, extra=ckpt.extra)
+    kw = {"intention_run": str(shipped["intention"]), "trajectory_run": str(shipped["trajectory"])}
+    plan = sweep.plan_eval(tiny_data, "val", ("conav",), tmp_path_factory.mktemp("o"),
+                           checkpoint=str(shipped["policy"]), intention_kwargs=kw, episodes=2, batch=2)
+    return SimpleNamespace(env=sweep.load_env(plan), runs=(str(shipped["policy"]), str(other)), kw=kw)
+
+
+def test_runs_of_one_configuration_share_one_compiled_rollout(policy_runs, monkeypatch):
+    """Two runs of one configuration evaluate through one compiled rollout, their weights its
+    arguments, each with its own numbers: the second's are, bit for bit, those of a rollout
+    compiled around its weights as constants."""
+    from conav_jax.envs import rollout
+    from conav_jax.envs.agents.registry import make_agent
+    from conav_jax.parallel import make_mesh
+
+    traced, real = [], rollout.as_state_agent
+    # A rollout builds its agent once per trace.
+    monkeypatch.setattr(rollout, "as_state_agent", lambda agent: traced.append(agent.name) or real(agent))
+    env, kw = policy_runs.env, policy_runs.kw
+    sweep._EVALUATORS.pop(env, None)  # compiled here, whatever ran before (later sweeps of the run reuse it)
+    episodes = np.arange(env.num_episodes)
+    # On the mesh `conav eval` splits lanes over (one device here), which replicates the weights.
+    built = sweep.build_evaluators(env, [("conav", run, kw) for run in policy_runs.runs], 2, 0, make_mesh(None))
+    (_, _, path_a), (metrics, first, path) = (evaluate(episodes) for _, evaluate in built)
+    assert traced == ["conav"]
+    assert not np.array_equal(path_a, path)  # each run acts with its own weights
+    agent = make_agent("conav", env, policy_runs.runs[1], **kw)
+    closed, closed_first, trace = rollout.make_evaluator(env, lambda _: agent, 2, 0, trace_first=True)(None, episodes)
+    assert first == closed_first and set(metrics) == set(closed)
+    np.testing.assert_array_equal(path, trace.robot_pose)
+    for k, v in closed.items():
+        np.testing.assert_array_equal(metrics[k], v, err_msg=k)
+
+
+def test_a_runs_weights_are_arguments_of_its_rollout_not_constants(policy_runs):
+    """The rollouts of two runs of one configuration lower to one program, so the persistent
+    compile cache finds the first's for the second; no array of their checkpoints (the policies'
+    and the predictors') is a constant of it."""
+    import jax
+    import jax.numpy as jnp
+
+    from conav_jax import runs
+    from conav_jax.envs.agents.lift import lift_agent
+    from conav_jax.envs.agents.registry import make_agent
+    from conav_jax.envs.rollout import make_param_rollout
+
+    env, kw = policy_runs.env, policy_runs.kw
+    texts = []
+    for run in policy_runs.runs:
+        lifted = lift_agent(env, make_agent("conav", env, run, **kw))
+        lowered = make_param_rollout(env, lifted.agent_fn, 4).lower(lifted.params, jax.random.PRNGKey(0),
+                                                                    jnp.arange(2, dtype=jnp.int32))
+        texts.append(lowered.as_text())
+    assert texts[0] == texts[1]
+    checkpoints = [(run, runs.POLICY) for run in policy_runs.runs]
+    checkpoints += [(kw["intention_run"], runs.INTENTION), (kw["trajectory_run"], runs.TRAJECTORY)]
+    weights = [np.asarray(w) for run, kind in checkpoints for w in jax.tree.leaves(runs.load_run(run, kind).params)]
+    assert len(weights) > 50
+    assert [w.shape for w in weights if w.size >= 16 and w.tobytes().hex().upper() in texts[1]] == []
+
+
 def test_a_run_listed_as_agent_and_ablation_is_swept_once_with_the_same_numbers(tiny_data, tmp_path, monkeypatch):
     from conav_jax import pretrained
 

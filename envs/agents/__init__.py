@@ -5,7 +5,8 @@ privileged agents, and the names of privileged inputs) <- `baselines` (the paper
 scripted Table 2 rows and our oracle planner), `expert` (the imitation teacher), `predictors`
 (the intention and trajectory predictors of trained runs), `policy` (the CoNav LSTM policy
 stepping in the env, and its agent from a run), `ppo` (a PPO run's agent) <- `registry` (agents
-by name or "package.module:factory", as `conav eval` and `conav view` build them). Training imports the pieces it steps
+by name or "package.module:factory", as `conav eval` and `conav view` build them). `lift` takes an
+agent's weights out as arguments of the rollout that runs it. Training imports the pieces it steps
 (expert, policy); evaluation builds agents through the registry.
 """
 

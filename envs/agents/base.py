@@ -9,9 +9,11 @@ v_ang) in [-1, 1]. `obs` holds exactly the observation keys the agent `reads`
 `StateAgent` (internal: the expert, the scripted baselines, the planners): `init(key, state)`
 and `act(state, carry, key) -> (action, carry)` read the env's brax State (its obs holds the
 keys the agent reads) and the episode bank through `env.bank_view` (looked up as it acts, so a
-compiled rollout can take the bank as an argument: envs.rollout.jit_with_bank). Every such read
-is named in `privileged`; an oracle mover (`action_size` 3, a pose) lists ORACLE_MOVES, and the
-rollout moves it with ConavEnv.step_to_pose. Both carry what a results table reports: a
+compiled rollout can take the bank as an argument: envs.rollout.jit_with_bank). A learned one
+(`sensing_agent`: the goal-navigation baselines) is an observation-only policy given inputs
+the simulator makes from the State. Every such read is named in `privileged`; an oracle mover
+(`action_size` 3, a pose) lists ORACLE_MOVES, and the rollout moves it with
+ConavEnv.step_to_pose. Both carry what a results table reports: a
 `title`, where intention inputs come from (`intention_source`) and every privileged input; a
 row never hides an oracle (`row_title`).
 """
@@ -99,6 +101,11 @@ class StateAgent(NamedTuple):
     # (ConavEnv.step_to_pose), which only an oracle mover may do; MIXED_ACTION_SIZE: either, the
     # kind first (switch_agent over agents of both kinds).
     action_size: int = 2
+    # A learned agent given privileged inputs (sensing_agent): the observation-only policy it
+    # acts through and `sense(state) -> dict`, the inputs the simulator adds to the State's
+    # observation for it; its init and act are made of them. None for the scripted agents.
+    policy: Agent | None = None
+    sense: Callable[[Any], dict] | None = None
 
     def check(self) -> "StateAgent":
         """This agent, after checking its description; ValueError naming what is wrong."""
@@ -107,6 +114,25 @@ class StateAgent(NamedTuple):
             raise ValueError(f"agent {self.name!r}: action_size is 2 (velocities) or 3 (poses, listing "
                              f"{ORACLE_MOVES!r} as privileged), got {self.action_size}")
         return _check_declarations(self)
+
+
+def sensing_agent(policy: Agent, sense: Callable[[Any], dict], name: str, title: str, privileged: tuple[str, ...],
+                  reads: tuple[str, ...], intention_source: str = NO_INTENTIONS) -> StateAgent:
+    """A StateAgent acting as `policy`, an observation-only agent, on its State's observation
+    (the keys `reads`) and the privileged inputs `sense(state)` adds to it: the learned
+    goal-navigation baselines, given the episode's goal category or a goal image rendered where
+    the human stands. `policy.init` sees the State's observation alone. The policy is kept apart
+    from what the simulator gives it, so a rollout can take its weights as arguments
+    (envs.agents.lift)."""
+
+    def init(key, state):
+        return policy.init(key, state.obs)
+
+    def act(state, carry, key):
+        carry, action = policy.act(carry, {**state.obs, **sense(state)}, key)
+        return action, carry
+
+    return StateAgent(name, init, act, title, intention_source, privileged, reads, policy=policy, sense=sense).check()
 
 
 def _check_declarations(agent):

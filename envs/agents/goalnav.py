@@ -40,8 +40,10 @@ from conav_jax.envs.agents.base import (
     PREDICTED,
     Agent,
     StateAgent,
+    sensing_agent,
 )
 from conav_jax.envs.agents.policy import (
+    PolicyStep,
     check_policy_env,
     check_run_materials,
     load_policy_run,
@@ -141,27 +143,29 @@ def objectgoal_agent_from_params(params, cfg: PolicyConfig, env, intention=None)
     check_objectgoal_config(cfg, "the policy")
     segmentation = (ORACLE_SEGMENTATION,) if cfg.uses_saliency else ()
     if intention is not None:
-        pol = make_policy_step(cfg, category_predictor(intention))
-
-        def act_on_obs(carry, obs, key):
-            action, carry = pol.step(params, obs, carry)
-            return carry, action
-
-        return Agent(OBJECTGOAL_TITLE, lambda key, obs: pol.init(), act_on_obs,
-                     reads=policy_reads(cfg, PREDICTED, intention),
-                     privileged=segmentation + tuple(p for p in intention.privileged if p not in segmentation),
-                     name="objectgoal-predicted", intention_source=PREDICTED).check()
+        return _acting(params, make_policy_step(cfg, category_predictor(intention)), OBJECTGOAL_TITLE,
+                       reads=policy_reads(cfg, PREDICTED, intention),
+                       privileged=segmentation + tuple(p for p in intention.privileged if p not in segmentation),
+                       name="objectgoal-predicted", intention_source=PREDICTED).check()
     b = env.bank_view
-    pol = make_policy_step(cfg)  # reads obs["object_probs"]: the category, supplied below
 
-    def act(state, carry, key):
+    def category(state: State) -> dict:  # what the policy reads as obs["object_probs"]
+        return {"object_probs": jax.nn.one_hot(b.object_b[state.info["episode"]], cfg.num_objects)}
+
+    return sensing_agent(_acting(params, make_policy_step(cfg), OBJECTGOAL_TITLE), category, "objectgoal-oracle",
+                         OBJECTGOAL_TITLE, (ORACLE_GOAL_CATEGORY,) + segmentation, policy_reads(cfg, NO_INTENTIONS))
+
+
+def _acting(params, pol: PolicyStep, title: str, **declared) -> Agent:
+    """The observation-only Agent stepping policy `pol` (envs.agents.policy.make_policy_step)
+    with `params`; `declared`: the rest of its Agent fields."""
+
+    def act(carry, obs, key):
         del key
-        category = jax.nn.one_hot(b.object_b[state.info["episode"]], cfg.num_objects)
-        return pol.step(params, {**state.obs, "object_probs": category}, carry)
+        action, carry = pol.step(params, obs, carry)
+        return carry, action
 
-    return StateAgent("objectgoal-oracle", lambda key, state: pol.init(), act, title=OBJECTGOAL_TITLE,
-                      intention_source=NO_INTENTIONS, privileged=(ORACLE_GOAL_CATEGORY,) + segmentation,
-                      reads=policy_reads(cfg, NO_INTENTIONS)).check()
+    return Agent(title, lambda key, obs: pol.init(), act, **declared)
 
 
 def objectgoal_agent(env, run_dir: str | Path, oracle: bool, intention_run: str | Path | None = None,
@@ -208,16 +212,8 @@ def imagegoal_agent_from_params(params, cfg: PolicyConfig, env) -> StateAgent:
     """The image-goal agent acting with these parameters, given each step the goal image taken
     at the human's position (`human_view_sensor`)."""
     check_imagegoal_config(cfg, "the policy")
-    pol = make_policy_step(cfg)
-    sensor = human_view_sensor(env)
-
-    def act(state, carry, key):
-        del key
-        return pol.step(params, {**state.obs, **sensor(state)}, carry)
-
-    return StateAgent("imagegoal", lambda key, state: pol.init(), act, title=IMAGEGOAL_TITLE,
-                      intention_source=NO_INTENTIONS, privileged=(HUMAN_VIEW_GOAL_IMAGE,),
-                      reads=policy_reads(cfg, NO_INTENTIONS)).check()
+    return sensing_agent(_acting(params, make_policy_step(cfg), IMAGEGOAL_TITLE), human_view_sensor(env), "imagegoal",
+                         IMAGEGOAL_TITLE, (HUMAN_VIEW_GOAL_IMAGE,), policy_reads(cfg, NO_INTENTIONS))
 
 
 def imagegoal_agent(env, run_dir: str | Path) -> StateAgent:

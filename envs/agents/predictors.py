@@ -131,10 +131,11 @@ def _push(buffer: jax.Array, count: jax.Array, item: jax.Array) -> tuple[jax.Arr
     return buffer.at[jnp.minimum(count, size - 1)].set(item), jnp.minimum(count + 1, size)
 
 
-def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition, frame_stride: int,
-                    unseen_weights: dict | None = None):
-    """`record_frame(record, rgbd, segmentation, human_pos, frames, num_frames, objects_seen) -> (frames,
-    num_frames, objects_seen, activity_probs, object_probs)` for one env: where `record`, the
+def _frame_recorder(config: PerceiverConfig, spec: FrameSpec, frame_stride: int, unseen_weights: dict | None = None):
+    """`record_frame(learned, record, rgbd, segmentation, human_pos, frames, num_frames, objects_seen)
+    -> (frames, num_frames, objects_seen, activity_probs, object_probs)` for one env, `learned`
+    being what the run learned, one for every lane (its Perceiver parameters, and its P(B | A)
+    or None: perceiver.intention_routes): where `record`, the
     observation's frame (`intention_frame`) pushed into the buffer, with
     PerceiverConfig.seen_objects the categories the panorama shows (its `segmentation`) added to
     `objects_seen`, and
@@ -146,7 +147,9 @@ def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition
     Perceiver gives it in a full batch, to float rounding."""
     shapes = (config.num_activities, config.num_objects)
 
-    def record_lanes(rgbd, segmentation, human_pos, frames, num_frames, objects_seen):  # (N, ...): lanes that record
+    # Runs on the arrays (N, ...) of the lanes that record.
+    def record_lanes(learned, rgbd, segmentation, human_pos, frames, num_frames, objects_seen):
+        params, transition = learned
         new = jax.vmap(lambda r, p: intention_frame(spec, config, r, p))(rgbd, human_pos)
         frames, num_frames = jax.vmap(_push)(frames, num_frames, new)
         mask = jnp.arange(frames.shape[1]) < num_frames[:, None]
@@ -158,18 +161,24 @@ def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition
                                           unseen_weights)
         return (frames, num_frames, objects_seen, *probs)
 
+    # What the run learned is an argument, not something the batching rule closes over: the
+    # rule's Python runs again when the rollout is vmapped, and arrays it closed over would enter
+    # the compiled program as constants even where the agent's weights are its arguments
+    # (envs.agents.lift).
     @jax.custom_batching.custom_vmap
-    def record_frame(record, rgbd, segmentation, human_pos, frames, num_frames, objects_seen):
+    def record_frame(learned, record, rgbd, segmentation, human_pos, frames, num_frames, objects_seen):
         def recorded():
             args = (rgbd, segmentation, human_pos, frames, num_frames, objects_seen)
-            return tuple(x[0] for x in record_lanes(*(x[None] for x in args)))
+            return tuple(x[0] for x in record_lanes(learned, *(x[None] for x in args)))
         return jax.lax.cond(record, recorded,
                             lambda: (frames, num_frames, objects_seen, *(jnp.zeros(n, jnp.float32) for n in shapes)))
 
     @record_frame.def_vmap
-    def _batched(axis_size, in_batched, record, *args):
+    def _batched(axis_size, in_batched, learned, record, *args):
+        if any(jax.tree.leaves(in_batched[0])):
+            raise ValueError("the intention predictor runs one set of parameters on every lane")
         record, *args = (x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
-                         for x, batched in zip((record, *args), in_batched))
+                         for x, batched in zip((record, *args), in_batched[1:]))
         rgbd, segmentation, human_pos, frames, num_frames, objects_seen = args
         # Lanes drift apart in step once episodes refill, so a step records on about
         # axis_size / frame_stride lanes: chunks twice that size take one pass on most steps.
@@ -182,8 +191,8 @@ def _frame_recorder(params, config: PerceiverConfig, spec: FrameSpec, transition
             i, outs = carry
             idx = jax.lax.dynamic_slice(lanes, (i * chunk,), (chunk,))
             take = jnp.minimum(idx, axis_size - 1)
-            done = record_lanes(rgbd[take], segmentation[take], human_pos[take], frames[take], num_frames[take],
-                                objects_seen[take])
+            done = record_lanes(learned, rgbd[take], segmentation[take], human_pos[take], frames[take],
+                                num_frames[take], objects_seen[take])
             # Padding lanes point past the batch: their rows are dropped.
             return i + 1, tuple(out.at[idx].set(x, mode="drop") for out, x in zip(outs, done))
 
@@ -207,7 +216,7 @@ def make_intention_predictor(
     (perceiver.seen_object_weights; listed as privileged: oracle segmentation)."""
     h, w = config.image_hw
     f32 = jnp.float32
-    record_frame = _frame_recorder(params, config, spec, transition, frame_stride, unseen_weights)
+    record_frame = _frame_recorder(config, spec, frame_stride, unseen_weights)
 
     def init() -> IntentionCarry:
         zero = jnp.zeros((), jnp.int32)
@@ -234,8 +243,8 @@ def make_intention_predictor(
                              "(each pixel's object category)")
         # Without seen_objects no category is read: a one-pixel stand-in keeps the signature.
         segmentation = jnp.asarray(obs["segmentation"]) if config.seen_objects else jnp.full((1, 1), -1, jnp.int32)
-        buf, n, seen, act_p, obj_p = record_frame(record, rgbd, segmentation, human_pos, carry.frames,
-                                                  carry.num_frames, carry.objects_seen)
+        buf, n, seen, act_p, obj_p = record_frame((params, transition), record, rgbd, segmentation, human_pos,
+                                                  carry.frames, carry.num_frames, carry.objects_seen)
         # Only a new frame adds a prediction: repeated steps on the same buffer would
         # otherwise crowd the history with one prediction.
         act_h, m = _push(carry.activity_history, carry.num_predictions, act_p)
