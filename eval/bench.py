@@ -156,8 +156,11 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
     if episodes is not None and episodes > env.num_episodes:
         raise ValueError(f"bench_sweep.episodes {episodes}: the split has only {env.num_episodes} episodes")
     n = env.num_episodes if episodes is None else episodes
-    if profile_dir is not None and (mesh is not None and mesh.size > 1 or batch >= n):
-        raise ValueError(f"a sweep's profile runs on one device with more episodes ({n}) than lanes ({batch})")
+    if profile_dir is not None and mesh is not None and mesh.size > 1:
+        raise ValueError(f"a sweep's profile runs on one device (mesh None), not a mesh of {mesh.size}")
+    if profile_dir is not None and batch >= n:
+        raise ValueError(f"a sweep's profile traces the refilling rollout, which needs more episodes ({n}) than "
+                         f"lanes ({batch})")
     idx = np.arange(n)
     t0 = time.perf_counter()
     lifted = lift_agent(env, agent)  # the weights as arguments, as `conav eval` runs a learned agent

@@ -219,3 +219,34 @@ def test_train_live_asks_for_an_intention_source_only_where_the_ablation_reads_o
     assert "--ablation object reads intentions: give --intention RUN" in capsys.readouterr().err
     assert main([*common, "--ablation", "none"]) == 2  # reads none: on to the data, which are missing
     assert "dataset directory not found" in capsys.readouterr().err
+
+
+def test_bench_eval_times_the_shipped_policy_on_the_materials_it_was_trained_on(tmp_path, monkeypatch, capsys):
+    import json
+    from types import SimpleNamespace
+
+    from conav_jax.eval import cli
+    from conav_jax.pretrained import pretrained_runs
+
+    built = {}
+
+    def env(data, split, config, **kwargs):
+        built["materials"] = config.sensor.materials
+        built["resolution"] = config.sensor.resolution
+        return SimpleNamespace(config=config)
+
+    def make_agent(name, env, checkpoint, **kwargs):
+        built.update(agent=name, checkpoint=checkpoint, intention=kwargs.get("intention_run"))
+        return "agent"
+
+    monkeypatch.setattr("conav_jax.envs.ConavEnv", env)
+    monkeypatch.setattr("conav_jax.envs.agents.registry.make_agent", make_agent)
+    monkeypatch.setattr("conav_jax.eval.bench.bench_sweep", lambda *a, **k: {"timed": True})
+    base = ["--compile-cache", "off", "bench", "eval", "--data", str(tmp_path), "--agent", "conav", "--json"]
+    assert cli.main([*base, "--pretrained"]) == 0
+    runs = pretrained_runs()
+    assert built == {"materials": "flat", "resolution": (32, 128), "agent": "conav",
+                     "checkpoint": str(runs["policy"]), "intention": str(runs["intention"])}
+    assert json.loads(capsys.readouterr().out)["materials"] == "flat"
+    assert cli.main([*base, "--pretrained", "--checkpoint", str(tmp_path)]) == 2
+    assert "--pretrained is the conav agent's run: drop its --checkpoint" in capsys.readouterr().err

@@ -425,3 +425,20 @@ def test_an_evaluation_names_the_run_step_and_code_its_weights_were_trained_with
     assert sweep.trained_with(run) == {"run": str(run), "step": 9,
                                        "provenance": {"commit": "abc123", "dirty": False, "encoder": "patch"}}
     assert sweep.trained_with(tmp_path / "elsewhere") == {"run": str(tmp_path / "elsewhere")}
+
+
+def test_a_sweep_profile_names_what_it_needs_before_compiling(tiny_data):
+    """A profiled sweep traces the refilling rollout on one device: each unmet need is named,
+    before any compile."""
+    from types import SimpleNamespace
+
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.agents.base import Agent
+    from conav_jax.eval.bench import bench_sweep
+
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(16, 64))))
+    never = Agent("never acts", lambda key, obs: (), lambda carry, obs, key: 1 / 0)  # fails if it ever runs
+    with pytest.raises(ValueError, match=r"needs more episodes \(3\) than lanes \(3\)"):
+        bench_sweep(env, never, batch=3, repeats=1, episodes=3, profile_dir="trace")
+    with pytest.raises(ValueError, match="runs on one device \\(mesh None\\), not a mesh of 2"):
+        bench_sweep(env, never, batch=2, repeats=1, episodes=3, mesh=SimpleNamespace(size=2), profile_dir="trace")

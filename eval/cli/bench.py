@@ -22,7 +22,9 @@ from conav_jax.eval.cli.args import (
     resolution_arg,
     tiny_dataset,
     translate_errors,
+    use_pretrained,
 )
+
 
 def add(sub) -> None:
     from conav_jax.models.policy import CONV_DTYPES, DEFAULT_ENCODER, ENCODERS
@@ -324,6 +326,7 @@ def _bench_eval_agent(args: argparse.Namespace, env):
 def _run_bench_eval(args: argparse.Namespace) -> int:
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
     from conav_jax.envs.agents.registry import AGENTS, run_resolution
+    from conav_jax.envs.config import run_materials
     from conav_jax.eval.bench import UNTRAINED, bench_eval, bench_sweep
     from conav_jax.parallel import check_divisible
 
@@ -331,6 +334,7 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
                            or args.pretrained):
         raise ValueError("--untrained builds the agent from fresh weights: drop --checkpoint / --intention / "
                          "--trajectory / --ground-truth-intentions / --pretrained")
+    use_pretrained(args, (args.agent,))  # --pretrained: the shipped run and its predictors
     spec = AGENTS.get(args.agent)
     if args.batch < 1 or args.repeats < 1 or (args.episodes is not None and args.episodes < 1):
         raise ValueError("--batch, --repeats and --episodes must be at least 1")
@@ -339,10 +343,13 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
     devices = mesh(args)
     check_divisible(args.batch, devices, "--batch")
     tmp = None if args.data is not None else tiny_dataset()
-    env = ConavEnv(args.data or tmp.name, args.split, EnvConfig(sensor=SensorConfig(resolution=(h, w), kind=args.sensor)))
+    # A trained run is timed on the materials it was trained on (its loader refuses others).
+    materials = run_materials(args.checkpoint) if trained else SensorConfig.materials
+    env = ConavEnv(args.data or tmp.name, args.split,
+                   EnvConfig(sensor=SensorConfig(resolution=(h, w), kind=args.sensor, materials=materials)))
     agent = _bench_eval_agent(args, env)
     res = {"agent": args.agent, "weights": UNTRAINED if args.untrained else "trained" if trained else "none",
-           "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind,
+           "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind, "materials": materials,
            "physics_impl": env.config.physics.impl}
     if args.mode == "sweep":
         res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, devices, args.profile))
@@ -354,7 +361,7 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(res), flush=True)
     elif args.mode == "sweep":
-        print(f"{res['devices']} x {res['device']} agent={who} res={h}x{w} sensor={res['sensor']} "
+        print(f"{res['devices']} x {res['device']} agent={who} res={h}x{w} sensor={res['sensor']} materials={materials} "
               f"physics={res['physics_impl']} lanes={args.batch}: "
               f"{res['episodes']} episodes (mean {res['mean_episode_steps']} steps, longest {res['longest_episode_steps']}) "
               f"in {res['median_sweep_s']} s = {res['episodes_per_min']:,.1f} episodes/min (median of {args.repeats}); "
