@@ -43,7 +43,7 @@ from conav_jax.envs.agents.base import (
     sensing_agent,
 )
 from conav_jax.envs.agents.policy import (
-    PolicyStep,
+    acting_agent,
     check_policy_env,
     check_run_materials,
     load_policy_run,
@@ -143,29 +143,18 @@ def objectgoal_agent_from_params(params, cfg: PolicyConfig, env, intention=None)
     check_objectgoal_config(cfg, "the policy")
     segmentation = (ORACLE_SEGMENTATION,) if cfg.uses_saliency else ()
     if intention is not None:
-        return _acting(params, make_policy_step(cfg, category_predictor(intention)), OBJECTGOAL_TITLE,
-                       reads=policy_reads(cfg, PREDICTED, intention),
-                       privileged=segmentation + tuple(p for p in intention.privileged if p not in segmentation),
-                       name="objectgoal-predicted", intention_source=PREDICTED).check()
+        return acting_agent(params, make_policy_step(cfg, category_predictor(intention)), OBJECTGOAL_TITLE,
+                            reads=policy_reads(cfg, PREDICTED, intention),
+                            privileged=segmentation + tuple(p for p in intention.privileged if p not in segmentation),
+                            name="objectgoal-predicted", intention_source=PREDICTED).check()
     b = env.bank_view
 
     def category(state: State) -> dict:  # what the policy reads as obs["object_probs"]
         return {"object_probs": jax.nn.one_hot(b.object_b[state.info["episode"]], cfg.num_objects)}
 
-    return sensing_agent(_acting(params, make_policy_step(cfg), OBJECTGOAL_TITLE), category, "objectgoal-oracle",
-                         OBJECTGOAL_TITLE, (ORACLE_GOAL_CATEGORY,) + segmentation, policy_reads(cfg, NO_INTENTIONS))
-
-
-def _acting(params, pol: PolicyStep, title: str, **declared) -> Agent:
-    """The observation-only Agent stepping policy `pol` (envs.agents.policy.make_policy_step)
-    with `params`; `declared`: the rest of its Agent fields."""
-
-    def act(carry, obs, key):
-        del key
-        action, carry = pol.step(params, obs, carry)
-        return carry, action
-
-    return Agent(title, lambda key, obs: pol.init(), act, **declared)
+    return sensing_agent(acting_agent(params, make_policy_step(cfg), OBJECTGOAL_TITLE), category,
+                         "objectgoal-oracle", OBJECTGOAL_TITLE, (ORACLE_GOAL_CATEGORY,) + segmentation,
+                         policy_reads(cfg, NO_INTENTIONS))
 
 
 def objectgoal_agent(env, run_dir: str | Path, oracle: bool, intention_run: str | Path | None = None,
@@ -212,7 +201,7 @@ def imagegoal_agent_from_params(params, cfg: PolicyConfig, env) -> StateAgent:
     """The image-goal agent acting with these parameters, given each step the goal image taken
     at the human's position (`human_view_sensor`)."""
     check_imagegoal_config(cfg, "the policy")
-    return sensing_agent(_acting(params, make_policy_step(cfg), IMAGEGOAL_TITLE), human_view_sensor(env), "imagegoal",
+    return sensing_agent(acting_agent(params, make_policy_step(cfg), IMAGEGOAL_TITLE), human_view_sensor(env), "imagegoal",
                          IMAGEGOAL_TITLE, (HUMAN_VIEW_GOAL_IMAGE,), policy_reads(cfg, NO_INTENTIONS))
 
 

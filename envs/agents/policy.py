@@ -205,14 +205,20 @@ def policy_agent_from_params(
     pol = make_policy_step(cfg, intention, trajectory, recurrent)
     if pol.source == NO_INTENTIONS:
         title = f"{title}, no intention inputs"
+    return acting_agent(params, pol, title, reads=policy_reads(cfg, pol.source, intention),
+                        privileged=privileged_inputs(cfg, pol.source, intention), name=name,
+                        intention_source=pol.source).check()
+
+
+def acting_agent(params, pol: PolicyStep, title: str, **declared) -> Agent:
+    """The observation-only Agent stepping policy `pol` (make_policy_step) with `params`
+    (closed over); `declared`: its other Agent fields (reads, privileged, name, ...)."""
 
     def act(carry, obs, key):
         action, carry = pol.step(params, obs, carry)
         return carry, action
 
-    return Agent(title, lambda key, obs: pol.init(), act, reads=policy_reads(cfg, pol.source, intention),
-                 privileged=privileged_inputs(cfg, pol.source, intention), name=name,
-                 intention_source=pol.source).check()
+    return Agent(title, lambda key, obs: pol.init(), act, **declared)
 
 
 # -- agents from runs ----------------------------------------------------------------------------
