@@ -803,7 +803,7 @@ kind, out, agents = argv[0], Path(argv[1]), argv[2:]
 def note(**extra):
     with open(os.environ["FAKE_RECORD"], "a") as f:
         f.write(json.dumps({"out": str(out), "gpu": os.environ["CUDA_VISIBLE_DEVICES"], "start": t0, "end": time.time(),
-                            **extra}) + "\n")
+                            "preallocate": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE"), **extra}) + "\n")
 # Each command marks itself running (FAKE_RECORD's folder) while it sleeps FAKE_SECONDS; the
 # failing one fails only once another command is running, so that one is still running when the
 # failure is seen, whatever the machine's load.
@@ -893,6 +893,7 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
     assert {r["gpu"] for r in runs} == {"5", "7"}
     overlaps = [(a, b) for i, a in enumerate(runs) for b in runs[i + 1:] if a["start"] < b["end"] and b["start"] < a["end"]]
     assert overlaps and all(a["gpu"] != b["gpu"] for a, b in overlaps)
+    assert {r["preallocate"] for r in runs} == {None}  # a GPU of its own: JAX's default memory
     assert (out / "logs" / "train_policy_runs_bc_all_s1.log").read_text().startswith("# train policy runs/bc_all_s1\n$ ")
     one, two = (json.loads((tmp_path / d / "results.json").read_text()) for d in ("one", "two"))
     for doc in (one, two):
@@ -903,6 +904,44 @@ def test_several_gpus_run_commands_at_once_once_their_runs_are_made_with_the_sam
     assert set(progress["stages"]) >= {"generate", "predictors", "baselines", "bc", "dagger", "eval"}
     assert progress["stages"]["bc"] == round(sum(v for k, v in progress["commands"].items() if "bc_" in k
                                                  and "dagger" not in k), 1)
+
+
+def _most_at_once(runs: list[dict]) -> tuple[int, int]:
+    """(the most processes running at once, the most of them on one GPU), over the records."""
+    most = most_on_one = 0
+    for r in runs:
+        now = [o for o in runs if o["start"] <= r["start"] < o["end"]]
+        most = max(most, len(now))
+        most_on_one = max(most_on_one, max(sum(o["gpu"] == g for o in now) for g in {o["gpu"] for o in now}))
+    return most, most_on_one
+
+
+def test_steps_per_gpu_share_each_gpu_the_least_busy_first_taking_memory_as_needed(
+        fake_conav, fake_children, tmp_path, monkeypatch, capsys):
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
+    monkeypatch.setenv("FAKE_SECONDS", "0.4")
+    out = tmp_path / "r"
+    assert _reproduce(out, "--gpus", "2", "--steps-per-gpu", "2", "--stage", "generate", "--stage", "predictors",
+                      "--stage", "bc") == 0
+    assert "up to 4 at once on GPU(s) 5, 7 (2 each)" in capsys.readouterr().out
+    runs = _runs(fake_children)
+    assert {r["gpu"] for r in runs} == {"5", "7"} and {r["preallocate"] for r in runs} == {"false"}
+    # Ten BC runs, all ready once the predictors are: four at once, two on each GPU, never three.
+    assert _most_at_once(runs) == (4, 2)
+    # The predictors (two at once) went to different GPUs, not both to the first.
+    (intention,) = [r for r in runs if r["out"].endswith("runs/intention")]
+    (trajectory,) = [r for r in runs if r["out"].endswith("runs/trajectory")]
+    assert intention["gpu"] != trajectory["gpu"]
+    assert (rr.gpu_slots(2, 2), rr.gpu_slots(1, 3)) == (["5", "7", "5", "7"], ["5", "5", "5"])
+    with pytest.raises(ValueError, match="steps_per_gpu must be at least 1"):
+        rr.gpu_slots(2, 0)
+    assert _reproduce(tmp_path / "bad", "--gpus", "2", "--steps-per-gpu", "0") == 2
+    assert "--steps-per-gpu must be at least 1, got 0" in capsys.readouterr().err
+    # Memory variables the environment sets are the user's: left as they are.
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.3")
+    assert _reproduce(tmp_path / "mine", "--gpus", "2", "--steps-per-gpu", "2", "--stage", "generate") == 0
+    assert _runs(fake_children)[-1]["preallocate"] is None
 
 
 def test_several_gpus_stop_starting_commands_after_a_failure_and_resume(fake_conav, fake_children, tmp_path,

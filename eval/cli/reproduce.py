@@ -42,6 +42,10 @@ def add(sub) -> None:
                         "CUDA_VISIBLE_DEVICES, else 0..N-1), a step starting as soon as the runs it reads are made; "
                         "each logs to OUT/logs/ (default 1: one step at a time, in this process, on every visible "
                         "device)")
+    p.add_argument("--steps-per-gpu", type=int, default=1, metavar="K",
+                   help="with --gpus: run up to K steps at once on each GPU, each process taking GPU memory as it "
+                        "needs it (one step leaves a GPU partly idle while it compiles or runs small batches; "
+                        "default 1)")
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="a sitting of SECONDS: start no step expected to end later (its expected time: the longest "
                         "of its kind this OUT has recorded, with the evaluations of the run it trains; a kind never "
@@ -111,6 +115,9 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     if args.gpus < 1:
         print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
         return 2
+    if args.steps_per_gpu < 1:
+        print(f"conav reproduce: --steps-per-gpu must be at least 1, got {args.steps_per_gpu}", file=sys.stderr)
+        return 2
     if args.time_limit is not None and args.time_limit <= 0:
         print(f"conav reproduce: --time-limit must be positive seconds, got {args.time_limit:g}", file=sys.stderr)
         return 2
@@ -154,11 +161,11 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         print(f"[{plan[0].name}] the data are missing: making them before [{', '.join(sorted(asked))}]")
         stages.insert(0, plan[0])
     commit = git_state()[0][:7]  # provenance's: CONAV_COMMIT names the commit of a copy of the tree
-    gpus = rr.visible_gpus() if args.gpus == 1 and not args.dry_run else None
+    gpus = rr.visible_gpus() if args.gpus == 1 and args.steps_per_gpu == 1 and not args.dry_run else None
     if gpus is not None and len(gpus) > 1:
         print(f"{len(gpus)} GPUs visible: each step runs on all of them as one device mesh; --gpus {len(gpus)} "
               "runs that many steps at once instead, one GPU each", flush=True)
-    if args.gpus > 1 and not args.dry_run:
+    if (args.gpus > 1 or args.steps_per_gpu > 1) and not args.dry_run:
         stages = _reproduce_parallel(args, cfg, plan, stages, progress, seconds_left)
         if isinstance(stages, int):
             return stages
@@ -241,7 +248,7 @@ def _print_stage(st, progress: dict) -> None:
 
 def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list, progress: dict,
                         seconds_left=None) -> list | int:
-    """`--gpus N`: every step of `stages` not done (training seed `--seed`'s alone in the seeded
+    """`--gpus N` (`--steps-per-gpu K`): every step of `stages` not done (training seed `--seed`'s alone in the seeded
     stages) runs through `reproduce.run_parallel` (starting only what fits in `seconds_left()`
     where given: `--time-limit`); stages whose steps are all done are marked so,
     with their steps' summed time. Returns the stages left to run here (tables, pack), or an
@@ -253,7 +260,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     if not work:
         return stages
     try:
-        gpus = rr.gpu_slots(args.gpus)
+        gpus = rr.gpu_slots(args.gpus, args.steps_per_gpu)
     except ValueError as e:
         print(f"conav reproduce: {as_flags(str(e), args.field_flags)}", file=sys.stderr)
         return 2
@@ -264,7 +271,9 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     for st in work:
         seed = rpp.stage_seed(st, args.seed)
         todo += [step for step in st.steps if step.name not in progress["commands"] and seed in (None, step.seed)]
-    print(f"{len(todo)} step(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(gpus)}", flush=True)
+    each = f" ({args.steps_per_gpu} each)" if args.steps_per_gpu > 1 else ""
+    print(f"{len(todo)} step(s) to run, up to {len(gpus)} at once on GPU(s) {', '.join(dict.fromkeys(gpus))}{each}",
+          flush=True)
     t0 = time.perf_counter()
     digest = rr.save_config(cfg)  # each step's process plans from it, and runs its step by name
     rc, waiting = rr.run_parallel(plan, todo, cfg.out, progress, gpus,

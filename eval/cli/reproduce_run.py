@@ -117,16 +117,20 @@ def visible_gpus() -> list[str] | None:
     return [str(i) for i, _ in enumerate(line for line in listed.splitlines() if line.startswith("GPU "))]
 
 
-def gpu_slots(gpus: int) -> list[str]:
-    """The GPUs `gpus` steps at once run on, one each: the first `gpus` of `visible_gpus`
-    (0..gpus-1 on a machine without a driver, where the steps run on the CPU). ValueError
-    when fewer are visible (a process given a GPU that does not exist would run on the CPU)."""
+def gpu_slots(gpus: int, steps_per_gpu: int = 1) -> list[str]:
+    """The GPU of each step that may run at once: the first `gpus` of `visible_gpus` (0..gpus-1
+    on a machine without a driver, where the steps run on the CPU), each `steps_per_gpu` times
+    (a GPU one step leaves partly idle, as while it compiles, runs another). ValueError when
+    fewer are visible (a process given a GPU that does not exist would run on the CPU)."""
     if gpus < 1:
         raise ValueError(f"gpu_slots.gpus must be at least 1, got {gpus}")
+    if steps_per_gpu < 1:
+        raise ValueError(f"gpu_slots.steps_per_gpu must be at least 1, got {steps_per_gpu}")
     ids = visible_gpus()
     if ids is not None and len(ids) < gpus:
         raise ValueError(f"gpu_slots.gpus {gpus}: {len(ids)} GPU(s) visible ({', '.join(ids) or 'none'})")
-    return ids[:gpus] if ids is not None else [str(i) for i in range(gpus)]
+    ids = ids[:gpus] if ids is not None else [str(i) for i in range(gpus)]
+    return [gpu for _ in range(steps_per_gpu) for gpu in ids]
 
 
 def _log_name(step: Step) -> str:
@@ -141,9 +145,13 @@ def _tail(path: Path, lines: int = 15) -> str:
 def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict, gpus: list[str],
                  command: Callable[[Step], list[str]], say=None, poll_seconds: float = 0.1,
                  seconds_left: Callable[[], float] | None = None) -> tuple[int, list[Step]]:
-    """Run `todo` (steps of `plan`) up to len(gpus) at once, each in a process of its own
+    """Run `todo` (steps of `plan`) up to len(gpus) at once (`gpus`: a GPU id per step that may
+    run at once, `gpu_slots`), each in a process of its own
     (`command(step)`: the command line that runs that step alone, by name: `child_command`) that
-    sees one GPU (CUDA_VISIBLE_DEVICES) and logs to OUT/logs/, a step starting once its
+    sees one GPU (CUDA_VISIBLE_DEVICES), the least busy one free, and logs to OUT/logs/; where
+    steps share a GPU, each process takes its memory as it needs it instead of most of the GPU
+    at its start (XLA_PYTHON_CLIENT_PREALLOCATE=false, unless the environment sets JAX's memory
+    variables), a step starting once its
     `prerequisites` are done (in `by_dependents` order); copies run here. Each step's wall time
     goes into `progress` (saved) as it ends, a failed or stopped one's under "cut". After a
     failure no new step starts and those running finish. An interrupt (SIGTERM raised as
@@ -158,6 +166,13 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
     pending, running, free, failed = by_dependents(todo, needs), {}, list(gpus), 0
     expected = expected_seconds(plan, progress) if seconds_left is not None else None
     (out / "logs").mkdir(parents=True, exist_ok=True)
+    child_env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    shared = len(set(gpus)) < len(gpus)
+    if shared and not any(k.startswith("XLA_PYTHON_CLIENT_") for k in os.environ):
+        child_env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+
+    def busy(gpu: str) -> int:
+        return sum(g == gpu for _, g, _, _ in running.values())
 
     def record(step: Step, seconds: float, ok: bool) -> None:
         record_step(progress, step, seconds, ok)
@@ -183,14 +198,16 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                         record(step, time.perf_counter() - t0, True)
                         say(f"{step.name} done (from {step.call.kwargs['source']})")
                         continue
-                    gpu, log = free.pop(0), out / "logs" / _log_name(step)
+                    gpu = min(free, key=lambda g: (busy(g), gpus.index(g)))
+                    free.remove(gpu)
+                    log = out / "logs" / _log_name(step)
                     argv = command(step)
                     with open(log, "a") as f:
                         f.write(f"# {step.name}\n$ {shlex.join(argv)}\n")
                         f.flush()
                         proc = subprocess.Popen(argv, stdout=f,
                                                 stderr=subprocess.STDOUT,
-                                                env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu, "PYTHONUNBUFFERED": "1"})
+                                                env={**child_env, "CUDA_VISIBLE_DEVICES": gpu})
                     running[proc] = (step, gpu, log, time.perf_counter())
                     say(f"[gpu {gpu}] {step.name} started (log {log})")
             if not running:
