@@ -210,6 +210,68 @@ def test_killed_run_resumes_bit_for_bit(hall, run):
         lv.train_live(hall.env, TINY, dataclasses.replace(LIVE, lr=1e-3), run.dir, compiler_options=FAST)
 
 
+def _assert_same_run(lone, together, exact: bool) -> None:
+    """Two TrainStates of one seed: their counters, episodes and lanes' integer state equal, their
+    floats equal (`exact`) or within float32 rounding of a batched program's other sum order."""
+    for a, b in zip(jax.tree.leaves(jax.device_get(lone)), jax.tree.leaves(jax.device_get(together)), strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        if exact or not np.issubdtype(a.dtype, np.floating):
+            np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_seeds_trained_together_are_the_runs_trained_alone_and_resume_together(hall, run, tmp_path):
+    five = dataclasses.replace(LIVE, seed=5)
+    alone = lv.train_live(hall.env, TINY, five, tmp_path / "alone5", progress=False, compiler_options=FAST)
+    dirs = [tmp_path / "s3", tmp_path / "s5"]
+    three, also_five = lv.train_live_seeds(hall.env, TINY, [LIVE, five], dirs, progress=False, compiler_options=FAST)
+    _assert_same_run(run.result.state, three.state, exact=False)
+    _assert_same_run(alone.state, also_five.state, exact=False)
+    assert [int(r.state.seed) for r in (three, also_five)] == [3, 5] and three.env_steps == run.result.env_steps
+    # Each directory is a run of its own seed, logged and checkpointed as a lone run is.
+    for d, seed in zip(dirs, (3, 5)):
+        assert load_policy_run(d)[2]["live"]["seed"] == seed
+        assert [json.loads(line)["step"] for line in (d / "log.jsonl").read_text().splitlines()] == [1, 2, 3, 4]
+    log, lone = ([json.loads(line) for line in (d / "log.jsonl").read_text().splitlines()]
+                 for d in (dirs[1], tmp_path / "alone5"))
+    assert [r["episodes_started"] for r in log] == [r["episodes_started"] for r in lone]
+    np.testing.assert_allclose([r["loss"] for r in log], [r["loss"] for r in lone], rtol=1e-4)
+    # Killed in the middle of iteration 4's checkpoints: both resume from iteration 2, together,
+    # to the weights they had.
+    for d in dirs:
+        checkpoint_path(d, 4).unlink()
+    again = lv.train_live_seeds(hall.env, TINY, [LIVE, five], dirs, progress=False, compiler_options=FAST)
+    _assert_same_run(three.state, again[0].state, exact=True)
+    _assert_same_run(also_five.state, again[1].state, exact=True)
+    checkpoint_path(dirs[1], 4).unlink()
+    with pytest.raises(ValueError, match=r"different iterations \[2, 4\]"):
+        lv.train_live_seeds(hall.env, TINY, [LIVE, five], dirs, progress=False, compiler_options=FAST)
+    with pytest.raises(ValueError, match="differ in lr, not only in seed"):
+        lv.train_live_seeds(hall.env, TINY, [LIVE, dataclasses.replace(five, lr=1.0)], dirs, compiler_options=FAST)
+    with pytest.raises(ValueError, match="repeated seeds"):
+        lv.train_live_seeds(hall.env, TINY, [LIVE, LIVE], dirs, compiler_options=FAST)
+
+
+def test_seeds_trained_together_keep_a_lone_runs_skips(hall):
+    """The refill's reset of ended lanes and the learner's turn under beta = 1 run only when
+    needed (conds): vmapped over runs, a cond whose predicate differs by run would become both
+    branches for every lane, so the runs take those choices together."""
+    state = lv.make_live(hall.env, TINY, LIVE).init(policy.init(jax.random.PRNGKey(0), TINY))
+    shared = dataclasses.replace(LIVE, seed=0, ckpt_every=1, log_every=1)
+    spec = lambda x, lead=(): jax.ShapeDtypeStruct(lead + x.shape, x.dtype)  # noqa: E731
+    conds = []
+    for k in (1, 2):
+        _, iteration = lv._iteration(hall.env, TINY, shared, None, None, lv.ExpertConfig(), OPTIONS,
+                                     *((k,) if k > 1 else ()))
+        lead = () if k == 1 else (k,)
+        states = lv.TrainState(*(spec(f) if name == "iteration" else jax.tree.map(lambda x: spec(x, lead), f)
+                                 for name, f in zip(lv.TrainState._fields, state)))
+        text = iteration.lower(states, jax.ShapeDtypeStruct(lead + (2,), jnp.uint32)).as_text()
+        conds.append(text.count("stablehlo.case") + text.count("stablehlo.if"))
+    assert conds[0] >= 2 and conds[1] == conds[0]
+
+
 def test_run_loads_as_the_conav_agent_and_acts(hall, run):
     params, config, run_config = load_policy_run(run.dir)
     assert config == TINY and run_config["intention_source"] == "ground_truth"

@@ -791,19 +791,23 @@ def test_a_stage_asked_for_alone_runs_what_it_can_and_waits_for_runs_not_trained
     assert json.loads((out / "results.json").read_text())["missing"] == []
 
 
-# A step run as a process of its own (`--gpus`; arguments: its kind, the directory it writes and
-# an evaluation's agents): writes what fake_conav's steps write, and a line of when it ran and on
-# which GPU; FAKE_FAIL_ON names a step that fails.
+# Steps run as a process of their own (`--gpus`; arguments: their kind, how many they are, the
+# directory each writes and an evaluation's agents): writes what fake_conav's steps write, and a
+# line for each of when it ran, on which GPU and with how many others; FAKE_FAIL_ON names a step
+# that fails.
 FAKE_CHILD = r'''
 import json, os, sys, time
 from pathlib import Path
 argv = sys.argv[1:]
 t0 = time.time()
-kind, out, agents = argv[0], Path(argv[1]), argv[2:]
+kind, count = argv[0], int(argv[1])
+outs, agents = [Path(a) for a in argv[2:2 + count]], argv[2 + count:]
 def note(**extra):
     with open(os.environ["FAKE_RECORD"], "a") as f:
-        f.write(json.dumps({"out": str(out), "gpu": os.environ["CUDA_VISIBLE_DEVICES"], "start": t0, "end": time.time(),
-                            "preallocate": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE"), **extra}) + "\n")
+        for out in outs:
+            f.write(json.dumps({"out": str(out), "gpu": os.environ["CUDA_VISIBLE_DEVICES"], "start": t0,
+                                "end": time.time(), "preallocate": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE"),
+                                "with": len(outs) - 1, **extra}) + "\n")
 # Each command marks itself running (FAKE_RECORD's folder) while it sleeps FAKE_SECONDS; the
 # failing one fails only once another command is running, so that one is still running when the
 # failure is seen, whatever the machine's load.
@@ -818,14 +822,17 @@ if os.environ.get("FAKE_FAIL_ON") and any(os.environ["FAKE_FAIL_ON"] in a for a 
 running.touch()
 time.sleep(float(os.environ.get("FAKE_SECONDS", "0.05")))
 running.unlink()
-out.mkdir(parents=True, exist_ok=True)
+out = outs[0]
+for o in outs:
+    o.mkdir(parents=True, exist_ok=True)
 if kind == "eval":
     entry = lambda a: {"agent": a, "title": f"T {a}", "intention_source": "none", "privileged": ["oracle map"],
                        "metrics": {m: {"value": v, "lo": v - 1, "hi": v + 1}
                                    for m, v in zip(("FASR", "RASR", "FASPL", "RASPL", "CR", "AS"), (1, 2, 3, 4, 5, 6))}}
     (out / "metrics.json").write_text(json.dumps({"episodes": 100, "agents": {a: entry(a) for a in agents}, "ablations": {}}))
 else:
-    (out / ("manifest.json" if kind == "generate" else "log.jsonl")).write_text("{}\n")
+    for o in outs:
+        (o / ("manifest.json" if kind == "generate" else "log.jsonl")).write_text("{}\n")
 note()
 '''
 
@@ -838,9 +845,10 @@ def fake_children(monkeypatch, tmp_path):
     script, record = tmp_path / "fake_child.py", tmp_path / "record.jsonl"
     script.write_text(FAKE_CHILD)
 
-    def command(out, digest, step, compile_cache=None):
-        CHILD_CALLS.append((out, digest, step.name))
-        return [sys.executable, str(script), step.call.kind, str(out / step.writes), *_kw(step).get("agents", ())]
+    def command(out, digest, steps, compile_cache=None):
+        CHILD_CALLS.extend((out, digest, step.name) for step in steps)
+        return [sys.executable, str(script), steps[0].call.kind, str(len(steps)),
+                *(str(out / step.writes) for step in steps), *_kw(steps[0]).get("agents", ())]
 
     CHILD_CALLS.clear()
     monkeypatch.setattr(rr, "child_command", command)
@@ -1049,7 +1057,7 @@ def test_a_gpu_process_runs_its_step_alone_by_name_with_the_runs_options(fake_co
     (step,) = [s for st in rp.plan_stages(cfg) for s in st.steps if s.name == "train policy runs/dagger_beta0.5_rounds3_s1"]
     digest = rr.save_config(cfg)
     assert rr.save_config(cfg) == digest and len(list((out / rr.CONFIGS_DIR).iterdir())) == 1  # stored once
-    argv = rr.child_command(out, digest, step)
+    argv = rr.child_command(out, digest, [step])
     assert argv[1:3] == ["-m", "conav_jax.eval.cli.reproduce_run"] and argv[-2:] == ["--step", step.name]
     assert rr.main(argv[3:]) == 0
     assert calls == [Made("train policy", str(out / step.writes), {})] and calls[0].kwargs == _kw(step)  # that call alone
@@ -1060,6 +1068,55 @@ def test_a_gpu_process_runs_its_step_alone_by_name_with_the_runs_options(fake_co
         rr.main([*argv[3:5], "--config", "0" * 16, "--step", step.name])
 
 
+def test_live_runs_of_one_row_join_into_one_process_and_one_call(fake_conav, fake_children, tmp_path, monkeypatch,
+                                                                  capsys):
+    out = tmp_path / "r"
+    assert _reproduce(out, "--trainer", "live", "--gpus", "2", "--runs-per-process", "2") == 0
+    runs = _runs(fake_children)
+    live = [r for r in runs if "/runs/bc_" in r["out"] or "/runs/dagger" in r["out"]]
+    assert live and all(r["with"] == 1 for r in live)  # two seeds a process: the tiny preset has two
+    assert all(r["with"] == 0 for r in runs if r not in live)  # nothing else is joined
+    by_start = {}
+    for r in live:
+        by_start.setdefault((r["start"], r["gpu"]), []).append(Path(r["out"]).name)
+    assert sorted(sorted(names) for names in by_start.values()) == sorted(
+        [f"{row}_s0", f"{row}_s1"] for row in {name.rsplit("_s", 1)[0] for names in by_start.values() for name in names})
+    printed = capsys.readouterr().out
+    assert "train live runs/bc_none_s0 + train live runs/bc_none_s1 started" in printed
+    assert (out / "logs" / "train_live_runs_bc_none_s1.log").read_text().endswith(
+        "its log is train_live_runs_bc_none_s0.log\n")
+    progress = rpp.read_progress(out)
+    assert progress["commands"]["train live runs/bc_none_s0"] == progress["commands"]["train live runs/bc_none_s1"]
+    assert json.loads((out / "results.json").read_text())["missing"] == []
+    assert _reproduce(tmp_path / "bad", "--runs-per-process", "0") == 2
+    assert "--runs-per-process must be at least 1, got 0" in capsys.readouterr().err
+
+
+def test_steps_that_differ_only_in_their_seed_run_as_one_call(tmp_path, monkeypatch):
+    cfg = rp.ReproduceConfig(out=tmp_path, preset="tiny", seeds=2, trainer="live", dagger_beta=0.5)
+    steps = {s.name: s for st in rp.plan_stages(cfg) for s in st.steps}
+    none0, none1 = steps["train live runs/bc_none_s0"], steps["train live runs/bc_none_s1"]
+    assert rs.joinable(none0, none1) and rs.joinable(none1, none0)
+    for other in ("train live runs/bc_all_s1", "train live runs/dagger_live_beta0.5_s1", "train live runs/bc_none_s0",
+                  "eval eval/conav_bc_none_s1", "train intention runs/intention"):
+        assert not rs.joinable(none0, steps[other]), other
+    assert not rs.joinable(steps["eval eval/conav_bc_none_s0"], steps["eval eval/conav_bc_none_s1"])
+    called = []
+    monkeypatch.setattr(rs, "together_function", lambda kind: lambda **kw: called.append((kind, kw)))
+    rs.run_together([none0, none1])
+    ((kind, kw),) = called
+    assert kind == "train live" and kw["out_dirs"] == [_kw(none0)["out_dir"], _kw(none1)["out_dir"]]
+    assert [live.seed for live in kw["lives"]] == [0, 1] and "out_dir" not in kw and "live" not in kw
+    assert {k: v for k, v in kw.items() if k not in ("out_dirs", "lives")} == {
+        k: v for k, v in _kw(none0).items() if k not in ("out_dir", "live")}
+    with pytest.raises(ValueError, match="differ in more than their seed"):
+        rs.run_together([none0, steps["train live runs/bc_all_s1"]])
+    import conav_jax.train.live as lv
+
+    assert rs.STEP_KINDS["train live"].together.endswith(":train_live_seeds_from_data")
+    assert callable(lv.train_live_seeds_from_data)
+
+
 def test_a_gpu_process_is_the_module_run_by_python_and_plans_from_out(tmp_path):
     """The process `--gpus` starts, for real: a DAgger run's copy of its BC run, found by name in
     the plan of the configuration stored in OUT."""
@@ -1068,7 +1125,7 @@ def test_a_gpu_process_is_the_module_run_by_python_and_plans_from_out(tmp_path):
     (step,) = [s for st in rp.plan_stages(cfg) for s in st.steps if s.name == "copy runs/dagger_beta0.5_s0"]
     (out / "runs" / "bc_all_s0").mkdir(parents=True)
     (out / "runs" / "bc_all_s0" / "log.jsonl").write_text("{}\n")
-    argv = rr.child_command(out, rr.save_config(cfg), step, compile_cache="off")
+    argv = rr.child_command(out, rr.save_config(cfg), [step], compile_cache="off")
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stderr
     assert (out / "runs" / "dagger_beta0.5_s0" / "log.jsonl").read_text() == "{}\n"

@@ -234,10 +234,13 @@ def iteration_key(seed: int, iteration: int | jax.Array) -> jax.Array:
 
 
 def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, intention=None, trajectory=None,
-              expert_config: ExpertConfig = ExpertConfig()) -> Live:
+              expert_config: ExpertConfig = ExpertConfig(), seed_axis: str | None = None) -> Live:
     """The live imitation loop's pure functions for `env` (its train split), the learner
     `policy_config` and the predictors (envs.agents.predictors; none: the env's ground-truth
-    intentions, privileged). ValueError for inputs that do not fit, in config-field names."""
+    intentions, privileged). `seed_axis`: the name of the vmapped axis over runs the iteration
+    runs under (`train_live_seeds`), if any: the refill then skips its resets only when no lane
+    of any run has ended, a choice every run shares (a cond, not both branches for each).
+    ValueError for inputs that do not fit, in config-field names."""
     if policy_config.goal_image:
         raise ValueError("PolicyConfig.goal_image: live imitation trains the CoNav policy, which reads no goal image")
     pol = make_policy_step(policy_config, intention, trajectory)  # ValueError for a predictor missing beside another
@@ -262,7 +265,10 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         # Lanes that keep their episode ask for `cursor`: the positions asked for then lie within
         # N of it (episodes_at draws the passes they span).
         positions = jnp.where(ended, cursor + jnp.cumsum(ended) - 1, cursor)
-        lanes = jax.lax.cond(ended.any(), lambda l: select_lanes(ended, start(seed, positions), l), lambda l: l, lanes)
+        any_ended = ended.any()
+        if seed_axis is not None:
+            any_ended = jax.lax.psum(any_ended.astype(jnp.int32), seed_axis) > 0
+        lanes = jax.lax.cond(any_ended, lambda l: select_lanes(ended, start(seed, positions), l), lambda l: l, lanes)
         return lanes, cursor + ended.sum(), ended
 
     def init(params) -> TrainState:
@@ -397,11 +403,22 @@ def make_iteration(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig,
     return fns, iteration
 
 
+# The vmapped axis of `train_live_seeds`'s runs; what it maps: every TrainState field but the
+# iteration, which the runs share (so beta, and the learner's cond on it, stay one scalar).
+SEED_AXIS = "seed"
+SEEDS_STATE_AXES = TrainState(params=0, opt_state=0, lanes=0, cursor=0, iteration=None, seed=0, window_obs=0)
+
+
 @functools.lru_cache(maxsize=8)
-def _iteration(env, policy_config, live, intention, trajectory, expert_config, compiler_options):
-    fns = make_live(env, policy_config, live, intention, trajectory, expert_config)
+def _iteration(env, policy_config, live, intention, trajectory, expert_config, compiler_options, seeds: int = 1):
+    fns = make_live(env, policy_config, live, intention, trajectory, expert_config,
+                    seed_axis=SEED_AXIS if seeds > 1 else None)
+    iteration = fns.iteration
+    if seeds > 1:
+        iteration = jax.vmap(fns.iteration, in_axes=(SEEDS_STATE_AXES, 0), out_axes=(SEEDS_STATE_AXES, 0),
+                             axis_name=SEED_AXIS, axis_size=seeds)
     donate = () if jax.default_backend() == "cpu" else (1,)  # the bank is argument 0
-    return fns, jit_with_bank(env, fns.iteration, compiler_options=dict(compiler_options) or None,
+    return fns, jit_with_bank(env, iteration, compiler_options=dict(compiler_options) or None,
                               donate_argnums=donate)
 
 
@@ -487,63 +504,141 @@ def train_live(
     labels': a policy that ignores its inputs shows an action spread near 0. The last
     checkpoint holds the weights and Adam's state alone: a finished run, run again, returns
     them with its lanes as a fresh run's."""
+    return train_live_seeds(env, policy_config, [live], [out_dir], intention, trajectory, expert_config, progress,
+                            compiler_options)[0]
+
+
+def train_live_seeds(
+    env: ConavEnv,
+    policy_config: PolicyConfig,
+    lives: list[LiveConfig],
+    out_dirs: list[str | Path],
+    intention=None,
+    trajectory=None,
+    expert_config: ExpertConfig = ExpertConfig(),
+    progress: bool = True,
+    compiler_options: dict | None = None,
+) -> list[LiveResult]:
+    """`train_live` for several runs of one configuration that differ only in their
+    `LiveConfig.seed` (and cadences), run `lives[i]` into `out_dirs[i]`, trained together: one
+    compiled iteration steps every run's lanes and updates every run's weights (jax.vmap over
+    the runs), so the runs share one compile and a GPU that one run's lanes leave partly idle.
+    Each run's log and checkpoints are those `train_live` writes (it is this with one run), and
+    each resumes as it does; the runs must stand at the same iteration (ValueError otherwise:
+    train them one by one), and write logs and checkpoints at the first's cadences. Seed s's episode order and initial weights are its own, as alone;
+    its weights match a lone run's to float32 rounding (the batched program may order sums
+    differently). ValueError for configs that differ in more than the seed, repeated seeds or
+    directories."""
+    if not lives or len(lives) != len(out_dirs):
+        raise ValueError(f"train_live_seeds needs one out_dir per LiveConfig, got {len(lives)} and {len(out_dirs)}")
+    shared = dataclasses.replace(lives[0], seed=0, **{k: 1 for k in CADENCE_FIELDS})
+    for live in lives:
+        if dataclasses.replace(live, seed=0, **{k: 1 for k in CADENCE_FIELDS}) != shared:
+            diff = [k for k in live.weights_fields() if k != "seed" and getattr(live, k) != getattr(lives[0], k)]
+            raise ValueError(f"train_live_seeds: the LiveConfigs differ in {', '.join(diff)}, not only in seed")
+    seeds, dirs = [live.seed for live in lives], [Path(d).resolve() for d in out_dirs]
+    if len(set(seeds)) < len(seeds) or len(set(dirs)) < len(dirs):
+        raise ValueError(f"train_live_seeds: repeated seeds {seeds} or out_dirs {[str(d) for d in out_dirs]}")
     intention, intention_run = _predictor(intention, lambda r: load_predictors(r, None)[0])
     trajectory, trajectory_run = _predictor(trajectory, lambda r: load_predictors(None, r)[1])
-    fns, iteration = make_iteration(env, policy_config, live, intention, trajectory, expert_config,
-                                    tuple(sorted((compiler_options or {}).items())))
-    config = run_config(policy_config, live, expert_config, env, fns.source, intention_run, trajectory_run)
-    run_dir = Path(out_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    log_path = run_dir / runs.LOG_FILE
-
-    state = fns.init(policy.init(jax.random.PRNGKey(live.seed), policy_config))
-    # Shapes alone as the template: the state loads as a fresh one is placed, and reuses its compile.
-    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), _state_tree(state))
-    latest = latest_checkpoint(run_dir)
-    finished = latest is not None and latest == checkpoint_path(run_dir, live.iterations)
-    if finished:  # the last checkpoint keeps no lanes (`save`)
-        shapes = (shapes[0], {"adam": shapes[1]["adam"]})
-    ckpt = runs.resume(run_dir, config, *shapes)
-    if ckpt is not None and finished:
-        state = state._replace(params=ckpt.params, opt_state=ckpt.opt_state["adam"],
-                               cursor=jnp.full((), ckpt.extra["episodes_started"], jnp.int32),
-                               iteration=jnp.full((), live.iterations, jnp.int32))
-    elif ckpt is not None:
-        state = _from_tree(state, ckpt.params, ckpt.opt_state)
-    start_it = int(state.iteration)
-    per_iter = live.timesteps_per_iteration
+    k = len(lives)
+    options = tuple(sorted((compiler_options or {}).items()))
+    # One run calls it as make_iteration does, so the two share a compile within a process.
+    fns, iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, options,
+                                *((k,) if k > 1 else ()))
+    # A lone run's init (the vmapped program's names an axis that exists only under its vmap).
+    init = _iteration(env, policy_config, shared, intention, trajectory, expert_config, options)[0].init
+    configs, states = [], []
+    for live, run_dir in zip(lives, out_dirs):
+        config = run_config(policy_config, live, expert_config, env, fns.source, intention_run, trajectory_run)
+        configs.append(config)
+        states.append(_initial_state(init, policy_config, live, Path(run_dir), config))
+    at = sorted({int(state.iteration) for state in states})
+    if len(at) > 1:
+        raise ValueError(f"train_live_seeds: the runs stand at different iterations {at}; train them one by one")
+    start_it, per_iter, live = at[0], shared.timesteps_per_iteration, lives[0]
+    # The runs' fields stacked on a leading axis (SEEDS_STATE_AXES), but the iteration they share.
+    state = states[0] if k == 1 else TrainState(*(
+        states[0].iteration if name == "iteration" else jax.tree.map(lambda *xs: jnp.stack(xs), *fields)
+        for name, fields in zip(TrainState._fields, zip(*states))))
+    del states
+    one = (lambda st, i: st) if k == 1 else _run_of
+    log_paths = [Path(d) / runs.LOG_FILE for d in out_dirs]
 
     def save(it: int) -> None:
-        params, opt_tree = _state_tree(state)
-        if it == live.iterations:
-            # A finished run keeps its weights and Adam's state, not the lanes' env states (most
-            # of a checkpoint's bytes at many lanes): nothing resumes from them.
-            opt_tree = {"adam": opt_tree["adam"]}
-        save_checkpoint(checkpoint_path(run_dir, it), params=params, opt_state=opt_tree, config=config, step=it,
-                        extra={"env_steps": it * per_iter, "episodes_started": int(state.cursor)})
+        for i, (run_dir, config) in enumerate(zip(out_dirs, configs)):
+            _save(one(state, i), it, Path(run_dir), config, live.iterations, per_iter)
 
-    bar = tqdm(total=live.iterations * per_iter, initial=start_it * per_iter, disable=not progress, unit="step",
-               dynamic_ncols=True)
+    bar = tqdm(total=live.iterations * per_iter * k, initial=start_it * per_iter * k, disable=not progress,
+               unit="step", dynamic_ncols=True)
     pending: list = []
     t0 = time.perf_counter()
     try:
         for it in range(start_it + 1, live.iterations + 1):
-            state, metrics = iteration(state, iteration_key(live.seed, it - 1))
-            pending.append({k: v for k, v in metrics.items() if k != STEPS})
+            keys = [iteration_key(seed, it - 1) for seed in seeds]
+            state, metrics = iteration(state, keys[0] if k == 1 else jnp.stack(keys))
+            pending.append({name: v for name, v in metrics.items() if name != STEPS})
             last = it == live.iterations
             if it % live.log_every == 0 or last:
-                record = _log_record(pending, it, per_iter, time.perf_counter() - t0, int(state.cursor))
-                append_log(log_path, record)
-                if record["loss"] is None or record["grad_norm"] is None:  # not finite: nothing saved
-                    raise FloatingPointError(f"non-finite loss or gradient by iteration {it}; see {log_path}")
+                seconds, host = time.perf_counter() - t0, jax.device_get(pending)
+                cursors = np.atleast_1d(np.asarray(jax.device_get(state.cursor)))
+                for i, log_path in enumerate(log_paths):
+                    mine = host if k == 1 else [jax.tree.map(lambda x: x[i], m) for m in host]
+                    record = _log_record(mine, it, per_iter, seconds, int(cursors[i]))
+                    append_log(log_path, record)
+                    if record["loss"] is None or record["grad_norm"] is None:  # not finite: nothing saved
+                        raise FloatingPointError(f"non-finite loss or gradient by iteration {it}; see {log_path}")
                 bar.set_postfix(loss=f"{record['loss']:.4g}", beta=f"{record['beta']:.3g}")
-                bar.update(len(pending) * per_iter)
+                bar.update(len(pending) * per_iter * k)
                 pending, t0 = [], time.perf_counter()
             if it % live.ckpt_every == 0 or last:
                 save(it)
     finally:
         bar.close()
-    return LiveResult(state, policy_config, int(state.iteration) * per_iter, int(state.cursor), run_dir)
+    results = []
+    for i, run_dir in enumerate(out_dirs):
+        mine = one(state, i)
+        results.append(LiveResult(mine, policy_config, int(mine.iteration) * per_iter, int(mine.cursor), Path(run_dir)))
+    return results
+
+
+def _run_of(state: TrainState, i: int) -> TrainState:
+    """Run `i` of `train_live_seeds`'s stacked TrainState (the iteration is theirs together)."""
+    return TrainState(*(field if name == "iteration" else jax.tree.map(lambda x: x[i], field)
+                        for name, field in zip(TrainState._fields, state)))
+
+
+def _initial_state(init, policy_config: PolicyConfig, live: LiveConfig, run_dir: Path, config: dict) -> TrainState:
+    """A run's TrainState to start from: `init`'s (a `Live.init` of any seed: the state of seed
+    `live.seed` differs only in its weights and seed field) or its latest checkpoint's in
+    `run_dir` (runs.resume: ValueError for another config)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    state = init(policy.init(jax.random.PRNGKey(live.seed), policy_config))
+    state = state._replace(seed=jnp.full((), live.seed, jnp.int32))
+    # Shapes alone as the template: the state loads as a fresh one is placed, and reuses its compile.
+    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), _state_tree(state))
+    latest = latest_checkpoint(run_dir)
+    finished = latest is not None and latest == checkpoint_path(run_dir, live.iterations)
+    if finished:  # the last checkpoint keeps no lanes (`_save`)
+        shapes = (shapes[0], {"adam": shapes[1]["adam"]})
+    ckpt = runs.resume(run_dir, config, *shapes)
+    if ckpt is not None and finished:
+        return state._replace(params=ckpt.params, opt_state=ckpt.opt_state["adam"],
+                              cursor=jnp.full((), ckpt.extra["episodes_started"], jnp.int32),
+                              iteration=jnp.full((), live.iterations, jnp.int32))
+    if ckpt is not None:
+        return _from_tree(state, ckpt.params, ckpt.opt_state)
+    return state
+
+
+def _save(state: TrainState, it: int, run_dir: Path, config: dict, iterations: int, per_iter: int) -> None:
+    params, opt_tree = _state_tree(state)
+    if it == iterations:
+        # A finished run keeps its weights and Adam's state, not the lanes' env states (most
+        # of a checkpoint's bytes at many lanes): nothing resumes from them.
+        opt_tree = {"adam": opt_tree["adam"]}
+    save_checkpoint(checkpoint_path(run_dir, it), params=params, opt_state=opt_tree, config=config, step=it,
+                    extra={"env_steps": it * per_iter, "episodes_started": int(state.cursor)})
 
 
 def _log_record(pending: list[dict], it: int, per_iter: int, seconds: float, cursor: int) -> dict:
@@ -568,3 +663,15 @@ def train_live_from_data(data_dir: str | Path, out_dir: str | Path,
     h, w = policy_config.resolution
     env = ConavEnv(str(data_dir), "train", EnvConfig(sensor=SensorConfig(resolution=(h, w)), end_at_reach=True))
     return train_live(env, policy_config, live, out_dir, intention_run, trajectory_run, **kwargs)
+
+
+def train_live_seeds_from_data(data_dir: str | Path, out_dirs: list[str | Path],
+                               policy_config: PolicyConfig = DEFAULT_POLICY,
+                               lives: list[LiveConfig] = (LiveConfig(),), intention_run=None, trajectory_run=None,
+                               **kwargs) -> list[LiveResult]:
+    """`train_live_seeds` on the train split of the dataset `data_dir` (as `train_live_from_data`)."""
+    from conav_jax.envs import EnvConfig, SensorConfig
+
+    h, w = policy_config.resolution
+    env = ConavEnv(str(data_dir), "train", EnvConfig(sensor=SensorConfig(resolution=(h, w)), end_at_reach=True))
+    return train_live_seeds(env, policy_config, list(lives), list(out_dirs), intention_run, trajectory_run, **kwargs)

@@ -46,6 +46,10 @@ def add(sub) -> None:
                    help="with --gpus: run up to K steps at once on each GPU, each process taking GPU memory as it "
                         "needs it (one step leaves a GPU partly idle while it compiles or runs small batches; "
                         "default 1)")
+    p.add_argument("--runs-per-process", type=int, default=1, metavar="K",
+                   help="with --gpus: train up to K seeds of one live row in one process, as one program "
+                        "(train.live.train_live_seeds: one compile, and the GPU's work of K runs per step; "
+                        "their weights match lone runs' to float32 rounding; default 1)")
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="a sitting of SECONDS: start no step expected to end later (its expected time: the longest "
                         "of its kind this OUT has recorded, with the evaluations of the run it trains; a kind never "
@@ -115,6 +119,9 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     if args.gpus < 1:
         print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
         return 2
+    if args.runs_per_process < 1:
+        print(f"conav reproduce: --runs-per-process must be at least 1, got {args.runs_per_process}", file=sys.stderr)
+        return 2
     if args.steps_per_gpu < 1:
         print(f"conav reproduce: --steps-per-gpu must be at least 1, got {args.steps_per_gpu}", file=sys.stderr)
         return 2
@@ -161,11 +168,12 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         print(f"[{plan[0].name}] the data are missing: making them before [{', '.join(sorted(asked))}]")
         stages.insert(0, plan[0])
     commit = git_state()[0][:7]  # provenance's: CONAV_COMMIT names the commit of a copy of the tree
-    gpus = rr.visible_gpus() if args.gpus == 1 and args.steps_per_gpu == 1 and not args.dry_run else None
+    one = args.gpus == args.steps_per_gpu == args.runs_per_process == 1
+    gpus = rr.visible_gpus() if one and not args.dry_run else None
     if gpus is not None and len(gpus) > 1:
         print(f"{len(gpus)} GPUs visible: each step runs on all of them as one device mesh; --gpus {len(gpus)} "
               "runs that many steps at once instead, one GPU each", flush=True)
-    if (args.gpus > 1 or args.steps_per_gpu > 1) and not args.dry_run:
+    if (args.gpus > 1 or args.steps_per_gpu > 1 or args.runs_per_process > 1) and not args.dry_run:
         stages = _reproduce_parallel(args, cfg, plan, stages, progress, seconds_left)
         if isinstance(stages, int):
             return stages
@@ -248,7 +256,7 @@ def _print_stage(st, progress: dict) -> None:
 
 def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list, progress: dict,
                         seconds_left=None) -> list | int:
-    """`--gpus N` (`--steps-per-gpu K`): every step of `stages` not done (training seed `--seed`'s alone in the seeded
+    """`--gpus N` (`--steps-per-gpu K`, `--runs-per-process K`): every step of `stages` not done (training seed `--seed`'s alone in the seeded
     stages) runs through `reproduce.run_parallel` (starting only what fits in `seconds_left()`
     where given: `--time-limit`); stages whose steps are all done are marked so,
     with their steps' summed time. Returns the stages left to run here (tables, pack), or an
@@ -277,8 +285,8 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     t0 = time.perf_counter()
     digest = rr.save_config(cfg)  # each step's process plans from it, and runs its step by name
     rc, waiting = rr.run_parallel(plan, todo, cfg.out, progress, gpus,
-                                  lambda step: rr.child_command(cfg.out, digest, step, args.compile_cache),
-                                  seconds_left=seconds_left)
+                                  lambda steps: rr.child_command(cfg.out, digest, steps, args.compile_cache),
+                                  seconds_left=seconds_left, together=args.runs_per_process)
     done, needs = set(progress["commands"]), rpp.prerequisites(plan)
     for step in waiting:
         why = ("not started after the failure" if rc else "waits for the runs it reads"

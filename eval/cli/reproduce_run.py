@@ -24,7 +24,7 @@ from conav_jax.eval.cli.reproduce_plan import ReproduceConfig, plan_stages
 from conav_jax.runs import LOG_FILE
 from conav_jax.eval.cli.reproduce_progress import (PROGRESS_FILE, by_dependents, expected_seconds, fits_in,
                                                    prerequisites, record_step, write_progress)
-from conav_jax.eval.cli.reproduce_steps import Stage, Step, run_step
+from conav_jax.eval.cli.reproduce_steps import Stage, Step, joinable, run_step, run_together
 
 PACK_LIMIT_BYTES = 60 * 2**20
 # Under OUT: each run's ReproduceConfig (all but OUT), by digest, that its steps' processes plan
@@ -80,28 +80,32 @@ def find_step(plan: list[Stage], name: str) -> Step:
     return steps[name]
 
 
-def child_command(out: Path, digest: str, step: Step, compile_cache: str | None = None) -> list[str]:
-    """The process `run_parallel` runs `step` in: `main`, the step by name in the plan of the
-    run's stored configuration `digest` (`save_config`); `compile_cache` as `conav --compile-cache`."""
+def child_command(out: Path, digest: str, steps: list[Step], compile_cache: str | None = None) -> list[str]:
+    """The process `run_parallel` runs `steps` in: `main`, the steps by name in the plan of the
+    run's stored configuration `digest` (`save_config`), several as one call
+    (reproduce_steps.run_together); `compile_cache` as `conav --compile-cache`."""
     cache = ["--compile-cache", compile_cache] if compile_cache else []
+    names = [arg for step in steps for arg in ("--step", step.name)]
     return [sys.executable, "-m", "conav_jax.eval.cli.reproduce_run", "--out", str(out), "--config", digest, *cache,
-            "--step", step.name]
+            *names]
 
 
 def main(argv: list[str] | None = None) -> int:
-    """One step of a `conav reproduce` run, by name, in this process (what each process of
+    """One step of a `conav reproduce` run (or several joined), by name, in this process (what each process of
     `--gpus N` runs); it records nothing: the runner that started it does."""
     from conav_jax.compile_cache import enable_compile_cache
 
     parser = argparse.ArgumentParser(prog="python -m conav_jax.eval.cli.reproduce_run", description=main.__doc__)
     parser.add_argument("--out", required=True, help="the run's output directory")
     parser.add_argument("--config", required=True, metavar="DIGEST", help="the run's configuration, OUT/configs/DIGEST.json")
-    parser.add_argument("--step", required=True, metavar="NAME", help="the step, as progress.json names it "
-                        "(e.g. 'train policy runs/bc_all_s0')")
+    parser.add_argument("--step", required=True, action="append", metavar="NAME",
+                        help="the step, as progress.json names it (e.g. 'train policy runs/bc_all_s0'); several: run "
+                        "as one call (live runs of one configuration but their seeds)")
     parser.add_argument("--compile-cache", default=None, metavar="DIR|off", help="as `conav --compile-cache`")
     args = parser.parse_args(argv)
     enable_compile_cache(args.compile_cache)
-    run_step(find_step(plan_stages(load_config(Path(args.out), args.config)), args.step))
+    plan = plan_stages(load_config(Path(args.out), args.config))
+    run_together([find_step(plan, name) for name in args.step])
     return 0
 
 
@@ -143,11 +147,11 @@ def _tail(path: Path, lines: int = 15) -> str:
 
 
 def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict, gpus: list[str],
-                 command: Callable[[Step], list[str]], say=None, poll_seconds: float = 0.1,
-                 seconds_left: Callable[[], float] | None = None) -> tuple[int, list[Step]]:
+                 command: Callable[[list[Step]], list[str]], say=None, poll_seconds: float = 0.1,
+                 seconds_left: Callable[[], float] | None = None, together: int = 1) -> tuple[int, list[Step]]:
     """Run `todo` (steps of `plan`) up to len(gpus) at once (`gpus`: a GPU id per step that may
     run at once, `gpu_slots`), each in a process of its own
-    (`command(step)`: the command line that runs that step alone, by name: `child_command`) that
+    (`command(steps)`: the command line that runs those steps, by name: `child_command`) that
     sees one GPU (CUDA_VISIBLE_DEVICES), the least busy one free, and logs to OUT/logs/; where
     steps share a GPU, each process takes its memory as it needs it instead of most of the GPU
     at its start (XLA_PYTHON_CLIENT_PREALLOCATE=false, unless the environment sets JAX's memory
@@ -158,8 +162,12 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
     KeyboardInterrupt) stops every process, records their time as cut and is raised again.
     With `seconds_left` (the sitting's time left), a step starts only while it `fits_in` it
     (its expected time, with its run's evaluations, from this OUT's records); those running
-    finish. Returns (0 or the first failure's exit code, the steps not started: waiting for
-    prerequisites not run here, or for want of time)."""
+    finish. `together` > 1: a step starting takes with it up to `together` - 1 more that are
+    ready and `joinable` with it (live runs of its configuration, other seeds), run as one call
+    in its process (reproduce_steps.run_together), each recorded with the process's time; the
+    process logs to the first one's log, the others' say where. Returns (0 or the first
+    failure's exit code, the steps not started: waiting for prerequisites not run here, or for
+    want of time)."""
     say = say or (lambda message: print(message, flush=True))
     needs = prerequisites(plan)
     done = set(progress["commands"])
@@ -174,6 +182,9 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
     def busy(gpu: str) -> int:
         return sum(g == gpu for _, g, _, _ in running.values())
 
+    def ready(step: Step) -> bool:
+        return needs[step.name] <= done and (expected is None or fits_in(step, expected, seconds_left()))
+
     def record(step: Step, seconds: float, ok: bool) -> None:
         record_step(progress, step, seconds, ok)
         if ok:
@@ -186,9 +197,7 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
             while started and not failed:  # a copy done may let others start
                 started = False
                 for step in list(pending):
-                    if not needs[step.name] <= done or (not step.is_copy and not free):
-                        continue
-                    if expected is not None and not fits_in(step, expected, seconds_left()):
+                    if step not in pending or (not step.is_copy and not free) or not ready(step):
                         continue
                     pending.remove(step)
                     started = True
@@ -200,16 +209,24 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                         continue
                     gpu = min(free, key=lambda g: (busy(g), gpus.index(g)))
                     free.remove(gpu)
+                    group = [step]
+                    for other in list(pending):
+                        if len(group) < together and joinable(step, other) and ready(other):
+                            group.append(other)
+                            pending.remove(other)
                     log = out / "logs" / _log_name(step)
-                    argv = command(step)
+                    argv = command(group)
+                    for other in group[1:]:
+                        with open(out / "logs" / _log_name(other), "a") as f:
+                            f.write(f"# {other.name}\n# run with {step.name}, in one process: its log is {log.name}\n")
                     with open(log, "a") as f:
-                        f.write(f"# {step.name}\n$ {shlex.join(argv)}\n")
+                        f.write("".join(f"# {s.name}\n" for s in group) + f"$ {shlex.join(argv)}\n")
                         f.flush()
                         proc = subprocess.Popen(argv, stdout=f,
                                                 stderr=subprocess.STDOUT,
                                                 env={**child_env, "CUDA_VISIBLE_DEVICES": gpu})
-                    running[proc] = (step, gpu, log, time.perf_counter())
-                    say(f"[gpu {gpu}] {step.name} started (log {log})")
+                    running[proc] = (group, gpu, log, time.perf_counter())
+                    say(f"[gpu {gpu}] {' + '.join(s.name for s in group)} started (log {log})")
             if not running:
                 break  # what is left waits for steps not run here
             ended = [proc for proc in running if proc.poll() is not None]
@@ -217,29 +234,32 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                 time.sleep(poll_seconds)
                 continue
             for proc in ended:
-                step, gpu, log, t0 = running.pop(proc)
+                group, gpu, log, t0 = running.pop(proc)
                 seconds = time.perf_counter() - t0
-                record(step, seconds, proc.returncode == 0)
+                for step in group:
+                    record(step, seconds, proc.returncode == 0)
                 free = sorted(free + [gpu], key=gpus.index)
+                names = " + ".join(step.name for step in group)
                 if proc.returncode == 0:
-                    say(f"[gpu {gpu}] {step.name} done in {seconds:.0f} s "
+                    say(f"[gpu {gpu}] {names} done in {seconds:.0f} s "
                         f"({len(done & set(needs))} done, {len(running)} running, {len(pending)} to run)")
                 else:
                     failed = failed or proc.returncode
-                    say(f"[gpu {gpu}] {step.name} failed (exit {proc.returncode}) after {seconds:.0f} s; "
+                    say(f"[gpu {gpu}] {names} failed (exit {proc.returncode}) after {seconds:.0f} s; "
                         f"no new step starts. The end of {log}:\n{_tail(log)}")
     except BaseException:
         for proc in running:
             proc.terminate()
         deadline = time.perf_counter() + 30.0
-        for proc, (step, gpu, log, t0) in running.items():
+        for proc, (group, gpu, log, t0) in running.items():
             try:
                 proc.wait(timeout=max(0.1, deadline - time.perf_counter()))
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-            record(step, time.perf_counter() - t0, False)
-            say(f"[gpu {gpu}] {step.name} stopped")
+            for step in group:
+                record(step, time.perf_counter() - t0, False)
+            say(f"[gpu {gpu}] {' + '.join(step.name for step in group)} stopped")
         raise
     return failed, pending
 

@@ -19,11 +19,14 @@ from typing import Any, Callable
 @dataclass(frozen=True)
 class StepKind:
     """A kind of step: the library function its steps call ("module:function", imported when one
-    runs) and whether that takes this process's device mesh (every visible device; `--gpus`
-    gives each process one)."""
+    runs), whether that takes this process's device mesh (every visible device; `--gpus`
+    gives each process one) and, where steps of the kind that differ only in their seed can run
+    as one call, the function that runs them so (its keywords those of `function`, each
+    per-step one as a list under its name with an "s" added: out_dirs, lives)."""
 
     function: str
     mesh: bool = False
+    together: str | None = None
 
 
 # The kinds of step a plan holds, by the name a step's identity starts with.
@@ -34,7 +37,8 @@ STEP_KINDS = {
     "train objectnav": StepKind("conav_jax.train.goalnav:train_objectnav_from_data", mesh=True),
     "train imagenav": StepKind("conav_jax.train.goalnav:train_imagenav_from_data", mesh=True),
     "train policy": StepKind("conav_jax.train.policy:train_policy_from_data", mesh=True),
-    "train live": StepKind("conav_jax.train.live:train_live_from_data"),
+    "train live": StepKind("conav_jax.train.live:train_live_from_data",
+                           together="conav_jax.train.live:train_live_seeds_from_data"),
     "eval": StepKind("conav_jax.eval.sweep:run_eval"),
     "copy": StepKind("conav_jax.eval.cli.reproduce_steps:copy_run"),  # DAgger continues a copy of the BC run
 }
@@ -90,6 +94,14 @@ def step_function(kind: str) -> Callable:
     return getattr(importlib.import_module(module), name)
 
 
+def together_function(kind: str) -> Callable:
+    """The library function that runs several steps of `kind` as one call (StepKind.together)."""
+    if STEP_KINDS[kind].together is None:
+        raise ValueError(f"steps of kind {kind!r} run one at a time")
+    module, name = STEP_KINDS[kind].together.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
 def run_step(step: Step) -> Any:
     """Run `step` in this process: its kind's function called with its keywords (and with the
     mesh of every visible device where it takes one); what the function returns. JAX's
@@ -107,6 +119,42 @@ def run_step(step: Step) -> Any:
 
         extra["mesh"] = make_mesh()
     return step_function(step.call.kind)(**step.call.kwargs, **extra)
+
+
+# The keywords that differ between the steps `run_together` joins: the directory each writes,
+# and its config, which holds the seed.
+PER_STEP_KWARGS = {"out_dir": "out_dirs", "live": "lives"}
+
+
+def joinable(first: Step, other: Step) -> bool:
+    """Whether `other` can run in one call with `first` (`run_together`): two steps of a kind with
+    a `together` function whose keywords are equal but for the directory each writes and the seed
+    of its config."""
+    if first.call.kind != other.call.kind or STEP_KINDS[first.call.kind].together is None or first == other:
+        return False
+    a, b = dict(first.call.kwargs), dict(other.call.kwargs)
+    if a.keys() != b.keys() or not set(PER_STEP_KWARGS) <= a.keys():
+        return False
+    unseeded = [dataclasses.replace(kw.pop("live"), seed=0) for kw in (a, b)]
+    return a.pop("out_dir") != b.pop("out_dir") and a == b and unseeded[0] == unseeded[1]
+
+
+def run_together(steps: list[Step]) -> Any:
+    """Run `steps` in this process: one alone as `run_step` does; several `joinable` ones (live
+    runs of one configuration but their seeds) as one call of their kind's `together` function
+    (train.live.train_live_seeds: one compiled program trains them all). ValueError for steps
+    that cannot be joined."""
+    if len(steps) == 1:
+        return run_step(steps[0])
+    if not steps or not all(joinable(steps[0], step) for step in steps[1:]):
+        raise ValueError(f"steps that differ in more than their seed cannot run as one call: "
+                         f"{', '.join(step.name for step in steps)}")
+    import jax
+
+    jax.clear_caches()  # as run_step
+    kwargs = {k: v for k, v in steps[0].call.kwargs.items() if k not in PER_STEP_KWARGS}
+    per_step = {many: [step.call.kwargs[one] for step in steps] for one, many in PER_STEP_KWARGS.items()}
+    return together_function(steps[0].call.kind)(**kwargs, **per_step)
 
 
 def copy_run(source: str, target: str) -> None:
