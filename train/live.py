@@ -557,10 +557,15 @@ def train_live_seeds(
     if len(at) > 1:
         raise ValueError(f"train_live_seeds: the runs stand at different iterations {at}; train them one by one")
     start_it, per_iter, live = at[0], shared.timesteps_per_iteration, lives[0]
-    # The runs' fields stacked on a leading axis (SEEDS_STATE_AXES), but the iteration they share.
-    state = states[0] if k == 1 else TrainState(*(
-        states[0].iteration if name == "iteration" else jax.tree.map(lambda *xs: jnp.stack(xs), *fields)
-        for name, fields in zip(TrainState._fields, zip(*states))))
+    if k == 1:
+        state = states[0]
+    else:  # the runs' fields stacked on a leading axis (SEEDS_STATE_AXES), but the iteration they share
+        scratch = jax.tree.map(lambda x: jax.ShapeDtypeStruct((k, *x.shape), x.dtype), states[0].window_obs)
+        states = [st._replace(window_obs=None) for st in states]  # each run's scratch freed before the stack's
+        state = TrainState(*(
+            states[0].iteration if name == "iteration" else jax.tree.map(lambda *xs: jnp.stack(xs), *fields)
+            for name, fields in zip(TrainState._fields, zip(*states)) if name != "window_obs"),
+            window_obs=jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), scratch))
     del states
     one = (lambda st, i: st) if k == 1 else _run_of
     log_paths = [Path(d) / runs.LOG_FILE for d in out_dirs]
