@@ -525,10 +525,11 @@ def train_live_seeds(
     the runs), so the runs share one compile and a GPU that one run's lanes leave partly idle.
     Each run's log and checkpoints are those `train_live` writes (it is this with one run), and
     each resumes as it does; the runs must stand at the same iteration (ValueError otherwise:
-    train them one by one), and write logs and checkpoints at the first's cadences. Seed s's episode order and initial weights are its own, as alone;
-    its weights match a lone run's to float32 rounding (the batched program may order sums
-    differently). ValueError for configs that differ in more than the seed, repeated seeds or
-    directories."""
+    train them one by one), and write logs and checkpoints at the first's cadences. Seed s's
+    episode order and initial weights are its own, as alone; its updates differ from a lone
+    run's only by rounding (a batched program may sum in another order), which, as between two
+    runs of one seed on a GPU, grows over a run. ValueError for configs that differ in more
+    than the seed, repeated seeds or directories."""
     if not lives or len(lives) != len(out_dirs):
         raise ValueError(f"train_live_seeds needs one out_dir per LiveConfig, got {len(lives)} and {len(out_dirs)}")
     shared = dataclasses.replace(lives[0], seed=0, **{k: 1 for k in CADENCE_FIELDS})
