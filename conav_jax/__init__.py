@@ -26,7 +26,9 @@ The public names (loaded on first use, so `import conav_jax.data` stays light):
 
 Trainers take envs and configs, and write a run directory (checkpoints, log.jsonl) that the
 agents load: `conav_jax.train.live.train_live(env, policy_config, live_config, out_dir, intention,
-trajectory)` (the CoNav policy imitating the expert live), `train.policy.train_policy`,
+trajectory)` (the CoNav policy imitating the expert live; `train_live_seeds(env, policy_config,
+live_configs, out_dirs, ...)` trains several seeds of one configuration as one program),
+`train.policy.train_policy`,
 `train.intention.train_intention`, `train.trajectory.train_trajectory`,
 `train.goalnav.train_objectnav` / `train_imagenav` and `train.ppo.train_ppo` (each `(train_env,
 val_env, run_dir, config, ...)`); each has a `..._from_data(data_dir, ...)` twin that builds the
