@@ -326,3 +326,7 @@ def test_the_live_bench_refuses_parts_it_does_not_have_before_building_anything(
         live_throughput(None, parts=("render",))
     with pytest.raises(ValueError, match="parts must hold 'update'"):
         live_throughput(None, parts=("simulate",), profile_dir="trace")
+    with pytest.raises(ValueError, match=r"runs > 1 times the whole iteration alone"):
+        live_throughput(None, runs=2)  # runs together: only the whole iteration exists
+    with pytest.raises(ValueError, match="runs must be >= 1"):
+        live_throughput(None, runs=0, parts=("update",))

@@ -155,7 +155,7 @@ LIVE_PARTS = ("simulate", "expert", "learner", "update")  # live_throughput's cu
 
 def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int = 32, repeats: int = 5,
                     intention=None, trajectory=None, beta: float = 0.5, seed: int = 0, remat: bool = False,
-                    profile_dir: str | None = None, parts: tuple[str, ...] = LIVE_PARTS) -> dict:
+                    profile_dir: str | None = None, parts: tuple[str, ...] = LIVE_PARTS, runs: int = 1) -> dict:
     """Env timesteps trained per second of train.live's iteration on `env` (its train split) at
     `lanes` x `window_steps` steps per iteration, and its breakdown: each cumulative part of an
     iteration compiled as its own program and timed alone (the simulator: refills, the
@@ -168,7 +168,10 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     `remat` as LiveConfig.remat. `parts`: which of LIVE_PARTS to compile and time ("update" is
     the whole iteration, what a run pays). With `profile_dir`, two more calls of the whole
     iteration are traced there and the result's "profile" holds their device time by part
-    (conav_jax.profiling.profile_program over train.live.PROFILE_SCOPES)."""
+    (conav_jax.profiling.profile_program over train.live.PROFILE_SCOPES). `runs` > 1: the whole
+    iteration of that many runs (seeds 0..runs-1) trained together as one program
+    (train.live.train_live_seeds), its timesteps those of all the runs; parts must be
+    ("update",)."""
     from conav_jax.models import policy
     from conav_jax.models.policy import PolicyConfig
     from conav_jax.envs.rollout import jit_with_bank
@@ -180,6 +183,9 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
         raise ValueError(f"parts must be some of {LIVE_PARTS}, got {parts}")
     if profile_dir is not None and "update" not in parts:
         raise ValueError("a profile traces the whole iteration: parts must hold 'update'")
+    if runs < 1 or runs > 1 and tuple(parts) != ("update",):
+        raise ValueError(f"runs must be >= 1, and runs > 1 times the whole iteration alone (parts ('update',)); "
+                         f"got runs {runs}, parts {parts}")
     hw = env.config.sensor.resolution
     policy_config = policy_config or PolicyConfig(resolution=hw)
     config = lv.LiveConfig(lanes=lanes, window_steps=window_steps, warmup_iterations=0, beta_start=beta,
@@ -195,23 +201,30 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
 
     programs = {name: rollout_part(i + 1) for i, name in enumerate(lv.ROLLOUT_STAGES)} | {"update": fns.iteration}
     assert tuple(programs) == LIVE_PARTS
-    per_iter = lanes * window_steps
+    per_iter = lanes * window_steps * runs
     out = {"device": jax.devices()[0].device_kind, "lanes": lanes, "window_steps": window_steps,
            "resolution": f"{hw[0]}x{hw[1]}", "physics": env.config.physics.impl, "sensor": env.config.sensor.kind,
-           "beta": beta, "remat": remat, "intention_source": fns.source, "timesteps_per_iteration": per_iter}
+           "beta": beta, "remat": remat, "intention_source": fns.source, "runs": runs,
+           "timesteps_per_iteration": per_iter}
     # Each part starts from its own fresh state, donated call to call as train_live's is; the
     # rollout parts keep compact observations and need no window buffer.
     donate = () if jax.default_backend() == "cpu" else (1,)
     for name, fn in programs.items():
         if name not in parts:
             continue
-        jitted = jit_with_bank(env, fn, donate_argnums=donate)
-        state = fns.init(jax.tree.map(jnp.copy, params0))  # donated: params0 itself must survive
-        state = state if name == "update" else state._replace(window_obs={})
+        if runs > 1:  # as train_live_seeds runs them: seeds 0..runs-1, one program
+            jitted = lv.make_iteration(env, policy_config, config, intention, trajectory, seeds=runs)[1]
+            state = lv.stack_runs([fns.init(policy.init(jax.random.PRNGKey(s), policy_config))._replace(
+                seed=jnp.full((), s, jnp.int32)) for s in range(runs)])
+        else:
+            jitted = jit_with_bank(env, fn, donate_argnums=donate)
+            state = fns.init(jax.tree.map(jnp.copy, params0))  # donated: params0 itself must survive
+            state = state if name == "update" else state._replace(window_obs={})
         times = []
         for i in range(repeats + 1):
+            key = lv.iteration_key(seed, i) if runs == 1 else jnp.stack([lv.iteration_key(s, i) for s in range(runs)])
             t0 = time.perf_counter()
-            state, res = jitted(state, lv.iteration_key(seed, i))
+            state, res = jitted(state, key)
             jax.block_until_ready((state, res))
             times.append(time.perf_counter() - t0)
         med = statistics.median(times[1:])
@@ -224,6 +237,8 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
         from conav_jax.profiling import profile_program
 
         key = lv.iteration_key(seed, repeats + 1)
+        if runs > 1:
+            key = jnp.stack([lv.iteration_key(s, repeats + 1) for s in range(runs)])
         compiled = jitted.lower(state, key).compile()
         out["profile"] = profile_program(compiled, (env.bank, state, key), lv.PROFILE_SCOPES, profile_dir,
                                          after=lambda res: (env.bank, res[0], key))

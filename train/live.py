@@ -390,14 +390,21 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
 
 
 def make_iteration(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, intention=None, trajectory=None,
-                   expert_config: ExpertConfig = ExpertConfig(), compiler_options: tuple = ()):
+                   expert_config: ExpertConfig = ExpertConfig(), compiler_options: tuple = (), seeds: int = 1):
     """(`Live`, the jitted iteration `(TrainState, key) -> (TrainState, metrics)`, the bank an
     argument of the compiled program), shared by runs of one process with the same inputs but
     for the cadences and the seed (a resumed run, and every seed of one configuration, reuse the
     compiled code: `init` takes the seed from `live`, the iteration from the TrainState).
-    `compiler_options`: `jax.jit`'s, as sorted pairs."""
+    `compiler_options`: `jax.jit`'s, as sorted pairs. `seeds` > 1: the iteration of that many
+    runs together (`train_live_seeds`), taking `stack_runs` of their states and their keys
+    stacked; `init` stays one run's."""
+    if seeds < 1:
+        raise ValueError(f"make_iteration.seeds must be at least 1, got {seeds}")
     shared = dataclasses.replace(live, seed=0, **{k: 1 for k in CADENCE_FIELDS})
     fns, iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, compiler_options)
+    if seeds > 1:
+        iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, compiler_options,
+                               seeds)[1]
     if live.seed != shared.seed:  # the same compiled iteration; an init of this seed
         fns = fns._replace(init=make_live(env, policy_config, live, intention, trajectory, expert_config).init)
     return fns, iteration
@@ -558,15 +565,7 @@ def train_live_seeds(
     if len(at) > 1:
         raise ValueError(f"train_live_seeds: the runs stand at different iterations {at}; train them one by one")
     start_it, per_iter, live = at[0], shared.timesteps_per_iteration, lives[0]
-    if k == 1:
-        state = states[0]
-    else:  # the runs' fields stacked on a leading axis (SEEDS_STATE_AXES), but the iteration they share
-        scratch = jax.tree.map(lambda x: jax.ShapeDtypeStruct((k, *x.shape), x.dtype), states[0].window_obs)
-        states = [st._replace(window_obs=None) for st in states]  # each run's scratch freed before the stack's
-        state = TrainState(*(
-            states[0].iteration if name == "iteration" else jax.tree.map(lambda *xs: jnp.stack(xs), *fields)
-            for name, fields in zip(TrainState._fields, zip(*states)) if name != "window_obs"),
-            window_obs=jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), scratch))
+    state = states[0] if k == 1 else stack_runs(states)
     del states
     one = (lambda st, i: st) if k == 1 else _run_of
     log_paths = [Path(d) / runs.LOG_FILE for d in out_dirs]
@@ -606,6 +605,21 @@ def train_live_seeds(
         mine = one(state, i)
         results.append(LiveResult(mine, policy_config, int(mine.iteration) * per_iter, int(mine.cursor), Path(run_dir)))
     return results
+
+
+def stack_runs(states: list[TrainState]) -> TrainState:
+    """Runs' TrainStates, standing at one iteration, as the iteration of runs together takes them
+    (`make_iteration(..., seeds=len(states))`): each field stacked on a leading axis
+    (SEEDS_STATE_AXES) but the iteration they share. Each run's window scratch is dropped from
+    `states` before the stacked one is made (the list is emptied: pass it, not a copy to keep)."""
+    scratch = jax.tree.map(lambda x: jax.ShapeDtypeStruct((len(states), *x.shape), x.dtype), states[0].window_obs)
+    iteration, names = states[0].iteration, [n for n in TrainState._fields if n not in ("iteration", "window_obs")]
+    rest = [[getattr(st, name) for name in names] for st in states]
+    states.clear()  # the runs' scratch buffers go now
+    stacked = {name: jax.tree.map(lambda *xs: jnp.stack(xs), *fields) for name, fields in zip(names, zip(*rest))}
+    del rest
+    return TrainState(**stacked, iteration=iteration,
+                      window_obs=jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), scratch))
 
 
 def _run_of(state: TrainState, i: int) -> TrainState:

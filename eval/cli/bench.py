@@ -118,6 +118,9 @@ def add(sub) -> None:
                    help="also trace two iterations into DIR and print their device time by part of the iteration")
     p.add_argument("--parts", nargs="+", default=list(LIVE_PARTS), choices=LIVE_PARTS,
                    help="the cumulative parts to compile and time (update: the whole iteration, what a run pays)")
+    p.add_argument("--runs", type=int, default=1, metavar="K",
+                   help="time the whole iteration of K runs (seeds 0..K-1) trained together as one program, as "
+                        "`conav reproduce --runs-per-process K` trains them (with --parts update)")
     p.add_argument("--repeats", type=int, default=3)
     p.set_defaults(func=_run_bench_live)
 
@@ -188,7 +191,7 @@ def _run_bench_live(args: argparse.Namespace) -> int:
         profile = None if args.profile is None else str(Path(args.profile) / f"lanes{lanes}")
         res = live_throughput(env, model, lanes=lanes, window_steps=args.window_steps, repeats=args.repeats,
                               intention=predictors[0], trajectory=predictors[1], beta=args.beta, remat=args.remat,
-                              profile_dir=profile, parts=tuple(args.parts))
+                              profile_dir=profile, parts=tuple(args.parts), runs=args.runs)
         print(json.dumps({**res, "encoder": args.encoder, "conv_dtype": args.conv_dtype, "visual_norm": model.visual_norm,
                           "materials": env.config.sensor.materials}), flush=True)
     return 0
