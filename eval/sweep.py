@@ -443,6 +443,17 @@ def run_eval(data: str | Path, split: str, agents: tuple[str, ...], out: str | P
     return sweep(checked, load_env(checked), progress=progress, mesh=make_mesh(checked.devices))
 
 
+def run_evals(data: str | Path, split: str, agents: tuple[str, ...], outs: list[str | Path],
+              checkpoints: list[str | Path | None], **plan) -> list[dict]:
+    """`run_eval` of each (out, checkpoint) pair in turn, in this process: evaluations of one data,
+    split and agents (training seeds of a row, say) load the env once and share a compiled sweep
+    (`load_env`, `build_evaluators` keep them). Returns their metrics.json contents."""
+    if len(outs) != len(checkpoints):
+        raise ValueError(f"run_evals needs a checkpoint (or None) per out, got {len(outs)} and {len(checkpoints)}")
+    return [run_eval(data, split, agents, out, checkpoint=checkpoint, **plan)
+            for out, checkpoint in zip(outs, checkpoints)]
+
+
 def sweep(plan: EvalPlan, env, progress: bool = False, mesh=None) -> dict:
     """Evaluate every agent and ablation of `plan` on `env` and write all outputs to plan.out
     (write_results), the lanes split over the devices of `mesh` (conav_jax.parallel.make_mesh;

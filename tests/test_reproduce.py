@@ -829,7 +829,9 @@ if kind == "eval":
     entry = lambda a: {"agent": a, "title": f"T {a}", "intention_source": "none", "privileged": ["oracle map"],
                        "metrics": {m: {"value": v, "lo": v - 1, "hi": v + 1}
                                    for m, v in zip(("FASR", "RASR", "FASPL", "RASPL", "CR", "AS"), (1, 2, 3, 4, 5, 6))}}
-    (out / "metrics.json").write_text(json.dumps({"episodes": 100, "agents": {a: entry(a) for a in agents}, "ablations": {}}))
+    for o in outs:
+        (o / "metrics.json").write_text(json.dumps({"episodes": 100, "agents": {a: entry(a) for a in agents},
+                                                    "ablations": {}}))
 else:
     for o in outs:
         (o / ("manifest.json" if kind == "generate" else "log.jsonl")).write_text("{}\n")
@@ -1075,7 +1077,12 @@ def test_live_runs_of_one_row_join_into_one_process_and_one_call(fake_conav, fak
     runs = _runs(fake_children)
     live = [r for r in runs if "/runs/bc_" in r["out"] or "/runs/dagger" in r["out"]]
     assert live and all(r["with"] == 1 for r in live)  # two seeds a process: the tiny preset has two
-    assert all(r["with"] == 0 for r in runs if r not in live)  # nothing else is joined
+    evals = [r for r in runs if "/eval/" in r["out"]]
+    assert sum(r["with"] == 1 for r in evals) >= 10  # evaluations of one data, split and agents join
+    assert all(r["with"] == 0 for r in runs if r not in live + evals)  # nothing else is joined
+    # Joined evaluations evaluate one agent (each its own run); the scripted agents' runs alone.
+    (scripted,) = [r for r in evals if r["out"].endswith("/eval/scripted")]
+    assert scripted["with"] == 0
     by_start = {}
     for r in live:
         by_start.setdefault((r["start"], r["gpu"]), []).append(Path(r["out"]).name)
@@ -1100,7 +1107,11 @@ def test_steps_that_differ_only_in_their_seed_run_as_one_call(tmp_path, monkeypa
     for other in ("train live runs/bc_all_s1", "train live runs/dagger_live_beta0.5_s1", "train live runs/bc_none_s0",
                   "eval eval/conav_bc_none_s1", "train intention runs/intention"):
         assert not rs.joinable(none0, steps[other]), other
-    assert not rs.joinable(steps["eval eval/conav_bc_none_s0"], steps["eval eval/conav_bc_none_s1"])
+    # Evaluations join when only their runs differ: one agent, data, split, intention inputs.
+    eval0, eval1 = steps["eval eval/conav_bc_none_s0"], steps["eval eval/conav_bc_none_s1"]
+    assert rs.joinable(eval0, eval1) and rs.joinable(eval0, steps["eval eval/conav_bc_all_s1"])
+    for other in ("eval eval/conav_bc_gt_all_s0", "eval eval/scripted", "eval eval/conav_bc_none_s0"):
+        assert not rs.joinable(eval0, steps[other]), other  # ground truth asked for; other agents; itself
     called = []
     monkeypatch.setattr(rs, "together_function", lambda kind: lambda **kw: called.append((kind, kw)))
     rs.run_together([none0, none1])
@@ -1109,12 +1120,29 @@ def test_steps_that_differ_only_in_their_seed_run_as_one_call(tmp_path, monkeypa
     assert [live.seed for live in kw["lives"]] == [0, 1] and "out_dir" not in kw and "live" not in kw
     assert {k: v for k, v in kw.items() if k not in ("out_dirs", "lives")} == {
         k: v for k, v in _kw(none0).items() if k not in ("out_dir", "live")}
-    with pytest.raises(ValueError, match="differ in more than their seed"):
+    with pytest.raises(ValueError, match="differ in more than their runs"):
         rs.run_together([none0, steps["train live runs/bc_all_s1"]])
+    called.clear()
+    rs.run_together([eval0, eval1])
+    ((kind, kw),) = called
+    assert kind == "eval" and kw["outs"] == [_kw(eval0)["out"], _kw(eval1)["out"]]
+    assert kw["checkpoints"] == [_kw(eval0)["checkpoint"], _kw(eval1)["checkpoint"]]
+    assert {k: v for k, v in kw.items() if k not in ("outs", "checkpoints")} == {
+        k: v for k, v in _kw(eval0).items() if k not in ("out", "checkpoint")}
     import conav_jax.train.live as lv
+
+    import conav_jax.eval.sweep as sweep
 
     assert rs.STEP_KINDS["train live"].together.endswith(":train_live_seeds_from_data")
     assert callable(lv.train_live_seeds_from_data)
+    # run_evals: each evaluation in turn, in this process.
+    made = []
+    monkeypatch.setattr(sweep, "run_eval", lambda *a, **kw: made.append((a, kw)) or len(made))
+    assert sweep.run_evals("d", "val", ("conav",), ["o0", "o1"], ["r0", None], batch=8) == [1, 2]
+    assert made == [(("d", "val", ("conav",), "o0"), {"checkpoint": "r0", "batch": 8}),
+                    (("d", "val", ("conav",), "o1"), {"checkpoint": None, "batch": 8})]
+    with pytest.raises(ValueError, match="a checkpoint .* per out"):
+        sweep.run_evals("d", "val", ("conav",), ["o0"], [])
 
 
 def test_a_gpu_process_is_the_module_run_by_python_and_plans_from_out(tmp_path):

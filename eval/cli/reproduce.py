@@ -47,9 +47,10 @@ def add(sub) -> None:
                         "needs it (one step leaves a GPU partly idle while it compiles or runs small batches; "
                         "default 1)")
     p.add_argument("--runs-per-process", type=int, default=1, metavar="K",
-                   help="with --gpus: train up to K seeds of one live row in one process, as one program "
+                   help="train up to K seeds of one live row in one process, as one program "
                         "(train.live.train_live_seeds: one compile, and the GPU's work of K runs per step; "
-                        "their updates differ from lone runs' only by rounding; default 1)")
+                        "their updates differ from lone runs' only by rounding), and evaluate up to K runs of "
+                        "one agent in one process (one env load, shared compiled sweeps; default 1)")
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="a sitting of SECONDS: start no step expected to end later (its expected time: the longest "
                         "of its kind this OUT has recorded, with the evaluations of the run it trains; a kind never "

@@ -20,13 +20,14 @@ from typing import Any, Callable
 class StepKind:
     """A kind of step: the library function its steps call ("module:function", imported when one
     runs), whether that takes this process's device mesh (every visible device; `--gpus`
-    gives each process one) and, where steps of the kind that differ only in their seed can run
-    as one call, the function that runs them so (its keywords those of `function`, each
-    per-step one as a list under its name with an "s" added: out_dirs, lives)."""
+    gives each process one) and, where several steps of the kind can run as one call, the
+    function that runs them so (`together`: its keywords those of `function`, each of `per_step`
+    (keyword, its list's keyword) given as the list of the steps' values)."""
 
     function: str
     mesh: bool = False
     together: str | None = None
+    per_step: tuple[tuple[str, str], ...] = ()
 
 
 # The kinds of step a plan holds, by the name a step's identity starts with.
@@ -37,9 +38,13 @@ STEP_KINDS = {
     "train objectnav": StepKind("conav_jax.train.goalnav:train_objectnav_from_data", mesh=True),
     "train imagenav": StepKind("conav_jax.train.goalnav:train_imagenav_from_data", mesh=True),
     "train policy": StepKind("conav_jax.train.policy:train_policy_from_data", mesh=True),
+    # Seeds of one live configuration train as one program; evaluations of one data, split and
+    # agents run in one process, which loads the env once and shares compiled sweeps.
     "train live": StepKind("conav_jax.train.live:train_live_from_data",
-                           together="conav_jax.train.live:train_live_seeds_from_data"),
-    "eval": StepKind("conav_jax.eval.sweep:run_eval"),
+                           together="conav_jax.train.live:train_live_seeds_from_data",
+                           per_step=(("out_dir", "out_dirs"), ("live", "lives"))),
+    "eval": StepKind("conav_jax.eval.sweep:run_eval", together="conav_jax.eval.sweep:run_evals",
+                     per_step=(("out", "outs"), ("checkpoint", "checkpoints"))),
     "copy": StepKind("conav_jax.eval.cli.reproduce_steps:copy_run"),  # DAgger continues a copy of the BC run
 }
 
@@ -121,39 +126,42 @@ def run_step(step: Step) -> Any:
     return step_function(step.call.kind)(**step.call.kwargs, **extra)
 
 
-# The keywords that differ between the steps `run_together` joins: the directory each writes,
-# and its config, which holds the seed.
-PER_STEP_KWARGS = {"out_dir": "out_dirs", "live": "lives"}
-
-
 def joinable(first: Step, other: Step) -> bool:
     """Whether `other` can run in one call with `first` (`run_together`): two steps of a kind with
-    a `together` function whose keywords are equal but for the directory each writes and the seed
-    of its config."""
-    if first.call.kind != other.call.kind or STEP_KINDS[first.call.kind].together is None or first == other:
+    a `together` function whose keywords are equal but for its `per_step` ones (the directory
+    each writes, its run), a config among those equal but for its seed (live runs: seeds of one
+    configuration)."""
+    kind = STEP_KINDS[first.call.kind]
+    if first.call.kind != other.call.kind or kind.together is None or first.writes == other.writes:
         return False
     a, b = dict(first.call.kwargs), dict(other.call.kwargs)
-    if a.keys() != b.keys() or not set(PER_STEP_KWARGS) <= a.keys():
+    if a.keys() != b.keys() or not {one for one, _ in kind.per_step} <= a.keys():
         return False
-    unseeded = [dataclasses.replace(kw.pop("live"), seed=0) for kw in (a, b)]
-    return a.pop("out_dir") != b.pop("out_dir") and a == b and unseeded[0] == unseeded[1]
+    for one, _ in kind.per_step:
+        x, y = a.pop(one), b.pop(one)
+        if dataclasses.is_dataclass(x):  # a config: the same but for its seed
+            unseeded = [dataclasses.replace(c, seed=0) if hasattr(c, "seed") else c for c in (x, y)]
+            if unseeded[0] != unseeded[1]:
+                return False
+    return a == b
 
 
 def run_together(steps: list[Step]) -> Any:
-    """Run `steps` in this process: one alone as `run_step` does; several `joinable` ones (live
-    runs of one configuration but their seeds) as one call of their kind's `together` function
-    (train.live.train_live_seeds: one compiled program trains them all). ValueError for steps
-    that cannot be joined."""
+    """Run `steps` in this process: one alone as `run_step` does; several `joinable` ones as one
+    call of their kind's `together` function (live runs of one configuration but their seeds:
+    train.live.train_live_seeds, one compiled program; evaluations: eval.sweep.run_evals, one
+    env and shared compiled sweeps). ValueError for steps that cannot be joined."""
     if len(steps) == 1:
         return run_step(steps[0])
     if not steps or not all(joinable(steps[0], step) for step in steps[1:]):
-        raise ValueError(f"steps that differ in more than their seed cannot run as one call: "
+        raise ValueError(f"steps that differ in more than their runs cannot run as one call: "
                          f"{', '.join(step.name for step in steps)}")
     import jax
 
     jax.clear_caches()  # as run_step
-    kwargs = {k: v for k, v in steps[0].call.kwargs.items() if k not in PER_STEP_KWARGS}
-    per_step = {many: [step.call.kwargs[one] for step in steps] for one, many in PER_STEP_KWARGS.items()}
+    per_step = dict(STEP_KINDS[steps[0].call.kind].per_step)
+    kwargs = {k: v for k, v in steps[0].call.kwargs.items() if k not in per_step}
+    per_step = {many: [step.call.kwargs[one] for step in steps] for one, many in per_step.items()}
     return together_function(steps[0].call.kind)(**kwargs, **per_step)
 
 
