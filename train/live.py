@@ -623,9 +623,10 @@ def stack_runs(states: list[TrainState]) -> TrainState:
 
 
 def _run_of(state: TrainState, i: int) -> TrainState:
-    """Run `i` of `train_live_seeds`'s stacked TrainState (the iteration is theirs together)."""
-    return TrainState(*(field if name == "iteration" else jax.tree.map(lambda x: x[i], field)
-                        for name, field in zip(TrainState._fields, state)))
+    """Run `i` of `train_live_seeds`'s stacked TrainState (the iteration is theirs together),
+    without the window scratch (not state, and the largest of its fields: never copied out)."""
+    return TrainState(*(field if name == "iteration" else {} if name == "window_obs" else
+                        jax.tree.map(lambda x: x[i], field) for name, field in zip(TrainState._fields, state)))
 
 
 def _initial_state(init, policy_config: PolicyConfig, live: LiveConfig, run_dir: Path, config: dict) -> TrainState:
