@@ -1343,6 +1343,22 @@ def test_a_time_limit_starts_only_the_steps_that_end_within_it_with_their_evalua
     assert _reproduce(out, "--time-limit", "0") == 2
 
 
+def test_a_time_limit_joins_runs_only_while_they_would_fit_one_after_another(fake_conav, fake_children, tmp_path):
+    live = ("--trainer", "live", "--seeds", "3")
+    for name, limit, joined in (("short", "200", False), ("long", "1000", True)):
+        out = tmp_path / name
+        assert _reproduce(out, *live, "--seed", "0", "--gpus", "1") == 0
+        progress = rpp.read_progress(out)  # as recorded: a training 100 s, an evaluation 30 s
+        progress["commands"].update({k: 100.0 if k.startswith("train ") else 30.0 if k.startswith("eval ") else v
+                                     for k, v in progress["commands"].items()})
+        rpp.write_progress(out, progress)
+        start = len(_runs(fake_children))
+        assert _reproduce(out, *live, "--gpus", "1", "--runs-per-process", "2", "--time-limit", limit) == 0
+        trained = [r for r in _runs(fake_children)[start:] if "/runs/bc_" in r["out"]]
+        # 200 s: a run with its evaluation (130 s) fits, two one after another (260 s) do not.
+        assert len(trained) == 14 and {r["with"] for r in trained} == ({1} if joined else {0})  # 7 rows, 2 seeds
+
+
 def test_the_pack_leaves_out_a_trained_run_it_has_no_room_for_and_its_record(fake_conav, tmp_path, monkeypatch,
                                                                             capsys):
     import tarfile

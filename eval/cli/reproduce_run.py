@@ -163,7 +163,8 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
     With `seconds_left` (the sitting's time left), a step starts only while it `fits_in` it
     (its expected time, with its run's evaluations, from this OUT's records); those running
     finish. `together` > 1: a step starting takes with it up to `together` - 1 more that are
-    ready and `joinable` with it (live runs of its configuration, other seeds), run as one call
+    ready and `joinable` with it (live runs of its configuration, other seeds; evaluations of one
+    agent), while the group would fit the time left even run one by one, run as one call
     in its process (reproduce_steps.run_together), each recorded with the process's time; the
     process logs to the first one's log, the others' say where. Returns (0 or the first
     failure's exit code, the steps not started: waiting for prerequisites not run here, or for
@@ -184,6 +185,14 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
 
     def ready(step: Step) -> bool:
         return needs[step.name] <= done and (expected is None or fits_in(step, expected, seconds_left()))
+
+    def group_fits(group: list[Step]) -> bool:
+        """Whether the group fits the time left were its steps run one after another (a joined
+        group's time is not known before one has run: the bound that never overruns)."""
+        if expected is None:
+            return True
+        needs_s = [expected(step) for step in group]
+        return None in needs_s or sum(needs_s) <= seconds_left()
 
     def record(step: Step, seconds: float, ok: bool) -> None:
         record_step(progress, step, seconds, ok)
@@ -211,7 +220,8 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                     free.remove(gpu)
                     group = [step]
                     for other in list(pending):
-                        if len(group) < together and joinable(step, other) and ready(other):
+                        if len(group) < together and joinable(step, other) and ready(other) \
+                                and group_fits(group + [other]):
                             group.append(other)
                             pending.remove(other)
                     log = out / "logs" / _log_name(step)
