@@ -551,16 +551,13 @@ def train_live_seeds(
     trajectory, trajectory_run = _predictor(trajectory, lambda r: load_predictors(None, r)[1])
     k = len(lives)
     options = tuple(sorted((compiler_options or {}).items()))
-    # One run calls it as make_iteration does, so the two share a compile within a process.
-    fns, iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, options,
-                                *((k,) if k > 1 else ()))
-    # A lone run's init (the vmapped program's names an axis that exists only under its vmap).
-    init = _iteration(env, policy_config, shared, intention, trajectory, expert_config, options)[0].init
+    # A lone run's init (of seed 0: _initial_state sets each run's) beside the runs' iteration.
+    fns, iteration = make_iteration(env, policy_config, shared, intention, trajectory, expert_config, options, k)
     configs, states = [], []
     for live, run_dir in zip(lives, out_dirs):
         config = run_config(policy_config, live, expert_config, env, fns.source, intention_run, trajectory_run)
         configs.append(config)
-        states.append(_initial_state(init, policy_config, live, Path(run_dir), config))
+        states.append(_initial_state(fns.init, policy_config, live, Path(run_dir), config))
     at = sorted({int(state.iteration) for state in states})
     if len(at) > 1:
         raise ValueError(f"train_live_seeds: the runs stand at different iterations {at}; train them one by one")

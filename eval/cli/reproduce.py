@@ -117,15 +117,11 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
     from conav_jax.eval.cli import reproduce_tables as rt
 
     cfg = config_from_args(rp.ReproduceConfig, args, out=Path(args.out).resolve())
-    if args.gpus < 1:
-        print(f"conav reproduce: --gpus must be at least 1, got {args.gpus}", file=sys.stderr)
-        return 2
-    if args.runs_per_process < 1:
-        print(f"conav reproduce: --runs-per-process must be at least 1, got {args.runs_per_process}", file=sys.stderr)
-        return 2
-    if args.steps_per_gpu < 1:
-        print(f"conav reproduce: --steps-per-gpu must be at least 1, got {args.steps_per_gpu}", file=sys.stderr)
-        return 2
+    for flag in ("gpus", "steps_per_gpu", "runs_per_process"):
+        if getattr(args, flag) < 1:
+            print(f"conav reproduce: --{flag.replace('_', '-')} must be at least 1, got {getattr(args, flag)}",
+                  file=sys.stderr)
+            return 2
     if args.time_limit is not None and args.time_limit <= 0:
         print(f"conav reproduce: --time-limit must be positive seconds, got {args.time_limit:g}", file=sys.stderr)
         return 2
