@@ -211,6 +211,43 @@ def test_conv2d_in_bfloat16_runs_its_gradient_in_bfloat16_and_returns_float32_gr
             np.testing.assert_allclose(b, a, rtol=0, atol=0.02 * np.abs(a).max())
 
 
+def _compiled_convolutions(fn, *args) -> list[str]:
+    text = jax.jit(fn).lower(*args).compile().as_text()
+    return [line for line in text.splitlines() if " convolution(" in line]
+
+
+@pytest.mark.parametrize("blocks", [False, True])
+def test_kernels_vmapped_over_runs_run_as_one_ungrouped_convolution_per_run(blocks):
+    """Runs trained together (vmap over their own kernels): each run's output and gradients are
+    its own, and no convolution of the program is grouped, forward or backward (JAX's batching
+    would make one grouped convolution, whose gradients GPU kernels run far slower). A batched
+    image under one kernel (the lanes of one run) gives each image's own gradient too."""
+    runs = 2
+    keys = jax.random.split(KEY, runs + 1)
+    params = [{**nn.conv.init(k, 5, 7, 3), "b": jnp.full((7,), 0.1 * i)} for i, k in enumerate(keys[:runs])]
+    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *params)
+    images = _normal(runs, 3, 8, 12, 5)
+
+    def loss(p, x):
+        return _weighted_sum(nn.conv.apply(p, x, stride=2, space_to_depth=blocks))
+
+    grad = jax.grad(loss, argnums=(0, 1))
+    for in_axes, image_of in (((0, 0), lambda i: images[i]), ((0, None), lambda i: images[0])):
+        together = jax.vmap(grad, in_axes=in_axes)
+        got = jit(together)(stacked, images if in_axes[1] == 0 else images[0])
+        for i in range(runs):
+            own = jit(grad)(params[i], image_of(i))
+            for a, b in zip(jax.tree.leaves(own), jax.tree.leaves(jax.tree.map(lambda g: g[i], got))):
+                np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5)
+        convs = _compiled_convolutions(together, stacked, images if in_axes[1] == 0 else images[0])
+        assert convs and not [c for c in convs if "group_count" in c], convs
+        assert len(convs) == runs * len(_compiled_convolutions(grad, params[0], images[0]))
+    per_image = jit(jax.vmap(grad, in_axes=(None, 0)))(params[0], images)
+    for i in range(runs):
+        for a, b in zip(jax.tree.leaves(jit(grad)(params[0], images[i])), jax.tree.leaves(per_image)):
+            np.testing.assert_allclose(b[i], a, rtol=1e-5, atol=1e-5)
+
+
 def test_conv2d_output_sizes_and_leading_dims(layers):
     params = layers["conv"]
     x = np.zeros((2, 3, 16, 64, 2), np.float32)

@@ -184,9 +184,23 @@ def _trained_policy_model(flag, monkeypatch, tmp_path):
 # -- panorama encoders -------------------------------------------------------------------------
 
 
+def _conv_eqns(jaxpr) -> list:
+    """Every convolution of a traced program in program order, nested programs included (a
+    layer's convolution sits inside its vmap rule and gradient)."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "conv_general_dilated":
+            found.append(eqn)
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (tuple, list)) else (value,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    found += _conv_eqns(inner)
+    return found
+
+
 def _convolutions(config, params, obs):
-    jaxpr = jax.make_jaxpr(policy.encode, static_argnums=1)(params, config, obs)
-    return [e for e in jaxpr.jaxpr.eqns if e.primitive.name == "conv_general_dilated"]
+    return _conv_eqns(jax.make_jaxpr(policy.encode, static_argnums=1)(params, config, obs).jaxpr)
 
 
 def test_the_patch_encoder_reaches_the_conv_encoders_grid_with_a_patch_product_first():
@@ -409,7 +423,7 @@ def test_in_bfloat16_the_first_convolution_runs_over_pixel_blocks():
 
     def first_conv(config):
         jaxpr = jax.make_jaxpr(policy.encode, static_argnums=1)(params, config, _obs((B,)))
-        eqn = next(e for e in jaxpr.jaxpr.eqns if e.primitive.name == "conv_general_dilated")
+        eqn = _conv_eqns(jaxpr.jaxpr)[0]
         return eqn.params["window_strides"], eqn.invars[1].aval.shape[2], str(eqn.invars[0].aval.dtype)
 
     assert first_conv(dataclasses.replace(CONFIG, conv_dtype="bfloat16")) == ((1, 1), 32, "bfloat16")

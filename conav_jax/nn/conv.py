@@ -17,12 +17,14 @@ backward, and runs them on tensor cores.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Literal
 
 import jax
 import jax.numpy as jnp
 from jax import lax
+from jax import custom_batching
 
 Params = dict[str, jax.Array]
 Padding = Literal["SAME", "VALID"]
@@ -47,9 +49,60 @@ def init(
     return {"w": w, "b": jnp.zeros((out_channels,), dtype)}
 
 
+def _batch_of(args, batched, i):
+    return [a[i] if b else a for a, b in zip(args, batched)]
+
+
+@functools.lru_cache(maxsize=None)
+def _convolution(stride: tuple[int, int], padding: Padding | tuple):
+    """`(x (N, H, W, C), w (kh, kw, C, O)) -> (N, H', W', O)`, lax.conv_general_dilated's, with
+    its own vmap rule. JAX batches a convolution whose kernel is batched (the runs of
+    `train.live.train_live_seeds`, each with its own weights) as one grouped convolution, and
+    GPU convolution kernels run grouped convolutions' weight gradients far slower than the
+    groups' ungrouped convolutions one after another. Here a batched kernel runs as that many
+    ungrouped convolutions, forward and backward, the same ones a lone run takes; a batched
+    image alone joins the convolution's own batch. Unbatched, the same program as the plain
+    convolution and its autodiff."""
+
+    def plain(x, w):
+        return lax.conv_general_dilated(x, w, window_strides=stride, padding=padding,
+                                        dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+    @custom_batching.custom_vmap
+    def forward(x, w):
+        return plain(x, w)
+
+    @forward.def_vmap
+    def _forward_batched(axis_size, in_batched, x, w):
+        if in_batched[1]:
+            return jnp.stack([forward(*_batch_of((x, w), in_batched, i)) for i in range(axis_size)]), True
+        y = forward(x.reshape(-1, *x.shape[2:]), w)
+        return y.reshape(axis_size, -1, *y.shape[1:]), True
+
+    @custom_batching.custom_vmap
+    def backward(x, w, g):
+        return jax.vjp(plain, x, w)[1](g)
+
+    @backward.def_vmap
+    def _backward_batched(axis_size, in_batched, x, w, g):
+        if in_batched[1]:
+            grads = [backward(*_batch_of((x, w, g), in_batched, i)) for i in range(axis_size)]
+            return tuple(jnp.stack(parts) for parts in zip(*grads)), (True, True)
+        # A kernel shared by the batch (a per-example gradient): each example's kernel gradient
+        # is its own, so JAX's batching of the plain gradient.
+        axes = tuple(0 if b else None for b in in_batched)
+        return jax.vmap(lambda x, w, g: jax.vjp(plain, x, w)[1](g), in_axes=axes)(x, w, g), (True, True)
+
+    @jax.custom_vjp
+    def convolution(x, w):
+        return forward(x, w)
+
+    convolution.defvjp(lambda x, w: (forward(x, w), (x, w)), lambda res, g: backward(*res, g))
+    return convolution
+
+
 def _conv(x: jax.Array, w: jax.Array, stride: tuple[int, int], padding: Padding) -> jax.Array:
-    return lax.conv_general_dilated(
-        x, w, window_strides=stride, padding=padding, dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return _convolution(stride, padding)(x, w)
 
 
 def _space_to_depth(x: jax.Array) -> jax.Array:
@@ -92,8 +145,7 @@ def _conv_space_to_depth(x: jax.Array, w: jax.Array) -> jax.Array:
         x = jnp.pad(x, ((0, 0), (0, 0), (0, 0), (0, extra)))
         w = jnp.pad(w, ((0, 0), (0, 0), (0, extra), (0, 0)))
     kernel, block_pad = _block_kernel(w, pad_lo)
-    return lax.conv_general_dilated(_space_to_depth(x), kernel, (1, 1), block_pad,
-                                    dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return _convolution((1, 1), block_pad)(_space_to_depth(x), kernel)
 
 
 def _tiles(kernel: tuple[int, int], stride: tuple[int, int], image: tuple[int, ...]) -> bool:
