@@ -25,7 +25,9 @@ from conav_jax.parallel import check_divisible, per_device
 from conav_jax.envs.rollout import select_lanes
 
 
-def _memory_bytes() -> int | None:
+def peak_memory_bytes() -> int | None:
+    """The first device's peak bytes in use so far in this process (JAX's allocator statistics;
+    memory reserved but not in use does not count); None where the backend keeps none (CPU)."""
     stats = jax.devices()[0].memory_stats() or {}
     return stats.get("peak_bytes_in_use")
 
@@ -201,7 +203,7 @@ def bench_breakdown(env, batch: int, steps: int, repeats: int) -> dict:
     out["floor"] = sensor_floor(env, batch)
     out["sensor_s_over_floor"] = round(out["sensors"]["s_per_step"] / max(
         out["floor"]["h100_compute_floor_s"], out["floor"]["h100_memory_floor_s"]), 1)
-    out["peak_bytes_in_use"] = _memory_bytes()
+    out["peak_bytes_in_use"] = peak_memory_bytes()
     return out
 
 
@@ -269,7 +271,7 @@ def bench_sim(env, batch: int, steps: int, repeats: int, what: str = "step", mes
         "what": what,
         "materials": env.config.sensor.materials,
         ("env_steps_per_s" if what == "step" else "frames_per_s"): round(rate, 1),
-        "peak_bytes_in_use": _memory_bytes(),
+        "peak_bytes_in_use": peak_memory_bytes(),
     }
 
 
@@ -320,7 +322,7 @@ def bench_render(env, batch: int, repeats: int, steps: int = 10, rays: tuple[str
             "median_call_s": round(med, 4),
             "compile_and_first_call_s": round(compile_s + first_s, 2),
             "xla_temp_bytes": None if mem is None else int(mem.temp_size_in_bytes),
-            "peak_bytes_in_use": _memory_bytes(),
+            "peak_bytes_in_use": peak_memory_bytes(),
         }
 
     out = {"device": jax.devices()[0].device_kind, "batch": batch, "resolution": f"{cfg.height}x{cfg.width}",

@@ -332,3 +332,19 @@ def test_the_live_bench_refuses_parts_it_does_not_have_before_building_anything(
         live_throughput(None, runs=2)  # runs together: only the whole iteration exists
     with pytest.raises(ValueError, match="runs must be >= 1"):
         live_throughput(None, runs=0, parts=("update",))
+
+
+def test_benchmarks_report_the_allocators_peak_in_use_where_the_backend_keeps_one(monkeypatch):
+    """`peak_bytes_in_use` of every bench (the live one's included) is the allocator's peak of
+    bytes in use, not what it reserved; None on a backend that keeps no statistics."""
+    from conav_jax.envs import bench
+
+    if jax.default_backend() == "cpu":
+        assert bench.peak_memory_bytes() is None
+
+    class Device:
+        def memory_stats(self):
+            return {"peak_bytes_in_use": 7, "bytes_in_use": 3, "bytes_reserved": 99}
+
+    monkeypatch.setattr(bench.jax, "devices", lambda: [Device()])
+    assert bench.peak_memory_bytes() == 7

@@ -174,6 +174,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     ("update",)."""
     from conav_jax.models import policy
     from conav_jax.models.policy import PolicyConfig
+    from conav_jax.envs.bench import peak_memory_bytes
     from conav_jax.envs.rollout import jit_with_bank
     from conav_jax.train import live as lv
 
@@ -233,6 +234,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
         out[f"{name}_timesteps_per_s"] = round(per_iter / med, 1)
     if "update" in parts:
         out["timesteps_trained_per_s"] = out["update_timesteps_per_s"]
+    out["peak_bytes_in_use"] = peak_memory_bytes()  # over the parts timed
     if profile_dir is not None:
         from conav_jax.profiling import profile_program
 
