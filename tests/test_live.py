@@ -6,6 +6,7 @@ alone, a killed run resumes bit for bit, and its run directory loads as the CoNa
 import dataclasses
 import functools
 import json
+import re
 from types import SimpleNamespace
 
 import jax
@@ -258,11 +259,12 @@ def test_seeds_trained_together_are_the_runs_trained_alone_and_resume_together(h
 def test_seeds_trained_together_keep_a_lone_runs_skips(hall):
     """The refill's reset of ended lanes and the learner's turn under beta = 1 run only when
     needed (conds): vmapped over runs, a cond whose predicate differs by run would become both
-    branches for every lane, so the runs take those choices together."""
+    branches for every lane, so the runs take those choices together. And each run's
+    convolutions are a lone run's, not one grouped convolution of all runs."""
     state = lv.make_live(hall.env, TINY, LIVE).init(policy.init(jax.random.PRNGKey(0), TINY))
     shared = dataclasses.replace(LIVE, seed=0, ckpt_every=1, log_every=1)
     spec = lambda x, lead=(): jax.ShapeDtypeStruct(lead + x.shape, x.dtype)  # noqa: E731
-    conds = []
+    conds, convolutions = [], []
     for k in (1, 2):
         _, iteration = lv._iteration(hall.env, TINY, shared, None, None, lv.ExpertConfig(), OPTIONS,
                                      *((k,) if k > 1 else ()))
@@ -271,7 +273,11 @@ def test_seeds_trained_together_keep_a_lone_runs_skips(hall):
                                  for name, f in zip(lv.TrainState._fields, state)))
         text = iteration.lower(states, jax.ShapeDtypeStruct(lead + (2,), jnp.uint32)).as_text()
         conds.append(text.count("stablehlo.case") + text.count("stablehlo.if"))
+        convolutions.append(re.findall(r"stablehlo.convolution.*", text))
     assert conds[0] >= 2 and conds[1] == conds[0]
+    # Each run's convolutions stay ungrouped (nn.conv: one per run), forward and backward.
+    assert convolutions[0] and len(convolutions[1]) == 2 * len(convolutions[0])
+    assert not [c for c in convolutions[1] if re.search(r"(feature|batch)_group_count = [2-9]", c)]
 
 
 def test_run_loads_as_the_conav_agent_and_acts(hall, run):
