@@ -169,7 +169,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     the whole iteration, what a run pays). With `profile_dir`, two more calls of the whole
     iteration are traced there and the result's "profile" holds their device time by part
     (conav_jax.profiling.profile_program over train.live.PROFILE_SCOPES). `runs` > 1: the whole
-    iteration of that many runs (seeds 0..runs-1) trained together as one program
+    iteration of that many runs (seeds seed..seed+runs-1) trained together as one program
     (train.live.train_live_seeds), its timesteps those of all the runs; parts must be
     ("update",)."""
     from conav_jax.models import policy
@@ -203,6 +203,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     programs = {name: rollout_part(i + 1) for i, name in enumerate(lv.ROLLOUT_STAGES)} | {"update": fns.iteration}
     assert tuple(programs) == LIVE_PARTS
     per_iter = lanes * window_steps * runs
+    seeds = list(range(seed, seed + runs))
     out = {"device": jax.devices()[0].device_kind, "lanes": lanes, "window_steps": window_steps,
            "resolution": f"{hw[0]}x{hw[1]}", "physics": env.config.physics.impl, "sensor": env.config.sensor.kind,
            "beta": beta, "remat": remat, "intention_source": fns.source, "runs": runs,
@@ -213,19 +214,18 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     for name, fn in programs.items():
         if name not in parts:
             continue
-        if runs > 1:  # as train_live_seeds runs them: seeds 0..runs-1, one program
+        if runs > 1:  # as train_live_seeds runs them: one program
             jitted = lv.make_iteration(env, policy_config, config, intention, trajectory, seeds=runs)[1]
             state = lv.stack_runs([fns.init(policy.init(jax.random.PRNGKey(s), policy_config))._replace(
-                seed=jnp.full((), s, jnp.int32)) for s in range(runs)])
+                seed=jnp.full((), s, jnp.int32)) for s in seeds])
         else:
             jitted = jit_with_bank(env, fn, donate_argnums=donate)
             state = fns.init(jax.tree.map(jnp.copy, params0))  # donated: params0 itself must survive
             state = state if name == "update" else state._replace(window_obs={})
         times = []
         for i in range(repeats + 1):
-            key = lv.iteration_key(seed, i) if runs == 1 else jnp.stack([lv.iteration_key(s, i) for s in range(runs)])
             t0 = time.perf_counter()
-            state, res = jitted(state, key)
+            state, res = jitted(state, lv.iteration_keys(seeds, i))
             jax.block_until_ready((state, res))
             times.append(time.perf_counter() - t0)
         med = statistics.median(times[1:])
@@ -238,9 +238,7 @@ def live_throughput(env, policy_config=None, lanes: int = 256, window_steps: int
     if profile_dir is not None:
         from conav_jax.profiling import profile_program
 
-        key = lv.iteration_key(seed, repeats + 1)
-        if runs > 1:
-            key = jnp.stack([lv.iteration_key(s, repeats + 1) for s in range(runs)])
+        key = lv.iteration_keys(seeds, repeats + 1)
         compiled = jitted.lower(state, key).compile()
         out["profile"] = profile_program(compiled, (env.bank, state, key), lv.PROFILE_SCOPES, profile_dir,
                                          after=lambda res: (env.bank, res[0], key))

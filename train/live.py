@@ -233,6 +233,13 @@ def iteration_key(seed: int, iteration: int | jax.Array) -> jax.Array:
     return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), _ITERATION_STREAM), iteration)
 
 
+def iteration_keys(seeds: list[int], iteration: int | jax.Array) -> jax.Array:
+    """The key argument of iteration `iteration` of the runs of `seeds`: one run's key alone, or
+    the runs' keys stacked, as `make_iteration(..., seeds=len(seeds))`'s program takes them."""
+    keys = [iteration_key(seed, iteration) for seed in seeds]
+    return keys[0] if len(keys) == 1 else jnp.stack(keys)
+
+
 def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, intention=None, trajectory=None,
               expert_config: ExpertConfig = ExpertConfig(), seed_axis: str | None = None) -> Live:
     """The live imitation loop's pure functions for `env` (its train split), the learner
@@ -577,8 +584,7 @@ def train_live_seeds(
     t0 = time.perf_counter()
     try:
         for it in range(start_it + 1, live.iterations + 1):
-            keys = [iteration_key(seed, it - 1) for seed in seeds]
-            state, metrics = iteration(state, keys[0] if k == 1 else jnp.stack(keys))
+            state, metrics = iteration(state, iteration_keys(seeds, it - 1))
             pending.append({name: v for name, v in metrics.items() if name != STEPS})
             last = it == live.iterations
             if it % live.log_every == 0 or last:

@@ -68,9 +68,7 @@ def _convolution(stride: tuple[int, int], padding: Padding | tuple):
         return lax.conv_general_dilated(x, w, window_strides=stride, padding=padding,
                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
-    @custom_batching.custom_vmap
-    def forward(x, w):
-        return plain(x, w)
+    forward = custom_batching.custom_vmap(plain)
 
     @forward.def_vmap
     def _forward_batched(axis_size, in_batched, x, w):
@@ -79,9 +77,10 @@ def _convolution(stride: tuple[int, int], padding: Padding | tuple):
         y = forward(x.reshape(-1, *x.shape[2:]), w)
         return y.reshape(axis_size, -1, *y.shape[1:]), True
 
-    @custom_batching.custom_vmap
-    def backward(x, w, g):
+    def gradients(x, w, g):
         return jax.vjp(plain, x, w)[1](g)
+
+    backward = custom_batching.custom_vmap(gradients)
 
     @backward.def_vmap
     def _backward_batched(axis_size, in_batched, x, w, g):
@@ -91,7 +90,7 @@ def _convolution(stride: tuple[int, int], padding: Padding | tuple):
         # A kernel shared by the batch (a per-example gradient): each example's kernel gradient
         # is its own, so JAX's batching of the plain gradient.
         axes = tuple(0 if b else None for b in in_batched)
-        return jax.vmap(lambda x, w, g: jax.vjp(plain, x, w)[1](g), in_axes=axes)(x, w, g), (True, True)
+        return jax.vmap(gradients, in_axes=axes)(x, w, g), (True, True)
 
     @jax.custom_vjp
     def convolution(x, w):
