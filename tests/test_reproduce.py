@@ -1343,6 +1343,31 @@ def test_a_time_limit_starts_only_the_steps_that_end_within_it_with_their_evalua
     assert _reproduce(out, "--time-limit", "0") == 2
 
 
+def test_a_time_limit_expects_a_run_to_take_as_long_as_its_configurations_other_seeds(
+        fake_conav, fake_children, tmp_path, capsys):
+    """A slower configuration's record (a DAgger run, the scripted agents' evaluation) does not
+    stop a run whose own configuration's seeds fit: each step is reckoned by the steps alike it."""
+    calls, _ = fake_conav
+    ran = lambda: {Path(c.out).name for c in calls} | {Path(r["out"]).name for r in _runs(fake_children)}  # noqa: E731
+    live = ("--trainer", "live")
+    out = tmp_path / "r"
+    assert _reproduce(out, *live, "--seed", "0", "--gpus", "1") == 0
+    progress = rpp.read_progress(out)
+    assert "train live runs/dagger_live_beta0_s0" in progress["commands"]
+    progress["commands"] = {k: (400.0 if "dagger" in k else 100.0) if k.startswith("train ") else 30.0
+                            for k in progress["commands"]}
+    progress["commands"]["eval eval/scripted"] = 300.0  # as though it had run
+    rpp.write_progress(out, progress)
+    before = ran()
+    capsys.readouterr()
+    # 200 s: a BC run (100 s) with its evaluation (30 s) fits; a DAgger run (400 s) does not.
+    assert _reproduce(out, *live, "--gpus", "1", "--time-limit", "200") == 0
+    made = ran() - before
+    assert {f"bc_{row}_s1" for row in ("none", "all", "gt_all")} | {"conav_bc_none_s1"} <= made
+    assert "dagger_live_beta0_s1" not in made
+    assert "not started, for want of time: train live runs/dagger_live_beta0_s1" in capsys.readouterr().out
+
+
 def test_a_time_limit_joins_runs_only_while_they_would_fit_one_after_another(fake_conav, fake_children, tmp_path):
     live = ("--trainer", "live", "--seeds", "3")
     for name, limit, joined in (("short", "200", False), ("long", "1000", True)):

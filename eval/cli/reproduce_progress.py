@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Callable
 
 from conav_jax.eval.cli.reproduce_plan import BUDGET_OVERRIDES, ReproduceConfig, resolution_name
-from conav_jax.eval.cli.reproduce_steps import Stage, Step
+from conav_jax.eval.cli.reproduce_steps import Stage, Step, alike
 
 
 # The steps (by name, under "commands") and stages done, with their wall times (s), and under
@@ -206,11 +206,12 @@ def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
 
 def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[Step], float | None]:
     """A step's expected wall time, to plan a sitting of limited time: the longest recorded time
-    of the finished steps of its kind (`call.kind`: "train live", "eval", ...), plus that of the
-    evaluations that read the run it writes (a run trained and not evaluated is of no use to a
-    sitting that ends, and too large to carry: eval.cli.reproduce_run.write_pack), read from the
-    records as they are when asked. None when no step of its kind has finished in this OUT
-    (nothing to go by: it may start)."""
+    of the finished steps `alike` it (its configuration's other seeds), else of its kind
+    (`call.kind`: "train live", "eval", ...), plus that of the evaluations that read the run it
+    writes, reckoned the same way (a run trained and not evaluated is of no use to a sitting that
+    ends, and too large to carry: eval.cli.reproduce_run.write_pack), read from the records as
+    they are when asked. None when no step of its kind has finished in this OUT (nothing to go
+    by: it may start)."""
     by_name = {st.name: st for stage in plan for st in stage.steps}
     readers: dict[str, list[Step]] = {}
     for st in by_name.values():
@@ -218,17 +219,20 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[Step], floa
             for run in st.reads:
                 readers.setdefault(run, []).append(st)
 
+    def longest(step: Step, recorded: list[tuple[Step, float]]) -> float | None:
+        of_kind = [(other, s) for other, s in recorded if other.call.kind == step.call.kind]
+        like = [s for other, s in of_kind if alike(step, other)] or [s for _, s in of_kind]
+        return max(like, default=None)
+
     def expected(step: Step) -> float | None:
-        longest: dict[str, float] = {}  # read at each call: the records grow as steps end
-        for name, seconds in progress["commands"].items():
-            if name in by_name:
-                kind = by_name[name].call.kind
-                longest[kind] = max(longest.get(kind, 0.0), float(seconds))
-        if step.call.kind not in longest:
+        # read at each call: the records grow as steps end
+        recorded = [(by_name[name], float(s)) for name, s in progress["commands"].items() if name in by_name]
+        own = longest(step, recorded)
+        if own is None:
             return None
-        evals = [longest.get("eval", 0.0) for st in readers.get(step.writes, ())
+        evals = [longest(st, recorded) or 0.0 for st in readers.get(step.writes, ())
                  if st.name not in progress["commands"]]
-        return longest[step.call.kind] + sum(evals)
+        return own + sum(evals)
 
     return expected
 

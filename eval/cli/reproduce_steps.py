@@ -126,13 +126,13 @@ def run_step(step: Step) -> Any:
     return step_function(step.call.kind)(**step.call.kwargs, **extra)
 
 
-def joinable(first: Step, other: Step) -> bool:
-    """Whether `other` can run in one call with `first` (`run_together`): two steps of a kind with
-    a `together` function whose keywords are equal but for its `per_step` ones (the directory
-    each writes, its run), a config among those equal but for its seed (live runs: seeds of one
-    configuration)."""
+def alike(first: Step, other: Step) -> bool:
+    """Whether two steps do the same work but for their seed: one kind, keywords equal but for its
+    `per_step` ones (the directory each writes, its run), a config among those equal but for its
+    seed (live runs: seeds of one configuration; evaluations: runs of one agent). What one's
+    recorded time says of the other's."""
     kind = STEP_KINDS[first.call.kind]
-    if first.call.kind != other.call.kind or kind.together is None or first.writes == other.writes:
+    if first.call.kind != other.call.kind:
         return False
     a, b = dict(first.call.kwargs), dict(other.call.kwargs)
     if a.keys() != b.keys() or not {one for one, _ in kind.per_step} <= a.keys():
@@ -144,6 +144,12 @@ def joinable(first: Step, other: Step) -> bool:
             if unseeded[0] != unseeded[1]:
                 return False
     return a == b
+
+
+def joinable(first: Step, other: Step) -> bool:
+    """Whether `other` can run in one call with `first` (`run_together`): two `alike` steps of a
+    kind with a `together` function, each writing a directory of its own."""
+    return STEP_KINDS[first.call.kind].together is not None and first.writes != other.writes and alike(first, other)
 
 
 def run_together(steps: list[Step]) -> Any:
