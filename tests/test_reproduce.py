@@ -1382,6 +1382,45 @@ def test_a_time_limit_joins_runs_only_while_they_would_fit_one_after_another(fak
         trained = [r for r in _runs(fake_children)[start:] if "/runs/bc_" in r["out"]]
         # 200 s: a run with its evaluation (130 s) fits, two one after another (260 s) do not.
         assert len(trained) == 14 and {r["with"] for r in trained} == ({1} if joined else {0})  # 7 rows, 2 seeds
+        after = rpp.read_progress(out)  # the runs of seeds 1 and 2 (BC and DAgger), recorded as run in pairs
+        pairs = {k for k, n in after.get("joined", {}).items() if n == 2 and k.startswith("train ")}
+        assert pairs == ({k for k in after["commands"] if k.startswith("train live") and k.endswith(("_s1", "_s2"))}
+                         if joined else set()) and len(pairs) == (16 if joined else 0)
+
+
+def test_expected_seconds_go_by_runs_that_ran_as_many_to_a_process():
+    """A lone run goes by its configuration's lone runs, a pair by pairs (the process's time once,
+    with both runs' evaluations); a size never run, by its runs' times added up."""
+    plan = rp.plan_stages(rp.ReproduceConfig(out=Path("o"), preset="tiny", trainer="live", seeds=6, rows=("none",)))
+    step = {st.name: st for stage in plan for st in stage.steps}
+    run = lambda s: step[f"train live runs/bc_none_s{s}"]  # noqa: E731
+    progress = {"commands": {"train live runs/bc_none_s0": 100.0, "train live runs/bc_none_s1": 250.0,
+                             "train live runs/bc_none_s2": 250.0, "eval eval/conav_bc_none_s0": 30.0},
+                "joined": {"train live runs/bc_none_s1": 2, "train live runs/bc_none_s2": 2}}
+    expected = rpp.expected_seconds(plan, progress)
+    assert expected([run(3)]) == 100.0 + 30.0
+    assert expected([run(3), run(4)]) == 250.0 + 2 * 30.0
+    assert expected([run(3), run(4), run(5)]) == 3 * (100.0 + 30.0)
+    assert rpp.fits_in([run(3), run(4)], expected, 310.0) and not rpp.fits_in([run(3), run(4)], expected, 300.0)
+    progress["joined"] = {}  # the pairs forgotten: a lone run goes by the longest of its configuration's
+    assert expected([run(3)]) == 250.0 + 30.0
+
+
+def test_a_time_limit_joins_runs_that_ran_joined_before_by_their_group_time(fake_conav, fake_children, tmp_path):
+    """A group of two whose pairs took 120 s a process here (with 30 s evaluations: 180 s) joins
+    in 200 s, though its runs one after another (300 s) would not fit."""
+    live = ("--trainer", "live", "--seeds", "3")
+    out = tmp_path / "r"
+    assert _reproduce(out, *live, "--seed", "0", "--gpus", "1") == 0
+    progress = rpp.read_progress(out)
+    progress["commands"].update({k: 120.0 if k.startswith("train ") else 30.0 if k.startswith("eval ") else v
+                                 for k, v in progress["commands"].items()})
+    progress["joined"] = {k: 2 for k in progress["commands"] if k.startswith("train live runs/bc_")}
+    rpp.write_progress(out, progress)
+    start = len(_runs(fake_children))
+    assert _reproduce(out, *live, "--gpus", "1", "--runs-per-process", "2", "--time-limit", "200") == 0
+    trained = [r for r in _runs(fake_children)[start:] if "/runs/bc_" in r["out"]]
+    assert len(trained) == 14 and {r["with"] for r in trained} == {1}
 
 
 def test_the_pack_leaves_out_a_trained_run_it_has_no_room_for_and_its_record(fake_conav, tmp_path, monkeypatch,

@@ -54,7 +54,8 @@ def add(sub) -> None:
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="a sitting of SECONDS: start no step expected to end later (its expected time: the longest "
                         "this OUT has recorded of its configuration's other seeds, else of its kind, with the "
-                        "evaluations of the run it trains; a kind never "
+                        "evaluations of the run it trains; runs joined by --runs-per-process go by groups of "
+                        "their size, else by their times added up; a kind never "
                         "run here starts while time is left), so a sitting cut by its machine's limit leaves "
                         "evaluated runs; steps already running finish (default: no limit)")
     p.add_argument("--unpack", default=None, metavar="PACK",

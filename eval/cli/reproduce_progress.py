@@ -14,9 +14,10 @@ from conav_jax.eval.cli.reproduce_plan import BUDGET_OVERRIDES, ReproduceConfig,
 from conav_jax.eval.cli.reproduce_steps import Stage, Step, alike
 
 
-# The steps (by name, under "commands") and stages done, with their wall times (s), and under
-# "cut" the time of attempts cut short (a step's summed over its attempts; it counts in its
-# stage's time).
+# The steps (by name, under "commands") and stages done, with their wall times (s), under "cut"
+# the time of attempts cut short (a step's summed over its attempts; it counts in its stage's
+# time), and under "joined" how many steps ran in the process of each step that ran with others
+# (its time under "commands" is that process's).
 PROGRESS_FILE = "progress.json"
 # The layout of progress.json. 1 (unmarked): records keyed by the command line, OUT written as
 # "OUT"; 2: keyed by step name, its kind and the directory it writes (`upgrade_progress` maps
@@ -92,7 +93,7 @@ def check_out(progress: dict, cfg: ReproduceConfig) -> None:
 
 
 # What write_progress merges: each process's own records laid over the file's.
-PROGRESS_RECORDS = ("commands", "cut", "stages")
+PROGRESS_RECORDS = ("commands", "cut", "stages", "joined")
 
 
 def write_progress(out: Path, progress: dict) -> None:
@@ -119,11 +120,14 @@ def write_progress(out: Path, progress: dict) -> None:
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
-def record_step(progress: dict, step: Step, seconds: float, ended: bool) -> None:
-    """`step`'s wall time into `progress`: under "commands" when it `ended`, else (failed,
-    stopped) added to its time under "cut"."""
+def record_step(progress: dict, step: Step, seconds: float, ended: bool, together: int = 1) -> None:
+    """`step`'s wall time into `progress`: under "commands" when it `ended` (with, under "joined",
+    the `together` steps its process ran where more than one), else (failed, stopped) added to
+    its time under "cut"."""
     if ended:
         progress["commands"][step.name] = round(seconds, 1)
+        if together > 1:
+            progress.setdefault("joined", {})[step.name] = together
     else:
         cut = progress.setdefault("cut", {})
         cut[step.name] = round(cut.get(step.name, 0.0) + seconds, 1)
@@ -204,14 +208,17 @@ def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
     return sorted(todo, key=lambda st: (-1 if st.seed is None else st.seed, -len(below[st.name]), index[st.name]))
 
 
-def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[Step], float | None]:
-    """A step's expected wall time, to plan a sitting of limited time: the longest recorded time
-    of the finished steps `alike` it (its configuration's other seeds), else of its kind
-    (`call.kind`: "train live", "eval", ...), plus that of the evaluations that read the run it
-    writes, reckoned the same way (a run trained and not evaluated is of no use to a sitting that
-    ends, and too large to carry: eval.cli.reproduce_run.write_pack), read from the records as
-    they are when asked. None when no step of its kind has finished in this OUT (nothing to go
-    by: it may start)."""
+def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[list[Step]], float | None]:
+    """The expected wall time of steps run as one process (one step, or `joinable` ones joined),
+    to plan a sitting of limited time: the longest recorded time of finished steps `alike` the
+    first (its configuration's other seeds) that ran as many to a process, plus that of the
+    evaluations that read the runs they write, reckoned the same way (a run trained and not
+    evaluated is of no use to a sitting that ends, and too large to carry:
+    eval.cli.reproduce_run.write_pack), read from the records as they are when asked. One step
+    with no such record goes by its alike steps however they ran (a process of several takes
+    longer), else by its kind (`call.kind`: "train live", "eval", ...); a group of several with
+    no record of its size, by its steps' times added up (the bound that never overruns). None
+    when a step's kind has no finished step in this OUT (nothing to go by: it may start)."""
     by_name = {st.name: st for stage in plan for st in stage.steps}
     readers: dict[str, list[Step]] = {}
     for st in by_name.values():
@@ -219,28 +226,37 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[Step], floa
             for run in st.reads:
                 readers.setdefault(run, []).append(st)
 
-    def longest(step: Step, recorded: list[tuple[Step, float]]) -> float | None:
-        of_kind = [(other, s) for other, s in recorded if other.call.kind == step.call.kind]
-        like = [s for other, s in of_kind if alike(step, other)] or [s for _, s in of_kind]
-        return max(like, default=None)
+    def longest(step: Step, together: int, recorded: list[tuple[Step, float, int]]) -> float | None:
+        of_kind = [(other, s, n) for other, s, n in recorded if other.call.kind == step.call.kind]
+        like = [(s, n) for other, s, n in of_kind if alike(step, other)]
+        if together > 1:
+            return max((s for s, n in like if n == together), default=None)
+        return max([s for s, n in like if n == 1] or [s for s, _ in like] or [s for _, s, _ in of_kind], default=None)
 
-    def expected(step: Step) -> float | None:
+    def expected(steps: list[Step]) -> float | None:
         # read at each call: the records grow as steps end
-        recorded = [(by_name[name], float(s)) for name, s in progress["commands"].items() if name in by_name]
-        own = longest(step, recorded)
+        joined = progress.get("joined", {})
+        recorded = [(by_name[name], float(s), joined.get(name, 1))
+                    for name, s in progress["commands"].items() if name in by_name]
+        own = longest(steps[0], len(steps), recorded)
         if own is None:
-            return None
-        evals = [longest(st, recorded) or 0.0 for st in readers.get(step.writes, ())
+            if len(steps) == 1:
+                return None
+            alone = [expected([st]) for st in steps]
+            return None if None in alone else sum(alone)
+        evals = [longest(st, 1, recorded) or 0.0 for step in steps for st in readers.get(step.writes, ())
                  if st.name not in progress["commands"]]
         return own + sum(evals)
 
     return expected
 
 
-def fits_in(step: Step, expected: Callable[[Step], float | None], seconds_left: float | None) -> bool:
-    """Whether `step` may start with `seconds_left` of a sitting's time (None: no limit): when its
-    `expected` time (with its run's evaluations) is unknown or no more than what is left."""
+def fits_in(steps: Step | list[Step], expected: Callable[[list[Step]], float | None],
+            seconds_left: float | None) -> bool:
+    """Whether a step (or joined steps, in one process) may start with `seconds_left` of a
+    sitting's time (None: no limit): when its `expected` time (with its runs' evaluations) is
+    unknown or no more than what is left."""
     if seconds_left is None:
         return True
-    need = expected(step)
+    need = expected(steps if isinstance(steps, list) else [steps])
     return seconds_left > 0 and (need is None or need <= seconds_left)

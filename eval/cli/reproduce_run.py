@@ -164,8 +164,9 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
     (its expected time, with its run's evaluations, from this OUT's records); those running
     finish. `together` > 1: a step starting takes with it up to `together` - 1 more that are
     ready and `joinable` with it (live runs of its configuration, other seeds; evaluations of one
-    agent), while the group would fit the time left even run one by one, run as one call
-    in its process (reproduce_steps.run_together), each recorded with the process's time; the
+    agent), while the group would fit the time left (as a group of its size took in this OUT,
+    else run one by one), run as one call in its process (reproduce_steps.run_together), each
+    recorded with the process's time and the group's size; the
     process logs to the first one's log, the others' say where. Returns (0 or the first
     failure's exit code, the steps not started: waiting for prerequisites not run here, or for
     want of time)."""
@@ -187,15 +188,12 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
         return needs[step.name] <= done and (expected is None or fits_in(step, expected, seconds_left()))
 
     def group_fits(group: list[Step]) -> bool:
-        """Whether the group fits the time left were its steps run one after another (a joined
-        group's time is not known before one has run: the bound that never overruns)."""
-        if expected is None:
-            return True
-        needs_s = [expected(step) for step in group]
-        return None in needs_s or sum(needs_s) <= seconds_left()
+        """Whether the group fits the time left, as a group of its size took here before, else
+        were its steps run one after another (the bound that never overruns)."""
+        return expected is None or fits_in(group, expected, seconds_left())
 
-    def record(step: Step, seconds: float, ok: bool) -> None:
-        record_step(progress, step, seconds, ok)
+    def record(step: Step, seconds: float, ok: bool, together: int = 1) -> None:
+        record_step(progress, step, seconds, ok, together)
         if ok:
             done.add(step.name)
         write_progress(out, progress)
@@ -247,7 +245,7 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                 group, gpu, log, t0 = running.pop(proc)
                 seconds = time.perf_counter() - t0
                 for step in group:
-                    record(step, seconds, proc.returncode == 0)
+                    record(step, seconds, proc.returncode == 0, len(group))
                 free = sorted(free + [gpu], key=gpus.index)
                 names = " + ".join(step.name for step in group)
                 if proc.returncode == 0:
