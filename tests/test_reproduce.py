@@ -1390,14 +1390,16 @@ def test_a_time_limit_joins_runs_only_while_they_would_fit_one_after_another(fak
 
 def test_expected_seconds_go_by_runs_that_ran_as_many_to_a_process():
     """A lone run goes by its configuration's lone runs, a pair by pairs (the process's time once,
-    with both runs' evaluations); a size never run, by its runs' times added up."""
+    with both runs' evaluations); a size never run, by its runs' times added up. A stage's time
+    counts a pair's process once."""
     plan = rp.plan_stages(rp.ReproduceConfig(out=Path("o"), preset="tiny", trainer="live", seeds=6, rows=("none",)))
     step = {st.name: st for stage in plan for st in stage.steps}
     run = lambda s: step[f"train live runs/bc_none_s{s}"]  # noqa: E731
     progress = {"commands": {"train live runs/bc_none_s0": 100.0, "train live runs/bc_none_s1": 250.0,
                              "train live runs/bc_none_s2": 250.0, "eval eval/conav_bc_none_s0": 30.0},
-                "joined": {"train live runs/bc_none_s1": 2, "train live runs/bc_none_s2": 2}}
+                "joined": {"train live runs/bc_none_s1": 2, "train live runs/bc_none_s2": 2}, "stages": {}}
     expected = rpp.expected_seconds(plan, progress)
+    assert rpp.stage_seconds(plan, progress)["bc"] == 100.0 + 250.0 + 30.0  # the pair's process counted once
     assert expected([run(3)]) == 100.0 + 30.0
     assert expected([run(3), run(4)]) == 250.0 + 2 * 30.0
     assert expected([run(3), run(4), run(5)]) == 3 * (100.0 + 30.0)

@@ -294,7 +294,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     for st in work:
         keys = [step.name for step in st.steps]
         if all(k in progress["commands"] for k in keys):
-            progress["stages"][st.name] = round(sum(progress["commands"][k] for k in keys), 1)
+            progress["stages"][st.name] = round(sum(rpp.step_seconds(progress, k) for k in keys), 1)
     rpp.write_progress(cfg.out, progress)
     print(f"{len(todo) - len(waiting)} step(s) ended in {time.perf_counter() - t0:.0f} s", flush=True)
     if rc:

@@ -133,14 +133,22 @@ def record_step(progress: dict, step: Step, seconds: float, ended: bool, togethe
         cut[step.name] = round(cut.get(step.name, 0.0) + seconds, 1)
 
 
+def step_seconds(progress: dict, name: str) -> float:
+    """A finished step's share of the process time it was recorded with: the whole for a step
+    that ran alone, a group's time over its size for one joined with others."""
+    return progress["commands"][name] / progress.get("joined", {}).get(name, 1)
+
+
 def stage_seconds(plan: list["Stage"], progress: dict) -> dict[str, float]:
-    """Each stage's time: the sum of its steps' recorded wall times, with the time of their
-    attempts cut short ("cut": failed, interrupted; a stage run over several calls or machines
-    counts every part once); a stage without steps, its own record."""
+    """Each stage's time: the sum of its steps' recorded wall times (`step_seconds`: a joined
+    group's process counted once), with the time of their attempts cut short ("cut": failed,
+    interrupted; a stage run over several calls or machines counts every part once); a stage
+    without steps, its own record."""
     seconds = {}
     for st in plan:
         keys = [s.name for s in st.steps]
-        done = [log[k] for log in (progress["commands"], progress.get("cut", {})) for k in keys if k in log]
+        done = [step_seconds(progress, k) for k in keys if k in progress["commands"]]
+        done += [progress["cut"][k] for k in keys if k in progress.get("cut", {})]
         if done:
             seconds[st.name] = round(sum(done), 1)
         elif st.name in progress["stages"]:
