@@ -1365,7 +1365,8 @@ def test_a_time_limit_expects_a_run_to_take_as_long_as_its_configurations_other_
     made = ran() - before
     assert {f"bc_{row}_s1" for row in ("none", "all", "gt_all")} | {"conav_bc_none_s1"} <= made
     assert "dagger_live_beta0_s1" not in made
-    assert "not started, for want of time: train live runs/dagger_live_beta0_s1" in capsys.readouterr().out
+    assert ("not started, for want of time: train live runs/dagger_live_beta0_s1 (expected 430 s with its run's "
+            "evaluations, ") in capsys.readouterr().out
 
 
 def test_a_time_limit_joins_runs_only_while_they_would_fit_one_after_another(fake_conav, fake_children, tmp_path):

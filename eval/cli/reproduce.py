@@ -191,9 +191,12 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         t_stage = time.perf_counter()
         expected, needs, not_started = rpp.expected_seconds(plan, progress), rpp.prerequisites(plan), set()
         for step in todo:
-            if seconds_left is not None and (needs[step.name] & not_started or
-                                             not rpp.fits_in(step, expected, seconds_left())):
-                print(f"[{st.name}] not started, for want of time: {step.name}", flush=True)
+            if seconds_left is not None and needs[step.name] & not_started:
+                print(f"[{st.name}] not started, for want of time: {step.name} (its runs were not made)", flush=True)
+                not_started.add(step.name)
+                continue
+            if seconds_left is not None and not rpp.fits_in(step, expected, seconds_left()):
+                print(f"[{st.name}] {rpp.for_want_of_time(step, expected, seconds_left())}", flush=True)
                 not_started.add(step.name)
                 continue
             print(f"\n{_shown(step)}", flush=True)
@@ -287,10 +290,12 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
                                   lambda steps: rr.child_command(cfg.out, digest, steps, args.compile_cache),
                                   seconds_left=seconds_left, together=args.runs_per_process)
     done, needs = set(progress["commands"]), rpp.prerequisites(plan)
+    expected = rpp.expected_seconds(plan, progress)
     for step in waiting:
-        why = ("not started after the failure" if rc else "waits for the runs it reads"
-               if not needs[step.name] <= done else "not started, for want of time")
-        print(f"{why}: {step.name}")
+        if rc or not needs[step.name] <= done:
+            print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: {step.name}")
+        else:
+            print(rpp.for_want_of_time(step, expected, seconds_left()))
     for st in work:
         keys = [step.name for step in st.steps]
         if all(k in progress["commands"] for k in keys):

@@ -259,6 +259,14 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[list[Step]]
     return expected
 
 
+def for_want_of_time(step: Step, expected: Callable[[list[Step]], float | None], seconds_left: float) -> str:
+    """The line that says `step` was not started for want of time, with its expected and the
+    time left."""
+    need = expected([step])
+    shown = "no time to go by" if need is None else f"expected {need:.0f} s with its run's evaluations"
+    return f"not started, for want of time: {step.name} ({shown}, {max(seconds_left, 0.0):.0f} s left)"
+
+
 def fits_in(steps: Step | list[Step], expected: Callable[[list[Step]], float | None],
             seconds_left: float | None) -> bool:
     """Whether a step (or joined steps, in one process) may start with `seconds_left` of a
