@@ -292,7 +292,7 @@ def _reproduce_parallel(args: argparse.Namespace, cfg, plan: list, stages: list,
     done, needs = set(progress["commands"]), rpp.prerequisites(plan)
     expected = rpp.expected_seconds(plan, progress)
     for step in waiting:
-        if rc or not needs[step.name] <= done:
+        if rc or not needs[step.name] <= done or seconds_left is None:
             print(f"{'not started after the failure' if rc else 'waits for the runs it reads'}: {step.name}")
         else:
             print(rpp.for_want_of_time(step, expected, seconds_left()))
