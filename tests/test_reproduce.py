@@ -1426,6 +1426,49 @@ def test_a_time_limit_joins_runs_that_ran_joined_before_by_their_group_time(fake
     assert len(trained) == 14 and {r["with"] for r in trained} == {1}
 
 
+def test_packs_made_on_two_machines_at_once_join_into_one_out(fake_conav, tmp_path, capsys):
+    import io
+    import tarfile
+
+    made = {seed: tmp_path / f"s{seed}" for seed in (0, 1)}  # each seed on a machine of its own
+    for seed, out in made.items():
+        assert _reproduce(out, "--seed", str(seed)) == 0
+        progress = rpp.read_progress(out)  # the steps both made, timed apart
+        progress["commands"].update({k: 1.0 + seed for k in progress["commands"] if not k.endswith(("_s0", "_s1"))})
+        rpp.write_progress(out, progress)
+        (out / "runs" / "intention" / "log.jsonl").write_text(json.dumps({"machine": seed}) + "\n")  # both made it
+        assert _reproduce(out, "--stage", "pack") == 0
+    joined = tmp_path / "joined"
+    packs = [a for out in made.values() for a in ("--unpack", str(out / "pack.tar"))]
+    assert _reproduce(joined, *packs, "--dry-run") == 0  # the first pack's results stay till the tables stage
+    assert (joined / "results.json").read_bytes() == (made[0] / "results.json").read_bytes()
+    assert _reproduce(joined, "--stage", "tables") == 0
+    first, second = (rpp.read_progress(out) for out in made.values())
+    progress = rpp.read_progress(joined)
+    assert progress["commands"].keys() == first["commands"].keys() | second["commands"].keys()
+    assert {k: progress["commands"][k] for k in first["commands"]} == first["commands"]  # the OUT's own win
+    assert progress["commands"]["generate data"] == 1.0 and second["commands"]["generate data"] == 2.0
+    assert json.loads((joined / "runs" / "intention" / "log.jsonl").read_text())["machine"] == 0
+    tables = (joined / "tables.md").read_text()
+    assert not [k for k in second["commands"] if k.endswith("_s0")]  # the machines' runs differ
+    for seed in made:
+        for row in ("none", "all"):
+            assert (joined / "eval" / f"conav_bc_{row}_s{seed}" / "metrics.json").is_file()
+            assert f"`eval/conav_bc_{row}_s{seed}`" not in tables  # not listed as not run yet
+    # A pack of another configuration joins nothing.
+    other = {**second, "config": {**second["config"], "preset": "paper"}}
+    record = json.dumps(other).encode()
+    with tarfile.open(tmp_path / "other.tar", "w") as tar:
+        info = tarfile.TarInfo(rpp.PROGRESS_FILE)
+        info.size = len(record)
+        tar.addfile(info, io.BytesIO(record))
+    before = rpp.read_progress(joined)
+    capsys.readouterr()
+    assert _reproduce(joined, "--unpack", str(tmp_path / "other.tar"), "--dry-run") == 2
+    assert "cannot join" in (err := capsys.readouterr().err) and "preset tiny and paper" in err
+    assert rpp.read_progress(joined) == before
+
+
 def test_the_pack_leaves_out_a_trained_run_it_has_no_room_for_and_its_record(fake_conav, tmp_path, monkeypatch,
                                                                             capsys):
     import tarfile

@@ -58,8 +58,10 @@ def add(sub) -> None:
                         "their size, else by their times added up; a kind never "
                         "run here starts while time is left), so a sitting cut by its machine's limit leaves "
                         "evaluated runs; steps already running finish (default: no limit)")
-    p.add_argument("--unpack", default=None, metavar="PACK",
-                   help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine)")
+    p.add_argument("--unpack", action="append", default=None, metavar="PACK",
+                   help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine); given "
+                        "again, or into an OUT with records, each pack's records join the OUT's (runs made on "
+                        "several machines at once; the tables stage renders them all)")
     p.add_argument("--dry-run", action="store_true",
                    help="print the stages and their steps (each a library function and its configs), run nothing")
     p.set_defaults(func=run)
@@ -133,8 +135,12 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         print(f"conav reproduce: --seed {args.seed} is not one of the run's seeds 0..{cfg.seeds - 1}", file=sys.stderr)
         return 2
     cfg.out.mkdir(parents=True, exist_ok=True)
-    if args.unpack:
-        print(f"unpacked {len(rr.unpack(Path(args.unpack), cfg.out))} files from {args.unpack}")
+    for pack in args.unpack or ():
+        try:
+            print(f"unpacked {len(rr.unpack(Path(pack), cfg.out))} files from {pack}")
+        except (FileNotFoundError, ValueError) as e:
+            print(f"conav reproduce: {e}", file=sys.stderr)
+            return 2
     progress = rpp.read_progress(cfg.out)
     try:
         rpp.check_out(progress, cfg)

@@ -120,6 +120,25 @@ def write_progress(out: Path, progress: dict) -> None:
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
+def join_progress(mine: dict, theirs: dict) -> dict:
+    """The records of two OUTs of one configuration made apart (on two machines at once, say) as
+    one: each record's entries from both, `mine`'s where both hold one. ValueError when they were
+    made with different run formats or OUT_FIELDS."""
+    formats = mine.get("run_format", 1), theirs.get("run_format", 1)
+    if formats[0] != formats[1]:
+        raise ValueError(f"the records are of run formats {formats[0]} and {formats[1]}: continue the older "
+                         "with `conav reproduce` once before joining them")
+    made = mine.get("config") or {}, theirs.get("config") or {}
+    differ = [f"{k} {made[0][k]} and {made[1][k]}" for k in OUT_FIELDS
+              if k in made[0] and k in made[1] and made[0][k] != made[1][k]]
+    if differ:
+        raise ValueError(f"the records are of different runs: {', '.join(differ)}")
+    joined = {**theirs, **mine}
+    for record in PROGRESS_RECORDS:
+        joined[record] = {**theirs.get(record, {}), **mine.get(record, {})}
+    return joined
+
+
 def record_step(progress: dict, step: Step, seconds: float, ended: bool, together: int = 1) -> None:
     """`step`'s wall time into `progress`: under "commands" when it `ended` (with, under "joined",
     the `together` steps its process ran where more than one), else (failed, stopped) added to

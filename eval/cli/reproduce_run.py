@@ -23,7 +23,8 @@ from typing import Callable
 from conav_jax.eval.cli.reproduce_plan import ReproduceConfig, plan_stages
 from conav_jax.runs import LOG_FILE
 from conav_jax.eval.cli.reproduce_progress import (PROGRESS_FILE, by_dependents, expected_seconds, fits_in,
-                                                   prerequisites, record_step, write_progress)
+                                                   join_progress, prerequisites, read_progress, record_step,
+                                                   write_progress)
 from conav_jax.eval.cli.reproduce_steps import Stage, Step, joinable, run_step, run_together
 
 PACK_LIMIT_BYTES = 60 * 2**20
@@ -398,7 +399,12 @@ def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[tu
 
 
 def unpack(pack: Path, out: Path) -> list[str]:
-    """Unpack a pack into OUT (a fresh machine continuing a run); the member names."""
+    """Unpack a pack into OUT (a fresh machine continuing a run); the member names. Into an OUT
+    that holds records already (another pack unpacked, or steps run here), the pack's records
+    join them (`join_progress`: runs made on several machines at once, one OUT again), its files
+    OUT holds already stay OUT's (a predictor both machines trained: the one OUT's evaluations
+    read), and its results and tables, which the `tables` stage makes from all of them, are left
+    out. ValueError for a pack of another configuration (nothing is unpacked then)."""
     import tarfile
 
     out, pack = Path(out), Path(pack)
@@ -414,6 +420,17 @@ def unpack(pack: Path, out: Path) -> list[str]:
         bad = [n for n in names if n.startswith("/") or ".." in Path(n).parts]
         if bad:
             raise ValueError(f"{pack}: unsafe member paths {bad[:3]}")
+        if (out / PROGRESS_FILE).is_file() and PROGRESS_FILE in names:
+            try:
+                joined = join_progress(read_progress(out), json.load(tar.extractfile(PROGRESS_FILE)))
+            except ValueError as e:
+                raise ValueError(f"{pack} cannot join {out}: {e}") from e
+            derived = lambda name: "/" not in name and name.startswith(("results", "tables"))  # noqa: E731
+            members = [m for m in tar.getmembers()
+                       if m.name != PROGRESS_FILE and not derived(m.name) and not (out / m.name).exists()]
+            tar.extractall(out, members=members)
+            write_progress(out, joined)
+            return [m.name for m in members] + [PROGRESS_FILE]
         tar.extractall(out)
     return names
 
