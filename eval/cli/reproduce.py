@@ -201,7 +201,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
                 print(f"[{st.name}] not started, for want of time: {step.name} (its runs were not made)", flush=True)
                 not_started.add(step.name)
                 continue
-            if seconds_left is not None and not rpp.fits_in(step, expected, seconds_left()):
+            if seconds_left is not None and not rpp.fits_in([step], expected, seconds_left()):
                 print(f"[{st.name}] {rpp.for_want_of_time(step, expected, seconds_left())}", flush=True)
                 not_started.add(step.name)
                 continue

@@ -6,6 +6,7 @@ runner in this process and `eval.cli.reproduce_run`'s processes share.
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 from typing import Callable
@@ -253,9 +254,13 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[list[Step]]
             for run in st.reads:
                 readers.setdefault(run, []).append(st)
 
+    @functools.lru_cache(maxsize=None)  # the plan is fixed; a runner asks again at every poll
+    def similar(name: str, other: str) -> bool:
+        return alike(by_name[name], by_name[other])
+
     def longest(step: Step, together: int, recorded: list[tuple[Step, float, int]]) -> float | None:
         of_kind = [(other, s, n) for other, s, n in recorded if other.call.kind == step.call.kind]
-        like = [(s, n) for other, s, n in of_kind if alike(step, other)]
+        like = [(s, n) for other, s, n in of_kind if similar(step.name, other.name)]
         if together > 1:
             return max((s for s, n in like if n == together), default=None)
         return max([s for s, n in like if n == 1] or [s for s, _ in like] or [s for _, s, _ in of_kind], default=None)
@@ -286,12 +291,11 @@ def for_want_of_time(step: Step, expected: Callable[[list[Step]], float | None],
     return f"not started, for want of time: {step.name} ({shown}, {max(seconds_left, 0.0):.0f} s left)"
 
 
-def fits_in(steps: Step | list[Step], expected: Callable[[list[Step]], float | None],
-            seconds_left: float | None) -> bool:
-    """Whether a step (or joined steps, in one process) may start with `seconds_left` of a
-    sitting's time (None: no limit): when its `expected` time (with its runs' evaluations) is
+def fits_in(steps: list[Step], expected: Callable[[list[Step]], float | None], seconds_left: float | None) -> bool:
+    """Whether `steps` (one, or several joined in one process) may start with `seconds_left` of a
+    sitting's time (None: no limit): when their `expected` time (with their runs' evaluations) is
     unknown or no more than what is left."""
     if seconds_left is None:
         return True
-    need = expected(steps if isinstance(steps, list) else [steps])
+    need = expected(steps)
     return seconds_left > 0 and (need is None or need <= seconds_left)

@@ -186,7 +186,7 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
         return sum(g == gpu for _, g, _, _ in running.values())
 
     def ready(step: Step) -> bool:
-        return needs[step.name] <= done and (expected is None or fits_in(step, expected, seconds_left()))
+        return needs[step.name] <= done and (expected is None or fits_in([step], expected, seconds_left()))
 
     def group_fits(group: list[Step]) -> bool:
         """Whether the group fits the time left, as a group of its size took here before, else
