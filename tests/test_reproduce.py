@@ -1409,6 +1409,33 @@ def test_expected_seconds_go_by_runs_that_ran_as_many_to_a_process():
     assert expected([run(3)]) == 250.0 + 30.0
 
 
+def test_the_dry_run_says_how_much_work_is_left_at_the_times_recorded(tmp_path, capsys):
+    """Each stage and the whole plan: the steps done, and the steps left with their own times
+    added up (a run's evaluation counted once, as its own step), by their configuration's
+    recorded seeds; steps of a kind never finished are counted apart."""
+    live = ("--trainer", "live", "--rows", "none", "--seeds", "3")
+    out = tmp_path / "r"
+    cfg = rp.ReproduceConfig(out=out, preset="tiny", trainer="live", seeds=3, rows=("none",))
+    plan = rp.plan_stages(cfg)
+    progress = {"commands": {"train live runs/bc_none_s0": 120.0, "eval eval/conav_bc_none_s0": 60.0}, "stages": {}}
+    bc = next(stage for stage in plan if stage.name == "bc")
+    assert [st.name for st in bc.steps].count("eval eval/conav_bc_none_s2") == 1  # a run's evaluation is bc's step
+    assert rpp.time_left_text(plan, progress, bc.steps) == (
+        "2 of 6 steps done; the 4 left: about 6 min one after another, at the times recorded")  # 2 x (120 + 60) s
+    baselines = next(stage for stage in plan if stage.name == "baselines")
+    assert rpp.time_left_text(plan, progress, baselines.steps).endswith(
+        f"the {len(baselines.steps)} left have no time to go by")
+    assert rpp.time_left_text(plan, {"commands": {st.name: 1.0 for st in bc.steps}, "stages": {}}, bc.steps) == (
+        "6 of 6 steps done")
+    # The command line says the same of an OUT holding these records.
+    out.mkdir()
+    rpp.write_progress(out, {**rpp.read_progress(out), **progress})
+    assert _reproduce(out, *live, "--dry-run") == 0
+    text = capsys.readouterr().out
+    assert "[bc] to run (2 of 6 steps done; the 4 left: about 6 min one after another" in text
+    assert "\nin all: 2 of " in text and "with no time to go by" in text.splitlines()[-1]
+
+
 def test_a_time_limit_joins_runs_that_ran_joined_before_by_their_group_time(fake_conav, fake_children, tmp_path):
     """A group of two whose pairs took 120 s a process here (with 30 s evaluations: 180 s) joins
     in 200 s, though its runs one after another (300 s) would not fit."""

@@ -63,7 +63,8 @@ def add(sub) -> None:
                         "again, or into an OUT with records, each pack's records join the OUT's (runs made on "
                         "several machines at once; the tables stage renders them all)")
     p.add_argument("--dry-run", action="store_true",
-                   help="print the stages and their steps (each a library function and its configs), run nothing")
+                   help="print the stages and their steps (each a library function and its configs) with the steps "
+                        "done and the time those left take at the times recorded, run nothing")
     p.set_defaults(func=run)
 
 
@@ -184,7 +185,7 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             return stages
     for st in stages:
         if args.dry_run:
-            _print_stage(st, progress)
+            _print_stage(st, plan, progress)
             continue
         # A stage asked for alone runs what it can: a step whose runs are not made yet waits (the
         # learned baselines' evaluations before their training, say) instead of failing.
@@ -242,6 +243,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
         progress["stages"][st.name] = round(time.perf_counter() - t_stage, 1)
         rpp.write_progress(cfg.out, progress)
         print(f"[{st.name}] done in {progress['stages'][st.name]:.0f} s", flush=True)
+    if args.dry_run:
+        print(f"in all: {rpp.time_left_text(plan, progress, [step for st in stages for step in st.steps])}")
     if (cfg.out / cfg.tables_file).exists() and not args.dry_run:
         print((cfg.out / cfg.tables_file).read_text())
     return 0
@@ -254,10 +257,13 @@ def _shown(step) -> str:
     return f"{step.name}: {call_text(step.call)}"
 
 
-def _print_stage(st, progress: dict) -> None:
-    """--dry-run: the stage, whether it is done, and each step."""
+def _print_stage(st, plan: list, progress: dict) -> None:
+    """--dry-run: the stage, whether it is done, how much is left, and each step."""
+    from conav_jax.eval.cli import reproduce_progress as rpp
+
     todo = [step for step in st.steps if step.name not in progress["commands"]]
-    print(f"[{st.name}] {'done' if st.name in progress['stages'] and not todo else 'to run'}")
+    print(f"[{st.name}] {'done' if st.name in progress['stages'] and not todo else 'to run'}"
+          + (f" ({rpp.time_left_text(plan, progress, st.steps)})" if st.steps else ""))
     for step in st.steps:
         print(f"  {'(done) ' if step.name in progress['commands'] else ''}{_shown(step)}")
 

@@ -236,13 +236,14 @@ def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
     return sorted(todo, key=lambda st: (-1 if st.seed is None else st.seed, -len(below[st.name]), index[st.name]))
 
 
-def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[list[Step]], float | None]:
+def expected_seconds(plan: list[Stage], progress: dict) -> Callable[..., float | None]:
     """The expected wall time of steps run as one process (one step, or `joinable` ones joined),
     to plan a sitting of limited time: the longest recorded time of finished steps `alike` the
     first (its configuration's other seeds) that ran as many to a process, plus that of the
     evaluations that read the runs they write, reckoned the same way (a run trained and not
     evaluated is of no use to a sitting that ends, and too large to carry:
-    eval.cli.reproduce_run.write_pack), read from the records as they are when asked. One step
+    eval.cli.reproduce_run.write_pack), read from the records as they are when asked; asked
+    with `with_evaluations=False`, the steps' own time alone (to add up the steps left). One step
     with no such record goes by its alike steps however they ran (a process of several takes
     longer), else by its kind (`call.kind`: "train live", "eval", ...); a group of several with
     no record of its size, by its steps' times added up (the bound that never overruns). None
@@ -265,7 +266,7 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[list[Step]]
             return max((s for s, n in like if n == together), default=None)
         return max([s for s, n in like if n == 1] or [s for s, _ in like] or [s for _, s, _ in of_kind], default=None)
 
-    def expected(steps: list[Step]) -> float | None:
+    def expected(steps: list[Step], with_evaluations: bool = True) -> float | None:
         # read at each call: the records grow as steps end
         joined = progress.get("joined", {})
         recorded = [(by_name[name], float(s), joined.get(name, 1))
@@ -274,13 +275,34 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[[list[Step]]
         if own is None:
             if len(steps) == 1:
                 return None
-            alone = [expected([st]) for st in steps]
+            alone = [expected([st], with_evaluations) for st in steps]
             return None if None in alone else sum(alone)
+        if not with_evaluations:
+            return own
         evals = [longest(st, 1, recorded) or 0.0 for step in steps for st in readers.get(step.writes, ())
                  if st.name not in progress["commands"]]
         return own + sum(evals)
 
     return expected
+
+
+def time_left_text(plan: list[Stage], progress: dict, steps: list[Step]) -> str:
+    """How much work `steps` still hold, for people planning sittings: how many are not done and
+    their expected times added up (`expected_seconds`' own times, one process per step: the
+    minutes of one device they need, one after another), with the count that has nothing to go
+    by yet."""
+    expected = expected_seconds(plan, progress)
+    left = [step for step in steps if step.name not in progress["commands"]]
+    times = [expected([step], with_evaluations=False) for step in left]
+    known = [t for t in times if t is not None]
+    text = f"{len(steps) - len(left)} of {len(steps)} steps done"
+    if known:
+        text += (f"; the {len(left)} left: about {sum(known) / 60:.0f} min one after another, at the times "
+                 "recorded" + (f", {len(left) - len(known)} of them with no time to go by" if len(known) < len(left)
+                               else ""))
+    elif left:
+        text += f"; the {len(left)} left have no time to go by"
+    return text
 
 
 def for_want_of_time(step: Step, expected: Callable[[list[Step]], float | None], seconds_left: float) -> str:
