@@ -80,7 +80,7 @@ def test_output_read_only_in_part_stops_without_a_traceback(tmp_path):
            " | head -1")
     proc = subprocess.run(["bash", "-o", "pipefail", "-c", cmd], cwd=root, capture_output=True, text=True, timeout=300,
                           check=False)
-    assert proc.stdout.strip() == "[generate] to run"
+    assert proc.stdout.strip() == "[generate] to run (0 of 1 steps done; the 1 left have no time to go by)"
     assert "Traceback" not in proc.stderr and "BrokenPipeError" not in proc.stderr
 
 
