@@ -248,6 +248,7 @@ class Pool(NamedTuple):
     results: dict  # final metrics by queue position, (Q,) each
     next_position: jax.Array  # () the next queue position to hand out
     trace: Trace  # queue[0]'s steps (trace_steps, ...)
+    chunks: jax.Array  # () chunks of steps run so far
 
 
 def make_pool_rollout(
@@ -259,8 +260,8 @@ def make_pool_rollout(
     trace_steps: int = 0,
     compiler_options: dict | None = None,
 ):
-    """A jitted `(params, key, queue (Q,) int32, n ()) -> final metrics dict of (Q,)` that runs
-    episodes `queue[:n]` on `slots` parallel lanes, refilling a lane with the next queued
+    """A jitted `(params, key, queue (Q,) int32, n (), max_chunks () = None) -> final metrics
+    dict of (Q,)` that runs episodes `queue[:n]` on `slots` parallel lanes, refilling a lane with the next queued
     episode as soon as its episode has ended (checked every `chunk` steps), until every
     episode has run to its end. Work is the sum of the episodes' lengths (plus under `chunk`
     idle steps each, and the tail), not `batches x the longest episode` as in fixed batches:
@@ -273,11 +274,15 @@ def make_pool_rollout(
     With `trace_steps > 0` it returns `(metrics, Trace)` where the Trace (`trace_steps`, ...)
     follows `queue[0]`'s episode (lane 0's first) step by step, as `make_param_rollout(...,
     record=True)` records it (steps past the run are zeros): a map of one episode costs no
-    second compile. `compiler_options` go to `jax.jit`."""
+    second compile. `compiler_options` go to `jax.jit`.
+
+    `max_chunks`, an argument, stops the loop after that many chunks, ended episodes or not:
+    the evaluator passes no limit (the largest int32), and a profile the same program with a
+    few chunks (the first one fills every lane)."""
     if chunk < 1 or slots < 1 or trace_steps < 0:
         raise ValueError("slots and chunk must be at least 1, trace_steps at least 0")
 
-    def run(params, key, queue, n):
+    def run(params, key, queue, n, max_chunks=None):
         agent = as_state_agent(agent_fn(params))
         q = queue.shape[0]
 
@@ -317,10 +322,14 @@ def make_pool_rollout(
             finished = active & (lane.state.done > 0)
             out = jax.tree.map(lambda o, m: o.at[jnp.where(finished, position, q)].set(m, mode="drop"),
                                c.results, lane.state.metrics)
-            return Pool(lane, position, active & ~finished, out, c.next_position + take.sum(), trace)
+            return Pool(lane, position, active & ~finished, out, c.next_position + take.sum(), trace, c.chunks + 1)
 
-        c = Pool(empty, lanes, jnp.zeros(slots, bool), out, jnp.int32(0), trace)
-        c = jax.lax.while_loop(lambda c: c.active.any() | (c.next_position < n), body, c)
+        def running(c: Pool) -> jax.Array:
+            busy = c.active.any() | (c.next_position < n)
+            return busy if max_chunks is None else busy & (c.chunks < max_chunks)
+
+        c = Pool(empty, lanes, jnp.zeros(slots, bool), out, jnp.int32(0), trace, jnp.int32(0))
+        c = jax.lax.while_loop(running, body, c)
         return (c.results, c.trace) if trace_steps else c.results
 
     return jit_with_bank(env, run, mesh=mesh, compiler_options=compiler_options)
@@ -343,6 +352,9 @@ def evaluate(
     lifted = lift_agent(env, agent)
     evaluator = make_evaluator(env, lifted.agent_fn, batch, seed, mesh, compiler_options=compiler_options)
     return evaluator(lifted.params, episodes)
+
+
+NO_CHUNK_LIMIT = 2**31 - 1  # make_pool_rollout's max_chunks for a whole sweep
 
 
 def make_evaluator(
@@ -374,7 +386,7 @@ def make_evaluator(
         if slots not in runs:
             runs[slots] = make_pool_rollout(env, agent_fn, slots, mesh=mesh, trace_steps=steps,
                                            compiler_options=compiler_options)
-        args = (params, key, jnp.asarray(queue), jnp.int32(len(queue)))
+        args = (params, key, jnp.asarray(queue), jnp.int32(len(queue)), jnp.int32(NO_CHUNK_LIMIT))
         return runs[slots], args if mesh is None else replicate(args, mesh)
 
     def queue_of(episodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -423,15 +435,22 @@ def make_evaluator(
         end = int(np.argmax(done)) + 1 if done.any() else len(done)
         return out, int(episodes[order[0]]), jax.tree.map(lambda x: x[:end], trace)
 
-    def pool_program(params, episodes: np.ndarray):
+    def pool_program(params, episodes: np.ndarray, max_chunks: int | None = None):
         """(the refilling rollout `evaluator(params, episodes)` runs, the arguments it runs it
         with): the very program and call, for a profile (ValueError when the episodes fit in
-        the lanes: that call runs one full-length batch instead)."""
+        the lanes: that call runs one full-length batch instead). `max_chunks`: the same
+        program stopped after that many chunks of steps (a whole sweep's trace is too big
+        to keep)."""
         episodes = np.asarray(episodes)
         slots = round_up(min(batch, len(episodes)), mesh)
         if slots >= len(episodes):
             raise ValueError(f"{len(episodes)} episodes fit in {slots} lanes: the evaluator runs no refilling rollout")
-        return pool(slots, params, jax.random.PRNGKey(seed), queue_of(episodes)[1])
+        if max_chunks is not None and max_chunks < 1:
+            raise ValueError(f"max_chunks must be at least 1, not {max_chunks}")
+        run, args = pool(slots, params, jax.random.PRNGKey(seed), queue_of(episodes)[1])
+        if max_chunks is not None:
+            args = (*args[:4], jnp.int32(max_chunks))
+        return run, args
 
     evaluator.pool_program = pool_program
     return evaluator

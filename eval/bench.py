@@ -140,13 +140,14 @@ def bench_eval(env, agent, batch: int, repeats: int, mesh=None) -> dict:
 
 
 def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = None, mesh=None,
-                profile_dir: str | None = None) -> dict:
+                profile_dir: str | None = None, profile_chunks: int = 8) -> dict:
     """Time sweeps of the split's first `episodes` (default all) with `batch` lanes
     (envs.rollout.make_evaluator, the agent's weights its arguments as in `conav eval`), the
     first sweep including the lift (envs.agents.lift) and the compile. With `profile_dir` (one
-    device, more episodes than lanes), one more sweep of the same compiled program is traced
-    there and the result's "profile" holds its device time by part of a rollout step
-    (envs.rollout.SWEEP_PROFILE_SCOPES; conav_jax.profiling.profile_program)."""
+    device, more episodes than lanes), the same compiled program is traced there for its first
+    `profile_chunks` chunks of 16 steps (a whole sweep's trace is too big to keep; the first
+    chunk fills every lane) and the result's "profile" holds their device time by part of a
+    rollout step (envs.rollout.SWEEP_PROFILE_SCOPES; conav_jax.profiling.profile_program)."""
     import jax
     import numpy as np
 
@@ -158,6 +159,8 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
     n = env.num_episodes if episodes is None else episodes
     if profile_dir is not None and mesh is not None and mesh.size > 1:
         raise ValueError(f"a sweep's profile runs on one device (mesh None), not a mesh of {mesh.size}")
+    if profile_dir is not None and profile_chunks < 1:
+        raise ValueError(f"bench_sweep.profile_chunks must be at least 1, not {profile_chunks}")
     if profile_dir is not None and batch >= n:
         raise ValueError(f"a sweep's profile traces the refilling rollout, which needs more episodes ({n}) than "
                          f"lanes ({batch})")
@@ -178,9 +181,10 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
     if profile_dir is not None:
         from conav_jax.profiling import profile_program
 
-        run, args = evaluator.pool_program(lifted.params, idx)
+        run, args = evaluator.pool_program(lifted.params, idx, max_chunks=profile_chunks)
         compiled = run.lower(*args).compile()  # the program the sweeps ran, from jit's cache
-        profile["profile"] = profile_program(compiled, (env.bank, *args), SWEEP_PROFILE_SCOPES, profile_dir, calls=1)
+        traced = profile_program(compiled, (env.bank, *args), SWEEP_PROFILE_SCOPES, profile_dir, calls=1)
+        profile["profile"] = {"chunks": profile_chunks, "lanes_filled": min(batch, n), **traced}
     return {
         "device": jax.devices()[0].device_kind,
         "devices": 1 if mesh is None else mesh.size,

@@ -125,15 +125,23 @@ def test_sweeps_render_no_image_for_an_agent_that_reads_none(env, noisy_expert):
 
 def test_the_pool_program_is_the_refilling_rollout_the_evaluator_runs(env, noisy_expert):
     """`pool_program` hands out the evaluator's own refilling rollout (its compile cache), with
-    the queue longest first, and refuses episodes that fit in the lanes (no refilling then)."""
-    evaluator = make_evaluator(env, lambda _: noisy_expert, batch=2)
+    the queue longest first, and refuses episodes that fit in the lanes (no refilling then).
+    With `max_chunks` it is the same program stopped early: a profile's short trace."""
+    evaluator = make_evaluator(env, lambda _: noisy_expert, batch=2, compiler_options=FAST)
     with pytest.raises(ValueError, match="fit in 2 lanes"):
         evaluator.pool_program(None, np.array([0, 1]))
+    with pytest.raises(ValueError, match="max_chunks must be at least 1"):
+        evaluator.pool_program(None, np.array([0, 1, 2]), max_chunks=0)
     run, args = evaluator.pool_program(None, np.array([0, 1, 2]))
     again, _ = evaluator.pool_program(None, np.array([2, 0, 1]))
     assert again is run
     t_end = np.asarray(env.bank.t_end)
     assert list(t_end[np.asarray(args[2])]) == sorted(t_end[[0, 1, 2]], reverse=True) and int(args[3]) == 3
+    short, one_chunk = evaluator.pool_program(None, np.array([0, 1, 2]), max_chunks=1)
+    assert short is run and int(one_chunk[4]) == 1
+    whole, early = run(*args), run(*one_chunk)
+    # Every episode ran to its end in the sweep; after one chunk the third, still queued, never started.
+    assert (np.asarray(whole["t"]) > 0).all() and np.asarray(early["t"])[2] == 0
 
 
 def test_evaluators_compile_their_rollouts_with_the_given_options(env, noisy_expert, monkeypatch):

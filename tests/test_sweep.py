@@ -442,3 +442,5 @@ def test_a_sweep_profile_names_what_it_needs_before_compiling(tiny_data):
         bench_sweep(env, never, batch=3, repeats=1, episodes=3, profile_dir="trace")
     with pytest.raises(ValueError, match="runs on one device \\(mesh None\\), not a mesh of 2"):
         bench_sweep(env, never, batch=2, repeats=1, episodes=3, mesh=SimpleNamespace(size=2), profile_dir="trace")
+    with pytest.raises(ValueError, match="profile_chunks must be at least 1, not 0"):
+        bench_sweep(env, never, batch=2, repeats=1, episodes=3, profile_dir="trace", profile_chunks=0)

@@ -141,7 +141,10 @@ def add(sub) -> None:
                    help="sweep: the split through conav eval's evaluator; fixed: one full-length batch")
     p.add_argument("--episodes", type=int, default=None, help="sweep mode: the first N episodes (default: all)")
     p.add_argument("--profile", default=None, metavar="DIR",
-                   help="sweep mode, one device: also trace one sweep into DIR and print its device time by part of a step")
+                   help="sweep mode, one device: also trace the sweep's first --profile-chunks chunks of 16 steps "
+                        "into DIR and print their device time by part of a step")
+    p.add_argument("--profile-chunks", type=int, default=8, metavar="K",
+                   help="chunks of 16 steps a profile traces (the first fills every lane)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--json", action="store_true", help="print one JSON line")
     devices_arg(p)
@@ -355,7 +358,8 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
            "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind, "materials": materials,
            "physics_impl": env.config.physics.impl}
     if args.mode == "sweep":
-        res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, devices, args.profile))
+        res.update(bench_sweep(env, agent, args.batch, args.repeats, args.episodes, devices, args.profile,
+                               args.profile_chunks))
     elif args.profile is not None:
         raise ValueError("--profile traces sweeps: use --mode sweep")
     else:
@@ -370,7 +374,8 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
               f"in {res['median_sweep_s']} s = {res['episodes_per_min']:,.1f} episodes/min (median of {args.repeats}); "
               f"compile + first sweep {res['compile_and_first_sweep_s']} s", flush=True)
         if "profile" in res:
-            print(f"device ms of one sweep by part: {json.dumps(res['profile']['by_scope_ms'])}; trace in "
+            print(f"device ms of the sweep's first {res['profile']['chunks']} chunks by part: "
+                  f"{json.dumps(res['profile']['by_scope_ms'])}; trace in "
                   f"{res['profile']['trace_dir']}", flush=True)
     else:
         print(f"{res['devices']} x {res['device']} agent={who} res={h}x{w} sensor={res['sensor']} batch={args.batch} "
