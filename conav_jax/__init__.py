@@ -31,7 +31,8 @@ live_configs, out_dirs, ...)` trains several seeds of one configuration as one p
 `train.policy.train_policy`,
 `train.intention.train_intention`, `train.trajectory.train_trajectory`,
 `train.goalnav.train_objectnav` / `train_imagenav` and `train.ppo.train_ppo` (each `(train_env,
-val_env, run_dir, config, ...)`); each has a `..._from_data(data_dir, ...)` twin that builds the
+val_env, run_dir, config, ...)`), `train.goalnav.train_objectnav_live(env, model, live_config,
+out_dir)` (the object-goal baseline imitating its planner live); each has a `..._from_data(data_dir, ...)` twin that builds the
 envs as the `conav train` command does.
 
 The package itself holds the data side (scenes, activities, motion, episodes, planning) and

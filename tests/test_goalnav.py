@@ -32,13 +32,15 @@ from conav_jax.envs.agents.goalnav import (
     imagegoal_agent_from_params,
     objectgoal_agent_from_params,
 )
-from conav_jax.envs.agents.policy import make_policy_step
+from conav_jax.envs.agents.policy import load_policy_run, make_policy_step
 from conav_jax.envs.agents.registry import make_agent
 from conav_jax.envs.metrics import summarize
 from conav_jax.envs.mjcf import UD
 from conav_jax.envs.rollout import make_evaluator
 from conav_jax.train import imitation as im
-from conav_jax.train.goalnav import imagenav_model, imagenav_task, objectnav_model, objectnav_task
+from conav_jax.train.goalnav import (imagenav_model, imagenav_task, objectnav_model, objectnav_task,
+                                     train_objectnav_live)
+from conav_jax.train.live import STEPS, LiveConfig, iteration_key, make_iteration, train_live
 from conav_jax.train.policy import ImitationConfig, task_run_config
 
 FAST = {"xla_backend_optimization_level": 0}  # the small jits (as tests/test_imitation.py)
@@ -351,3 +353,73 @@ def test_train_commands_build_the_baselines_networks(model, flags, monkeypatch, 
 
     assert (encoder_name(net), net.conv_dtype) == (("patch", "bfloat16") if "--encoder" in flags else ("conv", "float32"))
     assert seen["cfg"].steps == 700 and (seen["imitation"].dagger_rounds, seen["imitation"].dagger_beta) == (2, 0.5)
+
+
+def test_train_live_builds_the_object_goal_baseline(monkeypatch, tmp_path):
+    """`conav train live --baseline objectnav` trains the object-goal network with the live
+    flags, and refuses the CoNav policy's intention flags."""
+    from conav_jax.eval.cli import build_parser
+    from conav_jax.train import goalnav
+
+    seen = {}
+
+    def fake(data, out, model, live, **kw):
+        seen.update(model=model, live=live)
+        return SimpleNamespace(run_dir=out, env_steps=1, episodes_started=1)
+
+    monkeypatch.setattr(goalnav, "train_objectnav_live_from_data", fake)
+    base = ["train", "live", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--resolution", "16x64",
+            "--lanes", "64", "--iterations", "7", "--warmup-iterations", "0", "--baseline", "objectnav"]
+    args = build_parser().parse_args(base + ["--encoder", "patch"])
+    assert args.func(args) == 0
+    net = seen["model"]
+    assert net.resolution == (16, 64) and net.use_object and not (net.use_human_pos or net.use_activity
+                                                                  or net.use_trajectory or net.goal_image)
+    assert net.uses_saliency and net.visual_norm and seen["live"].lanes == 64 and seen["live"].iterations == 7
+    for extra in (["--ground-truth-intentions"], ["--ablation", "none"], ["--intention", str(tmp_path)]):
+        args = build_parser().parse_args(base + extra)
+        with pytest.raises(ValueError, match=f"no {extra[0]}"):
+            args.func(args)
+
+
+LIVE = LiveConfig(lanes=2, window_steps=10, iterations=2, warmup_iterations=0, seed=1, ckpt_every=2, log_every=1)
+
+
+def test_the_object_goal_agent_trains_live_on_the_planners_labels(hall, tmp_path):
+    """The object-goal policy imitates the replanning planner in train.live's loop: with beta = 1
+    every label is the planner's action on the state it was taken in, the lanes drive as it
+    does, and the run is an objectnav run the object-goal agent loads; a goal-image task is
+    refused before anything compiles."""
+    with pytest.raises(ValueError, match="reads a goal image"):
+        train_live(hall.env, IMG, LIVE, tmp_path / "img", task=imagenav_task(), progress=False)
+    with pytest.raises(ValueError, match="not an object-goal policy"):
+        train_objectnav_live(hall.env, IMG, LIVE, tmp_path / "img", progress=False)
+    task = objectnav_task()  # train_objectnav_live's; one task, so the iteration below reuses the run's compile
+    result = train_live(hall.env, OBJ, LIVE, tmp_path / "obj", progress=False, compiler_options=ENV_FAST, task=task)
+    assert result.env_steps == LIVE.iterations * LIVE.lanes * LIVE.window_steps
+    agent = make_agent("objectgoal-oracle", hall.env, tmp_path / "obj")
+    assert agent.privileged == ("oracle goal category", "oracle segmentation")
+    _, _, config = load_policy_run(tmp_path / "obj", "objectnav")
+    assert config["teacher"]["planner"] == "objectgoal-planner" and "expert" not in config
+    with pytest.raises(ValueError, match="'objectnav' run, expected 'policy'"):
+        load_policy_run(tmp_path / "obj")
+
+    fns, iteration = make_iteration(hall.env, OBJ, LIVE, compiler_options=tuple(sorted(ENV_FAST.items())),
+                                    teacher=task.teacher)
+    state = fns.init(policy.init(jax.random.PRNGKey(LIVE.seed), OBJ))
+    _, metrics = iteration(state, iteration_key(LIVE.seed, 0))
+    window = jax.device_get(metrics[STEPS])
+    assert window.expert_acted.all()  # beta 1
+    planner = objectgoal_planner_agent(hall.env, replan=True)
+
+    @jax.jit
+    def label(episode, pose):
+        state = SimpleNamespace(info={"episode": episode}, pipeline_state=SimpleNamespace(qpos=pose))
+        return planner.act(state, jnp.int32(0), jax.random.PRNGKey(0))[0]
+
+    for lane in range(LIVE.lanes):
+        for t in range(LIVE.window_steps):
+            np.testing.assert_allclose(window.label[t, lane], label(window.episode[t, lane], window.pose[t, lane]),
+                                       atol=1e-6)
+    moved = np.linalg.norm(window.pose[-1, :, :2] - window.pose[0, :, :2], axis=-1)
+    assert (moved > 0.3).all()  # the labels drove the lanes towards the table

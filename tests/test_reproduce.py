@@ -1184,6 +1184,12 @@ def test_the_live_trainer_plans_ground_truth_rows_paired_seeds_and_a_dagger_from
     assert (live.beta_start, live.beta_end) == (1.0, 0.0)
     assert live.beta_decay_iterations == cfg.budget.live_iterations // 2
     assert "eval eval/conav_dagger_live_beta0_s1" in {s.name for s in stages["eval"].steps}
+    # The object-goal baseline trains live at the rows' budget and seed; the image-goal one offline.
+    baselines = {s.name: s for s in stages["baselines"].steps}
+    objectnav = baselines["train objectnav live runs/objectnav_s1"]
+    assert _kw(objectnav)["live"] == _kw(train["train live runs/bc_none_s1"])["live"]
+    assert _model(objectnav).use_object and not _model(objectnav).use_human_pos and _model(objectnav).visual_norm
+    assert "train imagenav runs/imagenav_s1" in baselines
     # A subset of the rows; unknown rows and the offline trainer's lack of ground-truth rows refused.
     some = rp.plan_stages(dataclasses.replace(cfg, rows=("none", "gt_all")))
     assert {s.name for s in _trained(some[3])} == {

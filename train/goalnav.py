@@ -6,6 +6,9 @@ train env (train split) -> episodes run to the first reach, the teacher acting (
 labelling the policy's own states (DAgger) -> windows -> L2 imitation loss on train.loop ->
 validation on the validation env (minival; `train_*_from_data` builds both from a dataset
 directory) -> a run of kind "objectnav" / "imagenav" that envs.agents.goalnav loads.
+The object-goal agent also trains live (`train_objectnav_live`: train.live's loop, every train
+episode, nothing stored, the planner in the expert's place), as the CoNav rows do; the
+image-goal agent's goal image is rendered only by the offline trainer.
 
 No human task: the teachers lead to the goal object's standing point and ignore the human, and
 the policies read no human position (PolicyConfig.use_human_pos off).
@@ -30,6 +33,7 @@ from conav_jax.models.policy import PolicyConfig, ablation_config
 from conav_jax.envs import ConavEnv
 from conav_jax.envs.agents.baselines import BaselineConfig, goal_planner_agent, objectgoal_planner_agent
 from conav_jax.envs.agents.goalnav import check_imagegoal_config, check_objectgoal_config, goal_view_sensor
+from conav_jax.train.live import LiveConfig, LiveResult, train_live, train_live_from_data
 from conav_jax.train.loop import TrainConfig
 from conav_jax.train.policy import (ImitationConfig, ImitationTask, PolicyResult, train_policy,
                                     train_policy_from_data)
@@ -83,6 +87,25 @@ def train_objectnav(train_env: ConavEnv, val_env: ConavEnv, run_dir: str | Path,
     the same config; `kwargs` as train_policy's (progress, mesh, remat...)."""
     check_objectnav_model(model)
     return train_policy(train_env, val_env, run_dir, cfg, model, imitation, task=objectnav_task(planner), **kwargs)
+
+
+def train_objectnav_live(env: ConavEnv, model: PolicyConfig, live: LiveConfig, out_dir: str | Path,
+                         planner: BaselineConfig = BaselineConfig(), **kwargs) -> LiveResult:
+    """Train the object-goal policy `model` (see `objectnav_model`; give large panoramas
+    `visual_norm=True`, as train.live.DEFAULT_POLICY) by live imitation of the replanning
+    object-goal planner on `env`'s train split (end_at_reach, as train.live.train_live takes
+    it) into the objectnav run `out_dir`; `kwargs` as train_live's (progress, compiler_options)."""
+    check_objectnav_model(model)
+    return train_live(env, model, live, out_dir, task=objectnav_task(planner), **kwargs)
+
+
+def train_objectnav_live_from_data(data_dir: str | Path, out_dir: str | Path, model: PolicyConfig,
+                                   live: LiveConfig = LiveConfig(), planner: BaselineConfig = BaselineConfig(),
+                                   **kwargs) -> LiveResult:
+    """`train_objectnav_live` on the train split of the dataset `data_dir`, its env as
+    train.live.train_live_from_data builds it (the model checked before the dataset is loaded)."""
+    check_objectnav_model(model)
+    return train_live_from_data(data_dir, out_dir, model, live, task=objectnav_task(planner), **kwargs)
 
 
 def train_imagenav(train_env: ConavEnv, val_env: ConavEnv, run_dir: str | Path, cfg: TrainConfig, model: PolicyConfig,

@@ -33,12 +33,12 @@ from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_check
 from conav_jax.models import policy
 from conav_jax.models.policy import PolicyConfig, config_dict, encoder_name
 from conav_jax.provenance import PROVENANCE_KEY, provenance
-from conav_jax.nav.expert import ExpertCarry, ExpertConfig, initial_carry
+from conav_jax.nav.expert import ExpertConfig
 from conav_jax.nn.lstm import LSTMState
 from conav_jax.optim import AdamState, adam, clip_by_global_norm, warmup_cosine
 from conav_jax.runs import append_log, finite_or_none
 from conav_jax.envs.agents.base import GROUND_TRUTH, PREDICTED
-from conav_jax.envs.agents.expert import make_expert_step
+from conav_jax.envs.agents.expert import expert_agent
 from conav_jax.envs.agents.policy import (
     PolicyCarry,
     check_policy_env,
@@ -51,6 +51,7 @@ from conav_jax.envs.config import env_settings
 from conav_jax.envs.mjcf import UD
 from conav_jax.envs.rollout import jit_with_bank, select_lanes
 from conav_jax.train import imitation as im
+from conav_jax.train.policy import ImitationTask
 
 KIND = runs.POLICY  # loaded as any imitation policy run
 BETA_SCHEDULES = ("linear", "exponential")
@@ -157,12 +158,12 @@ def episodes_at(seed: int, positions: jax.Array, num_episodes: int) -> jax.Array
 
 
 class Lanes(NamedTuple):
-    """The lanes, each field (N, ...): env states without their observation, the expert's and
-    the acting policy's carries (LSTM, intention predictor, latest predictions) and the queue
-    position of each lane's episode."""
+    """The lanes, each field (N, ...): env states without their observation, the teacher's (the
+    expert's unless a task names another) and the acting policy's carries (LSTM, intention
+    predictor, latest predictions) and the queue position of each lane's episode."""
 
     env: State
-    expert: ExpertCarry
+    expert: Any
     policy: PolicyCarry
     position: jax.Array
 
@@ -241,18 +242,25 @@ def iteration_keys(seeds: list[int], iteration: int | jax.Array) -> jax.Array:
 
 
 def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, intention=None, trajectory=None,
-              expert_config: ExpertConfig = ExpertConfig(), seed_axis: str | None = None) -> Live:
+              expert_config: ExpertConfig = ExpertConfig(), seed_axis: str | None = None, teacher=None) -> Live:
     """The live imitation loop's pure functions for `env` (its train split), the learner
     `policy_config` and the predictors (envs.agents.predictors; none: the env's ground-truth
     intentions, privileged). `seed_axis`: the name of the vmapped axis over runs the iteration
     runs under (`train_live_seeds`), if any: the refill then skips its resets only when no lane
     of any run has ended, a choice every run shares (a cond, not both branches for each).
+    `teacher`: `env -> StateAgent` labelling (and, with beta, acting) in place of the CoNav
+    expert of `expert_config` (an ImitationTask's, e.g. the object-goal planner); it is handed
+    each episode's start state for its carry and acts on the state alone (no key).
     ValueError for inputs that do not fit, in config-field names."""
     if policy_config.goal_image:
         raise ValueError("PolicyConfig.goal_image: live imitation trains the CoNav policy, which reads no goal image")
     pol = make_policy_step(policy_config, intention, trajectory)  # ValueError for a predictor missing beside another
     check_policy_env(env, policy_config, "the policy", pol.source)
-    expert = make_expert_step(env, expert_config)
+    teacher = expert_agent(env, expert_config) if teacher is None else teacher(env)
+    no_key = jax.random.PRNGKey(0)  # the teachers draw nothing
+
+    def expert(state, carry):
+        return teacher.act(state, carry, no_key)
     keys = policy_inputs(policy_config)
     n, num_episodes = live.lanes, env.num_episodes
     schedule = warmup_cosine(live.lr, live.warmup_iterations, live.iterations)
@@ -262,7 +270,7 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         """Lanes on the episodes at queue `positions` of seed `seed`'s queue."""
         episodes = episodes_at(seed, positions, num_episodes)
         state = jax.vmap(lambda e: env.reset_to_episode(jax.random.PRNGKey(0), e, observe=False))(episodes)
-        carries = jax.vmap(lambda _: (initial_carry(), pol.init()))(positions)
+        carries = jax.vmap(lambda s: (teacher.init(no_key, s), pol.init()))(state)
         return Lanes(state, *carries, positions)
 
     def refill(lanes: Lanes, cursor, seed):
@@ -397,23 +405,26 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
 
 
 def make_iteration(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, intention=None, trajectory=None,
-                   expert_config: ExpertConfig = ExpertConfig(), compiler_options: tuple = (), seeds: int = 1):
+                   expert_config: ExpertConfig = ExpertConfig(), compiler_options: tuple = (), seeds: int = 1,
+                   teacher=None):
     """(`Live`, the jitted iteration `(TrainState, key) -> (TrainState, metrics)`, the bank an
     argument of the compiled program), shared by runs of one process with the same inputs but
     for the cadences and the seed (a resumed run, and every seed of one configuration, reuse the
     compiled code: `init` takes the seed from `live`, the iteration from the TrainState).
     `compiler_options`: `jax.jit`'s, as sorted pairs. `seeds` > 1: the iteration of that many
     runs together (`train_live_seeds`), taking `stack_runs` of their states and their keys
-    stacked; `init` stays one run's."""
+    stacked; `init` stays one run's. `teacher`: make_live's."""
     if seeds < 1:
         raise ValueError(f"make_iteration.seeds must be at least 1, got {seeds}")
     shared = dataclasses.replace(live, seed=0, **{k: 1 for k in CADENCE_FIELDS})
-    fns, iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, compiler_options)
+    fns, iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, compiler_options,
+                                teacher=teacher)
     if seeds > 1:
         iteration = _iteration(env, policy_config, shared, intention, trajectory, expert_config, compiler_options,
-                               seeds)[1]
+                               seeds, teacher)[1]
     if live.seed != shared.seed:  # the same compiled iteration; an init of this seed
-        fns = fns._replace(init=make_live(env, policy_config, live, intention, trajectory, expert_config).init)
+        fns = fns._replace(init=make_live(env, policy_config, live, intention, trajectory, expert_config,
+                                          teacher=teacher).init)
     return fns, iteration
 
 
@@ -424,9 +435,10 @@ SEEDS_STATE_AXES = TrainState(params=0, opt_state=0, lanes=0, cursor=0, iteratio
 
 
 @functools.lru_cache(maxsize=8)
-def _iteration(env, policy_config, live, intention, trajectory, expert_config, compiler_options, seeds: int = 1):
+def _iteration(env, policy_config, live, intention, trajectory, expert_config, compiler_options, seeds: int = 1,
+               teacher=None):
     fns = make_live(env, policy_config, live, intention, trajectory, expert_config,
-                    seed_axis=SEED_AXIS if seeds > 1 else None)
+                    seed_axis=SEED_AXIS if seeds > 1 else None, teacher=teacher)
     iteration = fns.iteration
     if seeds > 1:
         iteration = jax.vmap(fns.iteration, in_axes=(SEEDS_STATE_AXES, 0), out_axes=(SEEDS_STATE_AXES, 0),
@@ -455,15 +467,17 @@ def _from_tree(template: TrainState, params, opt_state: dict) -> TrainState:
 
 
 def run_config(policy_config: PolicyConfig, live: LiveConfig, expert_config: ExpertConfig, env: ConavEnv,
-               source: str, intention_run, trajectory_run) -> dict:
+               source: str, intention_run, trajectory_run, task: ImitationTask | None = None) -> dict:
     """The checkpoint's config: a "policy" run's keys (the PolicyConfig as "model", the
-    predictor runs the agent reads), and what the weights depend on."""
+    predictor runs the agent reads), and what the weights depend on; with a `task`, its kind
+    and what it records of its teacher (under "teacher") in place of the expert's config."""
+    teacher = {"expert": dataclasses.asdict(expert_config)} if task is None else {"teacher": task.config}
     return {
-        "kind": KIND,
+        "kind": KIND if task is None else task.kind,
         "model": config_dict(policy_config),
         "live": live.weights_fields(),
         "imitation": {"train_intentions": PREDICTED if source == PREDICTED else GROUND_TRUTH},
-        "expert": dataclasses.asdict(expert_config),
+        **teacher,
         "env": {"split": env.split.name, "episodes": int(env.num_episodes), "end_at_reach": env.config.end_at_reach},
         "materials": env.config.sensor.materials,  # what the training env renders (checked by the agent)
         "intention_source": source,
@@ -502,6 +516,7 @@ def train_live(
     expert_config: ExpertConfig = ExpertConfig(),
     progress: bool = True,
     compiler_options: dict | None = None,
+    task: ImitationTask | None = None,
 ) -> LiveResult:
     """Train the CoNav policy by imitation from the live simulator `env` (its train split; build
     it with `end_at_reach=True`, as the other trainers do) into the run directory `out_dir`
@@ -517,9 +532,13 @@ def train_live(
     spread (standard deviation over the window's steps) of the learner's actions beside the
     labels': a policy that ignores its inputs shows an action spread near 0. The last
     checkpoint holds the weights and Adam's state alone: a finished run, run again, returns
-    them with its lanes as a fresh run's."""
+    them with its lanes as a fresh run's.
+
+    `task`: a goal-navigation baseline's (train.goalnav.objectnav_task): its teacher labels and
+    acts in place of the expert, and the run is of its kind (loaded as that baseline's agent).
+    A task whose policy reads a goal image is refused (live imitation renders none)."""
     return train_live_seeds(env, policy_config, [live], [out_dir], intention, trajectory, expert_config, progress,
-                            compiler_options)[0]
+                            compiler_options, task)[0]
 
 
 def train_live_seeds(
@@ -532,6 +551,7 @@ def train_live_seeds(
     expert_config: ExpertConfig = ExpertConfig(),
     progress: bool = True,
     compiler_options: dict | None = None,
+    task: ImitationTask | None = None,
 ) -> list[LiveResult]:
     """`train_live` for several runs of one configuration that differ only in their
     `LiveConfig.seed` (and cadences), run `lives[i]` into `out_dirs[i]`, trained together: one
@@ -543,7 +563,10 @@ def train_live_seeds(
     episode order and initial weights are its own, as alone; its updates differ from a lone
     run's only by rounding (a batched program may sum in another order), which, as between two
     runs of one seed on a GPU, grows over a run. ValueError for configs that differ in more
-    than the seed, repeated seeds or directories."""
+    than the seed, repeated seeds or directories. `task`: train_live's."""
+    if task is not None and task.goal_obs is not None:
+        raise ValueError(f"the {task.kind} task's policy reads a goal image, which live imitation does not render: "
+                         "train it with its offline trainer (train.goalnav)")
     if not lives or len(lives) != len(out_dirs):
         raise ValueError(f"train_live_seeds needs one out_dir per LiveConfig, got {len(lives)} and {len(out_dirs)}")
     shared = dataclasses.replace(lives[0], seed=0, **{k: 1 for k in CADENCE_FIELDS})
@@ -559,10 +582,12 @@ def train_live_seeds(
     k = len(lives)
     options = tuple(sorted((compiler_options or {}).items()))
     # A lone run's init (of seed 0: _initial_state sets each run's) beside the runs' iteration.
-    fns, iteration = make_iteration(env, policy_config, shared, intention, trajectory, expert_config, options, k)
+    teacher = None if task is None else task.teacher
+    fns, iteration = make_iteration(env, policy_config, shared, intention, trajectory, expert_config, options, k,
+                                    teacher)
     configs, states = [], []
     for live, run_dir in zip(lives, out_dirs):
-        config = run_config(policy_config, live, expert_config, env, fns.source, intention_run, trajectory_run)
+        config = run_config(policy_config, live, expert_config, env, fns.source, intention_run, trajectory_run, task)
         configs.append(config)
         states.append(_initial_state(fns.init, policy_config, live, Path(run_dir), config))
     at = sorted({int(state.iteration) for state in states})

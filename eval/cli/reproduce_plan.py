@@ -362,12 +362,19 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
                                 episodes=b.policy_episodes if cfg.large and b.policy_episodes else b.baseline_episodes)
     kinds = (("objectnav", objectnav_model(res, base=net)), ("imagenav", imagenav_model(res, net)))
     baseline_runs = [(s, kind, runs / baseline_name(kind, s)) for s in range(cfg.baseline_seeds) for kind, _ in kinds]
-    stages.append(Stage("baselines", tuple(
-        step(f"train {kind}", run, seed=s, data_dir=str(data), run_dir=str(run),
-             cfg=dataclasses.replace(rounds, steps=b.baseline_steps, seed=s), model=dict(kinds)[kind],
-             imitation=imitation, remat=cfg.large, progress=False)
-        for s, kind, run in baseline_runs
-    ), tuple(run / "log.jsonl" for _, _, run in baseline_runs)))
+
+    def baseline(s: int, kind: str, run: Path) -> Step:
+        if cfg.trainer == "live" and kind == "objectnav":
+            # The object-goal agent trains live as the CoNav rows do, at their budget and seed.
+            model = objectnav_model(res, base=_live_network(cfg))
+            return step("train objectnav live", run, seed=s, data_dir=str(data), out_dir=str(run), model=model,
+                        live=dataclasses.replace(_live_config(cfg), seed=s), progress=False)
+        return step(f"train {kind}", run, seed=s, data_dir=str(data), run_dir=str(run),
+                    cfg=dataclasses.replace(rounds, steps=b.baseline_steps, seed=s), model=dict(kinds)[kind],
+                    imitation=imitation, remat=cfg.large, progress=False)
+
+    stages.append(Stage("baselines", tuple(baseline(*r) for r in baseline_runs),
+                        tuple(run / "log.jsonl" for _, _, run in baseline_runs)))
     predictors = (data, intention, trajectory)
 
     def evaluation(agents: str, target: Path, run: Path | None = None, seed: int | None = None,
@@ -443,6 +450,25 @@ def _offline_stages(cfg: ReproduceConfig, step, evaluation, schedule, predictors
             Stage("dagger", tuple(dagger), tuple(runs / f"{name}_s{s}" / "log.jsonl" for s in range(cfg.seeds)))]
 
 
+def _live_network(cfg: ReproduceConfig):
+    """The network live runs train (the CoNav rows' before their ablation, the object-goal
+    baseline's before its inputs): the preset's dtype, train.live's visual norm."""
+    from conav_jax.train.live import DEFAULT_POLICY
+
+    return _network(cfg, cfg.budget.policy_conv_dtype, visual_norm=DEFAULT_POLICY.visual_norm)
+
+
+def _live_config(cfg: ReproduceConfig):
+    """The preset's live budget (seed 0)."""
+    from conav_jax.train.live import LiveConfig
+
+    b = cfg.budget
+    # No remat: the live window holds the panoramas as the CNN reads them, so the update widens
+    # nothing, its activations fit, and recomputing the CNN only costs time (BENCHMARKS.md).
+    return LiveConfig(lanes=b.live_lanes, window_steps=b.live_window_steps, iterations=b.live_iterations, lr=b.live_lr,
+                      warmup_iterations=b.live_warmup_iterations, remat=False)
+
+
 def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path, Path, Path]) -> list[Stage]:
     """The bc and dagger stages of the live trainer (train.live): every Table 3 row, the
     ground-truth rows among them, then its evaluation (on `cfg.eval_split`), seed by seed; the
@@ -450,16 +476,11 @@ def _live_stages(cfg: ReproduceConfig, step, evaluation, predictors: tuple[Path,
     initial weights: train.live). `predictors`: the data and predictor runs."""
     from conav_jax.envs.agents.policy import needed_predictors
     from conav_jax.models.policy import ablation_config
-    from conav_jax.train.live import DEFAULT_POLICY, LiveConfig
 
     b = cfg.budget
     data, intention, trajectory = predictors
     runs, evals = Path(cfg.out) / "runs", Path(cfg.out) / cfg.eval_dir
-    net = _network(cfg, b.policy_conv_dtype, visual_norm=DEFAULT_POLICY.visual_norm)
-    # No remat: the live window holds the panoramas as the CNN reads them, so the update widens
-    # nothing, its activations fit, and recomputing the CNN only costs time (BENCHMARKS.md).
-    live = LiveConfig(lanes=b.live_lanes, window_steps=b.live_window_steps, iterations=b.live_iterations, lr=b.live_lr,
-                      warmup_iterations=b.live_warmup_iterations, remat=False)
+    net, live = _live_network(cfg), _live_config(cfg)
     predicted = {"intention_run": str(intention), "trajectory_run": str(trajectory)}
     bc, outputs = [], []
     for s in range(cfg.seeds):

@@ -37,6 +37,7 @@ STEP_KINDS = {
     "train trajectory": StepKind("conav_jax.train.trajectory:train_trajectory_from_data", mesh=True),
     "train objectnav": StepKind("conav_jax.train.goalnav:train_objectnav_from_data", mesh=True),
     "train imagenav": StepKind("conav_jax.train.goalnav:train_imagenav_from_data", mesh=True),
+    "train objectnav live": StepKind("conav_jax.train.goalnav:train_objectnav_live_from_data"),
     "train policy": StepKind("conav_jax.train.policy:train_policy_from_data", mesh=True),
     # Seeds of one live configuration train as one program; evaluations of one data, split and
     # agents run in one process, which loads the env once and shares compiled sweeps.

@@ -104,8 +104,13 @@ def add(sub) -> None:
     _add_train_goalnav(models)
 
 
+# The goal-navigation baselines `conav train live --baseline` trains (train.goalnav); the
+# image-goal agent's goal image is rendered only by its offline trainer.
+LIVE_BASELINES = ("objectnav",)
+
+
 def _add_train_live(models) -> None:
-    from conav_jax.models.policy import ABLATIONS
+    from conav_jax.models.policy import ABLATIONS, PolicyConfig
     from conav_jax.train.live import DEFAULT_POLICY, LiveConfig
 
     p = models.add_parser("live", help="imitation-train the CoNav policy from the live simulator: N lanes step T "
@@ -119,6 +124,13 @@ def _add_train_live(models) -> None:
                         help="the learner reads the env's ground-truth intentions (a privileged run)")
     p.add_argument("--trajectory", default=None, metavar="RUN", help="trajectory run (with --intention)")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="all", help="intention inputs kept (Table 3 row)")
+    p.add_argument("--baseline", choices=LIVE_BASELINES, default=None,
+                   help="train a goal-navigation baseline in place of the CoNav policy: objectnav, the object-goal "
+                   "agent imitating the replanning object-goal planner (an objectnav run: `conav eval --agent "
+                   "objectgoal-oracle|objectgoal-predicted --checkpoint RUN`); no --ablation or intention flags")
+    p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
+                   help="--baseline objectnav: also read the goal category as a saliency map over the panorama "
+                   "(oracle segmentation, recorded as privileged; default: on)")
     resolution_arg(p, "of the policy's panorama")
     _add_network_args(p, visual_norm=DEFAULT_POLICY.visual_norm)
     add_fields(p, LiveConfig)
@@ -132,6 +144,8 @@ def _run_train_live(args: argparse.Namespace) -> int:
     from conav_jax.envs.agents.registry import run_resolution
     from conav_jax.train.live import LiveConfig, train_live_from_data
 
+    if args.baseline is not None:
+        return _run_train_live_baseline(args)
     if args.intention is not None and args.trajectory is None and args.ablation == "all":
         raise ValueError("--ablation all reads the trajectory predictor: give --trajectory RUN")
     model = ablation_config(network_base(args, run_resolution([], args.resolution)), args.ablation)
@@ -145,6 +159,29 @@ def _run_train_live(args: argparse.Namespace) -> int:
         return 1
     print(f"conav train live: {result.env_steps:,} env timesteps over {result.episodes_started:,} episodes -> "
           f"{result.run_dir}")
+    return 0
+
+
+def _run_train_live_baseline(args: argparse.Namespace) -> int:
+    """`conav train live --baseline objectnav`: train.goalnav.train_objectnav_live_from_data."""
+    from conav_jax.envs.agents.registry import run_resolution
+    from conav_jax.train import goalnav
+    from conav_jax.train.live import LiveConfig
+
+    given = [flag for flag, on in (("--intention", args.intention is not None),
+                                   ("--trajectory", args.trajectory is not None),
+                                   ("--ground-truth-intentions", args.ground_truth_intentions),
+                                   ("--ablation", args.ablation != "all")) if on]
+    if given:
+        raise ValueError(f"--baseline {args.baseline} reads its goal category from the episode: no {', '.join(given)}")
+    hw = run_resolution([], args.resolution)
+    model = goalnav.objectnav_model(hw, args.object_saliency, network_base(args, hw))
+    result = _trained(args, goalnav.train_objectnav_live_from_data, args.data, args.out, model,
+                      config_from_args(LiveConfig, args), progress=not args.no_progress)
+    if result is None:
+        return 1
+    print(f"conav train live --baseline {args.baseline}: {result.env_steps:,} env timesteps over "
+          f"{result.episodes_started:,} episodes -> {result.run_dir}")
     return 0
 
 
