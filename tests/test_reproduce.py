@@ -1190,6 +1190,14 @@ def test_the_live_trainer_plans_ground_truth_rows_paired_seeds_and_a_dagger_from
     assert _kw(objectnav)["live"] == _kw(train["train live runs/bc_none_s1"])["live"]
     assert _model(objectnav).use_object and not _model(objectnav).use_human_pos and _model(objectnav).visual_norm
     assert "train imagenav runs/imagenav_s1" in baselines
+    # --baselines keeps a sitting to some of them, their evaluations with them.
+    only = {st.name: st for st in rp.plan_stages(dataclasses.replace(cfg, baselines=("objectnav",)))}
+    assert {s.name for s in only["baselines"].steps} == {f"train objectnav live runs/{n}"
+                                                         for n in ("objectnav", "objectnav_s1", "objectnav_s2")}
+    evaluated = {s.name for s in only["eval"].steps}
+    assert "eval eval/objectgoal-predicted_s2" in evaluated and not any("imagegoal" in n for n in evaluated)
+    with pytest.raises(ValueError, match="ReproduceConfig.baselines pointnav: each once, from objectnav, imagenav"):
+        rp.ReproduceConfig(out=tmp_path, baselines=("pointnav",))
     # A subset of the rows; unknown rows and the offline trainer's lack of ground-truth rows refused.
     some = rp.plan_stages(dataclasses.replace(cfg, rows=("none", "gt_all")))
     assert {s.name for s in _trained(some[3])} == {

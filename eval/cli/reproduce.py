@@ -87,7 +87,8 @@ def _config_args(p) -> None:
                         "preset": {"choices": sorted(BUDGETS)}, "encoder": {"choices": sorted(ENCODERS)},
                         "trainer": {"choices": TRAINERS}, "eval_split": {"choices": EVAL_SPLITS},
                         "resolution": {"type": parse_resolution, "metavar": "HxW"},
-                        "rows": {"type": parse_names, "metavar": "ROW,..."}},
+                        "rows": {"type": parse_names, "metavar": "ROW,..."},
+                        "baselines": {"type": parse_names, "metavar": "KIND,..."}},
                dagger_rounds=f"{docs['dagger_rounds']} (presets: {_presets('dagger_rounds')})",
                dagger_episodes=f"{docs['dagger_episodes']} (LARGE_PANORAMA_DAGGER_EPISODES: "
                                f"{LARGE_PANORAMA_DAGGER_EPISODES})", **helps)

@@ -159,6 +159,9 @@ class ReproduceConfig:
     # The Table 3 rows to train and evaluate (empty: every one the trainer has, `all_rows`); the
     # tables list the others as not run.
     rows: tuple[str, ...] = ()
+    # The learned baselines to train and evaluate, by run kind (objectnav, imagenav; empty: both);
+    # the tables list the others as not run.
+    baselines: tuple[str, ...] = ()
     # The intention predictor's schedule and the live trainer's budget where they are not the
     # preset's (None: Budget.intention_*, Budget.live_*): one OUT directory holds one budget, so
     # budgets compared on minival are OUT directories of their own.
@@ -187,6 +190,10 @@ class ReproduceConfig:
         if unknown or len(set(self.rows)) != len(self.rows):
             raise ValueError(f"ReproduceConfig.rows {','.join(self.rows)}: each once, from {', '.join(self.all_rows)} "
                              f"(the {self.trainer} trainer's Table 3 rows)")
+        unknown = [k for k in self.baselines if k not in BASELINE_KINDS]
+        if unknown or len(set(self.baselines)) != len(self.baselines):
+            raise ValueError(f"ReproduceConfig.baselines {','.join(self.baselines)}: each once, from "
+                             f"{', '.join(BASELINE_KINDS)}")
         if self.preset not in BUDGETS:
             raise ValueError(f"unknown preset {self.preset!r}; choose from {', '.join(BUDGETS)}")
         if self.seeds < 1:
@@ -308,6 +315,7 @@ def baseline_name(name: str, seed: int) -> str:
 # The learned baselines' evaluations (Table 2's rows) and the run each reads, with the predictor
 # the predicted-goal agent adds.
 LEARNED_BASELINES = {"objectgoal-oracle": "objectnav", "objectgoal-predicted": "objectnav", "imagegoal": "imagenav"}
+BASELINE_KINDS = ("objectnav", "imagenav")
 
 
 def resolution_name(cfg: ReproduceConfig) -> str:
@@ -360,7 +368,9 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
     net = _network(cfg, b.policy_conv_dtype if cfg.large else "float32")
     imitation = ImitationConfig(dagger_rounds=b.baseline_dagger_rounds, dagger_episodes=cfg.default_dagger_episodes,
                                 episodes=b.policy_episodes if cfg.large and b.policy_episodes else b.baseline_episodes)
-    kinds = (("objectnav", objectnav_model(res, base=net)), ("imagenav", imagenav_model(res, net)))
+    kinds = tuple((kind, model) for kind, model in (("objectnav", objectnav_model(res, base=net)),
+                                                     ("imagenav", imagenav_model(res, net)))
+                  if not cfg.baselines or kind in cfg.baselines)
     baseline_runs = [(s, kind, runs / baseline_name(kind, s)) for s in range(cfg.baseline_seeds) for kind, _ in kinds]
 
     def baseline(s: int, kind: str, run: Path) -> Step:
@@ -391,7 +401,8 @@ def plan_stages(cfg: ReproduceConfig) -> list[Stage]:
         stages += _offline_stages(cfg, step, evaluation, dataclasses.replace(rounds, steps=b.policy_steps,
                                                                               batch=b.policy_batch), predictors)
     baseline_evals = [(baseline_name(agent, s), agent, runs / baseline_name(kind, s), s)
-                      for s in range(cfg.baseline_seeds) for agent, kind in LEARNED_BASELINES.items()]
+                      for s in range(cfg.baseline_seeds) for agent, kind in LEARNED_BASELINES.items()
+                      if kind in dict(kinds)]
     evals_ = [evaluation("random,follower,pioneer,pioneer-drive,objectgoal-planner,expert", evals / "scripted")] + [
         evaluation(agent, evals / target, run, s, reads=(intention,) if agent == "objectgoal-predicted" else ())
         for target, agent, run, s in baseline_evals]
