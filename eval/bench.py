@@ -184,7 +184,7 @@ def bench_sweep(env, agent, batch: int, repeats: int, episodes: int | None = Non
         run, args = evaluator.pool_program(lifted.params, idx, max_chunks=profile_chunks)
         compiled = run.lower(*args).compile()  # the program the sweeps ran, from jit's cache
         traced = profile_program(compiled, (env.bank, *args), SWEEP_PROFILE_SCOPES, profile_dir, calls=1)
-        profile["profile"] = {"chunks": profile_chunks, "lanes_filled": min(batch, n), **traced}
+        profile["profile"] = {"chunks": profile_chunks, **traced}
     return {
         "device": jax.devices()[0].device_kind,
         "devices": 1 if mesh is None else mesh.size,

@@ -120,6 +120,8 @@ def test_bench_eval_untrained_refuses_a_run_and_accepts_agents_outside_the_regis
     base = ["--compile-cache", "off", "bench", "eval", "--data", str(tmp_path / "none")]
     assert cli.main([*base, "--agent", "conav", "--untrained", "--checkpoint", str(tmp_path)]) == 2
     assert "--untrained builds the agent from fresh weights" in capsys.readouterr().err
+    assert cli.main([*base, "--agent", "random", "--profile-chunks", "0"]) == 2
+    assert "--profile-chunks and --episodes must be at least 1" in capsys.readouterr().err
     # A name outside the registry reaches make_agent (package.module:factory agents), not a check before it.
     seen = []
 
@@ -205,6 +207,9 @@ def test_train_live_builds_its_configs_from_flags_and_passes_the_predictors(tmp_
     assert live == LiveConfig(lanes=64, window_steps=8, beta_end=0.25)
     assert model.resolution == (8, 32) and (model.use_activity, model.use_object, model.use_trajectory) == (False, True, False)
     assert kwargs["intention_run"] is None and kwargs["trajectory_run"] is None
+    assert model.uses_saliency  # the object input as a saliency map too, as `conav train policy` reads it
+    assert cli.main([*base, "--ground-truth-intentions", "--ablation", "object", "--no-object-saliency"]) == 1
+    assert not calls[-1][2].uses_saliency and calls[-1][2].use_object
     assert cli.main([*base, "--intention", "I", "--trajectory", "T"]) == 1
     assert calls[-1][4]["intention_run"] == "I" and calls[-1][4]["trajectory_run"] == "T"
     assert cli.main([*base, "--intention", "I"]) == 2  # all inputs read the trajectory predictor

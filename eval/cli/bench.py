@@ -342,8 +342,8 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
                          "--trajectory / --ground-truth-intentions / --pretrained")
     use_pretrained(args, (args.agent,))  # --pretrained: the shipped run and its predictors
     spec = AGENTS.get(args.agent)
-    if args.batch < 1 or args.repeats < 1 or (args.episodes is not None and args.episodes < 1):
-        raise ValueError("--batch, --repeats and --episodes must be at least 1")
+    if args.batch < 1 or args.repeats < 1 or args.profile_chunks < 1 or (args.episodes is not None and args.episodes < 1):
+        raise ValueError("--batch, --repeats, --profile-chunks and --episodes must be at least 1")
     trained = spec is not None and spec.needs_checkpoint and not args.untrained
     h, w = run_resolution([(args.agent, args.checkpoint)] if trained else [], args.resolution)
     devices = mesh(args)

@@ -129,8 +129,8 @@ def _add_train_live(models) -> None:
                    "agent imitating the replanning object-goal planner (an objectnav run: `conav eval --agent "
                    "objectgoal-oracle|objectgoal-predicted --checkpoint RUN`); no --ablation or intention flags")
     p.add_argument("--object-saliency", action=argparse.BooleanOptionalAction, default=PolicyConfig.object_saliency,
-                   help="--baseline objectnav: also read the goal category as a saliency map over the panorama "
-                   "(oracle segmentation, recorded as privileged; default: on)")
+                   help="with the object input (the CoNav rows that read it, --baseline objectnav), also read it as a "
+                   "saliency map over the panorama (oracle segmentation, recorded as privileged; default: on)")
     resolution_arg(p, "of the policy's panorama")
     _add_network_args(p, visual_norm=DEFAULT_POLICY.visual_norm)
     add_fields(p, LiveConfig)
@@ -148,7 +148,8 @@ def _run_train_live(args: argparse.Namespace) -> int:
         return _run_train_live_baseline(args)
     if args.intention is not None and args.trajectory is None and args.ablation == "all":
         raise ValueError("--ablation all reads the trajectory predictor: give --trajectory RUN")
-    model = ablation_config(network_base(args, run_resolution([], args.resolution)), args.ablation)
+    base = network_base(args, run_resolution([], args.resolution))
+    model = ablation_config(dataclasses.replace(base, object_saliency=args.object_saliency), args.ablation)
     if needed_predictors(model) and args.intention is None and not args.ground_truth_intentions:
         raise ValueError(f"--ablation {args.ablation} reads intentions: give --intention RUN (and --trajectory RUN) "
                          "or --ground-truth-intentions")
