@@ -18,6 +18,10 @@ import time
 # The learned agents `untrained_agent` builds, and the word their rows carry.
 UNTRAINED_AGENTS = ("conav", "ppo", "objectgoal-oracle", "objectgoal-predicted", "imagegoal")
 UNTRAINED = "untrained"
+# (encoder, conv dtype) of the CoNav policy an untrained agent gets by default: the network the
+# paper preset's learned runs train (`conav reproduce --preset paper --encoder patch`), so an
+# untrained sweep costs what theirs does.
+UNTRAINED_NETWORK = ("patch", "bfloat16")
 
 
 def untrained_agent(name: str, env, config, key, frames: int | None = None):

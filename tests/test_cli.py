@@ -133,6 +133,28 @@ def test_bench_eval_untrained_refuses_a_run_and_accepts_agents_outside_the_regis
     monkeypatch.setattr("conav_jax.envs.ConavEnv", lambda *a, **k: None)
     assert cli.main([*base, "--agent", "mypkg.agents:make", "--resolution", "8x32"]) == 2
     assert seen == ["mypkg.agents:make"] and "built here" in capsys.readouterr().err
+    # An untrained agent's network: the paper runs' (patch, bfloat16) unless set; a trained run's is its own.
+    assert cli.main([*base, "--agent", "conav", "--encoder", "conv"]) == 2
+    assert "--encoder and --conv-dtype set an untrained agent's network" in capsys.readouterr().err
+    built = {}
+
+    def untrained_agent(name, env, config, key):
+        built[name] = config
+        raise ValueError("built here")
+
+    from types import SimpleNamespace
+
+    sensor = SimpleNamespace(resolution=(8, 32))
+    monkeypatch.setattr("conav_jax.envs.ConavEnv", lambda *a, **k: SimpleNamespace(config=SimpleNamespace(sensor=sensor)))
+    monkeypatch.setattr("conav_jax.eval.bench.untrained_agent", untrained_agent)
+    from conav_jax.models.policy import encoder_name
+
+    assert cli.main([*base, "--agent", "conav", "--untrained", "--resolution", "8x32"]) == 2
+    assert (encoder_name(built["conav"]), built["conav"].conv_dtype) == ("patch", "bfloat16")
+    assert cli.main([*base, "--agent", "imagegoal", "--untrained", "--resolution", "8x32", "--encoder", "patch",
+                     "--conv-dtype", "float32"]) == 2
+    goal = built["imagegoal"]
+    assert (encoder_name(goal), goal.conv_dtype, goal.goal_image, goal.resolution) == ("patch", "float32", True, (8, 32))
 
 
 def test_bench_sim_times_each_material_and_passes_the_shading_switch(monkeypatch, capsys):

@@ -1220,6 +1220,9 @@ def test_tables_show_the_ground_truth_bound_and_its_paired_contrasts(tmp_path):
             doc["provenance"] = {"commit": "abcdef0123456789"}
             if row == "gt_all":
                 doc["agents"]["conav"]["trained"] = {"run": "r", "step": 5, "provenance": {"commit": f"5eed{s}00000000"}}
+            if row == "gt_object" and s == 2:  # a process that could not read its commit: its code's hash
+                doc["provenance"] = {"commit": "unknown", "code": "4dc8b08880fe1d7c"}
+                doc["agents"]["conav"]["trained"] = {"run": "r", "step": 5, "provenance": {"commit": "unknown"}}
             _write_eval(evals / name, doc)
     results = rt.collect_results(tmp_path, 3, {"seeds": 3, "trainer": "live"}, "dagger_live_beta0",
                                  ("none", "object", "all", "gt_object", "gt_all"))
@@ -1240,6 +1243,7 @@ def test_tables_show_the_ground_truth_bound_and_its_paired_contrasts(tmp_path):
     assert sum(line.startswith("| T conav (live imitation) |") for line in lines) == 2
     assert "- `gt_all`: abcdef0123 (trained at 5eed000000, 5eed100000, 5eed200000)" in lines
     assert "- `none`: abcdef0123" in lines  # evaluations that name no training commit
+    assert "- `gt_object`: abcdef0123, unknown (code 4dc8b08880fe1d7c) (trained at unknown)" in lines
     assert not any(line.startswith("| activity |") for line in lines)  # not planned: no contrast, nothing missing
 
 

@@ -30,7 +30,7 @@ def add(sub) -> None:
     from conav_jax.models.policy import CONV_DTYPES, DEFAULT_ENCODER, ENCODERS
     from conav_jax.envs.agents.registry import AGENTS
     from conav_jax.envs.config import MATERIALS, SENSOR_KINDS
-    from conav_jax.eval.bench import UNTRAINED_AGENTS
+    from conav_jax.eval.bench import UNTRAINED_AGENTS, UNTRAINED_NETWORK
     from conav_jax.train.bench import DEFAULT_BATCH, LIVE_PARTS, SETUPS
 
     bench = sub.add_parser("bench", help="throughput benchmarks (run them on a GPU)")
@@ -132,6 +132,11 @@ def add(sub) -> None:
                    help="a learned agent (" + ", ".join(UNTRAINED_AGENTS) + ") with freshly initialised weights "
                    "and predictors from the default configs at --resolution, labelled untrained: its sweep speed "
                    "without a trained run")
+    p.add_argument("--encoder", default=None, choices=sorted(ENCODERS),
+                   help="with --untrained: the policy's panorama encoder (models.policy.ENCODERS; default "
+                   f"{UNTRAINED_NETWORK[0]}, as the paper preset's learned runs)")
+    p.add_argument("--conv-dtype", default=None, choices=sorted(CONV_DTYPES),
+                   help=f"with --untrained: dtype of the policy's convolutions (default {UNTRAINED_NETWORK[1]})")
     translate_errors(p, **INTENTION_FLAGS)
     p.add_argument("--batch", type=int, default=256)
     resolution_arg(p, "(default with a trained run: the run's)")
@@ -320,12 +325,14 @@ def _bench_eval_agent(args: argparse.Namespace, env):
         return make_agent(args.agent, env, args.checkpoint, **intention_kwargs(args))
     import jax
 
-    from conav_jax.models.policy import PolicyConfig
+    from conav_jax.models.policy import PolicyConfig, encoder_config
     from conav_jax.train import goalnav
 
     hw = env.config.sensor.resolution
-    config = {"objectgoal-oracle": goalnav.objectnav_model(hw), "objectgoal-predicted": goalnav.objectnav_model(hw),
-              "imagegoal": goalnav.imagenav_model(hw)}.get(args.agent, PolicyConfig(resolution=hw))
+    base = encoder_config(PolicyConfig(resolution=hw, conv_dtype=args.conv_dtype), args.encoder)
+    config = {"objectgoal-oracle": goalnav.objectnav_model(hw, base=base),
+              "objectgoal-predicted": goalnav.objectnav_model(hw, base=base),
+              "imagegoal": goalnav.imagenav_model(hw, base=base)}.get(args.agent, base)
     return untrained_agent(args.agent, env, config, jax.random.PRNGKey(0))
 
 
@@ -333,13 +340,18 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
     from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
     from conav_jax.envs.agents.registry import AGENTS, run_resolution
     from conav_jax.envs.config import run_materials
-    from conav_jax.eval.bench import UNTRAINED, bench_eval, bench_sweep
+    from conav_jax.eval.bench import UNTRAINED, UNTRAINED_NETWORK, bench_eval, bench_sweep
     from conav_jax.parallel import check_divisible
 
     if args.untrained and (args.checkpoint or args.intention or args.trajectory or args.ground_truth_intentions
                            or args.pretrained):
         raise ValueError("--untrained builds the agent from fresh weights: drop --checkpoint / --intention / "
                          "--trajectory / --ground-truth-intentions / --pretrained")
+    if not args.untrained and (args.encoder is not None or args.conv_dtype is not None):
+        raise ValueError("--encoder and --conv-dtype set an untrained agent's network (--untrained); a trained "
+                         "run's is its own")
+    args.encoder = args.encoder or UNTRAINED_NETWORK[0]
+    args.conv_dtype = args.conv_dtype or UNTRAINED_NETWORK[1]
     use_pretrained(args, (args.agent,))  # --pretrained: the shipped run and its predictors
     spec = AGENTS.get(args.agent)
     if args.batch < 1 or args.repeats < 1 or args.profile_chunks < 1 or (args.episodes is not None and args.episodes < 1):
@@ -355,6 +367,7 @@ def _run_bench_eval(args: argparse.Namespace) -> int:
                    EnvConfig(sensor=SensorConfig(resolution=(h, w), kind=args.sensor, materials=materials)))
     agent = _bench_eval_agent(args, env)
     res = {"agent": args.agent, "weights": UNTRAINED if args.untrained else "trained" if trained else "none",
+           **({"encoder": args.encoder, "conv_dtype": args.conv_dtype} if args.untrained else {}),
            "mode": args.mode, "resolution": f"{h}x{w}", "sensor": env.config.sensor.kind, "materials": materials,
            "physics_impl": env.config.physics.impl}
     if args.mode == "sweep":

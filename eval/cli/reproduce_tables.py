@@ -17,6 +17,7 @@ import re
 from pathlib import Path
 
 from conav_jax.envs.metrics import METRIC_NAMES
+from conav_jax.provenance import UNKNOWN
 from conav_jax.eval.stats import paired_difference, resolved, seed_summary
 from conav_jax.eval.cli.reproduce_plan import (ABLATIONS, BC_EVAL, BC_ROW_EVAL, CONAV_EVAL, GROUND_TRUTH_ROWS,
                                                LEARNED_BASELINES, baseline_name, dagger_variant, live_dagger_variant)
@@ -88,11 +89,11 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", 
     def add(table: dict, row: str, s: int, entry: dict, episodes: int, doc: dict | None = None) -> None:
         slot = table.setdefault(row, {k: entry[k] for k in ("title", "intention_source", "privileged")} | {"seeds": {}})
         slot["seeds"][str(s)] = {"metrics": entry["metrics"], "episodes": episodes}
-        commit = ((doc or {}).get("provenance") or {}).get("commit")
+        commit = _commit_label((doc or {}).get("provenance"))
         if commit is not None:
             slot.setdefault("commits", [])
             slot["commits"] = sorted({*slot["commits"], commit})
-        trained = ((entry.get("trained") or {}).get("provenance") or {}).get("commit")
+        trained = _commit_label((entry.get("trained") or {}).get("provenance"))
         if trained is not None:  # evaluations made before they recorded it name none
             slot["trained_commits"] = sorted({*slot.get("trained_commits", []), trained})
 
@@ -128,6 +129,21 @@ def collect_results(out: Path, seeds: int, extra: dict, dagger: str = "dagger", 
     # The split's size, from any evaluation (each runs the whole split).
     episodes = json.loads(made[0].read_text()).get("episodes")
     return {**extra, "episodes": episodes, "agents": agents, "conav": conav, "missing": missing}
+
+
+def _commit_label(provenance: dict | None) -> str | None:
+    """A record's commit as the tables name it: the commit, or where the process could not read
+    one (conav_jax.provenance.UNKNOWN) `unknown (code HASH)` when it recorded its source's hash;
+    None for a record without provenance."""
+    commit = (provenance or {}).get("commit")
+    if commit == UNKNOWN and provenance.get("code"):
+        return f"{UNKNOWN} (code {provenance['code']})"
+    return commit
+
+
+def _short(commit: str) -> str:
+    """A commit shortened to 10 digits; a label that is not a commit (`_commit_label`) whole."""
+    return commit if commit.startswith(UNKNOWN) else commit[:10]
 
 
 def _cell(value: float) -> str:
@@ -288,9 +304,11 @@ def render_tables(results: dict) -> str:
                if row.get("commits")]
     if commits:
         lines += ["", "## Commits", "", "The commits each learned row's evaluations ran at and, where they record "
-                  "it, those its runs were trained at (their metrics.json provenance).", ""]
-        lines += [f"- `{name}`: {', '.join(c[:10] for c in found)}" +
-                  (f" (trained at {', '.join(c[:10] for c in trained)})" if trained else "")
+                  "it, those its runs were trained at (their metrics.json provenance). A process that could not "
+                  "read its commit names the hash of its source instead (`unknown (code HASH)`: "
+                  "conav_jax.provenance.code_hash at a checkout says whether that commit made it).", ""]
+        lines += [f"- `{name}`: {', '.join(_short(c) for c in found)}" +
+                  (f" (trained at {', '.join(_short(c) for c in trained)})" if trained else "")
                   for name, found, trained in commits]
     if results.get("missing"):
         lines += ["", "## Not run yet", "",
