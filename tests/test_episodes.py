@@ -2,6 +2,7 @@
 manifest integrity, the minival split, blocked standing points and datasets from scene files."""
 
 import copy
+import dataclasses
 import json
 import math
 import warnings
@@ -54,6 +55,13 @@ def test_same_seed_gives_identical_bytes_and_another_seed_differs(tmp_path, tiny
         assert (tiny_data / sh["file"]).read_bytes() == (again / sh["file"]).read_bytes()
     other = generate_dataset(preset("tiny", seed=1), tmp_path / "other")
     assert other["content_hash"] != a["content_hash"]
+    # Shards written side by side hold the bytes, in the order, of shards written one by one.
+    small = dataclasses.replace(preset("tiny"), episodes_per_shard=3)
+    serial, threaded = (generate_dataset(small, tmp_path / f"shards{w}", workers=w) for w in (1, 2))
+    assert len(threaded["splits"]["train"]["shards"]) >= 3
+    assert threaded["splits"] == serial["splits"] and threaded["content_hash"] == serial["content_hash"]
+    for sh in serial["splits"]["train"]["shards"]:
+        assert sha256_file(tmp_path / "shards2" / sh["file"]) == sh["sha256"]
 
 
 def test_train_val_and_minival_scenes_are_disjoint(tiny_data):

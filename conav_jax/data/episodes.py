@@ -24,7 +24,7 @@ import math
 import os
 import re
 import warnings
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, NamedTuple, Sequence
@@ -54,6 +54,7 @@ MANIFEST = "manifest.json"
 DATASET_FORMAT = "conav-episodes"
 DATASET_VERSION = 1
 MIN_HUMAN_PATH_M = 2.0  # activity B's spot is at least this far (geodesic) from activity A's
+SHARD_WRITERS = 8  # threads writing a split's shards at most (with `workers` > 1)
 
 # name -> (per-step?, dtype, meaning). Per-step arrays are (N, T, ...), padded past t_end with
 # the last frame (and PHASE_DONE); the others are (N, ...).
@@ -482,12 +483,15 @@ def _write_dataset(
         )
         by_split[split].extend(eps)
     for split, eps in by_split.items():
-        shards = []
-        for s0 in range(0, len(eps), cfg.episodes_per_shard):
-            chunk = eps[s0 : s0 + cfg.episodes_per_shard]
-            fname = f"{split}/shard_{s0 // cfg.episodes_per_shard:05d}.npz"
-            digest = save_npz(out / fname, stack_episodes(chunk))
-            shards.append({"file": fname, "episodes": len(chunk), "sha256": digest})
+        chunks = {f"{split}/shard_{s0 // cfg.episodes_per_shard:05d}.npz": eps[s0 : s0 + cfg.episodes_per_shard]
+                  for s0 in range(0, len(eps), cfg.episodes_per_shard)}
+        # Shards are independent files: threads stack, hash and write them side by side (numpy's
+        # copies, hashing and file writes release the GIL); each shard's bytes are those of a
+        # serial write.
+        with ThreadPoolExecutor(max(1, min(workers, SHARD_WRITERS))) as pool:
+            digests = list(pool.map(lambda item: save_npz(out / item[0], stack_episodes(item[1])), chunks.items()))
+        shards = [{"file": fname, "episodes": len(chunk), "sha256": digest}
+                  for (fname, chunk), digest in zip(chunks.items(), digests)]
         lengths = np.asarray([e["t_end"] + 1 for e in eps])
         manifest["splits"][split] = {
             "episodes": len(eps),
