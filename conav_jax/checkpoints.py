@@ -205,7 +205,8 @@ def _first_config_mismatch(saved: Any, expected: Any, key: str = "", ignore: fro
 
 def _restore_like(name: str, loaded: PyTree, like: PyTree) -> PyTree:
     """Check `loaded` against the template's structure, shapes and dtypes; return it with the
-    template's tree type (and sharding, where the template leaf has one)."""
+    template's tree type (and sharding, where the template leaf has one). A float16 leaf where
+    the template holds float32 (parameters stored at half precision) widens to it, exactly."""
     got, _ = jax.tree_util.tree_flatten_with_path(loaded)
     want, want_def = jax.tree_util.tree_flatten_with_path(like)
     got_paths = {jax.tree_util.keystr(p, simple=True, separator="/"): x for p, x in got}
@@ -220,6 +221,8 @@ def _restore_like(name: str, loaded: PyTree, like: PyTree) -> PyTree:
     for p, (_, tmpl) in zip(want_paths, want):
         arr = got_paths[p]
         shape, dtype = tuple(tmpl.shape), np.dtype(tmpl.dtype)
+        if arr.shape == shape and arr.dtype == np.float16 and dtype == np.float32:
+            arr = arr.astype(np.float32)  # stored at half precision (a shipped run): widens exactly
         if arr.shape != shape or arr.dtype != dtype:
             raise ValueError(
                 f"{name}/{p}: saved {arr.dtype}{list(arr.shape)} vs expected {dtype}{list(shape)}"

@@ -112,7 +112,7 @@ def test_export_writes_parameters_only_and_checks_the_pair_and_the_size(tmp_path
         pretrained.export_runs(tmp_path / "runs" / "nothing", tmp_path / "runs" / "intention", {}, out)
     with pytest.raises(ValueError, match="read the intention run"):
         pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "other", {}, out)
-    big = {"w": np.ones((1_300_000,), np.float32)}
+    big = {"w": np.ones((pretrained.SIZE_LIMIT_BYTES // 4 + 1000,), np.float32)}
     save_checkpoint(checkpoint_path(tmp_path / "runs" / "policy", 3), params=big, opt_state=None, step=3,
                     config={"kind": "policy", "intention_run": "runs/intention", "trajectory_run": None})
     with pytest.raises(ValueError, match="over the package"):
@@ -139,3 +139,48 @@ def test_export_writes_parameters_only_and_checks_the_pair_and_the_size(tmp_path
                                trajectory_run=tmp_path / "runs" / "trajectory")
     pretrained.export_runs(tmp_path / "runs" / "policy", tmp_path / "runs" / "intention", {}, out)
     assert set(pretrained.pretrained_runs(out)) == {"policy", "intention"}
+
+
+def test_a_policy_that_reads_no_predictor_ships_alone_at_half_precision_and_acts(tmp_path, tiny_data):
+    import dataclasses
+
+    import jax
+
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.agents.registry import make_agent
+    from conav_jax.models import policy
+
+    model = policy.ablation_config(policy.PolicyConfig(resolution=(16, 64)), "none")
+    params = jax.device_get(policy.init(jax.random.PRNGKey(3), model))
+    config = {"kind": "policy", "model": dataclasses.asdict(model), "materials": "instance", "intention_run": None,
+              "trajectory_run": None}
+    save_checkpoint(checkpoint_path(tmp_path / "runs" / "none", 7), params=params, opt_state={"m": params},
+                    config=config, step=7)
+    with pytest.raises(ValueError, match="weights_dtype 'bfloat8'"):
+        pretrained.export_runs(tmp_path / "runs" / "none", None, {}, tmp_path / "x", weights_dtype="bfloat8")
+    with pytest.raises(ValueError, match="read the intention run None"):  # it read no predictor: none ships
+        pretrained.export_runs(tmp_path / "runs" / "none", tmp_path / "runs" / "none", {}, tmp_path / "x")
+    full = pretrained.export_runs(tmp_path / "runs" / "none", None, {"what": "test"}, tmp_path / "f32")
+    half = pretrained.export_runs(tmp_path / "runs" / "none", None, {"what": "test"}, tmp_path / "f16",
+                                  weights_dtype="float16")
+    assert pretrained.pretrained_runs(tmp_path / "f16") == {"policy": tmp_path / "f16" / "policy"}
+    assert half < 0.6 * full
+    stored = load_checkpoint(latest_checkpoint(tmp_path / "f16" / "policy")).params
+    assert {str(leaf.dtype) for leaf in jax.tree.leaves(stored)} == {"float16"}
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(16, 64), materials="instance")))
+    agent = make_agent("conav", env, tmp_path / "f16" / "policy")
+    assert agent.intention_source == "none"
+    # Loading widens the stored weights exactly: float32 values of the float16 ones.
+    from conav_jax.envs.agents.policy import load_policy_run
+
+    loaded, _, _ = load_policy_run(tmp_path / "f16" / "policy")
+    for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params), strict=True):
+        assert a.dtype == np.float32
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b).astype(np.float16).astype(np.float32))
+
+
+def test_pretrained_flag_with_a_policy_shipped_alone_names_no_predictor(monkeypatch):
+    monkeypatch.setattr(pretrained, "pretrained_runs", lambda root=None: {"policy": Path("/pkg/policy")})
+    args = _eval_args("--agent", "conav", "--pretrained")
+    _use_pretrained(args, ("conav",))
+    assert (args.checkpoint, args.intention, args.trajectory) == ("/pkg/policy", None, None)

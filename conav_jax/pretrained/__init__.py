@@ -2,9 +2,11 @@
 conav --pretrained`, `conav demo`): runs trained on the `paper` preset, kept as parameters only
 (no optimiser state), so evaluating a policy that works needs no download and no training.
 
-Each run is a directory like any training run's (`policy/`, `intention/`, and `trajectory/` when
-the policy reads the trajectory input: one `ckpt_*.npz` each); `PROVENANCE.json` says how they
-were made and how they score. `export_runs` writes them from finished runs."""
+Each run is a directory like any training run's (`policy/`, and the predictors it reads:
+`intention/` when it reads activities or objects, `trajectory/` when it reads the trajectory
+input; one `ckpt_*.npz` each); `PROVENANCE.json` says how they were made and how they score.
+`export_runs` writes them from finished runs, at float32 or, to fit the package, float16
+(loading widens them exactly to the model's float32)."""
 
 from __future__ import annotations
 
@@ -18,15 +20,19 @@ from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_check
 
 PRETRAINED_DIR = Path(__file__).resolve().parent
 PRETRAINED_RUNS = ("policy", "intention", "trajectory")
-REQUIRED_RUNS = ("policy", "intention")  # the trajectory predictor ships with a policy that reads it
+# A predictor ships with a policy that reads it; a policy that reads none ships alone (and a
+# policy whose predictor is missing refuses to build rather than read ground truth instead).
+REQUIRED_RUNS = ("policy",)
 PROVENANCE_FILE = "PROVENANCE.json"
-SIZE_LIMIT_BYTES = 5_000_000  # what the package may carry
+SIZE_LIMIT_BYTES = 8_000_000  # what the package may carry
+# export_runs' weights_dtype: the stored precision of parameters (optimiser state is never shipped).
+WEIGHT_DTYPES = ("float32", "float16")
 
 
 def pretrained_runs(root: Path = PRETRAINED_DIR) -> dict[str, Path]:
-    """{"policy": DIR, "intention": DIR[, "trajectory": DIR]}: the shipped runs (the trajectory
-    predictor where shipped). FileNotFoundError naming what is missing (an install without the
-    package data)."""
+    """{"policy": DIR[, "intention": DIR][, "trajectory": DIR]}: the shipped runs (each predictor
+    where shipped). FileNotFoundError naming what is missing (an install without the package
+    data)."""
     found = {name: Path(root) / name for name in PRETRAINED_RUNS if latest_checkpoint(Path(root) / name) is not None}
     missing = [str(Path(root) / name) for name in REQUIRED_RUNS if name not in found]
     if missing:
@@ -35,14 +41,18 @@ def pretrained_runs(root: Path = PRETRAINED_DIR) -> dict[str, Path]:
     return found
 
 
-def export_runs(policy_run: Path, intention_run: Path, provenance: dict, root: Path = PRETRAINED_DIR,
-                trajectory_run: Path | None = None) -> int:
-    """Write the latest checkpoints of a finished `conav train policy` run and of the predictor
-    runs it read (`trajectory_run` for a policy that read one) into `root`, parameters only; the
-    policy's config stops naming its predictor runs (paths of the machine it was trained on), the
-    rest of each config is kept. Returns the bytes written; ValueError (nothing replaced) when they
-    exceed SIZE_LIMIT_BYTES, or when the predictor runs the policy's config names differ (by
-    directory name, or by being named at all) from those given."""
+def export_runs(policy_run: Path, intention_run: Path | None, provenance: dict, root: Path = PRETRAINED_DIR,
+                trajectory_run: Path | None = None, weights_dtype: str = "float32") -> int:
+    """Write the latest checkpoints of a finished policy run (`conav train policy` or `conav
+    train live`) and of the predictor runs it read (`intention_run`, `trajectory_run`; None for
+    one it did not read) into `root`, parameters only, their floating-point leaves stored as
+    `weights_dtype` (WEIGHT_DTYPES); the policy's config stops naming its predictor runs (paths of
+    the machine it was trained on), the rest of each config is kept. Returns the bytes written;
+    ValueError (nothing replaced) when they exceed SIZE_LIMIT_BYTES, or when the predictor runs
+    the policy's config names differ (by directory name, or by being named at all) from those
+    given."""
+    if weights_dtype not in WEIGHT_DTYPES:
+        raise ValueError(f"weights_dtype {weights_dtype!r}: expected one of {', '.join(WEIGHT_DTYPES)}")
     policy = runs.load_run(policy_run, runs.POLICY)  # FileNotFoundError / ValueError naming the run
     given = {"intention": intention_run, "trajectory": trajectory_run}
     for name, run in given.items():
@@ -57,7 +67,8 @@ def export_runs(policy_run: Path, intention_run: Path, provenance: dict, root: P
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=root) as tmp:  # nothing replaced unless all of it fits
-        written = [save_checkpoint(checkpoint_path(Path(tmp) / name, ckpt.step), params=ckpt.params, opt_state=None,
+        written = [save_checkpoint(checkpoint_path(Path(tmp) / name, ckpt.step),
+                                   params=_stored(ckpt.params, weights_dtype), opt_state=None,
                                    config=cfg, step=ckpt.step, extra=ckpt.extra)
                    for name, (ckpt, cfg) in shipped.items()]
         total = sum(p.stat().st_size for p in written)
@@ -69,3 +80,15 @@ def export_runs(policy_run: Path, intention_run: Path, provenance: dict, root: P
                 shutil.move(str(Path(tmp) / name), root / name)
     (root / PROVENANCE_FILE).write_text(json.dumps(provenance, indent=1) + "\n")
     return total
+
+
+def _stored(params, weights_dtype: str):
+    """`params` with their float32 leaves cast to `weights_dtype` (other leaves as they are)."""
+    import jax
+    import numpy as np
+
+    def cast(leaf):
+        leaf = np.asarray(leaf)
+        return leaf.astype(weights_dtype) if leaf.dtype == np.float32 else leaf
+
+    return jax.tree_util.tree_map(cast, params)

@@ -299,7 +299,7 @@ def use_pretrained(args: argparse.Namespace, agents: tuple[str, ...]) -> None:
     checkpoint = {**(given or {}), "conav": str(runs["policy"])}
     args.checkpoint = (str(runs["policy"]) if len(checkpoint) == 1
                        else ",".join(f"{k}={v}" if k else v for k, v in checkpoint.items()))
-    args.intention = str(runs["intention"])
+    args.intention = str(runs["intention"]) if "intention" in runs else None
     args.trajectory = str(runs["trajectory"]) if "trajectory" in runs else None
 
 
