@@ -173,6 +173,17 @@ def add(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON line per resolution and batch")
     p.set_defaults(func=_run_bench_render)
 
+    p = what.add_parser("suite", help="the benchmarks BENCHMARKS.md leads with, in turn, each in a process of its "
+                        "own, their JSON lines appended to --out with the command and commit (resumes: a benchmark "
+                        "already there is skipped)")
+    p.add_argument("--out", required=True, help="JSON-lines file the results are appended to")
+    p.add_argument("--small", default=None, metavar="DIR", help="`conav generate --preset small` data (simulator)")
+    p.add_argument("--paper", default=None, metavar="DIR", help="`conav generate --preset paper` data (val sweeps)")
+    p.add_argument("--demo", default=None, metavar="DIR", help="`conav generate --preset demo` data (live iteration)")
+    p.add_argument("--only", default=None, metavar="NAME,...", help="these benchmarks of the suite (default: all)")
+    p.add_argument("--dry-run", action="store_true", help="print the commands and run nothing")
+    p.set_defaults(func=_run_bench_suite)
+
 
 def _dataset_args(p) -> None:
     """--data and --split of the benchmarks that build an env (without --data: the tiny preset)."""
@@ -434,3 +445,21 @@ def _run_bench_render(args: argparse.Namespace) -> int:
         tmp.cleanup()
     return 0
 
+
+def _run_bench_suite(args: argparse.Namespace) -> int:
+    import shlex
+
+    from conav_jax.eval.cli.bench_suite import SUITE, run_suite, suite_command
+
+    names = args.only.split(",") if args.only else list(SUITE)
+    data = {"SMALL": args.small, "PAPER": args.paper, "DEMO": args.demo}
+    if args.dry_run:
+        for name in names:
+            print(f"{name}: conav {shlex.join(suite_command(name, data))}")
+        return 0
+    outcome = run_suite(names, data, Path(args.out))
+    failed = [name for name, how in outcome.items() if how == "failed"]
+    print(f"suite: {sum(how == 'ran' for how in outcome.values())} ran, "
+          f"{sum(how == 'skipped' for how in outcome.values())} already in {args.out}, {len(failed)} failed"
+          + (f" ({', '.join(failed)})" if failed else ""))
+    return 1 if failed else 0
