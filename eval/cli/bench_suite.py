@@ -1,7 +1,7 @@
 """`conav bench suite`: the benchmarks BENCHMARKS.md leads with, run in turn at one commit, each as
 the `conav bench` command that makes its figure, in a process of its own; their JSON lines are
 appended to one file with the command and the commit beside each. A benchmark already in the file
-is not run again, so a suite cut short (a GPU call's time limit) continues where it stopped; one
+is not run again, so a suite cut short (a machine's time limit) continues where it stopped; one
 that failed is tried again.
 """
 
