@@ -46,6 +46,7 @@ def test_the_suite_refuses_unknown_benchmarks_and_missing_data_before_running_an
     with pytest.raises(ValueError, match="reads the PAPER dataset"):
         bs.run_suite(["sim_32x128", "sweep_pioneer_drive"], {"SMALL": "s"}, tmp_path / "o.jsonl",
                      runner=lambda argv: ran.append(argv) or (0, "{}", ""))
+    assert bs.suite_command("sim_32x128", {"SMALL": "/my data/small"})[5] == "/my data/small"  # one argument
     with pytest.raises(ValueError, match="no benchmark 'sim' in the suite"):
         bs.suite_command("sim", {})
     assert not ran and not (tmp_path / "o.jsonl").exists()

@@ -394,7 +394,8 @@ def test_the_object_goal_agent_trains_live_on_the_planners_labels(hall, tmp_path
         train_live(hall.env, IMG, LIVE, tmp_path / "img", task=imagenav_task(), progress=False)
     with pytest.raises(ValueError, match="not an object-goal policy"):
         train_objectnav_live(hall.env, IMG, LIVE, tmp_path / "img", progress=False)
-    task = objectnav_task()  # train_objectnav_live's; one task, so the iteration below reuses the run's compile
+    task = objectnav_task()
+    assert objectnav_task().teacher == task.teacher != imagenav_task().teacher  # equal tasks share compiles
     result = train_live(hall.env, OBJ, LIVE, tmp_path / "obj", progress=False, compiler_options=ENV_FAST, task=task)
     assert result.env_steps == LIVE.iterations * LIVE.lanes * LIVE.window_steps
     agent = make_agent("objectgoal-oracle", hall.env, tmp_path / "obj")
@@ -405,7 +406,7 @@ def test_the_object_goal_agent_trains_live_on_the_planners_labels(hall, tmp_path
         load_policy_run(tmp_path / "obj")
 
     fns, iteration = make_iteration(hall.env, OBJ, LIVE, compiler_options=tuple(sorted(ENV_FAST.items())),
-                                    teacher=task.teacher)
+                                    teacher=objectnav_task().teacher)  # another task of the run's: its compile
     state = fns.init(policy.init(jax.random.PRNGKey(LIVE.seed), OBJ))
     _, metrics = iteration(state, iteration_key(LIVE.seed, 0))
     window = jax.device_get(metrics[STEPS])

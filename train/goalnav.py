@@ -52,15 +52,31 @@ def imagenav_model(resolution: tuple[int, int], base: PolicyConfig = PolicyConfi
                                goal_image=True)
 
 
+@dataclasses.dataclass(frozen=True)
+class PlannerTeacher:
+    """`env -> the planner agent` of a task: the object-goal planner (`object_goal`, re-picking
+    the nearest instance every step) or the geodesic planner to the goal. Equal and hashed by its
+    settings, so two tasks of one configuration share the programs compiled for either
+    (train.live caches its iteration by teacher)."""
+
+    object_goal: bool
+    planner: BaselineConfig = BaselineConfig()
+
+    def __call__(self, env: ConavEnv):
+        if self.object_goal:
+            return objectgoal_planner_agent(env, self.planner, replan=True)
+        return goal_planner_agent(env, self.planner)
+
+
 def objectnav_task(planner: BaselineConfig = BaselineConfig()) -> ImitationTask:
     """The object-goal planner (re-picking the nearest instance every step) as the teacher."""
-    return ImitationTask(runs.OBJECTNAV, lambda env: objectgoal_planner_agent(env, planner, replan=True), None,
+    return ImitationTask(runs.OBJECTNAV, PlannerTeacher(True, planner), None,
                          {"planner": "objectgoal-planner", "replan": True, "baseline": dataclasses.asdict(planner)})
 
 
 def imagenav_task(planner: BaselineConfig = BaselineConfig()) -> ImitationTask:
     """The geodesic planner to the goal as the teacher, the goal-pose image as the goal input."""
-    return ImitationTask(runs.IMAGENAV, lambda env: goal_planner_agent(env, planner), goal_view_sensor,
+    return ImitationTask(runs.IMAGENAV, PlannerTeacher(False, planner), goal_view_sensor,
                          {"planner": "goal-planner", "goal_image": "goal standing pose, forward quarter, RGB",
                           "baseline": dataclasses.asdict(planner)})
 

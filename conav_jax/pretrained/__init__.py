@@ -15,6 +15,9 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import jax
+import numpy as np
+
 from conav_jax import runs
 from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
 
@@ -84,9 +87,6 @@ def export_runs(policy_run: Path, intention_run: Path | None, provenance: dict, 
 
 def _stored(params, weights_dtype: str):
     """`params` with their float32 leaves cast to `weights_dtype` (other leaves as they are)."""
-    import jax
-    import numpy as np
-
     def cast(leaf):
         leaf = np.asarray(leaf)
         return leaf.astype(weights_dtype) if leaf.dtype == np.float32 else leaf

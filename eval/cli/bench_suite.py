@@ -49,7 +49,8 @@ def suite_command(name: str, data: dict[str, str]) -> list[str]:
     if missing:
         raise ValueError(f"benchmark {name} reads the {', '.join(missing)} dataset(s): give "
                          + ", ".join(f"--{d.lower()} DIR" for d in missing))
-    return ["--compile-cache", "off", *shlex.split(SUITE[name].format(**{d: data.get(d) or "" for d in DATASETS}))]
+    given = {d: data.get(d) or "" for d in DATASETS}
+    return ["--compile-cache", "off", *(token.format(**given) for token in shlex.split(SUITE[name]))]
 
 
 def run_in_process_of_its_own(argv: list[str]) -> tuple[int, str, str]:
