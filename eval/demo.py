@@ -5,10 +5,10 @@ walks in a few scenes: conav_jax.data.presets), as the `conav` command lines a u
 generate -> [train intention -> train trajectory -> train the policy (live imitation)] ->
 evaluate every agent (report, plots) -> one rerun recording.
 
-By default the evaluation and the recording drive the CoNav agent with the policy and predictor
-shipped with the package (`--pretrained`, trained on the paper preset at 32x128: the evaluation
-renders that panorama), and nothing is trained: a newcomer sees the agents at work in a few
-minutes. `train=True` adds the training stages, the whole pipeline: a hundred updates (25,600
+By default the evaluation and the recording drive the CoNav agent with the policy shipped with
+the package (`--pretrained`, trained on the paper preset: the evaluation renders the panorama it
+was trained on, conav_jax/pretrained/PROVENANCE.json), and nothing is trained: a newcomer sees
+the agents at work in a few minutes. `train=True` adds the training stages, the whole pipeline: a hundred updates (25,600
 env timesteps) show it but make no policy that reaches the goal; `pretrained=False` evaluates
 the demo's own policy (and so trains it).
 """

@@ -270,8 +270,8 @@ def agent_run_args(p: argparse.ArgumentParser, several: bool = False) -> None:
                    help="conav/ppo: feed the env's ground-truth intentions instead of predictions (privileged "
                    "upper bound, labelled so in every output)")
     p.add_argument("--pretrained", action="store_true",
-                   help="conav: the policy and the predictors it reads, shipped with the package (trained on the "
-                   "paper preset at 32x128; conav_jax/pretrained/PROVENANCE.json) in place of --checkpoint/"
+                   help="conav: the policy and any predictor it reads, shipped with the package (trained on the "
+                   "paper preset; conav_jax/pretrained/PROVENANCE.json) in place of --checkpoint/"
                    "--intention/--trajectory")
 
 

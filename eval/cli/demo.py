@@ -22,7 +22,7 @@ def add(sub) -> None:
                    "before evaluating: the whole pipeline, minutes longer")
     p.add_argument("--no-pretrained", dest="pretrained", action="store_false",
                    help="evaluate and record the demo's own briefly trained policy (at --resolution; implies --train) "
-                   "instead of the shipped one (conav_jax/pretrained, 32x128)")
+                   "instead of the shipped one (conav_jax/pretrained)")
     p.set_defaults(func=run)
 
 
