@@ -422,13 +422,18 @@ def _ray_components(cfg: SensorConfig, yaw_rad: jax.Array, elevation_rad: jax.Ar
     return ce * jnp.cos(a), ce * jnp.sin(a), se
 
 
-# Rows coloured together: the colouring runs over blocks of rows (lax.map), so its per-pixel
-# temporaries exist for one block of every env of a batch at a time, whatever XLA fuses.
+# Rows coloured together on an accelerator: the colouring runs over blocks of rows (lax.map), so
+# its per-pixel temporaries exist for one block of every env of a batch at a time, whatever XLA
+# fuses. The CPU colours whole panoramas: its batches are small, and the loop costs it more than
+# the temporaries.
 SHADE_BLOCK_ROWS = 16
 
 
-def _row_block(height: int) -> int:
-    """The largest divisor of `height` not above SHADE_BLOCK_ROWS."""
+def _row_block(height: int, backend: str) -> int:
+    """Rows coloured together on `backend` (jax.default_backend()): all of them on the CPU, else
+    the largest divisor of `height` not above SHADE_BLOCK_ROWS."""
+    if backend == "cpu":
+        return height
     return max(r for r in range(1, min(height, SHADE_BLOCK_ROWS) + 1) if height % r == 0)
 
 
@@ -527,16 +532,17 @@ def shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: ja
     With the Pallas caster (SensorConfig.kind "pallas", or "auto" where it resolves so) and
     SensorConfig.pallas_shade the colouring runs in a Pallas kernel too
     (envs.panorama_pallas.pallas_shade): XLA writes the per-pixel gathers of the material and
-    geometry tables to memory rather than fusing them, and the kernel keeps them in registers. Otherwise XLA computes it from gathers of the
-    shading table, a block of rows at a time (SHADE_BLOCK_ROWS): a batch of thousands of
-    panoramas never holds more than a block's temporaries."""
+    geometry tables to memory rather than fusing them, and the kernel keeps them in registers.
+    Otherwise XLA computes it from gathers of the shading table, on an accelerator a block of
+    rows at a time (SHADE_BLOCK_ROWS): a batch of thousands of panoramas never holds more than a
+    block's temporaries. The same colours either way."""
     table = shading_table(geometry, geom_material)
     if cfg.pallas_shade and cfg.kind != "reference" and resolve_sensor_kind(cfg.kind) == "pallas":
         from conav_jax.envs.panorama_pallas import pallas_shade
 
         return pallas_shade(cfg, cam_xyz_m, yaw_rad, depth, ids, table)
     height, width = depth.shape
-    rows = _row_block(height)
+    rows = _row_block(height, jax.default_backend())
     _, el = ray_angles(cfg)
     n = height // rows
 
@@ -545,6 +551,8 @@ def shade(cfg: SensorConfig, cam_xyz_m: jax.Array, yaw_rad: jax.Array, depth: ja
         rgb = shade_pixels(cfg, cam_xyz_m, _ray_components(cfg, yaw_rad, e), d, i, _table_columns(table, i))
         return jnp.stack(rgb + [d], axis=-1)
 
+    if n == 1:
+        return block((depth, ids, jnp.asarray(el)))
     out = jax.lax.map(block, (depth.reshape(n, rows, width), ids.reshape(n, rows, width),
                               jnp.asarray(el).reshape(n, rows)))
     return out.reshape(height, width, 4)

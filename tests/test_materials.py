@@ -104,6 +104,31 @@ def test_shading_follows_the_surface_normal_not_the_distance():
     np.testing.assert_allclose(near[:3] / near[0], side[:3] / side[0], rtol=1e-5)
 
 
+def test_rows_coloured_in_blocks_or_at_once_give_the_same_colours(monkeypatch):
+    from conav_jax.envs import panorama
+
+    res = SensorConfig(resolution=(32, 64), kind="fast")
+    lo, hi = jnp.array([[2.0, -1.0, 0.0]]), jnp.array([[3.0, 1.0, 2.0]])
+    geometry = _box_geometry(lo[0], hi[0])
+    cam, yaw = jnp.array([4.5, 0.5, 1.0]), jnp.float32(np.pi - 0.3)
+    depth, ids = fast_depth_ids(res, cam, yaw, geometry)
+    table = jnp.stack([jnp.asarray(PLAIN)] * 2)
+
+    def colours():
+        program = jax.make_jaxpr(lambda: shade(res, cam, yaw, depth, ids, geometry, table))()
+        loops = [e for e in program.jaxpr.eqns if e.primitive.name in ("scan", "while")]
+        return np.asarray(jax.jit(lambda: shade(res, cam, yaw, depth, ids, geometry, table))()), loops
+
+    # On the CPU a panorama is coloured at once (no loop over blocks of rows) ...
+    whole, loops = colours()
+    assert jax.default_backend() == "cpu" and loops == []
+    # ... on an accelerator SHADE_BLOCK_ROWS at a time; the colours are the same.
+    monkeypatch.setattr(panorama, "_row_block", lambda height, backend: panorama.SHADE_BLOCK_ROWS)
+    blocked, loops = colours()
+    assert len(loops) == 1 and (ids >= 0).any() and (ids < 0).any()
+    np.testing.assert_allclose(blocked, whole, atol=1e-6, rtol=0)
+
+
 # -- in the env: segmentation, flat colours ------------------------------------------------------
 
 
