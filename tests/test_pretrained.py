@@ -64,6 +64,20 @@ def test_the_shipped_conav_agent_builds_for_its_panorama_and_refuses_another(tin
         make_agent("conav", small, runs["policy"])
 
 
+def test_a_policy_with_predictors_builds_with_all_of_them_and_never_mixes_in_ground_truth(tiny_data, runs_32x128):
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.agents.registry import make_agent
+
+    runs = runs_32x128  # reads activity, object and trajectory inputs
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(32, 128), materials="flat")))
+    agent = make_agent("conav", env, runs["policy"], intention_run=runs["intention"], trajectory_run=runs["trajectory"])
+    assert agent.intention_source == "predicted"
+    with pytest.raises(ValueError, match="reads trajectory predictions and no trajectory predictor run is given"):
+        make_agent("conav", env, runs["policy"], intention_run=runs["intention"])
+    with pytest.raises(ValueError, match="no intention predictor run is given"):
+        make_agent("conav", env, runs["policy"], trajectory_run=runs["trajectory"])
+
+
 def _eval_args(*extra):
     return build_parser().parse_args(["eval", "--data", "d", "--out", "o", *extra])
 
