@@ -27,7 +27,7 @@ PRETRAINED_RUNS = ("policy", "intention", "trajectory")
 # policy whose predictor is missing refuses to build rather than read ground truth instead).
 REQUIRED_RUNS = ("policy",)
 PROVENANCE_FILE = "PROVENANCE.json"
-SIZE_LIMIT_BYTES = 8_000_000  # what the package may carry
+SIZE_LIMIT_BYTES = 5_000_000  # what the package may carry
 # export_runs' weights_dtype: the stored precision of parameters (optimiser state is never shipped).
 WEIGHT_DTYPES = ("float32", "float16")
 
