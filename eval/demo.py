@@ -8,9 +8,9 @@ evaluate every agent (report, plots) -> one rerun recording.
 By default the evaluation and the recording drive the CoNav agent with the policy shipped with
 the package (`--pretrained`, trained on the paper preset: the evaluation renders the panorama it
 was trained on, conav_jax/pretrained/PROVENANCE.json), and nothing is trained: a newcomer sees
-the agents at work in a few minutes. `train=True` adds the training stages, the whole pipeline: a hundred updates (25,600
-env timesteps) show it but make no policy that reaches the goal; `pretrained=False` evaluates
-the demo's own policy (and so trains it).
+the agents at work in a few minutes. `train=True` adds the training stages, the whole pipeline:
+a hundred updates (25,600 env timesteps) show it but make no policy that reaches the goal;
+`pretrained=False` evaluates the demo's own policy (and so trains it).
 """
 
 from __future__ import annotations
