@@ -3,6 +3,8 @@
 The file is a zip (loadable by `np.load`) holding one `.npy` member per array, named by its
 pytree key path (`params/encoder/conv/0/w.npy`), and a plain `meta.json` member (format version,
 step, config, extra, and the tree structure needed to rebuild the pytrees without a template).
+A leaf saved as an `Int8Array` (a shipped run's large weight matrices) is stored as int8 values
+and one float32 scale per slice of its last axis, and loads as the float32 array they give.
 A save writes a hidden temp sibling, fsyncs it and `os.replace`s it into place, so an
 interrupted save leaves the previous file (or nothing) at the path, never a half-written one.
 """
@@ -59,6 +61,35 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
     return max(found)[1] if found else None
 
 
+class Int8Array(NamedTuple):
+    """A float32 array kept as `values * scale`: int8 values of the array's shape and one
+    float32 scale per slice of its last axis (a weight matrix's output unit). `quantize_int8`
+    makes it; a checkpoint stores it in a quarter of the float32 bytes and loads it as the
+    float32 array it stands for."""
+
+    values: np.ndarray  # int8, the array's shape
+    scale: np.ndarray  # float32, (shape[-1],)
+
+    def dequantized(self) -> np.ndarray:
+        return self.values.astype(np.float32) * self.scale
+
+
+def quantize_int8(array) -> Int8Array:
+    """Symmetric int8 quantisation of a float array with at least one axis, one scale per slice
+    of its last axis: each value is rounded to the nearest of 255 steps across [-max|slice|,
+    +max|slice|], so an entry is off by at most half a step (max|slice| / 254). A slice of zeros
+    gets scale 1. ValueError for a non-finite entry or a scalar."""
+    array = np.asarray(array, np.float32)
+    if array.ndim == 0:
+        raise ValueError("quantize_int8 needs an array with at least one axis, got a scalar")
+    if not np.isfinite(array).all():
+        raise ValueError("quantize_int8: the array holds NaN or inf")
+    peak = np.abs(array).reshape(-1, array.shape[-1]).max(axis=0)
+    scale = np.where(peak > 0, peak / 127.0, 1.0).astype(np.float32)
+    values = np.clip(np.rint(array / scale), -127, 127).astype(np.int8)
+    return Int8Array(values, scale)
+
+
 # --- pytree <-> (JSON structure, named arrays) -------------------------------------------------
 
 
@@ -68,6 +99,13 @@ def _encode(node: Any, prefix: str, arrays: dict[str, np.ndarray]) -> dict:
     tuples, NamedTuples, None and array leaves."""
     if node is None:
         return {"kind": "none"}
+    if isinstance(node, Int8Array):  # before the NamedTuple case: it is one leaf, not a subtree
+        values, scale = np.asarray(node.values), np.asarray(node.scale)
+        if values.dtype != np.int8 or scale.dtype != np.float32 or scale.shape != values.shape[-1:]:
+            raise TypeError(f"Int8Array at {prefix}: values {values.dtype}{list(values.shape)}, "
+                            f"scale {scale.dtype}{list(scale.shape)}")
+        arrays[prefix], arrays[f"{prefix}/int8_scale"] = values, scale  # a leaf has no children: no clash
+        return {"kind": "int8", "name": prefix, "scale": f"{prefix}/int8_scale", "shape": list(values.shape)}
     if isinstance(node, dict):
         for k in node:
             if not isinstance(k, str) or "/" in k:
@@ -112,6 +150,8 @@ def _decode(desc: dict, arrays: dict[str, np.ndarray]) -> Any:
         return None
     if kind == "array":
         return arrays[desc["name"]]
+    if kind == "int8":
+        return Int8Array(arrays[desc["name"]], arrays[desc["scale"]]).dequantized()
     if kind == "dict":
         return {k: _decode(v, arrays) for k, v in desc["items"].items()}
     if kind == "list":

@@ -4,6 +4,7 @@ import os
 import zipfile
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -11,6 +12,7 @@ from conav_jax.checkpoints import (
     checkpoint_path,
     latest_checkpoint,
     load_checkpoint,
+    quantize_int8,
     save_checkpoint,
 )
 from conav_jax.optim import AdamState, adam
@@ -176,3 +178,38 @@ def test_runs_written_under_old_key_names_load_and_resume_under_todays(tmp_path,
     assert old["model"] == {"hidden": 8, "image_hw": [16, 64]}  # the caller's dict untouched
     with pytest.raises(ValueError, match="both model.image_hw and model.resolution"):
         runs.upgrade_config({"kind": "ppo", "model": {"image_hw": [1, 2], "resolution": [1, 2]}})
+
+
+def test_int8_quantisation_keeps_each_entry_within_half_a_step_of_its_slice():
+    rng = np.random.default_rng(0)
+    w = rng.normal(size=(6, 5, 4)).astype(np.float32) * np.array([1e-3, 1.0, 30.0, 0.0], np.float32)
+    q = quantize_int8(w)
+    assert q.values.dtype == np.int8 and q.values.shape == w.shape and q.scale.shape == (4,)
+    peak = np.abs(w).reshape(-1, 4).max(axis=0)
+    np.testing.assert_allclose(q.scale[:3], peak[:3] / 127, rtol=1e-6)
+    assert q.scale[3] == 1.0 and not q.values[..., 3].any()  # a slice of zeros stays zeros
+    err = np.abs(q.dequantized() - w).reshape(-1, 4).max(axis=0)
+    assert np.all(err[:3] <= peak[:3] / 254 * (1 + 1e-5)) and err[3] == 0
+    # Each slice reaches its extremes exactly: the scale is set by the largest entry.
+    assert np.abs(q.values).reshape(-1, 4).max(axis=0)[:3].tolist() == [127] * 3
+    with pytest.raises(ValueError, match="NaN or inf"):
+        quantize_int8(np.array([[1.0, np.nan]], np.float32))
+    with pytest.raises(ValueError, match="scalar"):
+        quantize_int8(np.float32(2.0))
+
+
+def test_an_int8_leaf_is_stored_small_and_loads_as_the_float32_it_stands_for(tmp_path):
+    rng = np.random.default_rng(1)
+    w = rng.normal(size=(256, 64)).astype(np.float32)
+    q = quantize_int8(w)
+    full = save_checkpoint(tmp_path / "f.npz", params={"w": w}, opt_state=None, config={}, step=0)
+    small = save_checkpoint(tmp_path / "q.npz", params={"w": q, "b": np.ones(3, np.float32)}, opt_state=None,
+                            config={}, step=0)
+    assert small.stat().st_size < 0.3 * full.stat().st_size
+    like = {"w": jax.ShapeDtypeStruct(w.shape, jnp.float32), "b": jax.ShapeDtypeStruct((3,), jnp.float32)}
+    for loaded in (load_checkpoint(small).params, load_checkpoint(small, params_like=like).params):
+        assert loaded["w"].dtype == jnp.float32
+        np.testing.assert_array_equal(np.asarray(loaded["w"]), q.values.astype(np.float32) * q.scale)
+    with pytest.raises(TypeError, match="Int8Array at params/w"):
+        save_checkpoint(tmp_path / "bad.npz", params={"w": q._replace(scale=q.scale[:3])}, opt_state=None,
+                        config={}, step=0)

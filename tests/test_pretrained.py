@@ -184,3 +184,33 @@ def test_pretrained_flag_with_a_policy_shipped_alone_names_no_predictor(monkeypa
     args = _eval_args("--agent", "conav", "--pretrained")
     _use_pretrained(args, ("conav",))
     assert (args.checkpoint, args.intention, args.trajectory) == ("/pkg/policy", None, None)
+
+
+def test_int8_export_stores_the_largest_matrices_as_int8_and_the_rest_at_half_precision(tmp_path, monkeypatch):
+    import zipfile
+
+    from conav_jax.checkpoints import quantize_int8
+
+    rng = np.random.default_rng(2)
+    params = {"visual": {"w": rng.normal(size=(512, 64)).astype(np.float32), "b": np.zeros(64, np.float32)},
+              "head": {"w": rng.normal(size=(64, 8)).astype(np.float32)}, "count": np.arange(3, dtype=np.int32)}
+    save_checkpoint(checkpoint_path(tmp_path / "runs" / "none", 1), params=params, opt_state=None, step=1,
+                    config={"kind": "policy", "intention_run": None, "trajectory_run": None})
+    monkeypatch.setattr(pretrained, "INT8_MIN_ENTRIES", 512 * 64)
+    f16 = pretrained.export_runs(tmp_path / "runs" / "none", None, {}, tmp_path / "f16", weights_dtype="float16")
+    i8 = pretrained.export_runs(tmp_path / "runs" / "none", None, {}, tmp_path / "i8", weights_dtype="int8")
+    assert i8 < 0.6 * f16
+    # Re-exporting a run exported at half precision (float16 leaves) quantises it too.
+    again = pretrained.export_runs(tmp_path / "f16" / "policy", None, {}, tmp_path / "again", weights_dtype="int8")
+    assert again == i8
+    path = latest_checkpoint(tmp_path / "i8" / "policy")
+    with zipfile.ZipFile(path) as zf:
+        stored = {m[len("params/"):-len(".npy")]: np.lib.format.read_array(zf.open(m)).dtype
+                  for m in zf.namelist() if m.startswith("params/")}
+    assert stored == {"visual/w": np.int8, "visual/w/int8_scale": np.float32, "visual/b": np.float16,
+                      "head/w": np.float16, "count": np.int32}
+    loaded = load_checkpoint(path).params
+    np.testing.assert_array_equal(np.asarray(loaded["visual"]["w"]), quantize_int8(params["visual"]["w"]).dequantized())
+    np.testing.assert_array_equal(np.asarray(loaded["head"]["w"]), params["head"]["w"].astype(np.float16).astype(np.float32))
+    # Without a template the int8 leaf loads as float32, the others as stored.
+    assert {k: str(v.dtype) for k, v in loaded["visual"].items()} == {"w": "float32", "b": "float16"}

@@ -6,7 +6,8 @@ Each run is a directory like any training run's (`policy/`, and the predictors i
 `intention/` when it reads activities or objects, `trajectory/` when it reads the trajectory
 input; one `ckpt_*.npz` each); `PROVENANCE.json` says how they were made and how they score.
 `export_runs` writes them from finished runs, at float32 or, to fit the package, float16
-(loading widens them exactly to the model's float32)."""
+(loading widens them exactly to the model's float32) or int8 for the largest matrices
+(`conav_jax.checkpoints.quantize_int8`: one scale per output unit; loading gives float32)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import jax
 import numpy as np
 
 from conav_jax import runs
-from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, save_checkpoint
+from conav_jax.checkpoints import checkpoint_path, latest_checkpoint, quantize_int8, save_checkpoint
 
 PRETRAINED_DIR = Path(__file__).resolve().parent
 PRETRAINED_RUNS = ("policy", "intention", "trajectory")
@@ -29,7 +30,10 @@ REQUIRED_RUNS = ("policy",)
 PROVENANCE_FILE = "PROVENANCE.json"
 SIZE_LIMIT_BYTES = 5_000_000  # what the package may carry
 # export_runs' weights_dtype: the stored precision of parameters (optimiser state is never shipped).
-WEIGHT_DTYPES = ("float32", "float16")
+# "int8": float leaves of at least INT8_MIN_ENTRIES entries (the policy's flatten layer) as int8
+# with a float32 scale per output unit, the other float leaves as float16.
+WEIGHT_DTYPES = ("float32", "float16", "int8")
+INT8_MIN_ENTRIES = 1 << 20
 
 
 def pretrained_runs(root: Path = PRETRAINED_DIR) -> dict[str, Path]:
@@ -86,9 +90,14 @@ def export_runs(policy_run: Path, intention_run: Path | None, provenance: dict, 
 
 
 def _stored(params, weights_dtype: str):
-    """`params` with their float32 leaves cast to `weights_dtype` (other leaves as they are)."""
+    """`params` with their float32 and float16 leaves (a run exported before) stored as
+    `weights_dtype` (WEIGHT_DTYPES; other leaves as they are)."""
     def cast(leaf):
         leaf = np.asarray(leaf)
-        return leaf.astype(weights_dtype) if leaf.dtype == np.float32 else leaf
+        if leaf.dtype not in (np.float32, np.float16):
+            return leaf
+        if weights_dtype == "int8":
+            return quantize_int8(leaf) if leaf.ndim >= 2 and leaf.size >= INT8_MIN_ENTRIES else leaf.astype(np.float16)
+        return leaf.astype(weights_dtype)
 
     return jax.tree_util.tree_map(cast, params)
