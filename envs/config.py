@@ -139,8 +139,8 @@ def materials_of_run(config: dict) -> str:
 
 def run_materials(run_dir) -> str:
     """The SensorConfig.materials the images of the run in `run_dir` were rendered with: what
-    an env that the run's agent or predictor acts in must render (the shipped pretrained runs:
-    "flat"). FileNotFoundError for a directory without a checkpoint."""
+    an env that the run's agent or predictor acts in must render. FileNotFoundError for a
+    directory without a checkpoint."""
     from conav_jax.checkpoints import latest_checkpoint, read_checkpoint_meta
 
     found = latest_checkpoint(run_dir)

@@ -29,3 +29,15 @@ def tiny_data(tmp_path_factory):
         warnings.simplefilter("ignore", BlockedStandingPoint)
         generate_dataset(preset("tiny"), out, workers=1)
     return out
+
+
+@pytest.fixture(scope="session")
+def runs_32x128():
+    """{"policy", "intention", "trajectory": run directory}: a CoNav policy trained on the paper
+    preset at 32x128 on flat category colours, reading every intention input, with the two
+    predictors it reads (parameters only; their PROVENANCE is results/paper's DAgger seed 0), for
+    tests that need a trained policy with predictors."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent / "runs_32x128"
+    return {name: root / name for name in ("policy", "intention", "trajectory")}

@@ -248,11 +248,13 @@ def test_train_live_asks_for_an_intention_source_only_where_the_ablation_reads_o
     assert "dataset directory not found" in capsys.readouterr().err
 
 
-def test_bench_eval_times_the_shipped_policy_on_the_materials_it_was_trained_on(tmp_path, monkeypatch, capsys):
+def test_bench_eval_times_a_policy_on_the_materials_and_panorama_it_was_trained_on(tmp_path, monkeypatch, capsys,
+                                                                                 runs_32x128):
     import json
     from types import SimpleNamespace
 
     from conav_jax.eval import cli
+    from conav_jax.envs.config import run_materials
     from conav_jax.pretrained import pretrained_runs
 
     built = {}
@@ -270,10 +272,24 @@ def test_bench_eval_times_the_shipped_policy_on_the_materials_it_was_trained_on(
     monkeypatch.setattr("conav_jax.envs.agents.registry.make_agent", make_agent)
     monkeypatch.setattr("conav_jax.eval.bench.bench_sweep", lambda *a, **k: {"timed": True})
     base = ["--compile-cache", "off", "bench", "eval", "--data", str(tmp_path), "--agent", "conav", "--json"]
+    # A run trained on flat colours at 32x128 (not the defaults) is timed on those.
+    own = ["--checkpoint", str(runs_32x128["policy"]), "--intention", str(runs_32x128["intention"]),
+           "--trajectory", str(runs_32x128["trajectory"])]
+    assert cli.main([*base, *own]) == 0
+    assert built == {"materials": "flat", "resolution": (32, 128), "agent": "conav",
+                     "checkpoint": str(runs_32x128["policy"]), "intention": str(runs_32x128["intention"])}
+    assert json.loads(capsys.readouterr().out)["materials"] == "flat"
     assert cli.main([*base, "--pretrained"]) == 0
     runs = pretrained_runs()
-    assert built == {"materials": "flat", "resolution": (32, 128), "agent": "conav",
-                     "checkpoint": str(runs["policy"]), "intention": str(runs["intention"])}
-    assert json.loads(capsys.readouterr().out)["materials"] == "flat"
+    assert built == {"materials": run_materials(runs["policy"]), "resolution": _shipped_resolution(), "agent": "conav",
+                     "checkpoint": str(runs["policy"]), "intention": None}
     assert cli.main([*base, "--pretrained", "--checkpoint", str(tmp_path)]) == 2
     assert "--pretrained is the conav agent's run: drop its --checkpoint" in capsys.readouterr().err
+
+
+def _shipped_resolution() -> tuple[int, int]:
+    """The panorama (H, W) the shipped policy reads, from its checkpoint's config."""
+    from conav_jax.checkpoints import latest_checkpoint, read_checkpoint_meta
+    from conav_jax.pretrained import pretrained_runs
+
+    return tuple(read_checkpoint_meta(latest_checkpoint(pretrained_runs()["policy"]))["config"]["model"]["resolution"])

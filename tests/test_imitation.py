@@ -288,11 +288,10 @@ def test_dagger_rounds_mix_the_expert_in_at_a_geometric_share():
             ImitationConfig(dagger_beta=bad)
 
 
-def test_expert_label_statistics_refuses_bad_input_before_any_rollout(tiny_data):
-    from conav_jax import pretrained
+def test_expert_label_statistics_refuses_bad_input_before_any_rollout(tiny_data, runs_32x128):
     from conav_jax.train.policy import expert_label_statistics
 
-    runs = pretrained.pretrained_runs()
+    runs = runs_32x128
     with pytest.raises(ValueError, match="episodes and batch must be at least 1"):
         expert_label_statistics(tiny_data, runs["policy"], episodes=0)
     with pytest.raises(ValueError, match="episodes and batch must be at least 1"):  # not "the default batch"

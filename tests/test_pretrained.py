@@ -2,6 +2,7 @@
 `--pretrained` flag of `conav eval` / `conav view` / `conav demo`."""
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,8 @@ from conav_jax.eval.cli import _use_pretrained, build_parser
 
 
 def test_the_shipped_runs_load_fit_the_size_limit_and_say_where_they_come_from():
+    from conav_jax.envs.agents.policy import needed_predictors, policy_config_from_dict
+
     runs = pretrained.pretrained_runs()
     files = [latest_checkpoint(d) for d in runs.values()]
     assert sum(f.stat().st_size for f in files) <= pretrained.SIZE_LIMIT_BYTES
@@ -20,17 +23,32 @@ def test_the_shipped_runs_load_fit_the_size_limit_and_say_where_they_come_from()
     assert policy.opt_state is None and policy.config["kind"] == "policy"
     # It names no predictor run of the machine it was trained on: eval passes the shipped one.
     assert policy.config["intention_run"] is None and policy.config["trajectory_run"] is None
-    assert load_checkpoint(files[1]).config["kind"] == "intention"
-    # Every predictor the policy reads is shipped beside it.
-    from conav_jax.envs.agents.policy import needed_predictors, policy_config_from_dict
-
+    # Every predictor the policy reads is shipped beside it (the shipped policy reads none).
     model = policy_config_from_dict(policy.config["model"])
-    assert set(runs) == {"policy", *needed_predictors(model)} and "trajectory" in runs
-    assert load_checkpoint(latest_checkpoint(runs["trajectory"])).config["kind"] == "trajectory"
+    assert set(runs) == {"policy", *needed_predictors(model)}
     prov = json.loads((pretrained.PRETRAINED_DIR / pretrained.PROVENANCE_FILE).read_text())
-    assert prov["preset"] == "paper" and prov["resolution"] == "32x128" and "FASR" in prov["val_4962_episodes"]
+    assert prov["preset"] == "paper" and "FASR" in prov["val_4962_episodes"]
+    assert prov["resolution"] == "x".join(map(str, model.resolution))
+    assert prov["materials"] == policy.config["materials"]
     with pytest.raises(FileNotFoundError, match="missing from this install"):
         pretrained.pretrained_runs(Path("/nonexistent"))
+
+
+def test_the_shipped_policy_reads_nothing_privileged():
+    # What the package ships is the policy with no privileged input: panorama RGB-D, GPS +
+    # compass and the human's position, no predictor, no segmentation.
+    import jax
+
+    from conav_jax.envs.agents.policy import needed_predictors, policy_config_from_dict
+
+    policy = load_checkpoint(latest_checkpoint(pretrained.pretrained_runs()["policy"]))
+    model = policy_config_from_dict(policy.config["model"])
+    assert needed_predictors(model) == () and not model.uses_saliency
+    # To fit the package: the flatten layer (most of the parameters) at int8, the rest at float16.
+    stored = {str(leaf.dtype) for leaf in jax.tree.leaves(policy.params)}
+    assert policy.params["visual"]["w"].dtype == np.float32 and stored == {"float32", "float16"}
+    with zipfile.ZipFile(latest_checkpoint(pretrained.pretrained_runs()["policy"])) as zf:
+        assert np.lib.format.read_array(zf.open("params/visual/w.npy")).dtype == np.int8
 
 
 def test_the_shipped_conav_agent_builds_for_its_panorama_and_refuses_another(tiny_data):
@@ -39,20 +57,30 @@ def test_the_shipped_conav_agent_builds_for_its_panorama_and_refuses_another(tin
     from conav_jax.envs.config import run_materials
 
     runs = pretrained.pretrained_runs()
-    # Trained before instance materials: it reads flat colours, and says so.
-    assert run_materials(runs["policy"]) == run_materials(runs["intention"]) == "flat"
+    assert run_materials(runs["policy"]) == "instance"
+    env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(112, 448), materials="instance")))
+    agent = make_agent("conav", env, runs["policy"])
+    assert agent.intention_source == "none" and "segmentation" not in agent.reads
+    flat = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(112, 448), materials="flat")))
+    with pytest.raises(ValueError, match="materials='instance'.*materials='flat'"):
+        make_agent("conav", flat, runs["policy"])
+    small = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(32, 128), materials="instance")))
+    with pytest.raises(ValueError, match="112x448|\\(112, 448\\)"):
+        make_agent("conav", small, runs["policy"])
+
+
+def test_a_policy_with_predictors_builds_with_all_of_them_and_never_mixes_in_ground_truth(tiny_data, runs_32x128):
+    from conav_jax.envs import ConavEnv, EnvConfig, SensorConfig
+    from conav_jax.envs.agents.registry import make_agent
+
+    runs = runs_32x128  # reads activity, object and trajectory inputs
     env = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(32, 128), materials="flat")))
-    predictors = {"intention_run": runs["intention"], "trajectory_run": runs["trajectory"]}
-    agent = make_agent("conav", env, runs["policy"], **predictors)
+    agent = make_agent("conav", env, runs["policy"], intention_run=runs["intention"], trajectory_run=runs["trajectory"])
     assert agent.intention_source == "predicted"
-    with pytest.raises(ValueError, match="trajectory"):  # it reads the trajectory input: never ground truth instead
+    with pytest.raises(ValueError, match="reads trajectory predictions and no trajectory predictor run is given"):
         make_agent("conav", env, runs["policy"], intention_run=runs["intention"])
-    shaded = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(32, 128), materials="instance")))
-    with pytest.raises(ValueError, match="materials='flat'.*materials='instance'"):
-        make_agent("conav", shaded, runs["policy"], **predictors)
-    small = ConavEnv(tiny_data, "val", EnvConfig(sensor=SensorConfig(resolution=(16, 64), materials="flat")))
-    with pytest.raises(ValueError, match="32x128|\\(32, 128\\)"):
-        make_agent("conav", small, runs["policy"], **predictors)
+    with pytest.raises(ValueError, match="no intention predictor run is given"):
+        make_agent("conav", env, runs["policy"], trajectory_run=runs["trajectory"])
 
 
 def _eval_args(*extra):
@@ -63,8 +91,8 @@ def test_pretrained_flag_names_the_shipped_runs_and_refuses_to_mix_with_others()
     runs = pretrained.pretrained_runs()
     args = _eval_args("--agent", "random,conav", "--pretrained")
     _use_pretrained(args, ("random", "conav"))
-    assert args.checkpoint == str(runs["policy"]) and args.intention == str(runs["intention"])
-    assert args.trajectory == str(runs["trajectory"])
+    assert args.checkpoint == str(runs["policy"])
+    assert (args.intention, args.trajectory) == (None, None)  # the shipped policy reads no predictor
     # A bare RUN stays the other learned agents'.
     args = _eval_args("--agent", "conav,imagegoal", "--pretrained", "--checkpoint", "runs/imagenav")
     _use_pretrained(args, ("conav", "imagegoal"))
@@ -179,16 +207,16 @@ def test_a_policy_that_reads_no_predictor_ships_alone_at_half_precision_and_acts
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b).astype(np.float16).astype(np.float32))
 
 
-def test_pretrained_flag_with_a_policy_shipped_alone_names_no_predictor(monkeypatch):
-    monkeypatch.setattr(pretrained, "pretrained_runs", lambda root=None: {"policy": Path("/pkg/policy")})
+def test_pretrained_flag_names_the_predictors_shipped_beside_a_policy(monkeypatch):
+    shipped = {"policy": Path("/pkg/policy"), "intention": Path("/pkg/intention"), "trajectory": Path("/pkg/trajectory")}
+    monkeypatch.setattr(pretrained, "pretrained_runs", lambda root=None: shipped)
     args = _eval_args("--agent", "conav", "--pretrained")
     _use_pretrained(args, ("conav",))
-    assert (args.checkpoint, args.intention, args.trajectory) == ("/pkg/policy", None, None)
+    assert (args.checkpoint, args.intention, args.trajectory) == ("/pkg/policy", "/pkg/intention", "/pkg/trajectory")
+
 
 
 def test_int8_export_stores_the_largest_matrices_as_int8_and_the_rest_at_half_precision(tmp_path, monkeypatch):
-    import zipfile
-
     from conav_jax.checkpoints import quantize_int8
 
     rng = np.random.default_rng(2)

@@ -1,5 +1,5 @@
 """The shipped policy's behaviour, pinned: the CoNav agent with the package's pretrained runs
-(policy, intention and trajectory predictors) on a few paper-like val episodes of the `demo`
+(the policy and any predictor shipped beside it) on a few paper-like val episodes of the `demo`
 preset, on the CPU. A change anywhere between the data and the policy's action (episodes,
 physics, sensor, predictors, policy) that moves its actions fails here. A deliberate one updates
 PINNED_ACTIONS and re-measures PROVENANCE.json's val figures at the commit that ships it.
@@ -22,26 +22,31 @@ from conav_jax import pretrained
 from conav_jax.data.episodes import BlockedStandingPoint, generate_dataset
 from conav_jax.data.presets import preset
 from conav_jax.envs import SensorConfig
-from conav_jax.envs.agents.policy import policy_agent
-from conav_jax.eval.api import evaluate, make_env
+from conav_jax.checkpoints import latest_checkpoint, load_checkpoint
+from conav_jax.envs.agents.policy import policy_agent, policy_config_from_dict
+from conav_jax.envs.config import run_materials
+from conav_jax.envs.conav_env import UD
+from conav_jax.eval.api import make_env
 from conav_jax.eval.demo import DEMO_PRESET
 
 EPISODES, STEPS, EVERY = 4, 40, 4
 # The script: forward at 0.6 of full speed, turning one way and the other.
 SCRIPT = np.stack([np.full(STEPS, 0.6), 0.5 * np.sin(np.arange(STEPS) / 5.0)], -1).astype(np.float32)
 # The policy's (v_lin, v_ang) at every EVERY-th step of each val episode, measured at the commit
-# that added them (JAX 0.10.2, CPU). Compiler settings move them by some 5e-5.
+# that added them (JAX 0.10.2, CPU, the suite's compiler settings). XLA's default settings move
+# them by some 4e-4 (the policy's convolutions round to bfloat16).
 PINNED_ACTIONS = np.array([
-    [(0.8927, -0.3167), (0.9655, -0.2596), (0.7997, 0.1569), (0.2403, -0.4892), (-0.0415, -0.8765),
-     (-0.0472, -0.7242), (0.0079, 0.4655), (0.2202, -0.0519), (0.0933, -0.9193), (-0.0931, -0.6429)],
-    [(0.8993, -0.0883), (0.9893, -0.1312), (0.9832, -0.0244), (0.9075, -0.1439), (0.5736, 0.0290),
-     (0.1565, 0.3426), (0.0868, 0.9551), (-0.0486, 0.9782), (-0.0936, 0.9510), (-0.0254, 0.9638)],
-    [(0.9182, 0.0066), (0.9760, 0.2494), (0.9502, 0.3008), (0.5656, 0.5779), (-0.1050, 0.7701),
-     (-0.1700, 0.9886), (-0.0675, 0.9749), (-0.0154, 0.2707), (-0.0410, -0.9803), (0.0502, -0.9919)],
-    [(0.8930, 0.2117), (0.9373, 0.1542), (0.6732, -0.2741), (0.0044, -0.4270), (-0.0760, 0.9885),
-     (-0.0474, 0.9977), (-0.0947, 0.9972), (-0.0803, 0.9787), (-0.0014, 0.1781), (-0.0444, -0.5913)],
+    [(0.7950, 0.0366), (0.9388, -0.0555), (0.9147, 0.0809), (0.8923, 0.1808), (0.6630, 0.2675),
+     (0.2788, 0.1744), (0.0423, -0.6122), (0.1837, -0.6140), (0.2536, -0.4624), (0.0670, -0.2290)],
+    [(0.8205, 0.0413), (0.9637, 0.0455), (0.9529, 0.0072), (0.8341, 0.3780), (0.6517, 0.1487),
+     (0.6072, -0.0808), (0.0931, -0.1063), (0.0222, 0.3297), (-0.0291, 0.2743), (0.0299, -0.0911)],
+    [(0.7612, -0.4295), (0.9393, -0.1953), (0.9561, 0.0372), (0.9540, 0.0776), (0.9148, 0.0609),
+     (0.7877, -0.1223), (-0.0111, -0.5116), (0.0563, -0.7565), (0.1370, -0.4298), (0.1229, 0.5696)],
+    [(0.7974, 0.0473), (0.6815, 0.0445), (-0.0040, 0.0107), (0.1112, 0.7408), (0.1565, 0.2782),
+     (0.0449, -0.7551), (-0.0618, -0.7623), (-0.1351, -0.5213), (-0.1656, -0.8548), (-0.0883, -0.5051)],
 ], np.float32)
-TOLERANCE = 2e-3  # some 40x the compiler's spread; a change of code moves actions by far more
+TOLERANCE = 3e-3  # some 7x the compiler's spread; a change of code moves actions by far more
+CLOSED_LOOP_STEPS = 160  # about twice the later of the two reaches below
 
 
 @pytest.fixture(scope="module")
@@ -54,13 +59,16 @@ def shipped(tmp_path_factory):
         warnings.simplefilter("ignore", BlockedStandingPoint)
         generate_dataset(cfg, out)
     runs = pretrained.pretrained_runs()
-    # The shipped runs were trained on 32x128 panoramas of flat category colours.
-    env = make_env(out, "val", resolution=(32, 128), sensor=SensorConfig(materials="flat"))
-    return env, policy_agent(env, runs["policy"], runs["intention"], runs.get("trajectory"))
+    # The panorama and materials the shipped policy was trained on.
+    model = policy_config_from_dict(load_checkpoint(latest_checkpoint(runs["policy"])).config["model"])
+    env = make_env(out, "val", resolution=model.resolution, sensor=SensorConfig(materials=run_materials(runs["policy"])))
+    return env, policy_agent(env, runs["policy"], runs.get("intention"), runs.get("trajectory"))
 
 
-def test_the_shipped_policy_acts_as_pinned_along_a_scripted_drive(shipped):
-    env, agent = shipped
+def _drive(env, agent, episodes, script=None, steps=None):
+    """Each episode from its start: the agent acting on what it sees, the robot driving `script`
+    (T, 2) where given, else the agent's own actions, for `steps`. -> (the agent's actions
+    (episodes, T, 2), whether the robot has reached the goal (episodes,))."""
     key = jax.random.PRNGKey(0)
 
     def drive(episode):
@@ -70,15 +78,22 @@ def test_the_shipped_policy_acts_as_pinned_along_a_scripted_drive(shipped):
         def step(c, scripted):
             state, carry = c
             carry, action = agent.act(carry, env.observe(state, agent.reads).obs, key)
-            return (env.step(state, scripted, observe=False), carry), action
+            driven = action if scripted is None else scripted
+            return (env.step(state, driven, observe=False), carry), action
 
-        return jax.lax.scan(step, (state, carry), jnp.asarray(SCRIPT))[1]
+        (state, _), actions = jax.lax.scan(step, (state, carry), script, length=steps)
+        return actions, state.pipeline_state.userdata[UD["reached"]] > 0
 
-    actions = np.asarray(jax.jit(jax.vmap(drive))(jnp.arange(EPISODES)))[:, ::EVERY]
-    np.testing.assert_allclose(actions, PINNED_ACTIONS, atol=TOLERANCE, rtol=0)
+    return jax.tree.map(np.asarray, jax.jit(jax.vmap(drive))(jnp.asarray(episodes)))
+
+
+def test_the_shipped_policy_acts_as_pinned_along_a_scripted_drive(shipped):
+    actions, _ = _drive(*shipped, np.arange(EPISODES), script=jnp.asarray(SCRIPT))
+    np.testing.assert_allclose(actions[:, ::EVERY], PINNED_ACTIONS, atol=TOLERANCE, rtol=0)
 
 
 def test_the_shipped_policy_reaches_goals_on_its_own(shipped):
-    env, agent = shipped
-    records = evaluate(env, agent, batch=EPISODES).records
-    assert sum(r["FASR"] for r in records) >= 1
+    # Driving itself (the benchmark's sweep, eval.api.evaluate, is tested elsewhere): the CPU this
+    # was written on reached 2 of the 4 goals, the second and fourth, at steps 63 and 82.
+    _, reached = _drive(*shipped, np.arange(EPISODES), steps=CLOSED_LOOP_STEPS)
+    assert reached.sum() >= 1

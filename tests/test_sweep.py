@@ -256,18 +256,18 @@ def test_learning_curve_pools_reach_rates_over_reset_cycles(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def policy_runs(tiny_data, tmp_path_factory):
-    """The shipped CoNav policy and a copy with other weights (every float scaled by 0.8): two
-    runs of one configuration, with the shipped predictors, on 2 val episodes at their 32x128
-    (the env `conav eval --pretrained --episodes 2` loads, kept by eval.sweep.load_env)."""
+def policy_runs(tiny_data, tmp_path_factory, runs_32x128):
+    """A trained CoNav policy and a copy with other weights (every float scaled by 0.8): two runs
+    of one configuration, with the predictors they read, on 2 val episodes at their 32x128 (the
+    env `conav eval --checkpoint RUN --episodes 2` loads, kept by eval.sweep.load_env)."""
     from types import SimpleNamespace
 
     import jax
 
-    from conav_jax import pretrained, runs
+    from conav_jax import runs
     from conav_jax.checkpoints import checkpoint_path, save_checkpoint
 
-    shipped = pretrained.pretrained_runs()
+    shipped = runs_32x128
     ckpt = runs.load_run(shipped["policy"], runs.POLICY)
     other = tmp_path_factory.mktemp("other_policy")
     scaled = jax.tree.map(lambda v: v * np.float32(0.8) if np.issubdtype(v.dtype, np.floating) else v, ckpt.params)
@@ -333,9 +333,8 @@ def test_a_runs_weights_are_arguments_of_its_rollout_not_constants(policy_runs):
     assert [w.shape for w in weights if w.size >= 16 and w.tobytes().hex().upper() in texts[1]] == []
 
 
-def test_a_run_listed_as_agent_and_ablation_is_swept_once_with_the_same_numbers(tiny_data, tmp_path, monkeypatch):
-    from conav_jax import pretrained
-
+def test_a_run_listed_as_agent_and_ablation_is_swept_once_with_the_same_numbers(tiny_data, tmp_path, monkeypatch,
+                                                                              runs_32x128):
     calls = []
     real = sweep._evaluate_with
 
@@ -344,9 +343,11 @@ def test_a_run_listed_as_agent_and_ablation_is_swept_once_with_the_same_numbers(
         return lambda episodes: calls.append(len(episodes)) or run(episodes)
 
     monkeypatch.setattr(sweep, "_evaluate_with", counting)
-    policy_run = pretrained.pretrained_runs()["policy"]
+    policy_run = runs_32x128["policy"]
     out = tmp_path / "o"
-    argv = ["--data", str(tiny_data), "--agent", "conav", "--pretrained", "--ablation-checkpoints", f"all={policy_run}",
+    argv = ["--data", str(tiny_data), "--agent", "conav", "--checkpoint", str(policy_run),
+            "--intention", str(runs_32x128["intention"]), "--trajectory", str(runs_32x128["trajectory"]),
+            "--ablation-checkpoints", f"all={policy_run}",
             "--episodes", "2", "--batch", "2", "--resolution", "32x128", "--out", str(out)]
     assert run_eval(_args(*argv)) == 0
     assert calls == [2]
