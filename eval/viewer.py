@@ -281,4 +281,12 @@ def view_episode(
     rec.flush()
     rec.disconnect()
     return (f"wrote {out}: episode {episode} ({split}), agent {row_title(built)}, {len(frames['pose'])} steps, "
-            f"panorama {h}x{w}; intentions: " + (", ".join(f"{k} {v}" for k, v in sources.items()) or "none"))
+            f"panorama {h}x{w}; intentions: " + intentions_summary(sources, built.reads))
+
+
+def intentions_summary(sources: dict[str, str], reads) -> str:
+    """The recording's intention panels, each with its source, and for ground truth whether the
+    agent read it or it is shown only (a debugging aid the agent never saw): "activity_probs
+    ground_truth (shown, not read), ..." or "none"."""
+    return ", ".join(f"{k} {src}" + ("" if src == "predicted" or k in reads else " (shown, not read)")
+                     for k, src in sources.items()) or "none"

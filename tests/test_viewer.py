@@ -95,3 +95,11 @@ def test_bad_input_is_rejected_before_recording(tiny_data, tmp_path, argv, messa
     args = _args(*base, *argv)
     with pytest.raises(ValueError, match=message):
         args.func(args)
+
+
+def test_the_summary_says_which_ground_truth_intentions_are_shown_only():
+    sources = {"activity_probs": "ground_truth", "object_probs": "predicted", "future_traj": "ground_truth"}
+    text = viewer.intentions_summary(sources, reads=("rgbd", "future_traj"))
+    assert text == ("activity_probs ground_truth (shown, not read), object_probs predicted, "
+                    "future_traj ground_truth")
+    assert viewer.intentions_summary({}, reads=("rgbd",)) == "none"
