@@ -151,7 +151,12 @@ def _decode(desc: dict, arrays: dict[str, np.ndarray]) -> Any:
     if kind == "array":
         return arrays[desc["name"]]
     if kind == "int8":
-        return Int8Array(arrays[desc["name"]], arrays[desc["scale"]]).dequantized()
+        values, scale = arrays[desc["name"]], arrays[desc["scale"]]
+        if (values.dtype != np.int8 or scale.dtype != np.float32 or list(values.shape) != desc["shape"]
+                or scale.shape != values.shape[-1:]):  # a scale that broadcast would be silently wrong
+            raise ValueError(f"int8 leaf {desc['name']}: values {values.dtype}{list(values.shape)}, scale "
+                             f"{scale.dtype}{list(scale.shape)}, recorded shape {desc['shape']}")
+        return Int8Array(values, scale).dequantized()
     if kind == "dict":
         return {k: _decode(v, arrays) for k, v in desc["items"].items()}
     if kind == "list":

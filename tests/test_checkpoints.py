@@ -213,3 +213,19 @@ def test_an_int8_leaf_is_stored_small_and_loads_as_the_float32_it_stands_for(tmp
     with pytest.raises(TypeError, match="Int8Array at params/w"):
         save_checkpoint(tmp_path / "bad.npz", params={"w": q._replace(scale=q.scale[:3])}, opt_state=None,
                         config={}, step=0)
+
+
+def test_an_int8_leaf_whose_scale_does_not_match_its_values_is_refused_as_corrupt(tmp_path):
+    q = quantize_int8(np.random.default_rng(3).normal(size=(8, 4)).astype(np.float32))
+    good = save_checkpoint(tmp_path / "q.npz", params={"w": q}, opt_state=None, config={}, step=0)
+    bad = tmp_path / "bad.npz"  # the same file with a one-entry scale, which would broadcast
+    with zipfile.ZipFile(good) as src, zipfile.ZipFile(bad, "w") as dst:
+        for member in src.namelist():
+            data = src.read(member)
+            if member == "params/w/int8_scale.npy":
+                with dst.open(member, "w") as f:
+                    np.lib.format.write_array(f, q.scale[:1])
+            else:
+                dst.writestr(member, data)
+    with pytest.raises(ValueError, match=r"corrupt checkpoint .*int8 leaf params/w: .*scale float32\[1\]"):
+        load_checkpoint(bad)
