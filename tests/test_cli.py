@@ -281,15 +281,8 @@ def test_bench_eval_times_a_policy_on_the_materials_and_panorama_it_was_trained_
     assert json.loads(capsys.readouterr().out)["materials"] == "flat"
     assert cli.main([*base, "--pretrained"]) == 0
     runs = pretrained_runs()
-    assert built == {"materials": run_materials(runs["policy"]), "resolution": _shipped_resolution(), "agent": "conav",
+    assert built == {"materials": run_materials(runs["policy"]), "resolution": (112, 448), "agent": "conav",
                      "checkpoint": str(runs["policy"]), "intention": None}
     assert cli.main([*base, "--pretrained", "--checkpoint", str(tmp_path)]) == 2
     assert "--pretrained is the conav agent's run: drop its --checkpoint" in capsys.readouterr().err
 
-
-def _shipped_resolution() -> tuple[int, int]:
-    """The panorama (H, W) the shipped policy reads, from its checkpoint's config."""
-    from conav_jax.checkpoints import latest_checkpoint, read_checkpoint_meta
-    from conav_jax.pretrained import pretrained_runs
-
-    return tuple(read_checkpoint_meta(latest_checkpoint(pretrained_runs()["policy"]))["config"]["model"]["resolution"])

@@ -22,8 +22,8 @@ from conav_jax import pretrained
 from conav_jax.data.episodes import BlockedStandingPoint, generate_dataset
 from conav_jax.data.presets import preset
 from conav_jax.envs import SensorConfig
-from conav_jax.checkpoints import latest_checkpoint, load_checkpoint
-from conav_jax.envs.agents.policy import policy_agent, policy_config_from_dict
+from conav_jax.envs.agents.policy import policy_agent
+from conav_jax.envs.agents.registry import run_resolution
 from conav_jax.envs.config import run_materials
 from conav_jax.envs.conav_env import UD
 from conav_jax.eval.api import make_env
@@ -60,8 +60,8 @@ def shipped(tmp_path_factory):
         generate_dataset(cfg, out)
     runs = pretrained.pretrained_runs()
     # The panorama and materials the shipped policy was trained on.
-    model = policy_config_from_dict(load_checkpoint(latest_checkpoint(runs["policy"])).config["model"])
-    env = make_env(out, "val", resolution=model.resolution, sensor=SensorConfig(materials=run_materials(runs["policy"])))
+    resolution = run_resolution([("conav", runs["policy"])])  # its config only, not its weights
+    env = make_env(out, "val", resolution=resolution, sensor=SensorConfig(materials=run_materials(runs["policy"])))
     return env, policy_agent(env, runs["policy"], runs.get("intention"), runs.get("trajectory"))
 
 
