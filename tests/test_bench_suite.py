@@ -52,7 +52,11 @@ def test_the_suite_refuses_unknown_benchmarks_and_missing_data_before_running_an
     assert not ran and not (tmp_path / "o.jsonl").exists()
 
 
-def test_each_benchmark_runs_the_command_line_in_a_fresh_process():
+def test_each_benchmark_runs_the_command_line_in_a_fresh_process(tmp_path, monkeypatch):
+    # Run where a checkout's `conav_jax/` source folder lies: the process still finds the package.
+    (tmp_path / "conav_jax").mkdir()
+    (tmp_path / "conav_jax" / "__init__.py").write_text("")
+    monkeypatch.chdir(tmp_path)
     rc, stdout, _ = bs.run_in_process_of_its_own(["bench", "suite", "--out", "unused.jsonl", "--only", "sim_32x128",
                                                   "--small", "SMALL", "--dry-run"])
     assert rc == 0 and "sim_32x128: conav --compile-cache off bench sim --data SMALL" in stdout

@@ -943,6 +943,13 @@ def test_steps_per_gpu_share_each_gpu_the_least_busy_first_taking_memory_as_need
     (intention,) = [r for r in runs if r["out"].endswith("runs/intention")]
     (trajectory,) = [r for r in runs if r["out"].endswith("runs/trajectory")]
     assert intention["gpu"] != trajectory["gpu"]
+    # A step whose process ran beside another on its GPU is recorded as shared (plans go by lone times).
+    shared = rpp.read_progress(out)["shared"]
+    for r in runs:
+        beside = any(o is not r and o["gpu"] == r["gpu"] and o["start"] < r["end"] and r["start"] < o["end"] for o in runs)
+        (name,) = [k for k in rpp.read_progress(out)["commands"] if str(out / k.split(" ")[-1]) == r["out"]]
+        assert shared.get(name, 1) == 2 if beside else shared.get(name, 1) in (1, 2)
+    assert sum(n == 2 for n in shared.values()) >= 8 and set(shared.values()) == {2}
     assert (rr.gpu_slots(2, 2), rr.gpu_slots(1, 3)) == (["5", "7", "5", "7"], ["5", "5", "5"])
     with pytest.raises(ValueError, match="steps_per_gpu must be at least 1"):
         rr.gpu_slots(2, 0)
@@ -1060,14 +1067,20 @@ def test_a_gpu_process_runs_its_step_alone_by_name_with_the_runs_options(fake_co
     digest = rr.save_config(cfg)
     assert rr.save_config(cfg) == digest and len(list((out / rr.CONFIGS_DIR).iterdir())) == 1  # stored once
     argv = rr.child_command(out, digest, [step])
-    assert argv[1:3] == ["-m", "conav_jax.eval.cli.reproduce_run"] and argv[-2:] == ["--step", step.name]
-    assert rr.main(argv[3:]) == 0
+    assert argv[1:4] == ["-P", "-m", "conav_jax.eval.cli.reproduce_run"] and argv[-2:] == ["--step", step.name]
+    assert rr.main(argv[4:]) == 0
     assert calls == [Made("train policy", str(out / step.writes), {})] and calls[0].kwargs == _kw(step)  # that call alone
     assert not (out / rpp.PROGRESS_FILE).exists()  # the parent records it
     with pytest.raises(ValueError, match="the plan has no step 'train policy runs/nothing_s0'"):
-        rr.main([*argv[3:-1], "train policy runs/nothing_s0"])
+        rr.main([*argv[4:-1], "train policy runs/nothing_s0"])
     with pytest.raises(FileNotFoundError, match="no run configuration"):
-        rr.main([*argv[3:5], "--config", "0" * 16, "--step", step.name])
+        rr.main([*argv[4:6], "--config", "0" * 16, "--step", step.name])
+    # Started where a `conav_jax/` folder lies (a checkout's source tree), it still finds the package.
+    checkout = tmp_path / "checkout"
+    (checkout / "conav_jax").mkdir(parents=True)
+    (checkout / "conav_jax" / "__init__.py").write_text("")
+    done = subprocess.run([*argv[:4], "--help"], cwd=checkout, capture_output=True, text=True)
+    assert done.returncode == 0 and "--step NAME" in done.stdout, done.stderr
 
 
 def test_live_runs_of_one_row_join_into_one_process_and_one_call(fake_conav, fake_children, tmp_path, monkeypatch,
@@ -1424,6 +1437,11 @@ def test_expected_seconds_go_by_runs_that_ran_as_many_to_a_process():
     assert expected([run(3), run(4), run(5)]) == 3 * (100.0 + 30.0)
     assert rpp.fits_in([run(3), run(4)], expected, 310.0) and not rpp.fits_in([run(3), run(4)], expected, 300.0)
     progress["joined"] = {}  # the pairs forgotten: a lone run goes by the longest of its configuration's
+    assert expected([run(3)]) == 250.0 + 30.0
+    # Runs that shared their GPU with another process count only where no run had a GPU to itself.
+    progress["shared"] = {"train live runs/bc_none_s1": 2, "train live runs/bc_none_s2": 2}
+    assert expected([run(3)]) == 100.0 + 30.0
+    progress["commands"].pop("train live runs/bc_none_s0")
     assert expected([run(3)]) == 250.0 + 30.0
 
 

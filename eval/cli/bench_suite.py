@@ -54,8 +54,10 @@ def suite_command(name: str, data: dict[str, str]) -> list[str]:
 
 
 def run_in_process_of_its_own(argv: list[str]) -> tuple[int, str, str]:
-    """`conav ARGV` in a fresh Python process (each benchmark gets the device to itself)."""
-    done = subprocess.run([sys.executable, "-m", "conav_jax.eval.cli", *argv], capture_output=True, text=True)
+    """`conav ARGV` in a fresh Python process (each benchmark gets the device to itself), which
+    does not look in its working directory for modules (`-P`: a checkout's source tree would
+    shadow the installed package)."""
+    done = subprocess.run([sys.executable, "-P", "-m", "conav_jax.eval.cli", *argv], capture_output=True, text=True)
     return done.returncode, done.stdout, done.stderr
 
 

@@ -17,8 +17,10 @@ from conav_jax.eval.cli.reproduce_steps import Stage, Step, alike
 
 # The steps (by name, under "commands") and stages done, with their wall times (s), under "cut"
 # the time of attempts cut short (a step's summed over its attempts; it counts in its stage's
-# time), and under "joined" how many steps ran in the process of each step that ran with others
-# (its time under "commands" is that process's).
+# time), under "joined" how many steps ran in the process of each step that ran with others
+# (its time under "commands" is that process's), and under "shared" the most processes that ran
+# at once on the GPU of each step that shared its GPU (`--steps-per-gpu`: its time is not a lone
+# process's, so plans go by it only where no lone time exists).
 PROGRESS_FILE = "progress.json"
 # The layout of progress.json. 1 (unmarked): records keyed by the command line, OUT written as
 # "OUT"; 2: keyed by step name, its kind and the directory it writes (`upgrade_progress` maps
@@ -94,7 +96,7 @@ def check_out(progress: dict, cfg: ReproduceConfig) -> None:
 
 
 # What write_progress merges: each process's own records laid over the file's.
-PROGRESS_RECORDS = ("commands", "cut", "stages", "joined")
+PROGRESS_RECORDS = ("commands", "cut", "stages", "joined", "shared")
 
 
 def write_progress(out: Path, progress: dict) -> None:
@@ -140,14 +142,18 @@ def join_progress(mine: dict, theirs: dict) -> dict:
     return joined
 
 
-def record_step(progress: dict, step: Step, seconds: float, ended: bool, together: int = 1) -> None:
+def record_step(progress: dict, step: Step, seconds: float, ended: bool, together: int = 1,
+                shared: int = 1) -> None:
     """`step`'s wall time into `progress`: under "commands" when it `ended` (with, under "joined",
-    the `together` steps its process ran where more than one), else (failed, stopped) added to
+    the `together` steps its process ran where more than one, and under "shared" the `shared`
+    processes its GPU ran at most at once where more than one), else (failed, stopped) added to
     its time under "cut"."""
     if ended:
         progress["commands"][step.name] = round(seconds, 1)
         if together > 1:
             progress.setdefault("joined", {})[step.name] = together
+        if shared > 1:
+            progress.setdefault("shared", {})[step.name] = shared
     else:
         cut = progress.setdefault("cut", {})
         cut[step.name] = round(cut.get(step.name, 0.0) + seconds, 1)
@@ -239,7 +245,8 @@ def by_dependents(todo: list[Step], needs: dict[str, set[str]]) -> list[Step]:
 def expected_seconds(plan: list[Stage], progress: dict) -> Callable[..., float | None]:
     """The expected wall time of steps run as one process (one step, or `joinable` ones joined),
     to plan a sitting of limited time: the longest recorded time of finished steps `alike` the
-    first (its configuration's other seeds) that ran as many to a process, plus that of the
+    first (its configuration's other seeds) that ran as many to a process, on a GPU of its own
+    where any did (a process that shared its GPU takes longer: "shared"), plus that of the
     evaluations that read the runs they write, reckoned the same way (a run trained and not
     evaluated is of no use to a sitting that ends, and too large to carry:
     eval.cli.reproduce_run.write_pack), read from the records as they are when asked; asked
@@ -259,17 +266,19 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[..., float |
     def similar(name: str, other: str) -> bool:
         return alike(by_name[name], by_name[other])
 
-    def longest(step: Step, together: int, recorded: list[tuple[Step, float, int]]) -> float | None:
-        of_kind = [(other, s, n) for other, s, n in recorded if other.call.kind == step.call.kind]
-        like = [(s, n) for other, s, n in of_kind if similar(step.name, other.name)]
+    def longest(step: Step, together: int, recorded: list[tuple[Step, float, int, bool]]) -> float | None:
+        of_kind = [(other, s, n, alone) for other, s, n, alone in recorded if other.call.kind == step.call.kind]
+        like = [(s, n, alone) for other, s, n, alone in of_kind if similar(step.name, other.name)]
         if together > 1:
-            return max((s for s, n in like if n == together), default=None)
-        return max([s for s, n in like if n == 1] or [s for s, _ in like] or [s for _, s, _ in of_kind], default=None)
+            sized = [(s, alone) for s, n, alone in like if n == together]
+            return max([s for s, alone in sized if alone] or [s for s, _ in sized], default=None)
+        return max([s for s, n, alone in like if n == 1 and alone] or [s for s, n, _ in like if n == 1]
+                   or [s for s, _, _ in like] or [s for _, s, _, _ in of_kind], default=None)
 
     def expected(steps: list[Step], with_evaluations: bool = True) -> float | None:
         # read at each call: the records grow as steps end
-        joined = progress.get("joined", {})
-        recorded = [(by_name[name], float(s), joined.get(name, 1))
+        joined, shared = progress.get("joined", {}), progress.get("shared", {})
+        recorded = [(by_name[name], float(s), joined.get(name, 1), shared.get(name, 1) == 1)
                     for name, s in progress["commands"].items() if name in by_name]
         own = longest(steps[0], len(steps), recorded)
         if own is None:

@@ -84,10 +84,12 @@ def find_step(plan: list[Stage], name: str) -> Step:
 def child_command(out: Path, digest: str, steps: list[Step], compile_cache: str | None = None) -> list[str]:
     """The process `run_parallel` runs `steps` in: `main`, the steps by name in the plan of the
     run's stored configuration `digest` (`save_config`), several as one call
-    (reproduce_steps.run_together); `compile_cache` as `conav --compile-cache`."""
+    (reproduce_steps.run_together); `compile_cache` as `conav --compile-cache`. The process
+    does not look in its working directory for modules (`-P`): started in a checkout of this
+    repository, the source tree's `conav_jax/` would shadow the installed package."""
     cache = ["--compile-cache", compile_cache] if compile_cache else []
     names = [arg for step in steps for arg in ("--step", step.name)]
-    return [sys.executable, "-m", "conav_jax.eval.cli.reproduce_run", "--out", str(out), "--config", digest, *cache,
+    return [sys.executable, "-P", "-m", "conav_jax.eval.cli.reproduce_run", "--out", str(out), "--config", digest, *cache,
             *names]
 
 
@@ -156,7 +158,7 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
     sees one GPU (CUDA_VISIBLE_DEVICES), the least busy one free, and logs to OUT/logs/; where
     steps share a GPU, each process takes its memory as it needs it instead of most of the GPU
     at its start (XLA_PYTHON_CLIENT_PREALLOCATE=false, unless the environment sets JAX's memory
-    variables), a step starting once its
+    variables; each such step's record says how many ran on its GPU at most: "shared"), a step starting once its
     `prerequisites` are done (in `by_dependents` order); copies run here. Each step's wall time
     goes into `progress` (saved) as it ends, a failed or stopped one's under "cut". After a
     failure no new step starts and those running finish. An interrupt (SIGTERM raised as
@@ -175,6 +177,7 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
     needs = prerequisites(plan)
     done = set(progress["commands"])
     pending, running, free, failed = by_dependents(todo, needs), {}, list(gpus), 0
+    sharing = {}  # each running process's most processes on its GPU at once
     expected = expected_seconds(plan, progress) if seconds_left is not None else None
     (out / "logs").mkdir(parents=True, exist_ok=True)
     child_env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -193,8 +196,8 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
         were its steps run one after another (the bound that never overruns)."""
         return expected is None or fits_in(group, expected, seconds_left())
 
-    def record(step: Step, seconds: float, ok: bool, together: int = 1) -> None:
-        record_step(progress, step, seconds, ok, together)
+    def record(step: Step, seconds: float, ok: bool, together: int = 1, shared: int = 1) -> None:
+        record_step(progress, step, seconds, ok, together, shared)
         if ok:
             done.add(step.name)
         write_progress(out, progress)
@@ -235,6 +238,9 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
                                                 stderr=subprocess.STDOUT,
                                                 env={**child_env, "CUDA_VISIBLE_DEVICES": gpu})
                     running[proc] = (group, gpu, log, time.perf_counter())
+                    for other, (_, other_gpu, _, _) in running.items():  # its GPU's processes now share it
+                        if other_gpu == gpu:
+                            sharing[other] = max(sharing.get(other, 1), busy(gpu))
                     say(f"[gpu {gpu}] {' + '.join(s.name for s in group)} started (log {log})")
             if not running:
                 break  # what is left waits for steps not run here
@@ -245,8 +251,9 @@ def run_parallel(plan: list[Stage], todo: list[Step], out: Path, progress: dict,
             for proc in ended:
                 group, gpu, log, t0 = running.pop(proc)
                 seconds = time.perf_counter() - t0
+                shared = sharing.pop(proc, 1)
                 for step in group:
-                    record(step, seconds, proc.returncode == 0, len(group))
+                    record(step, seconds, proc.returncode == 0, len(group), shared)
                 free = sorted(free + [gpu], key=gpus.index)
                 names = " + ".join(step.name for step in group)
                 if proc.returncode == 0:
