@@ -1445,6 +1445,27 @@ def test_expected_seconds_go_by_runs_that_ran_as_many_to_a_process():
     assert expected([run(3)]) == 250.0 + 30.0
 
 
+def test_a_group_size_never_run_in_its_configuration_goes_by_another_configurations_groups():
+    """Two seeds of `all` in one process, never run so: `all`'s lone time scaled as a `none` pair
+    took against a lone `none` (its evaluations added as lone ones); with no pair anywhere, the
+    lone times added up."""
+    plan = rp.plan_stages(rp.ReproduceConfig(out=Path("o"), preset="tiny", trainer="live", seeds=6,
+                                             rows=("none", "all")))
+    step = {st.name: st for stage in plan for st in stage.steps}
+    run = lambda row, s: step[f"train live runs/bc_{row}_s{s}"]  # noqa: E731
+    progress = {"commands": {"train live runs/bc_none_s0": 100.0, "train live runs/bc_none_s1": 150.0,
+                             "train live runs/bc_none_s2": 150.0, "train live runs/bc_all_s0": 120.0,
+                             "eval eval/conav_bc_all_s0": 40.0},
+                "joined": {"train live runs/bc_none_s1": 2, "train live runs/bc_none_s2": 2}, "stages": {}}
+    expected = rpp.expected_seconds(plan, progress)
+    assert expected([run("all", 3), run("all", 4)]) == pytest.approx(1.5 * 120.0 + 2 * 40.0)
+    assert expected([run("none", 3), run("none", 4)]) == 150.0 + 2 * 40.0  # its own pairs' record
+    progress["shared"] = {"train live runs/bc_none_s1": 2, "train live runs/bc_none_s2": 2}  # no lone GPU
+    assert expected([run("all", 3), run("all", 4)]) == 2 * (120.0 + 40.0)
+    progress["shared"], progress["joined"] = {}, {}
+    assert expected([run("all", 3), run("all", 4)]) == 2 * (120.0 + 40.0)
+
+
 def test_the_dry_run_says_how_much_work_is_left_at_the_times_recorded(tmp_path, capsys):
     """Each stage and the whole plan: the steps done, and the steps left with their own times
     added up (a run's evaluation counted once, as its own step), by their configuration's

@@ -253,8 +253,11 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[..., float |
     with `with_evaluations=False`, the steps' own time alone (to add up the steps left). One step
     with no such record goes by its alike steps however they ran (a process of several takes
     longer), else by its kind (`call.kind`: "train live", "eval", ...); a group of several with
-    no record of its size, by its steps' times added up (the bound that never overruns). None
-    when a step's kind has no finished step in this OUT (nothing to go by: it may start)."""
+    no record of its size, by its configuration's lone time scaled as groups of that size of
+    another configuration of its kind took against that one's lone steps (the largest such
+    ratio: two seeds of `all` by how a pair of `none` took against a lone `none`), else by its
+    steps' times added up (the bound that never overruns). None when a step's kind has no
+    finished step in this OUT (nothing to go by: it may start)."""
     by_name = {st.name: st for stage in plan for st in stage.steps}
     readers: dict[str, list[Step]] = {}
     for st in by_name.values():
@@ -275,12 +278,28 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[..., float |
         return max([s for s, n, alone in like if n == 1 and alone] or [s for s, n, _ in like if n == 1]
                    or [s for s, _, _ in like] or [s for _, s, _, _ in of_kind], default=None)
 
+    def lone(step: Step, recorded: list[tuple[Step, float, int, bool]]) -> float | None:
+        """The longest time of `step`'s configuration's steps that ran alone, each on a GPU of its own."""
+        return max((s for other, s, n, alone in recorded
+                    if n == 1 and alone and other.call.kind == step.call.kind and similar(step.name, other.name)),
+                   default=None)
+
+    def scaled(steps: list[Step], recorded: list[tuple[Step, float, int, bool]]) -> float | None:
+        """A group's time from its configuration's lone time and other configurations' groups of its size."""
+        own = lone(steps[0], recorded)
+        ratios = [s / base for other, s, n, alone in recorded
+                  if n == len(steps) and alone and other.call.kind == steps[0].call.kind
+                  and (base := lone(other, recorded))]
+        return None if own is None or not ratios else own * max(ratios)
+
     def expected(steps: list[Step], with_evaluations: bool = True) -> float | None:
         # read at each call: the records grow as steps end
         joined, shared = progress.get("joined", {}), progress.get("shared", {})
         recorded = [(by_name[name], float(s), joined.get(name, 1), shared.get(name, 1) == 1)
                     for name, s in progress["commands"].items() if name in by_name]
         own = longest(steps[0], len(steps), recorded)
+        if own is None and len(steps) > 1:
+            own = scaled(steps, recorded)
         if own is None:
             if len(steps) == 1:
                 return None
