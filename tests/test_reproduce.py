@@ -1571,9 +1571,10 @@ def test_the_pack_leaves_out_a_trained_run_it_has_no_room_for_and_its_record(fak
     members = rr.pack_members(cfg, progress)
     run_bytes = sum(p.stat().st_size for p in members if "bc_none_s1" in str(p))
     assert run_bytes > 0
-    monkeypatch.setattr(rr, "PACK_LIMIT_BYTES", sum(p.stat().st_size for p in members) - run_bytes // 2)
-    capsys.readouterr()
-    assert _reproduce(out, "--stage", "pack") == 0
+    limit_mib = (sum(p.stat().st_size for p in members) - run_bytes // 2) / 2**20
+    assert _reproduce(out, "--stage", "pack", "--pack-limit-mib", "0") == 2
+    assert "--pack-limit-mib must be positive, got 0" in capsys.readouterr().err
+    assert _reproduce(out, "--stage", "pack", "--pack-limit-mib", f"{limit_mib:.6f}") == 0
     assert f"left out of the pack for want of room: runs/bc_none_s1/ckpt_00000005.npz ({rr.TRAINS_AGAIN})" in \
         capsys.readouterr().out
     tar = tarfile.open(out / "pack.tar")

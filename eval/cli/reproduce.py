@@ -19,6 +19,7 @@ from conav_jax.eval.cli.args import add_fields, as_flags, config_from_args, fiel
 
 def add(sub) -> None:
     from conav_jax.eval.cli.reproduce_plan import STAGES
+    from conav_jax.eval.cli.reproduce_run import PACK_LIMIT_BYTES
 
     p = sub.add_parser(
         "reproduce", help="the paper's Tables 2 and 3: every stage from data to tables, resumable",
@@ -62,6 +63,10 @@ def add(sub) -> None:
                    help="first unpack a pack.tar written by --stage pack (continuing on a fresh machine); given "
                         "again, or into an OUT with records, each pack's records join the OUT's (runs made on "
                         "several machines at once; the tables stage renders them all)")
+    p.add_argument("--pack-limit-mib", type=float, default=None, metavar="MIB",
+                   help="the pack stage's size limit: the records always, then the checkpoints of runs still to "
+                        "be read while they fit (one left out trains again where the pack is unpacked; default "
+                        f"{PACK_LIMIT_BYTES / 2**20:g})")
     p.add_argument("--dry-run", action="store_true",
                    help="print the stages and their steps (each a library function and its configs) with the steps "
                         "done and the time those left take at the times recorded, run nothing")
@@ -128,6 +133,9 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             print(f"conav reproduce: --{flag.replace('_', '-')} must be at least 1, got {getattr(args, flag)}",
                   file=sys.stderr)
             return 2
+    if args.pack_limit_mib is not None and args.pack_limit_mib <= 0:
+        print(f"conav reproduce: --pack-limit-mib must be positive, got {args.pack_limit_mib:g}", file=sys.stderr)
+        return 2
     if args.time_limit is not None and args.time_limit <= 0:
         print(f"conav reproduce: --time-limit must be positive seconds, got {args.time_limit:g}", file=sys.stderr)
         return 2
@@ -237,7 +245,8 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             (cfg.out / cfg.results_file).write_text(json.dumps(results, indent=1) + "\n")
             (cfg.out / cfg.tables_file).write_text(rt.render_tables(results))
         if st.name == "pack":
-            path, size, left_out = rr.write_pack(cfg, progress)
+            limit = None if args.pack_limit_mib is None else int(args.pack_limit_mib * 2**20)
+            path, size, left_out = rr.write_pack(cfg, progress, limit)
             print(f"wrote {path} ({size / 2**20:.1f} MiB)")
             for ckpt, why in left_out:
                 print(f"left out of the pack for want of room: {ckpt.relative_to(cfg.out)} ({why})")

@@ -27,6 +27,7 @@ from conav_jax.eval.cli.reproduce_progress import (PROGRESS_FILE, by_dependents,
                                                    write_progress)
 from conav_jax.eval.cli.reproduce_steps import Stage, Step, joinable, run_step, run_together
 
+# A pack's default size: what a fresh machine can be handed with the working tree.
 PACK_LIMIT_BYTES = 60 * 2**20
 # Under OUT: each run's ReproduceConfig (all but OUT), by digest, that its steps' processes plan
 # from; runs of several variants on one OUT keep one each.
@@ -347,11 +348,13 @@ TRAINS_AGAIN = "its run's record dropped from the pack: that run trains again fr
 FIRST_ROUND_AGAIN = "continued from this pack, that run starts its first round again"
 
 
-def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[tuple[Path, str]]]:
+def write_pack(cfg: ReproduceConfig, progress: dict,
+               limit_bytes: int | None = None) -> tuple[Path, int, list[tuple[Path, str]]]:
     """OUT/pack.tar (atomically), paths relative to OUT: the records (progress, evaluations,
     results, tables), then the checkpoints of the runs still read (`pack_members`), smallest
     first, and the runs cut in their first round (`first_round_checkpoints`), each while the pack
-    stays within PACK_LIMIT_BYTES. A run read but left out (a policy trained, its evaluation not
+    stays within `limit_bytes` (default PACK_LIMIT_BYTES: a channel that carries less, a smaller
+    one). A run read but left out (a policy trained, its evaluation not
     run) has its training record dropped from the packed progress, so a fresh machine trains it
     again instead of reading a run it lacks. Returns (the pack, its bytes, (each checkpoint left
     out, why)). ValueError when the records alone would exceed the limit, naming the largest."""
@@ -360,17 +363,20 @@ def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[tu
     import tarfile
     import tempfile
 
+    limit = PACK_LIMIT_BYTES if limit_bytes is None else limit_bytes
+    if limit <= 0:
+        raise ValueError(f"write_pack.limit_bytes must be positive, got {limit}")
     out = Path(cfg.out)
     size = lambda files: sum(p.stat().st_size for p in files)  # noqa: E731
     members = _record_members(out)
     total = size(members)
-    if total > PACK_LIMIT_BYTES:
+    if total > limit:
         big = sorted(members, key=lambda p: -p.stat().st_size)[:5]
-        raise ValueError(f"the pack would hold {total / 2**20:.1f} MiB (limit {PACK_LIMIT_BYTES / 2**20:.0f} MiB); "
+        raise ValueError(f"the pack would hold {total / 2**20:.1f} MiB (limit {limit / 2**20:.1f} MiB); "
                          "largest: " + ", ".join(f"{p.relative_to(out)} {p.stat().st_size / 2**20:.1f} MiB" for p in big))
     left_out, dropped = [], set()
     for run, files in sorted(_run_members(cfg, progress).items(), key=lambda item: (size(item[1]), str(item[0]))):
-        if total + size(files) <= PACK_LIMIT_BYTES:
+        if total + size(files) <= limit:
             members += files
             total += size(files)
         else:
@@ -378,7 +384,7 @@ def write_pack(cfg: ReproduceConfig, progress: dict) -> tuple[Path, int, list[tu
             dropped.add(str(run.relative_to(out)))
     for files in first_round_checkpoints(cfg, progress):
         files = [p for p in files if p not in members]  # its logs are records, packed already
-        if total + size(files) <= PACK_LIMIT_BYTES:
+        if total + size(files) <= limit:
             members += files
             total += size(files)
         else:
