@@ -944,11 +944,13 @@ def test_steps_per_gpu_share_each_gpu_the_least_busy_first_taking_memory_as_need
     (trajectory,) = [r for r in runs if r["out"].endswith("runs/trajectory")]
     assert intention["gpu"] != trajectory["gpu"]
     # A step whose process ran beside another on its GPU is recorded as shared (plans go by lone times).
-    shared = rpp.read_progress(out)["shared"]
+    progress = rpp.read_progress(out)
+    shared = progress["shared"]
     for r in runs:
         beside = any(o is not r and o["gpu"] == r["gpu"] and o["start"] < r["end"] and r["start"] < o["end"] for o in runs)
-        (name,) = [k for k in rpp.read_progress(out)["commands"] if str(out / k.split(" ")[-1]) == r["out"]]
-        assert shared.get(name, 1) == 2 if beside else shared.get(name, 1) in (1, 2)
+        (name,) = [k for k in progress["commands"] if str(out / k.split(" ")[-1]) == r["out"]]
+        if beside:  # the parent sees at least the overlaps its children record
+            assert shared.get(name) == 2, name
     assert sum(n == 2 for n in shared.values()) >= 8 and set(shared.values()) == {2}
     assert (rr.gpu_slots(2, 2), rr.gpu_slots(1, 3)) == (["5", "7", "5", "7"], ["5", "5", "5"])
     with pytest.raises(ValueError, match="steps_per_gpu must be at least 1"):

@@ -269,19 +269,22 @@ def expected_seconds(plan: list[Stage], progress: dict) -> Callable[..., float |
     def similar(name: str, other: str) -> bool:
         return alike(by_name[name], by_name[other])
 
+    def lone(step: Step, recorded: list[tuple[Step, float, int, bool]]) -> float | None:
+        """The longest time of `step`'s configuration's steps that ran alone, each on a GPU of its own."""
+        return max((s for other, s, n, alone in recorded
+                    if n == 1 and alone and other.call.kind == step.call.kind and similar(step.name, other.name)),
+                   default=None)
+
     def longest(step: Step, together: int, recorded: list[tuple[Step, float, int, bool]]) -> float | None:
         of_kind = [(other, s, n, alone) for other, s, n, alone in recorded if other.call.kind == step.call.kind]
         like = [(s, n, alone) for other, s, n, alone in of_kind if similar(step.name, other.name)]
         if together > 1:
             sized = [(s, alone) for s, n, alone in like if n == together]
             return max([s for s, alone in sized if alone] or [s for s, _ in sized], default=None)
-        return max([s for s, n, alone in like if n == 1 and alone] or [s for s, n, _ in like if n == 1]
-                   or [s for s, _, _ in like] or [s for _, s, _, _ in of_kind], default=None)
-
-    def lone(step: Step, recorded: list[tuple[Step, float, int, bool]]) -> float | None:
-        """The longest time of `step`'s configuration's steps that ran alone, each on a GPU of its own."""
-        return max((s for other, s, n, alone in recorded
-                    if n == 1 and alone and other.call.kind == step.call.kind and similar(step.name, other.name)),
+        alone_time = lone(step, recorded)
+        if alone_time is not None:
+            return alone_time
+        return max([s for s, n, _ in like if n == 1] or [s for s, _, _ in like] or [s for _, s, _, _ in of_kind],
                    default=None)
 
     def scaled(steps: list[Step], recorded: list[tuple[Step, float, int, bool]]) -> float | None:
