@@ -94,6 +94,7 @@ def two_sweeps(tiny_data, tmp_path_factory):
     """The same sweep twice (same seed) into two directories; 3 episodes on 4 lanes (one
     full-length batch: tests/test_rollout.py checks it against refilled lanes)."""
     outs = [tmp_path_factory.mktemp(f"sweep{k}") for k in range(2)]
+    sweep._ENV_CACHE.clear()  # an env of its own, holding only these sweeps' evaluators, whatever ran before
     for out in outs:
         argv = ["--data", str(tiny_data), "--agent", "objectgoal-planner,random,pioneer", "--episodes", "3", "--batch", "4",
                 "--resolution", "8x32", "--seed", "1", "--out", str(out)]
