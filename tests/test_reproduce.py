@@ -1219,6 +1219,10 @@ def test_the_live_trainer_plans_ground_truth_rows_paired_seeds_and_a_dagger_from
         f"train live runs/bc_{r}_s{s}" for r in ("none", "gt_all") for s in (0, 1)}
     with pytest.raises(ValueError, match="ReproduceConfig.rows gt_all"):
         rp.ReproduceConfig(out=tmp_path, rows=("gt_all",))
+    # DAgger's runs are the dagger stage's, not a row: a subset of the rows keeps them.
+    assert {s.name for s in some[4].steps} == {f"train live runs/{cfg.dagger}_s{s}" for s in (0, 1)}
+    with pytest.raises(ValueError, match="DAgger's runs are not a row: the dagger stage trains them"):
+        dataclasses.replace(cfg, rows=(cfg.dagger,))
     with pytest.raises(ValueError, match="ReproduceConfig.trainer"):
         rp.ReproduceConfig(out=tmp_path, trainer="online")
 

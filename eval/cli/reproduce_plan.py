@@ -157,7 +157,7 @@ class ReproduceConfig:
     # directory holds one trainer.
     trainer: str = "offline"
     # The Table 3 rows to train and evaluate (empty: every one the trainer has, `all_rows`); the
-    # tables list the others as not run.
+    # tables list the others as not run. DAgger's runs are the dagger stage's, whatever the rows.
     rows: tuple[str, ...] = ()
     # The learned baselines to train and evaluate, by run kind (objectnav, imagenav; empty: both);
     # the tables list the others as not run.
@@ -189,7 +189,8 @@ class ReproduceConfig:
         unknown = [r for r in self.rows if r not in self.all_rows]
         if unknown or len(set(self.rows)) != len(self.rows):
             raise ValueError(f"ReproduceConfig.rows {','.join(self.rows)}: each once, from {', '.join(self.all_rows)} "
-                             f"(the {self.trainer} trainer's Table 3 rows)")
+                             f"(the {self.trainer} trainer's Table 3 rows; DAgger's runs are not a row: the dagger "
+                             "stage trains them whatever the rows)")
         unknown = [k for k in self.baselines if k not in BASELINE_KINDS]
         if unknown or len(set(self.baselines)) != len(self.baselines):
             raise ValueError(f"ReproduceConfig.baselines {','.join(self.baselines)}: each once, from "
