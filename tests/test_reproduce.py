@@ -1580,6 +1580,9 @@ def test_the_pack_leaves_out_a_trained_run_it_has_no_room_for_and_its_record(fak
     limit_mib = (sum(p.stat().st_size for p in members) - run_bytes // 2) / 2**20
     assert _reproduce(out, "--stage", "pack", "--pack-limit-mib", "0") == 2
     assert "--pack-limit-mib must be positive, got 0" in capsys.readouterr().err
+    for flag in ("--pack-limit-mib", "--time-limit"):  # argparse reads both as floats
+        assert _reproduce(out, "--stage", "pack", flag, "inf") == 2 and _reproduce(out, "--stage", "pack", flag, "nan") == 2
+        assert capsys.readouterr().err.count(f"{flag} must be finite") == 2
     assert _reproduce(out, "--stage", "pack", "--pack-limit-mib", f"{limit_mib:.6f}") == 0
     assert f"left out of the pack for want of room: runs/bc_none_s1/ckpt_00000005.npz ({rr.TRAINS_AGAIN})" in \
         capsys.readouterr().out

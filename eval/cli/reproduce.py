@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import shlex
 import signal
@@ -133,12 +134,12 @@ def _reproduce_stages(args: argparse.Namespace) -> int:
             print(f"conav reproduce: --{flag.replace('_', '-')} must be at least 1, got {getattr(args, flag)}",
                   file=sys.stderr)
             return 2
-    if args.pack_limit_mib is not None and args.pack_limit_mib <= 0:
-        print(f"conav reproduce: --pack-limit-mib must be positive, got {args.pack_limit_mib:g}", file=sys.stderr)
-        return 2
-    if args.time_limit is not None and args.time_limit <= 0:
-        print(f"conav reproduce: --time-limit must be positive seconds, got {args.time_limit:g}", file=sys.stderr)
-        return 2
+    for flag, unit in (("pack_limit_mib", ""), ("time_limit", " seconds")):
+        value = getattr(args, flag)
+        if value is not None and (value <= 0 or not math.isfinite(value)):
+            print(f"conav reproduce: --{flag.replace('_', '-')} must be {'positive' if value <= 0 else 'finite'}{unit}, "
+                  f"got {value:g}", file=sys.stderr)
+            return 2
     started = time.monotonic()
     seconds_left = None if args.time_limit is None else (lambda: args.time_limit - (time.monotonic() - started))
     if args.seed is not None and not 0 <= args.seed < cfg.seeds:
