@@ -63,12 +63,32 @@ from conav_jax.envs.panorama import (
     SceneGeometry,
     caster_for,
     colourise,
+    fast_depth_ids,
     front_view,
     reference_depth_ids,
     shade,
 )
 
 ROBOT_RGB = np.array([0.3, 0.3, 0.32], np.float32)
+
+# MJX's JAX pipeline and the XLA sensor as jitted functions of their own (the sensor's config
+# static): a program that calls them again (a rollout's scan, a second step, another program
+# of an env of the same shapes) reuses their traced and batched jaxprs rather than tracing
+# them anew, which is most of what building an env program costs. XLA inlines them: the
+# compiled program is the one it would be without. MuJoCo Warp and the Pallas kernels stay as
+# they are called.
+@jax.jit
+def _mjx_step(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    return mjx.step(m, d)
+
+
+@jax.jit
+def _mjx_forward(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    return mjx.forward(m, d)
+
+
+_fast_depth_ids = jax.jit(fast_depth_ids, static_argnums=0)
+_shade = jax.jit(shade, static_argnums=0)
 
 
 class BankView:
@@ -327,13 +347,14 @@ class ConavEnv(Env):
         """The MJX substeps of one control step, the robot servoed to (v m/s, w rad/s)."""
 
         lim = self._servo_error_limits
+        step = _mjx_step if self.config.physics.impl == "jax" else mjx.step
 
         def substep(d, _):
             yaw = d.qpos[2]
             ctrl = jnp.stack([v * jnp.cos(yaw), v * jnp.sin(yaw), w])
             if lim is not None:  # the servos' force limits, as velocity errors (envs.mjcf.build_mjcf)
                 ctrl = d.qvel + jnp.clip(ctrl - d.qvel, -lim, lim)
-            return mjx.step(m, d.replace(ctrl=ctrl)), None
+            return step(m, d.replace(ctrl=ctrl)), None
 
         d, _ = jax.lax.scan(substep, self._mjx_data(m, d), None, length=self._substeps,
                             unroll=min(self.config.physics.substep_unroll, self._substeps))
@@ -341,7 +362,8 @@ class ConavEnv(Env):
 
     def _forward(self, m: mjx.Model, d: mjx.Data) -> mjx.Data:
         """mjx.forward on the State's data (positions and velocities to everything derived)."""
-        return without_shared_buffers(mjx.forward(m, self._mjx_data(m, d)), self._shared)
+        forward = _mjx_forward if self.config.physics.impl == "jax" else mjx.forward
+        return without_shared_buffers(forward(m, self._mjx_data(m, d)), self._shared)
 
     def _mjx_data(self, m: mjx.Model, d: mjx.Data) -> mjx.Data:
         """The State's data as MJX steps it in the episode model `m`. With impl="warp": fresh
@@ -452,7 +474,9 @@ class ConavEnv(Env):
         if cfg.materials == "flat":
             return colourise(depth, ids, self._geom_rgb(episode))
         cam = jnp.array([d.qpos[0], d.qpos[1], self.task.camera_height_m])
-        return shade(cfg, cam, d.qpos[2], depth, ids, self._scene_geometry(d, episode), self._geom_material(episode))
+        xla = resolve_sensor_kind(cfg.kind) != "pallas"  # the XLA colouring (`shade`), not the kernel's
+        return (_shade if xla else shade)(cfg, cam, d.qpos[2], depth, ids, self._scene_geometry(d, episode),
+                                          self._geom_material(episode))
 
     def panorama(self, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(depth (H, W) metres, geom ids (H, W)) of the robot's camera in data `d` from the
@@ -465,7 +489,8 @@ class ConavEnv(Env):
         if cfg.kind == "reference":
             m = self._episode_model(episode, d.qpos[:2], render=True)
             return reference_depth_ids(cfg, m, d, cam, yaw, self._robot_body)
-        return caster_for(cfg.kind)(cfg, cam, yaw, self._scene_geometry(d, episode))
+        cast = caster_for(cfg.kind)
+        return (_fast_depth_ids if cast is fast_depth_ids else cast)(cfg, cam, yaw, self._scene_geometry(d, episode))
 
     def _scene_geometry(self, d: mjx.Data, episode: jax.Array) -> SceneGeometry:
         """The episode's boxes and the humanoid's capsules at the data's step."""

@@ -279,3 +279,43 @@ def test_spl_in_steps_weighs_a_waiting_robot_below_a_direct_one(hall):
     assert l == 10.0 and t[1] == t[0] + 3
     assert out[0]["FASPL"] == pytest.approx(100 * l / t[0]) and out[1]["FASPL"] == pytest.approx(100 * l / t[1])
     assert out[0]["FASPL_m"] == pytest.approx(100.0) and out[1]["FASPL_m"] == pytest.approx(100.0)
+
+
+def test_programs_of_one_env_trace_its_physics_sensor_and_expert_once(hall, monkeypatch):
+    """MJX's step and forward, the XLA caster, the colouring and the expert are jitted functions
+    of their own: a second program of the env (or a second step in one) reuses their traces
+    rather than tracing them again, and building an env program is mostly tracing."""
+    from mujoco import mjx
+
+    from conav_jax.envs import panorama
+    from conav_jax.envs.agents.expert import make_expert_step
+    from conav_jax.nav import expert
+    from conav_jax.nav.expert import initial_carry
+
+    env = hall[0]
+    calls = dict.fromkeys(("step", "forward", "caster", "colouring", "expert"), 0)
+
+    def counted(name, fn):
+        def wrapped(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return wrapped
+
+    for module, attr, name in ((mjx, "step", "step"), (mjx, "forward", "forward"), (panorama, "box_terms", "caster"),
+                               (panorama, "shading_table", "colouring"), (expert, "_next_phase", "expert")):
+        monkeypatch.setattr(module, attr, counted(name, getattr(module, attr)))
+    teacher = make_expert_step(env)
+
+    def start(keys):
+        return jax.vmap(env.reset_to_episode)(keys, jnp.arange(2)), jax.vmap(lambda _: initial_carry())(keys)
+
+    def step(state, carry):
+        action, carry = jax.vmap(teacher)(state, carry)
+        return jax.vmap(env.step)(state, action), carry
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    for program in (lambda k: step(*start(k)), lambda k: step(*step(*start(k)))):
+        jax.jit(program).trace(keys)
+    # Without their own jit: traced in each program, and per step (three times a step's parts,
+    # twice the reset's); with it, at most once (none where an earlier test traced them).
+    assert all(n <= 1 for n in calls.values()), calls

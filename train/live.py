@@ -293,8 +293,11 @@ def make_live(env: ConavEnv, policy_config: PolicyConfig, live: LiveConfig, inte
         lanes = lanes._replace(env=lanes.env.replace(done=jnp.ones((n,), jnp.float32)))
         # One buffer per leaf: the iteration donates its state, and a buffer given twice is refused.
         cursor, iteration, seed = (jnp.full((), v, jnp.int32) for v in (0, 0, live.seed))
-        window = jax.eval_shape(lambda: rollout(params, lanes, cursor, seed, jax.random.PRNGKey(0), jnp.float32(1.0)))
-        window_obs = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), window[2].obs)
+        # The window holds each step's recorded_obs, time first: one step's shapes, not a
+        # trace of the whole rollout.
+        step_obs = jax.eval_shape(lambda: recorded_obs(jax.vmap(pol.predict)(jax.vmap(env.observe)(lanes.env).obs,
+                                                                            lanes.policy)[0]))
+        window_obs = jax.tree.map(lambda s: jnp.zeros((live.window_steps, *s.shape), s.dtype), step_obs)
         return TrainState(params, optimizer.init(params), lanes, cursor, iteration, seed, window_obs)
 
     def recorded_obs(inputs):

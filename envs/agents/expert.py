@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 
 from conav_jax.motion.phases import PHASE_ACTIVITY_A
@@ -30,6 +31,11 @@ from conav_jax.envs.agents.base import (
 from conav_jax.envs.mjcf import UD
 
 
+# Jitted on its own (the configs static): every program that runs the expert on episodes of
+# one shape reuses its traced jaxpr. XLA inlines it.
+_expert_action = jax.jit(expert_action, static_argnums=(0, 2))
+
+
 def make_expert_step(env, cfg: ExpertConfig = ExpertConfig()) -> Callable:
     """`(state, carry) -> (action (2,), carry)`: conav_jax.nav.expert acting on one env's brax State.
     Privileged: it reads the episode's fields, the human's upcoming positions and phase."""
@@ -43,7 +49,7 @@ def make_expert_step(env, cfg: ExpertConfig = ExpertConfig()) -> Callable:
         ts = jnp.clip(t + look, 0, b.max_steps - 1)
         maps = ExpertMaps(b.fields[s, b.field_b[ep]], b.fields[s, b.field_a[ep]], b.clearance[s], b.field_origin[s])
         at_a = b.phase[ep, ts[0]] == PHASE_ACTIVITY_A
-        return expert_action(cfg, maps, b.cell_m, state.pipeline_state.qpos, b.root_xy[ep, ts], at_a, carry)
+        return _expert_action(cfg, maps, b.cell_m, state.pipeline_state.qpos, b.root_xy[ep, ts], at_a, carry)
 
     return step
 
