@@ -162,3 +162,10 @@ def test_expert_config_rejects_inconsistent_numbers():
         ExpertConfig(stop_m=2.5)
     with pytest.raises(ValueError, match="human_lookahead_steps"):
         ExpertConfig(human_lookahead_steps=(5, 10))
+
+
+def test_expert_config_takes_any_sequence_of_lookahead_steps_as_a_hashable_tuple():
+    # The config is a static argument of the jitted expert step (envs.agents.expert): hashed.
+    listed = ExpertConfig(human_lookahead_steps=[0, 5, 10])
+    assert listed == ExpertConfig(human_lookahead_steps=(0, 5, 10)) and listed.human_lookahead_steps == (0, 5, 10)
+    assert hash(listed) == hash(ExpertConfig(human_lookahead_steps=(0, 5, 10)))

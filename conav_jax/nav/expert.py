@@ -62,6 +62,8 @@ class ExpertConfig:
     stop_m: float = 0.7
 
     def __post_init__(self):
+        # A tuple, whatever sequence was given: the config is a static (hashed) jit argument.
+        object.__setattr__(self, "human_lookahead_steps", tuple(int(s) for s in self.human_lookahead_steps))
         if not 0.0 < self.stop_m < self.slow_m:
             raise ValueError("ExpertConfig needs 0 < stop_m < slow_m")
         if self.observe_steps < 0 or self.approach_max_steps < 0:
