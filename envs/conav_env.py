@@ -71,12 +71,12 @@ from conav_jax.envs.panorama import (
 
 ROBOT_RGB = np.array([0.3, 0.3, 0.32], np.float32)
 
-# MJX's JAX pipeline and the XLA sensor as jitted functions of their own (the sensor's config
-# static): a program that calls them again (a rollout's scan, a second step, another program
-# of an env of the same shapes) reuses their traced and batched jaxprs rather than tracing
-# them anew, which is most of what building an env program costs. XLA inlines them: the
-# compiled program is the one it would be without. MuJoCo Warp and the Pallas kernels stay as
-# they are called.
+# MJX's JAX pipeline and the XLA sensor (the fast caster, the colouring) as jitted functions of
+# their own, the sensor's config static: a program that calls them again (a rollout's scan, a
+# second step, another program of an env of the same shapes) reuses their traced and batched
+# jaxprs rather than tracing them anew, which is most of what building an env program costs.
+# XLA inlines them: the compiled program is the one it would be without. MuJoCo Warp and the
+# Pallas kernels are called as they are.
 @jax.jit
 def _mjx_step(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     return mjx.step(m, d)
@@ -88,7 +88,7 @@ def _mjx_forward(m: mjx.Model, d: mjx.Data) -> mjx.Data:
 
 
 _fast_depth_ids = jax.jit(fast_depth_ids, static_argnums=0)
-_shade = jax.jit(shade, static_argnums=0)
+_xla_shade = jax.jit(shade, static_argnums=0)
 
 
 class BankView:
@@ -474,9 +474,8 @@ class ConavEnv(Env):
         if cfg.materials == "flat":
             return colourise(depth, ids, self._geom_rgb(episode))
         cam = jnp.array([d.qpos[0], d.qpos[1], self.task.camera_height_m])
-        xla = resolve_sensor_kind(cfg.kind) != "pallas"  # the XLA colouring (`shade`), not the kernel's
-        return (_shade if xla else shade)(cfg, cam, d.qpos[2], depth, ids, self._scene_geometry(d, episode),
-                                          self._geom_material(episode))
+        colour = shade if cfg.kind == "pallas" else _xla_shade  # the kind is resolved (__init__)
+        return colour(cfg, cam, d.qpos[2], depth, ids, self._scene_geometry(d, episode), self._geom_material(episode))
 
     def panorama(self, d: mjx.Data, episode: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(depth (H, W) metres, geom ids (H, W)) of the robot's camera in data `d` from the
@@ -489,8 +488,8 @@ class ConavEnv(Env):
         if cfg.kind == "reference":
             m = self._episode_model(episode, d.qpos[:2], render=True)
             return reference_depth_ids(cfg, m, d, cam, yaw, self._robot_body)
-        cast = caster_for(cfg.kind)
-        return (_fast_depth_ids if cast is fast_depth_ids else cast)(cfg, cam, yaw, self._scene_geometry(d, episode))
+        cast = _fast_depth_ids if cfg.kind == "fast" else caster_for(cfg.kind)
+        return cast(cfg, cam, yaw, self._scene_geometry(d, episode))
 
     def _scene_geometry(self, d: mjx.Data, episode: jax.Array) -> SceneGeometry:
         """The episode's boxes and the humanoid's capsules at the data's step."""
